@@ -1,0 +1,64 @@
+"""Atomic outputs: write into a temporary sibling, then rename into place."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Iterator
+
+from .errors import InputError
+
+
+def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically (a reader sees the old file or the new one)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            handle.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def write_text(path: str | os.PathLike, text: str) -> Path:
+    """Write UTF-8 ``text`` to ``path`` atomically."""
+    return write_bytes(path, text.encode("utf-8"))
+
+
+@contextlib.contextmanager
+def output_folder(path: str | os.PathLike, *, marker: str) -> Iterator[Path]:
+    """Yield a temporary folder that becomes ``path`` when the block ends without error.
+
+    An existing ``path`` is replaced only if it holds ``marker`` (a file an earlier run of the
+    same command wrote) or is empty; anything else is refused, so user files are never lost.
+    On error the temporary folder is removed and ``path`` is left as it was.
+    """
+    path = Path(path)
+    if path.exists():
+        if not path.is_dir():
+            raise InputError("exists and is not a folder", field="--out", value=str(path))
+        if any(path.iterdir()) and not (path / marker).exists():
+            raise InputError(f"folder exists and is not an fsswarp output (no {marker}); "
+                             "choose another --out", field="--out", value=str(path))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
+    try:
+        yield tmp
+        if path.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old", dir=path.parent))
+            os.replace(path, old / "x")
+            os.replace(tmp, path)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
