@@ -1,0 +1,158 @@
+"""The rig: view poses in the world and relative to the reference view (DESIGN §2).
+
+World frame: origin on the sea surface, +Z up (the surface is z = 0). Every view shares the
+sonar depth D (m below the surface) and tilt β (rad, positive = pitched up toward the
+surface); view m adds known offsets. ``R_m^W = Rz(ψ_m) · Rx(β + δβ_m) · Ry(ω_m)`` and
+``s_m = (x_m, y_m, -(D + δD_m))``. Relative poses map view-frame points into the reference
+frame: ``P_ref = R_m @ P_view + t_m``; they change with β.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import InputError
+
+
+def rotation_x(angle) -> np.ndarray:
+    """(..., 3, 3) right-handed rotation about +X; pitches +Y up toward +Z for angle > 0."""
+    c, s = np.cos(angle), np.sin(angle)
+    o, i = np.zeros_like(c), np.ones_like(c)
+    return np.stack([np.stack([i, o, o], -1), np.stack([o, c, -s], -1), np.stack([o, s, c], -1)], -2)
+
+
+def rotation_y(angle) -> np.ndarray:
+    """(..., 3, 3) right-handed rotation about +Y (the viewing axis); turns +X down for angle > 0."""
+    c, s = np.cos(angle), np.sin(angle)
+    o, i = np.zeros_like(c), np.ones_like(c)
+    return np.stack([np.stack([c, o, s], -1), np.stack([o, i, o], -1), np.stack([-s, o, c], -1)], -2)
+
+
+def rotation_z(angle) -> np.ndarray:
+    """(..., 3, 3) right-handed rotation about +Z; turns +Y toward -X for angle > 0."""
+    c, s = np.cos(angle), np.sin(angle)
+    o, i = np.zeros_like(c), np.ones_like(c)
+    return np.stack([np.stack([c, -s, o], -1), np.stack([s, c, o], -1), np.stack([o, o, i], -1)], -2)
+
+
+@dataclass(frozen=True)
+class View:
+    """One sonar view's known pose values (radians, metres) and its image file.
+
+    position : (x, y) horizontal position in the world frame (m)
+    heading, roll : ψ and ω (rad); depth_offset, tilt_offset : δD (m) and δβ (rad)
+    optimize : whether the view takes part in the optimization (else a held-out view)
+    """
+
+    name: str
+    position: tuple[float, float] = (0.0, 0.0)
+    heading: float = 0.0
+    roll: float = 0.0
+    depth_offset: float = 0.0
+    tilt_offset: float = 0.0
+    optimize: bool = True
+    image: str | None = None
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not self.name or not _safe_name(self.name):
+            raise InputError("must be a non-empty name of letters, digits, '-', '_' or '.'",
+                             field="views.name", value=self.name)
+        values = (*self.position, self.heading, self.roll, self.depth_offset, self.tilt_offset)
+        if len(self.position) != 2 or not all(math.isfinite(v) for v in values):
+            raise InputError("pose values must be finite numbers", field=f"views[{self.name}]",
+                             value=values)
+
+
+@dataclass(frozen=True)
+class Rig:
+    """The views of a dataset and which one is the reference (index into ``views``)."""
+
+    views: tuple[View, ...]
+    reference: int = 0
+
+    def __post_init__(self) -> None:
+        if len(self.views) == 0:
+            raise InputError("at least one view is required", field="views", value=[])
+        names = [v.name for v in self.views]
+        duplicates = sorted({n for n in names if names.count(n) > 1})
+        if duplicates:
+            raise InputError("view names must be unique", field="views.name", value=duplicates[0])
+        if not 0 <= self.reference < len(self.views):
+            raise InputError("no such view", field="rig.reference_view", value=self.reference)
+
+    @property
+    def names(self) -> list[str]:
+        return [v.name for v in self.views]
+
+    def index(self, name: str) -> int:
+        """Index of the view called ``name``."""
+        try:
+            return self.names.index(name)
+        except ValueError:
+            raise InputError("no view of that name", field="view", value=name) from None
+
+    def _arrays(self):
+        v = self.views
+        return (np.array([x.position for x in v], dtype=np.float64),
+                np.array([x.heading for x in v]), np.array([x.roll for x in v]),
+                np.array([x.depth_offset for x in v]), np.array([x.tilt_offset for x in v]))
+
+    def world_poses(self, depth, tilt):
+        """World poses of every view for shared ``depth`` (m) and ``tilt`` (rad).
+
+        ``depth`` and ``tilt`` may be arrays of one shape G (a grid of candidates).
+        Returns ``(R, s)``: (*G, V, 3, 3) rotations view → world and (*G, V, 3) positions.
+        """
+        depth, tilt = np.broadcast_arrays(np.asarray(depth, np.float64), np.asarray(tilt, np.float64))
+        pos, heading, roll, d_off, t_off = self._arrays()
+        beta = tilt[..., None] + t_off
+        rot = rotation_z(np.broadcast_to(heading, beta.shape)) @ rotation_x(beta) @ \
+            rotation_y(np.broadcast_to(roll, beta.shape))
+        z = -(depth[..., None] + d_off)
+        s = np.concatenate([np.broadcast_to(pos, z.shape + (2,)), z[..., None]], axis=-1)
+        return rot, s
+
+    def reference_pose(self, depth, tilt):
+        """World pose of the reference frame: the reference view with zero roll.
+
+        Returns ``(R, s)`` of shapes (*G, 3, 3) and (*G, 3)."""
+        depth, tilt = np.broadcast_arrays(np.asarray(depth, np.float64), np.asarray(tilt, np.float64))
+        ref = self.views[self.reference]
+        rot = rotation_z(np.full(tilt.shape, ref.heading)) @ rotation_x(tilt + ref.tilt_offset)
+        s = np.stack([np.full(depth.shape, ref.position[0]), np.full(depth.shape, ref.position[1]),
+                      -(depth + ref.depth_offset)], axis=-1)
+        return rot, s
+
+    def relative_poses(self, depth, tilt):
+        """Every view's pose in the reference frame: ``P_ref = R @ P_view + t``.
+
+        ``R_m = (R_ref^W)ᵀ R_m^W`` and ``t_m = (R_ref^W)ᵀ (s_m - s_ref)``; both depend on β.
+        Returns ``(R, t)``: (*G, V, 3, 3) and (*G, V, 3)."""
+        rot_w, s_w = self.world_poses(depth, tilt)
+        rot_ref, s_ref = self.reference_pose(depth, tilt)
+        rt = np.swapaxes(rot_ref, -1, -2)[..., None, :, :]
+        return rt @ rot_w, (rt @ (s_w - s_ref[..., None, :])[..., None])[..., 0]
+
+
+def world_to_reference(points, rig: Rig, depth: float, tilt: float) -> np.ndarray:
+    """(..., 3) world points expressed in the reference frame for (depth, tilt)."""
+    rot, s = rig.reference_pose(depth, tilt)
+    return (np.asarray(points, np.float64) - s) @ rot
+
+
+def reference_to_world(points, rig: Rig, depth: float, tilt: float) -> np.ndarray:
+    """(..., 3) reference-frame points expressed in the world frame for (depth, tilt)."""
+    rot, s = rig.reference_pose(depth, tilt)
+    return np.asarray(points, np.float64) @ rot.T + s
+
+
+def to_view(points, rotation, translation) -> np.ndarray:
+    """(..., 3) reference-frame points in a view frame: ``Rᵀ (P - t)``."""
+    return (np.asarray(points, np.float64) - translation) @ rotation
+
+
+def _safe_name(name: str) -> bool:
+    return all(ch.isalnum() or ch in "-_." for ch in name) and not name.startswith(".")

@@ -1,0 +1,329 @@
+"""Sonar, rig and sea-surface geometry against closed forms and properties (DESIGN §2–3)."""
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
+
+from fsswarp.errors import InputError
+from fsswarp.rig import (Rig, View, reference_to_world, rotation_x, rotation_y, rotation_z,
+                         to_view, world_to_reference)
+from fsswarp.sonar import SonarSpec, fan_xy, from_polar, scan_convert, to_polar
+from fsswarp.surface import (apparent_returns, mirror_points, mirror_vectors, surface_in_reference,
+                             surface_in_views)
+
+finite = dict(allow_nan=False, allow_infinity=False)
+coords = st.floats(-5, 5, **finite)
+point = st.tuples(coords, coords, coords).map(np.array)
+depths = st.floats(0.1, 2.0, **finite)
+tilts = st.floats(-0.5, 0.5, **finite)
+angles = st.floats(-math.pi, math.pi, **finite)
+
+
+def distorted_sonar(beams=48):
+    """A sonar with a cubic (lens-like) beam-angle table."""
+    u = np.linspace(-1, 1, beams)
+    return SonarSpec(beams=beams, bins=200, azimuth_fov=2 * 0.25, beam_angles=0.25 * (0.8 * u + 0.2 * u**3))
+
+
+# --- sonar -------------------------------------------------------------------------------
+
+@given(st.floats(0.01, 50, **finite), st.floats(-3.1, 3.1, **finite), st.floats(-1.5, 1.5, **finite))
+def test_polar_round_trip(rng, theta, phi):
+    p = from_polar(rng, theta, phi)
+    r2, t2, f2 = to_polar(p)
+    assert r2 == pytest.approx(rng, rel=1e-12)
+    assert t2 == pytest.approx(theta, abs=1e-9)
+    assert f2 == pytest.approx(phi, abs=1e-9)
+
+
+def test_polar_closed_form():
+    # eq. (1): a point 2 m ahead, 1 m right, 0.5 m up
+    r, theta, phi = to_polar([1.0, 2.0, 0.5])
+    assert r == pytest.approx(math.sqrt(5.25))
+    assert theta == pytest.approx(math.atan2(1, 2))
+    assert phi == pytest.approx(math.atan2(0.5, math.sqrt(5)))
+
+
+def test_linear_beams_and_bins_follow_eq2():
+    s = SonarSpec()  # 96 beams, ±14.4°, 512 bins over 1-3 m
+    assert s.beam_centres[0] == pytest.approx(-math.radians(14.4))
+    assert s.beam_centres[-1] == pytest.approx(math.radians(14.4))
+    assert np.diff(s.beam_centres) == pytest.approx(np.full(95, math.radians(28.8) / 95))
+    assert s.bin_ranges[0] == 1.0 and s.bin_ranges[-1] == pytest.approx(3.0)
+    assert s.range_step == pytest.approx(2.0 / 511)
+    b, B, inside = s.beam_bin(s.beam_centres[17], s.bin_ranges[300])
+    assert (int(b), int(B), bool(inside)) == (17, 300, True)
+
+
+@pytest.mark.parametrize("sonar", [SonarSpec(), distorted_sonar()], ids=["linear", "table"])
+@given(frac=st.floats(-3, 99, **finite))
+@settings(max_examples=60)
+def test_beam_coordinate_round_trip(sonar, frac):
+    assert sonar.beam_coordinate(sonar.beam_angle(frac)) == pytest.approx(frac, abs=1e-9)
+
+
+def test_beam_table_centres_and_edges():
+    s = distorted_sonar()
+    np.testing.assert_allclose(s.beam_coordinate(s.beam_angles), np.arange(48), atol=1e-12)
+    # returns half a beam beyond the outer centres are dropped
+    c = s.beam_angles
+    _, _, inside = s.beam_bin([c[0] - 0.51 * (c[1] - c[0]), c[-1] + 0.51 * (c[-1] - c[-2])], [2.0, 2.0])
+    assert not inside.any()
+
+
+def test_out_of_window_returns_are_dropped():
+    s = SonarSpec()
+    _, _, inside = s.beam_bin([0.0, 0.0, 0.0, math.radians(15)], [0.99, 3.01, 2.0, 2.0])
+    assert inside.tolist() == [False, False, True, False]
+
+
+def test_scan_conversion_places_a_return_at_eq3():
+    s = SonarSpec(beams=32, bins=128)
+    image = np.zeros((128, 32), np.float32)
+    image[90, 5] = 1.0
+    fan, (x0, x1, y0, y1) = scan_convert(image, s, pixel_m=0.005, fill=0.0)
+    row, col = np.unravel_index(np.argmax(fan), fan.shape)
+    x = x0 + (col + 0.5) * 0.005
+    y = y1 - (row + 0.5) * 0.005
+    ex, ey = fan_xy(s.beam_centres[5], s.bin_ranges[90])
+    assert math.hypot(x - ex, y - ey) < 0.0075
+    assert fan.dtype == np.float32 and np.all(np.isfinite(fan))
+
+
+@pytest.mark.parametrize("kwargs, field", [
+    (dict(beams=0), "sonar.beams"),
+    (dict(beams=2.5), "sonar.beams"),
+    (dict(bins=True), "sonar.bins"),
+    (dict(range_min=2.0, range_max=1.0), "sonar.range_max_m"),
+    (dict(range_min=float("nan")), "sonar.range_min_m"),
+    (dict(elevation_fov=0.0), "sonar.elevation_fov_deg"),
+    (dict(azimuth_fov=4.0), "sonar.azimuth_fov_deg"),
+    (dict(beams=3, azimuth_fov=0.2, beam_angles=np.array([0.1, 0.0, -0.1])), "sonar.beam_angles_deg"),
+    (dict(beams=3, azimuth_fov=0.2, beam_angles=np.array([-0.1, 0.0])), "sonar.beam_angles_deg"),
+    (dict(beams=3, azimuth_fov=0.5, beam_angles=np.array([-0.1, 0.0, 0.1])), "sonar.azimuth_fov_deg"),
+])
+def test_bad_sonar_is_one_line_naming_the_field(kwargs, field):
+    with pytest.raises(InputError) as err:
+        SonarSpec(**kwargs)
+    assert field in str(err.value) and "\n" not in str(err.value)
+
+
+def test_check_image():
+    s = SonarSpec(beams=4, bins=8)
+    s.check_image(np.zeros((8, 4), np.float32))
+    for bad in (np.zeros((4, 8), np.float32), np.zeros((8, 4)), np.full((8, 4), np.nan, np.float32)):
+        with pytest.raises(InputError):
+            s.check_image(bad, file="x.tiff")
+
+
+# --- rig ---------------------------------------------------------------------------------
+
+@given(angles)
+def test_rotations_are_proper_and_turn_as_documented(a):
+    for rot in (rotation_x(a), rotation_y(a), rotation_z(a)):
+        np.testing.assert_allclose(rot @ rot.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(rot) == pytest.approx(1.0)
+    if 0 < a < math.pi:
+        assert (rotation_x(a) @ [0, 1, 0])[2] > 0    # +Y pitched up toward +Z
+        assert (rotation_y(a) @ [1, 0, 0])[2] < 0    # +X (right) turned down
+        assert (rotation_z(a) @ [0, 1, 0])[0] < 0    # +Y turned toward -X
+
+
+def test_world_pose_closed_form():
+    view = View("v", position=(1.0, 2.0), heading=0.3, roll=0.4, depth_offset=0.05, tilt_offset=0.01)
+    rig = Rig((view,))
+    rot, s = rig.world_poses(0.5, 0.2)
+    expected = rotation_z(0.3) @ rotation_x(0.21) @ rotation_y(0.4)
+    np.testing.assert_allclose(rot[0], expected, atol=1e-12)
+    np.testing.assert_allclose(s[0], [1.0, 2.0, -0.55])
+    # the viewing axis of an unrolled, unturned sonar rises at the tilt angle
+    axis = Rig((View("a"),)).world_poses(0.5, 0.2)[0][0] @ [0, 1, 0]
+    assert math.atan2(axis[2], axis[1]) == pytest.approx(0.2)
+
+
+def paper_rig(n_rolls=8, standoff=2.0):
+    rolls = [math.radians(-90 + 22.5 * k) for k in range(n_rolls)]
+    views = [View(f"S{k}", (0.0, 0.0), 0.0, r) for k, r in enumerate(rolls)]
+    views += [View(f"N{k}", (0.0, 2 * standoff), math.pi, r) for k, r in enumerate(rolls)]
+    return Rig(tuple(views))
+
+
+def test_relative_pose_of_reference_is_its_roll():
+    rig = paper_rig()
+    rot, t = rig.relative_poses(0.43, 0.18)
+    for k in range(8):
+        np.testing.assert_allclose(rot[k], rotation_y(rig.views[k].roll), atol=1e-12)
+        np.testing.assert_allclose(t[k], 0.0, atol=1e-12)
+
+
+def test_tilt_moves_the_opposite_view():
+    """The N view, 4 m ahead at the same depth: t_N = Rx(β)ᵀ (0, 4, 0) = (0, 4 cos β, -4 sin β)."""
+    rig = paper_rig()
+    for beta in (0.0, 0.1, 0.2):
+        rot, t = rig.relative_poses(0.43, beta)
+        np.testing.assert_allclose(t[8], [0, 4 * math.cos(beta), -4 * math.sin(beta)], atol=1e-12)
+        # unrolled N view looks back along the reference's axis, pitched by 2β about X
+        np.testing.assert_allclose(rot[12], rotation_x(-beta) @ rotation_z(math.pi) @ rotation_x(beta), atol=1e-12)
+    t_a = rig.relative_poses(0.43, 0.18)[1][8]
+    t_b = rig.relative_poses(0.43, 0.18 + math.radians(1))[1][8]
+    assert np.linalg.norm(t_a - t_b) > 0.06      # 1° of tilt moves it about 7 cm
+    t_c = rig.relative_poses(0.50, 0.18)[1][8]   # depth alone moves nothing relative
+    np.testing.assert_allclose(t_a, t_c, atol=1e-12)
+
+
+@given(point, depths, tilts)
+@settings(max_examples=50)
+def test_relative_poses_agree_with_world_poses(p_world, depth, tilt):
+    rig = paper_rig()
+    rot_w, s_w = rig.world_poses(depth, tilt)
+    rot, t = rig.relative_poses(depth, tilt)
+    p_ref = world_to_reference(p_world, rig, depth, tilt)
+    np.testing.assert_allclose(reference_to_world(p_ref, rig, depth, tilt), p_world, atol=1e-9)
+    for m in (3, 9, 15):
+        p_view = (p_world - s_w[m]) @ rot_w[m]
+        np.testing.assert_allclose(rot[m] @ p_view + t[m], p_ref, atol=1e-9)
+        np.testing.assert_allclose(to_view(p_ref, rot[m], t[m]), p_view, atol=1e-9)
+
+
+def test_grid_of_candidates_broadcasts():
+    rig = paper_rig()
+    depths, tilts = np.meshgrid(np.linspace(0.4, 0.5, 3), np.linspace(0.1, 0.2, 4), indexing="ij")
+    rot, t = rig.relative_poses(depths, tilts)
+    assert rot.shape == (3, 4, 16, 3, 3) and t.shape == (3, 4, 16, 3)
+    one_rot, one_t = rig.relative_poses(depths[2, 1], tilts[2, 1])
+    np.testing.assert_allclose(rot[2, 1], one_rot)
+    np.testing.assert_allclose(t[2, 1], one_t)
+    n, d = surface_in_views(rig, depths, tilts)
+    assert n.shape == (3, 4, 16, 3) and d.shape == (3, 4, 16)
+
+
+def test_rig_errors():
+    with pytest.raises(InputError, match="unique"):
+        Rig((View("a"), View("a")))
+    with pytest.raises(InputError):
+        Rig(())
+    with pytest.raises(InputError):
+        View("a", heading=float("nan"))
+    with pytest.raises(InputError):
+        View("../evil")
+
+
+# --- surface -----------------------------------------------------------------------------
+
+@given(depths, tilts)
+def test_surface_in_reference_closed_form(depth, tilt):
+    n, d = surface_in_reference(paper_rig(), depth, tilt)
+    np.testing.assert_allclose(n, [0, math.sin(tilt), math.cos(tilt)], atol=1e-12)
+    assert d == pytest.approx(depth)
+
+
+@given(depths, tilts, st.floats(-0.2, 0.2, **finite))
+@settings(max_examples=50)
+def test_surface_in_views_is_the_world_plane(depth, tilt, depth_offset):
+    views = tuple(View(f"v{k}", (0.3 * k, 1.0 - k), 0.7 * k, 0.4 * k - 1, depth_offset * (k % 2), 0.02 * k)
+                  for k in range(4))
+    rig = Rig(views, reference=1)
+    n, d = surface_in_views(rig, depth, tilt)
+    rot_w, s_w = rig.world_poses(depth, tilt)
+    for m, view in enumerate(views):
+        # the distance from each sonar to the surface is its own depth
+        assert d[m] == pytest.approx(depth + view.depth_offset, abs=1e-9)
+        # world points with z = 0 satisfy the view-frame plane equation
+        for xy in ((0.0, 0.0), (1.5, -2.0)):
+            p_view = (np.array([*xy, 0.0]) - s_w[m]) @ rot_w[m]
+            assert float(n[m] @ p_view) == pytest.approx(d[m], abs=1e-9)
+
+
+@given(point, st.tuples(coords, coords, coords), st.floats(-3, 3, **finite))
+def test_mirror_is_an_involution(p, raw_normal, offset):
+    n = np.array(raw_normal)
+    if np.linalg.norm(n) < 1e-3:
+        n = np.array([0.0, 0.0, 1.0])
+    n = n / np.linalg.norm(n)
+    q = mirror_points(p, n, offset)
+    np.testing.assert_allclose(mirror_points(q, n, offset), p, atol=1e-9)
+    assert float(n @ q - offset) == pytest.approx(-float(n @ p - offset), abs=1e-9)
+    v = mirror_vectors(p, n)
+    assert np.linalg.norm(v) == pytest.approx(np.linalg.norm(p))
+    np.testing.assert_allclose(mirror_vectors(v, n), p, atol=1e-9)
+
+
+def test_apparent_returns_closed_form():
+    """Level sonar (β = 0) at depth 0.5 m, point 2 m ahead, 0.1 m above the sonar."""
+    n, d = np.array([0.0, 0.0, 1.0]), 0.5
+    r = apparent_returns(np.array([0.0, 2.0, 0.1]), n, d)
+    direct, surface = math.hypot(2.0, 0.1), math.hypot(2.0, 0.9)
+    assert r["object"][1] == pytest.approx(direct)
+    assert r["ghost"][1] == pytest.approx(0.5 * (direct + surface))
+    assert r["mirror"][1] == pytest.approx(0.5 * (direct + surface))
+    assert r["mirror2"][1] == pytest.approx(surface)
+    for name in r:
+        assert r[name][0] == pytest.approx(0.0)
+
+
+below = st.tuples(st.floats(-1.0, 1.0, **finite), st.floats(0.5, 3.0, **finite), st.floats(0.01, 0.6, **finite))
+
+
+@given(below, depths, tilts)
+def test_ghost_is_farther_than_the_object_below_the_surface(point_spec, depth, tilt):
+    """Sonar and point below the surface: |P'| > |P|, so ghost and mirror lie behind the object."""
+    rig = Rig((View("s"),))
+    n, d = surface_in_views(rig, depth, tilt)
+    x, y, depth_below_surface = point_spec
+    # a point of the reference frame at the given depth below the surface
+    p = np.array([x, y, 0.0])
+    p = p + (d[0] - depth_below_surface - float(n[0] @ p)) * n[0]
+    r = apparent_returns(p, n[0], d[0])
+    assert r["ghost"][1] > r["object"][1]
+    assert r["mirror"][1] == pytest.approx(r["ghost"][1])
+    assert r["mirror2"][1] > r["ghost"][1]
+    assert r["ghost"][0] == r["object"][0]
+
+
+def rolled_returns(roll, depth, tilt, p_ref):
+    rig = Rig((View("ref"), View("rolled", roll=roll)))
+    rot, t = rig.relative_poses(depth, tilt)
+    n, d = surface_in_views(rig, depth, tilt)
+    return apparent_returns(to_view(p_ref, rot[1], t[1]), n[1], d[1])
+
+
+near_axis = st.tuples(st.floats(-0.05, 0.05, **finite), st.floats(1.5, 2.5, **finite),
+                      st.floats(-0.1, 0.1, **finite))
+
+
+near_surface = st.floats(0.2, 0.6, **finite)
+sensor_tilts = st.floats(math.radians(5), math.radians(15), **finite)
+
+
+@given(near_axis, near_surface, sensor_tilts)
+def test_mirror_falls_on_the_ghost_at_zero_roll(p, depth, tilt):
+    """Zero roll: the mirror stays in the point's vertical plane (same X), at the ghost's
+    range; for a level sonar it coincides exactly, and near the axis it is within one 0.3°
+    beam (the paper's sensor class: D 0.2–0.6 m, β 5–15°)."""
+    p = np.array(p)
+    rig = Rig((View("s"),))
+    n, d = surface_in_views(rig, depth, tilt)
+    assert mirror_points(p, n[0], d[0])[0] == pytest.approx(p[0], abs=1e-12)
+    r = rolled_returns(0.0, depth, tilt, p)
+    assert r["mirror"][1] == pytest.approx(r["ghost"][1])
+    assert np.sign(r["mirror"][0]) == np.sign(r["ghost"][0]) or abs(r["ghost"][0]) < 1e-12
+    assert abs(r["mirror"][0] - r["ghost"][0]) < math.radians(0.3)
+    level = rolled_returns(0.0, depth, 0.0, p)
+    assert level["mirror"][0] == pytest.approx(level["ghost"][0], abs=1e-12)
+
+
+@given(near_axis, st.floats(0.3, 1.0, **finite), st.floats(0.05, 0.3, **finite))
+def test_mirror_separates_when_rolled(p, depth, tilt):
+    """At 45° roll the surface normal gains an azimuth component: the mirror moves away from
+    the ghost by about atan(2h·sin45°·cos β / R), many beams for a point near the axis."""
+    p_ref = np.array(p)
+    r = rolled_returns(math.radians(45), depth, tilt, p_ref)
+    n, d = surface_in_reference(Rig((View("r"),)), depth, tilt)
+    h = d - float(n @ p_ref)   # the point's depth below the surface
+    assume(h > 0.1)
+    separation = abs(r["mirror"][0] - r["ghost"][0])
+    assert separation > 0.5 * math.atan(2 * h * math.sin(math.radians(45)) * math.cos(tilt) / 3.5)
+    assert separation > math.radians(3 * 0.3)   # at least three 0.3° beams
