@@ -1,0 +1,97 @@
+"""The paper's built-in scenes (DESIGN §11): targets, view sets and sonar settings.
+
+Each scene is a scene manifest (a dataset manifest with a ``[target]`` and no images). The
+sonar looks along +Y from the south position at the origin; the target sits ``STANDOFF_M``
+ahead with its top 2 cm below the surface, so that object, ghost and mirror all fall inside
+the default 1.0–3.0 m range window and the ±7° elevation aperture. The measured depth and
+tilt are off from the truth by 3–5 cm and 0.6–1°, the sensor class of the paper.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .dataset import Manifest, SurfaceEstimate, Target, Truth
+from .errors import InputError
+from .rig import Rig, View
+from .sonar import SonarSpec
+from .targets import BUILTIN_TARGETS, builtin_mesh
+
+#: Horizontal distance (m) from each sonar position to the target's centre.
+STANDOFF_M = 2.0
+#: Depth (m) of the target's top below the surface.
+TOP_DEPTH_M = 0.02
+#: The eight rolls of every position, −90° to 67.5° in steps of 22.5° (rad).
+ROLLS = tuple(math.radians(-90.0 + 22.5 * k) for k in range(8))
+#: Rolls whose mirror overlaps the object: held out of the optimization (new views).
+HELD_OUT_ROLLS_DEG = (-22.5, 0.0, 22.5)
+
+# name: (true depth m, true tilt deg, measured depth m, measured tilt deg, positions)
+_SCENES = {
+    "coral-one": (0.43, 10.3, 0.47, 11.1, "SN"),
+    "coral-two": (0.48, 11.5, 0.445, 10.8, "SN"),
+    "table": (0.45, 10.0, 0.49, 10.9, "SNEW"),
+}
+
+# position letter: (x, y) offset from the target's centre in units of STANDOFF_M, heading (rad)
+_POSITIONS = {
+    "S": ((0.0, -1.0), 0.0),
+    "N": ((0.0, 1.0), math.pi),
+    "E": ((1.0, 0.0), math.pi / 2),
+    "W": ((-1.0, 0.0), -math.pi / 2),
+}
+
+
+def builtin_scene(name: str) -> Manifest:
+    """The scene manifest of a built-in target: ``coral-one``, ``coral-two`` or ``table``."""
+    if name not in _SCENES:
+        raise InputError(f"unknown built-in scene; choose one of {', '.join(BUILTIN_TARGETS)}",
+                         field="scene", value=name)
+    depth, tilt_deg, depth0, tilt0_deg, positions = _SCENES[name]
+    height = float(builtin_mesh(name).extents[2])
+    centre = (0.0, STANDOFF_M, -(TOP_DEPTH_M + 0.5 * height))
+    views = []
+    for letter in positions:
+        (ux, uy), heading = _POSITIONS[letter]
+        xy = (centre[0] + ux * STANDOFF_M, centre[1] + uy * STANDOFF_M)
+        for roll in ROLLS:
+            roll_deg = round(math.degrees(roll), 6)
+            views.append(View(name=f"{letter}{_roll_label(roll_deg)}", position=xy, heading=heading,
+                              roll=roll, optimize=roll_deg not in HELD_OUT_ROLLS_DEG))
+    return Manifest(
+        sonar=SonarSpec(),
+        surface=SurfaceEstimate(depth=depth0, tilt=math.radians(tilt0_deg)),
+        rig=Rig(tuple(views), reference=0),
+        truth=Truth(depth=depth, tilt=math.radians(tilt_deg)),
+        target=Target(position=centre, builtin=name),
+    )
+
+
+def target_world_mesh(target: Target, *, base=None):
+    """The target mesh placed in the world frame: scaled, rotated (x, then y, then z, about
+    the mesh origin) and moved to ``target.position``. ``base`` folder resolves ``target.mesh``."""
+    import trimesh
+
+    from .rig import rotation_x, rotation_y, rotation_z
+
+    if target.builtin is not None:
+        mesh = builtin_mesh(target.builtin)
+    else:
+        path = str(target.mesh_path(base if base is not None else "."))
+        try:
+            mesh = trimesh.load_mesh(path, process=True)
+        except (OSError, ValueError) as err:
+            raise InputError(f"cannot read mesh ({err})", field="target.mesh", value=target.mesh) from None
+        if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+            raise InputError("holds no triangles", field="target.mesh", value=target.mesh)
+    rx, ry, rz = target.rotation
+    rot = rotation_z(rz) @ rotation_y(ry) @ rotation_x(rx)
+    vertices = (np.asarray(mesh.vertices) * target.scale) @ rot.T + np.asarray(target.position)
+    return trimesh.Trimesh(vertices=vertices, faces=np.asarray(mesh.faces), process=False)
+
+
+def _roll_label(roll_deg: float) -> str:
+    text = f"{abs(roll_deg):g}".replace(".", "p")
+    return ("m" if roll_deg < 0 else "p") + text if roll_deg else "0"

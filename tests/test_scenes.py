@@ -1,0 +1,86 @@
+"""The built-in scenes: view sets, placement, and that object, ghost and mirror are imaged."""
+
+import math
+
+import numpy as np
+import pytest
+
+from fsswarp.dataset import Target, load_scene, save_scene
+from fsswarp.errors import InputError
+from fsswarp.rig import to_view, world_to_reference
+from fsswarp.scenes import STANDOFF_M, TOP_DEPTH_M, builtin_scene, target_world_mesh
+from fsswarp.sonar import to_polar
+from fsswarp.surface import apparent_returns, surface_in_views
+
+
+@pytest.mark.parametrize("name, count", [("coral-one", 16), ("coral-two", 16), ("table", 32)])
+def test_view_sets_follow_the_paper(name, count):
+    scene = builtin_scene(name)
+    views = scene.rig.views
+    assert len(views) == count
+    rolls = sorted({round(math.degrees(v.roll), 6) for v in views})
+    assert rolls == [-90 + 22.5 * k for k in range(8)]
+    held = {round(math.degrees(v.roll), 6) for v in views if not v.optimize}
+    assert held == {-22.5, 0.0, 22.5}
+    assert scene.rig.views[scene.rig.reference].position == (0.0, 0.0)
+    truth, measured = scene.truth, scene.surface
+    assert 0.03 <= abs(measured.depth - truth.depth) <= 0.05
+    assert math.radians(0.6) <= abs(measured.tilt - truth.tilt) <= math.radians(1.0)
+
+
+@pytest.mark.parametrize("name", ["coral-one", "coral-two", "table"])
+def test_target_sits_just_below_the_surface_ahead_of_the_sonar(name):
+    mesh = target_world_mesh(builtin_scene(name).target)
+    lo, hi = mesh.bounds
+    assert hi[2] == pytest.approx(-TOP_DEPTH_M)
+    assert mesh.centroid[1] == pytest.approx(STANDOFF_M, abs=0.03)
+    assert mesh.is_watertight
+
+
+@pytest.mark.parametrize("name", ["coral-one", "coral-two", "table"])
+def test_object_ghost_and_mirror_fall_in_every_view(name):
+    """Every vertex lies inside the window and apertures; its ghost and mirror returns land in
+    the window; at roll 0 the mirror falls on the object, at ±67.5° it moves five beams or more."""
+    scene = builtin_scene(name)
+    sonar, rig, truth = scene.sonar, scene.rig, scene.truth
+    points = world_to_reference(target_world_mesh(scene.target).vertices, rig, truth.depth, truth.tilt)
+    rot, t = rig.relative_poses(truth.depth, truth.tilt)
+    n, d = surface_in_views(rig, truth.depth, truth.tilt)
+    for m, view in enumerate(rig.views):
+        p = to_view(points, rot[m], t[m])
+        rng, theta, phi = to_polar(p)
+        assert sonar.in_elevation(phi).all(), view.name
+        returns = apparent_returns(p, n[m], d[m])
+        for component, (az, r) in returns.items():
+            _, _, inside = sonar.beam_bin(az, r)
+            assert inside.all(), (view.name, component)
+        shift = np.degrees(np.median(np.abs(returns["mirror"][0] - returns["object"][0])))
+        roll = round(math.degrees(view.roll), 6)
+        if roll == 0:
+            assert shift < 0.3
+        if abs(roll) == 67.5:
+            assert shift > 1.5   # five 0.3° beams
+
+
+def test_scene_file_round_trip(tmp_path):
+    scene = builtin_scene("table")
+    assert load_scene(save_scene(scene, tmp_path / "table.toml")) == scene
+
+
+def test_unknown_scene_is_one_line():
+    with pytest.raises(InputError, match="reef") as err:
+        builtin_scene("reef")
+    assert "\n" not in str(err.value)
+
+
+def test_mesh_file_target_is_scaled_rotated_and_placed(tmp_path):
+    import trimesh
+
+    trimesh.creation.box(extents=(2.0, 1.0, 0.5)).export(tmp_path / "box.ply")
+    target = Target(position=(1.0, 2.0, -0.5), mesh="box.ply", scale=0.1, rotation=(0.0, 0.0, math.pi / 2))
+    mesh = target_world_mesh(target, base=tmp_path)
+    np.testing.assert_allclose(mesh.extents, [0.1, 0.2, 0.05], atol=1e-12)
+    np.testing.assert_allclose(mesh.bounds.mean(axis=0), [1.0, 2.0, -0.5], atol=1e-12)
+    (tmp_path / "bad.ply").write_text("not a mesh")
+    with pytest.raises(InputError, match="target.mesh"):
+        target_world_mesh(Target(position=(0, 0, -1), mesh="bad.ply"), base=tmp_path)
