@@ -1,0 +1,143 @@
+"""OpenCL host code behind the Backend interface: kernels from the top-level ``kernels/``.
+
+The OpenCL C sources (OpenCL 1.2, float32) ship with the wheel as ``fsswarp/kernels`` (a
+hatchling force-include of the repository's top-level ``kernels/``); an editable install
+reads them from the repository. Our own ``#include "x.h"`` lines are inlined here before
+building, because include paths are not portable across ICDs. Programs are built once per
+context and kept; pyopencl's on-disk binary cache stays on.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib.resources
+import re
+import tempfile
+import threading
+from pathlib import Path
+
+import numpy as np
+import pyopencl as cl
+from pyopencl.tools import first_arg_dependent_memoize
+
+from . import Backend, SonarConstants, _OpenCLDevice
+
+#: Options of every build. No fast-math: results must match the Warp backend.
+BUILD_OPTIONS: tuple[str, ...] = ()
+#: Work-group size the global size of a launch is rounded up to.
+GROUP = 64
+
+_INCLUDE = re.compile(r'^[ \t]*#[ \t]*include[ \t]*"([^"]+)"[ \t]*$', re.MULTILINE)
+
+
+class KernelBuildError(RuntimeError):
+    """An OpenCL program failed to build; the message names the file, device, options, the
+    build log and a saved copy of the source as built."""
+
+
+# --- sources -----------------------------------------------------------------------------------
+@functools.cache
+def kernel_dir() -> Path:
+    """The folder holding the .cl/.h sources: ``fsswarp/kernels`` in a wheel, else the
+    repository's top-level ``kernels/`` (editable install)."""
+    packaged = importlib.resources.files("fsswarp") / "kernels"
+    if packaged.is_dir():
+        return Path(str(packaged))
+    repo = Path(__file__).resolve().parents[2] / "kernels"
+    if repo.is_dir():
+        return repo
+    raise FileNotFoundError(f"fsswarp's OpenCL kernels are missing: neither {packaged} nor {repo} "
+                            "exists; reinstall fsswarp")
+
+
+@functools.cache
+def kernel_source(name: str) -> str:
+    """Source of ``kernels/<name>`` with our ``#include "x.h"`` lines inlined (once each)."""
+    return _inline(name, kernel_dir(), set())
+
+
+def _inline(name: str, folder: Path, seen: set[str]) -> str:
+    path = folder / name
+    if not path.is_file():
+        raise FileNotFoundError(f"OpenCL source {path} does not exist")
+    seen.add(name)
+    text = path.read_text(encoding="utf-8")
+
+    def include(match: re.Match) -> str:
+        header = match.group(1)
+        if header in seen:
+            return f"/* {header}: already included */"
+        body = _inline(header, folder, seen)
+        return f"/* ---- begin {header} ---- */\n{body}\n/* ---- end {header} ---- */"
+
+    return _INCLUDE.sub(include, text)
+
+
+# --- programs ----------------------------------------------------------------------------------
+@first_arg_dependent_memoize
+def program(context: cl.Context, name: str, options: tuple[str, ...] = BUILD_OPTIONS) -> cl.Program:
+    """``kernels/<name>`` built for ``context`` (memoized per context, name and options)."""
+    return build(context, kernel_source(name), options, label=name)
+
+
+def build(context: cl.Context, source: str, options: tuple[str, ...], *, label: str) -> cl.Program:
+    """Build ``source``; on failure raise KernelBuildError with the options, the build log and
+    a path to a saved copy of the source."""
+    try:
+        return cl.Program(context, source).build(options=list(options))
+    except cl.Error as err:
+        with tempfile.NamedTemporaryFile("w", prefix=f"fsswarp-{Path(label).stem}-", suffix=".cl",
+                                         delete=False, encoding="utf-8") as saved:
+            saved.write(source)
+        devices = "; ".join(d.name.strip() for d in context.devices)
+        raise KernelBuildError(
+            f"building OpenCL program {label} for {devices} failed "
+            f"(options: {' '.join(options) or 'none'}; source saved as {saved.name}):\n{err}"
+        ) from None
+
+
+# --- the backend -------------------------------------------------------------------------------
+class OpenCLBackend(Backend):
+    """One OpenCL device with its own context and queue. Create through
+    ``get_backend("opencl", device)``."""
+
+    name = "opencl"
+
+    def __init__(self, found: _OpenCLDevice):
+        self.device = found.label
+        self.is_gpu = found.is_gpu
+        self.cl_device = found.device
+        self.context = cl.Context([found.device])
+        self.queue = cl.CommandQueue(self.context)
+        # Kernel objects once: pyopencl makes a new one on every attribute access. Their
+        # arguments are state, so launches hold the lock (one backend may serve many threads).
+        self._project_kernel = cl.Kernel(program(self.context, "project.cl"), "project_points")
+        self._lock = threading.Lock()
+
+    def _input(self, array: np.ndarray) -> cl.Buffer:
+        flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
+        return cl.Buffer(self.context, flags, hostbuf=array)
+
+    def _output(self, shape: tuple[int, ...], dtype) -> tuple[np.ndarray, cl.Buffer]:
+        host = np.empty(shape, dtype)
+        return host, cl.Buffer(self.context, cl.mem_flags.WRITE_ONLY, size=host.nbytes)
+
+    def _project(self, points, rotations, translations, sonar: SonarConstants):
+        n_views, n_points = rotations.shape[0], points.shape[0]
+        beam, beam_buf = self._output((n_views, n_points), np.int32)
+        bin_, bin_buf = self._output((n_views, n_points), np.int32)
+        inside, inside_buf = self._output((n_views, n_points), np.uint8)
+        global_size = (-(-n_points // GROUP) * GROUP, n_views)
+        with self._lock:
+            self._project_kernel(
+                self.queue, global_size, None,
+                self._input(points), self._input(rotations), self._input(translations),
+                self._input(sonar.beam_table), np.int32(sonar.use_table), np.int32(n_points),
+                np.int32(sonar.beams), np.int32(sonar.bins), np.float32(sonar.half_azimuth),
+                np.float32(sonar.beam_scale), np.float32(sonar.range_min),
+                np.float32(sonar.inv_range_step), np.float32(sonar.half_elevation),
+                beam_buf, bin_buf, inside_buf)
+            for host, buf in ((beam, beam_buf), (bin_, bin_buf), (inside, inside_buf)):
+                cl.enqueue_copy(self.queue, host, buf, is_blocking=False)
+            self.queue.finish()
+        return beam, bin_, inside

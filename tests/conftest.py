@@ -1,0 +1,63 @@
+"""Device fixtures shared by the test modules.
+
+``backend`` runs a test once per backend and device: warp-cpu, opencl-cpu, and (marked
+``gpu``) warp-cuda and opencl-gpu; a device this machine lacks is skipped with the reason.
+``backend_for_label("opencl-cpu")`` gives one by label (tests comparing two backends).
+``wp_device`` runs a test once per Warp device ("cpu", and "cuda:0" marked ``gpu``). The names
+``device``, ``platform`` and ``ctx_factory`` belong to pyopencl's test helpers: do not use them.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import pytest
+
+from fsswarp.backends import describe_backends, get_backend
+
+#: Labels of the ``backend`` fixture: "<backend>-<device kind>".
+BACKEND_LABELS = [
+    pytest.param("warp-cpu", id="warp-cpu"),
+    pytest.param("opencl-cpu", id="opencl-cpu"),
+    pytest.param("warp-cuda", id="warp-cuda", marks=pytest.mark.gpu),
+    pytest.param("opencl-gpu", id="opencl-gpu", marks=pytest.mark.gpu),
+]
+
+
+@functools.cache
+def _rows() -> tuple[dict, ...]:
+    return tuple(describe_backends())
+
+
+def backend_for(label: str):
+    """The backend a label names ("warp-cpu", "opencl-gpu", ...), or skip the test."""
+    name, where = label.split("-")
+    kind = "cpu" if where == "cpu" else "gpu"
+    for row in _rows():
+        if row["backend"] == name and row["kind"] == kind and row["available"]:
+            return get_backend(name, row["device"] if name == "warp" else row["index"])
+    notes = "; ".join(r["note"] for r in _rows() if r["backend"] == name and r["note"])
+    pytest.skip(f"no {label} device here" + (f" ({notes})" if notes else ""))
+
+
+@pytest.fixture(scope="session")
+def backend_for_label():
+    """``backend_for`` as a fixture: label -> backend, or skip (for tests that need two)."""
+    return backend_for
+
+
+@pytest.fixture(scope="session", params=BACKEND_LABELS)
+def backend(request):
+    """Every backend and device kind (kernels compile once per session)."""
+    return backend_for(request.param)
+
+
+@pytest.fixture(scope="session", params=["cpu", pytest.param("cuda:0", marks=pytest.mark.gpu)])
+def wp_device(request) -> str:
+    """Every Warp device alias ("cpu", "cuda:0")."""
+    rows = [r for r in _rows() if r["backend"] == "warp" and r["available"]]
+    if not rows:
+        pytest.skip("warp-lang is not installed")
+    if request.param not in {r["device"] for r in rows}:
+        pytest.skip(f"no Warp device {request.param} here")
+    return request.param

@@ -1,0 +1,353 @@
+"""Kernel backends: the projection kernel against the NumPy oracle, Warp against OpenCL, and
+backend selection (get_backend, describe_backends).
+
+Tolerance. Kernels compute in float32, the oracle (fsswarp.rig.to_view, fsswarp.sonar.to_polar,
+SonarSpec.beam_bin, SonarSpec.in_elevation) in float64. They must agree exactly, and Warp must
+agree exactly with OpenCL, except at points that float32 cannot place: within ``MARGIN`` of a
+half-index boundary (1e-4 of an index, widened to two float32 ulps of the θ or R behind it
+where that is larger: at 3 m one ulp of R is already 6e-5 of a 3.9 mm bin), or within
+``ELEVATION_MARGIN`` of the elevation edge. Those are left out, and at least 99.9% of all
+(view, point) pairs must be compared.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import math
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import fsswarp.backends as backends
+from fsswarp.backends import describe_backends, get_backend
+from fsswarp.errors import InputError
+from fsswarp.rig import rotation_x, rotation_y, rotation_z, to_view
+from fsswarp.sonar import SonarSpec, from_polar, to_polar
+
+MARGIN = 1e-4  # index units
+ULPS = 2.0  # float32 ulps of θ or R, in index units, when larger than MARGIN
+ELEVATION_MARGIN = 1e-6  # rad, ~130 float32 ulps of W_φ
+EPS32 = 2.0**-23
+
+
+def linear_sonar() -> SonarSpec:
+    return SonarSpec()  # DIDSON-like: 96 beams, 512 bins, W_θ 14.4°, W_φ 7°, 1-3 m
+
+
+def table_sonar() -> SonarSpec:
+    """Nonuniform beam-angle table: a cubic distortion of the linear angles (denser at the
+    centre, sparser at the edges), spanning the same fan."""
+    half = math.radians(14.4)
+    u = np.linspace(-1.0, 1.0, 96)
+    return SonarSpec(beam_angles=half * (0.7 * u + 0.3 * u**3), azimuth_fov=2 * half)
+
+
+SONARS = {"linear": linear_sonar, "table": table_sonar}
+
+
+def random_scene(seed: int, n_points: int = 20_000, n_views: int = 6):
+    """Seeded points and poses: 70% of the points in and around the reference fan, 30% in a
+    box around the sonar (behind, above, below it too); view 0 is the reference (identity),
+    the others turned by heading, tilt and roll and moved by up to 0.3 m."""
+    rng = np.random.default_rng(seed)
+    near = int(0.7 * n_points)
+    fan = from_polar(rng.uniform(0.8, 3.2, near), rng.uniform(-0.35, 0.35, near),
+                     rng.uniform(-0.2, 0.2, near))
+    points = np.concatenate([fan, rng.uniform(-3.0, 3.0, (n_points - near, 3))])
+    rotations = (rotation_z(rng.uniform(-0.3, 0.3, n_views)) @ rotation_x(rng.uniform(-0.3, 0.3, n_views))
+                 @ rotation_y(rng.uniform(-1.6, 1.6, n_views)))
+    translations = rng.uniform(-0.3, 0.3, (n_views, 3))
+    rotations[0], translations[0] = np.eye(3), 0.0
+    return points, rotations, translations
+
+
+def oracle(points, rotations, translations, sonar: SonarSpec):
+    """The float64 NumPy rule: (V, P) beam, bin, inside, and which pairs float32 can decide."""
+    q = to_view(points[None], rotations, translations[:, None])  # (V, P, 3)
+    rng, theta, phi = to_polar(q)
+    beam, bin_, inside = sonar.beam_bin(theta, rng)
+    inside &= sonar.in_elevation(phi)
+    h = 1e-7
+    slope = np.abs(sonar.beam_coordinate(theta + h) - sonar.beam_coordinate(theta - h)) / (2 * h)
+    beam_margin = np.maximum(MARGIN, ULPS * EPS32 * np.abs(theta) * slope)
+    bin_margin = np.maximum(MARGIN, ULPS * EPS32 * rng / sonar.range_step)
+    decidable = ((_to_boundary(sonar.beam_coordinate(theta)) > beam_margin)
+                 & (_to_boundary(sonar.bin_coordinate(rng)) > bin_margin)
+                 & (np.abs(np.abs(phi) - sonar.half_elevation) > ELEVATION_MARGIN))
+    return beam, bin_, inside, decidable
+
+
+def _to_boundary(coordinate):
+    """Distance (index units) from a fractional coordinate to the nearest half-index boundary."""
+    shifted = coordinate + 0.5
+    return np.abs(shifted - np.round(shifted))
+
+
+def assert_equal_where(actual, expected, where, what: str) -> None:
+    bad = (actual != expected) & where
+    if bad.any():
+        v, p = np.argwhere(bad)[0]
+        pytest.fail(f"{what}: {int(bad.sum())} of {int(where.sum())} pairs differ; first at view {v}, "
+                    f"point {p}: {actual[v, p]} != {expected[v, p]}")
+
+
+# --- the projection kernel --------------------------------------------------------------------
+@pytest.mark.parametrize("sonar_kind", SONARS)
+def test_project_matches_numpy(backend, sonar_kind):
+    sonar = SONARS[sonar_kind]()
+    points, rotations, translations = random_scene(seed=7)
+    beam, bin_, inside = backend.project(points, rotations, translations, sonar)
+    want_beam, want_bin, want_inside, decidable = oracle(points, rotations, translations, sonar)
+
+    assert decidable.mean() >= 0.999
+    assert 0.05 < want_inside.mean() < 0.95  # the scene exercises both outcomes
+    assert_equal_where(beam, want_beam, decidable, "beam")
+    assert_equal_where(bin_, want_bin, decidable, "bin")
+    assert_equal_where(inside, want_inside, decidable, "inside")
+
+
+@pytest.mark.parametrize("sonar_kind", SONARS)
+@pytest.mark.parametrize("pair", [
+    pytest.param(("warp-cpu", "opencl-cpu"), id="warp-cpu-vs-opencl-cpu"),
+    pytest.param(("warp-cuda", "opencl-cpu"), id="warp-cuda-vs-opencl-cpu", marks=pytest.mark.gpu),
+    pytest.param(("warp-cpu", "opencl-gpu"), id="warp-cpu-vs-opencl-gpu", marks=pytest.mark.gpu),
+])
+def test_warp_matches_opencl(backend_for_label, pair, sonar_kind):
+    """Identical outputs on the same inputs, except the pairs float32 cannot decide."""
+    warp, opencl = (backend_for_label(label) for label in pair)
+    sonar = SONARS[sonar_kind]()
+    points, rotations, translations = random_scene(seed=11)
+    *_, decidable = oracle(points, rotations, translations, sonar)
+    assert decidable.mean() >= 0.999
+    for what, a, b in zip(("beam", "bin", "inside"), warp.project(points, rotations, translations, sonar),
+                          opencl.project(points, rotations, translations, sonar)):
+        assert_equal_where(a, b, decidable, what)
+
+
+@pytest.mark.parametrize("sonar_kind", SONARS)
+def test_project_beam_and_bin_centres(backend, sonar_kind):
+    """Points at beam/bin centres land exactly there, in any view pose; the elevation and range
+    window and the fan's sides decide ``inside``."""
+    sonar = SONARS[sonar_kind]()
+    beams = np.array([0, 1, 47, 48, 94, 95, -3, 99, 0, 50])
+    bins = np.array([0, 511, 256, 3, 100, 400, 10, 10, -2, 520])
+    phi = np.zeros(10)
+    phi[3], phi[4] = 0.9 * sonar.half_elevation, -1.1 * sonar.half_elevation
+    view = from_polar(sonar.bin_range(bins), sonar.beam_angle(beams), phi)
+    rotation = rotation_z(0.4) @ rotation_x(-0.2) @ rotation_y(1.0)
+    translation = np.array([0.5, -1.0, 0.25])
+    points = view @ rotation.T + translation  # P_ref = R P_view + t
+
+    beam, bin_, inside = backend.project(points, rotation[None], translation[None], sonar)
+    np.testing.assert_array_equal(beam[0], beams)
+    np.testing.assert_array_equal(bin_[0], bins)
+    np.testing.assert_array_equal(inside[0], [1, 1, 1, 1, 0, 1, 0, 0, 0, 0])
+
+
+def test_project_behind_and_far(backend):
+    """A point behind the sonar extrapolates outside the fan; absurd ranges clamp, not wrap."""
+    sonar = linear_sonar()
+    points = np.array([[0.0, -2.0, 0.0], [0.0, 1e12, 0.0], [0.0, 0.0, 0.5]])
+    beam, bin_, inside = backend.project(points, np.eye(3)[None], np.zeros((1, 3)), sonar)
+    assert not inside.any()
+    assert beam[0, 0] > sonar.beams  # θ = π: far right of the fan
+    assert bin_[0, 1] == 2**30
+    assert bin_[0, 2] == sonar.beam_bin(0.0, 0.5)[1] == -128  # (0.5 - 1) / δR = -127.75
+
+
+def test_project_output_contract(backend):
+    sonar = linear_sonar()
+    points, rotations, translations = random_scene(seed=3, n_points=100, n_views=3)
+    beam, bin_, inside = backend.project(points.tolist(), rotations.astype(np.float32),
+                                         translations, sonar)
+    for array, dtype in ((beam, np.int32), (bin_, np.int32), (inside, np.bool_)):
+        assert array.shape == (3, 100) and array.dtype == dtype and array.flags.c_contiguous
+    again = backend.project(points, rotations, translations, sonar)
+    for a, b in zip((beam, bin_, inside), again):
+        np.testing.assert_array_equal(a, b)
+
+    ints = backend.project(np.array([[0, 2, 0]]), np.eye(3, dtype=int)[None], np.zeros((1, 3), int), sonar)
+    assert ints[0].tolist() == [[48]] and ints[1].tolist() == [[256]]  # θ = 0 rounds up: 47.5 -> 48
+
+    for n_points, n_views in ((0, 3), (5, 0)):
+        beam, bin_, inside = backend.project(np.zeros((n_points, 3)), np.zeros((n_views, 3, 3)),
+                                             np.zeros((n_views, 3)), sonar)
+        assert beam.shape == bin_.shape == inside.shape == (n_views, n_points)
+        assert (beam.dtype, inside.dtype) == (np.int32, np.bool_)
+
+
+@pytest.mark.parametrize("args, error, text", [
+    ({"points": np.zeros((4, 2))}, ValueError, "points must have shape (P, 3), got (4, 2)"),
+    ({"points": np.zeros(3)}, ValueError, "got (3,)"),
+    ({"points": [[0, 0, 0], [1, 2]]}, ValueError, "points must be an array"),
+    ({"points": np.zeros((4, 3), complex)}, TypeError, "dtype complex128"),
+    ({"points": np.array([["a", "b", "c"]])}, TypeError, "points must hold real numbers"),
+    ({"points": np.array([[0, np.nan, 0]])}, ValueError, "got nan at index (0, 1)"),
+    ({"points": np.array([[0, 1e39, 0]])}, ValueError, "finite in float32, got inf"),
+    ({"rotations": np.zeros((2, 3))}, ValueError, "rotations must have shape (V, 3, 3), got (2, 3)"),
+    ({"translations": np.zeros((3, 3))}, ValueError, "2 rotations and 3 translations"),
+    ({"translations": np.zeros((2, 3), bool)}, TypeError, "dtype bool"),
+    ({"sonar": "didson"}, TypeError, "got str"),
+])
+def test_project_rejects_bad_input(backend, args, error, text):
+    call = {"points": np.zeros((4, 3)), "rotations": np.tile(np.eye(3), (2, 1, 1)),
+            "translations": np.zeros((2, 3)), "sonar": linear_sonar()}
+    call.update(args)
+    with pytest.raises(error) as info:
+        backend.project(**call)
+    assert text in str(info.value)
+
+
+# --- selection --------------------------------------------------------------------------------
+def test_backend_attributes(backend):
+    assert backend.name in ("warp", "opencl")
+    assert isinstance(backend.device, str) and backend.device
+    assert isinstance(backend.is_gpu, bool)
+    if backend.name == "opencl":
+        assert ": " in backend.device  # "<platform>: <device name>"
+
+
+def test_warp_devices(wp_device):
+    backend = get_backend("warp", wp_device)
+    assert (backend.name, backend.device, backend.is_gpu) == ("warp", wp_device, wp_device != "cpu")
+    assert get_backend("warp", wp_device) is backend
+    if wp_device.startswith("cuda"):
+        assert get_backend("warp", "cuda") is get_backend("warp", "cuda:0")
+
+
+def test_get_backend_is_cached():
+    auto = get_backend()
+    assert get_backend("auto") is auto
+    assert get_backend(auto.name, auto.device) is auto
+    assert get_backend("warp", "cpu") is get_backend("WARP", " cpu ")
+    rows = [r for r in describe_backends() if r["backend"] == "opencl" and r["available"]]
+    if rows:
+        assert get_backend("opencl", rows[0]["index"]) is get_backend("opencl", rows[0]["device"].upper())
+        assert get_backend("opencl", str(rows[0]["index"])) is get_backend("opencl", rows[0]["index"])
+
+
+@pytest.mark.parametrize("name", ["cuda", "numpy", "", 3, None])
+def test_get_backend_unknown_name(name):
+    with pytest.raises(InputError) as info:
+        get_backend(name)
+    message = str(info.value)
+    assert "\n" not in message and "--backend" in message and "auto, warp, opencl" in message
+
+
+@pytest.mark.parametrize("name, device, available", [
+    ("warp", "cuda:7", "available: cpu"),
+    ("warp", "gpu", "cpu, cuda or cuda:N"),
+    ("opencl", "nosuchdevice", "available: 0 = "),
+    ("opencl", 99, "available: 0 = "),
+    ("auto", "nosuchdevice", "available: 0 = "),
+])
+def test_get_backend_unknown_device(name, device, available):
+    if name == "warp" and device == "cuda:7" and any(
+            r["device"] == "cuda:7" for r in describe_backends()):
+        pytest.skip("this machine has a cuda:7")
+    if name != "warp" and not any(r["backend"] == "opencl" and r["available"] for r in describe_backends()):
+        pytest.skip("no OpenCL device here")
+    with pytest.raises(InputError) as info:
+        get_backend(name, device)
+    message = str(info.value)
+    assert "\n" not in message
+    assert message.startswith(f"--device = {device!r}: ")
+    assert available in message
+
+
+@pytest.mark.parametrize("package, name, hint", [
+    ("warp", "warp", "pip install warp-lang"),
+    ("pyopencl", "opencl", 'pip install "fsswarp[pocl]"'),
+])
+def test_missing_package(monkeypatch, package, name, hint):
+    """A missing package is an InputError naming the option and the install command, and a
+    row of describe_backends (which never raises)."""
+    monkeypatch.setitem(sys.modules, package, None)  # import raises ImportError
+    monkeypatch.setattr(backends, "_CACHE", {})
+    with pytest.raises(InputError) as info:
+        get_backend(name)
+    message = str(info.value)
+    assert "\n" not in message and message.startswith(f"--backend = {name!r}: ") and hint in message
+
+    rows = describe_backends()
+    missing = [r for r in rows if r["backend"] == name]
+    assert len(missing) == 1 and not missing[0]["available"] and hint in missing[0]["note"]
+    assert sum(r["auto"] for r in rows) <= 1
+    assert all(r["backend"] != name for r in rows if r["auto"])
+
+
+def test_no_opencl_platform(monkeypatch):
+    cl = pytest.importorskip("pyopencl")
+    monkeypatch.setattr(cl, "get_platforms", lambda: [])
+    monkeypatch.setattr(backends, "_CACHE", {})
+    with pytest.raises(InputError, match=r"^--backend = 'opencl': no OpenCL platform found.*fsswarp\[pocl\]"):
+        get_backend("opencl")
+    rows = [r for r in describe_backends() if r["backend"] == "opencl"]
+    assert len(rows) == 1 and "no OpenCL platform" in rows[0]["note"]
+
+
+def test_describe_backends():
+    rows = describe_backends()
+    keys = set(rows[0])
+    assert all(set(r) == keys for r in rows)
+    assert any(r["backend"] == "warp" and r["device"] == "cpu" and r["available"] for r in rows)
+    try:
+        importlib.metadata.version("pocl-binary-distribution")
+    except importlib.metadata.PackageNotFoundError:
+        pass
+    else:  # fsswarp[pocl] installed: its CPU device must be found
+        assert any(r["backend"] == "opencl" and r["kind"] == "cpu" and r["available"]
+                   and "portable computing language" in r["platform"].lower() for r in rows)
+
+    picked = [r for r in rows if r["auto"]]
+    assert len(picked) == 1
+    auto = get_backend("auto")
+    assert (picked[0]["backend"], picked[0]["device"]) == (auto.name, auto.device)
+    cuda = any(r["backend"] == "warp" and r["kind"] == "gpu" and r["available"] for r in rows)
+    cpu_opencl = any(r["backend"] == "opencl" and r["kind"] == "cpu" and r["available"] for r in rows)
+    if cuda:
+        assert (auto.name, auto.device) == ("warp", "cuda:0")
+    elif cpu_opencl:
+        assert auto.name == "opencl" and not auto.is_gpu
+    else:
+        assert (auto.name, auto.device) == ("warp", "cpu")
+
+
+def test_import_does_not_import_warp_or_pyopencl():
+    code = ("import sys, fsswarp.backends; "
+            "print(sorted(m for m in ('warp', 'pyopencl') if m in sys.modules))")
+    env = dict(os.environ, PYTHONWARNINGS="error")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env)
+    assert out.stdout.strip() == "[]"
+
+
+# --- OpenCL sources ----------------------------------------------------------------------------
+def test_kernel_sources_inline_our_headers():
+    pytest.importorskip("pyopencl")
+    from fsswarp.backends.opencl_backend import kernel_dir, kernel_source
+
+    assert {"project.cl", "sonar.h"} <= {p.name for p in kernel_dir().iterdir()}
+    source = kernel_source("project.cl")
+    assert '#include "' not in source
+    assert source.count("float fss_beam_coordinate(") == 1
+    assert "__kernel void project_points(" in source
+
+
+def test_build_error_names_options_and_saved_source(backend_for_label):
+    opencl = backend_for_label("opencl-cpu")
+    from fsswarp.backends.opencl_backend import KernelBuildError, build
+
+    source = "__kernel void broken(__global float *x) { x[0] = undeclared_name; }\n"
+    with pytest.raises(KernelBuildError) as info:
+        build(opencl.context, source, ("-DFSSWARP_TEST=1",), label="broken.cl")
+    message = str(info.value)
+    assert "broken.cl" in message and "-DFSSWARP_TEST=1" in message
+    saved = message.split("source saved as ")[1].split(")")[0]
+    try:
+        with open(saved, encoding="utf-8") as handle:
+            assert handle.read() == source
+    finally:
+        os.unlink(saved)
