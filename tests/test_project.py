@@ -1,0 +1,73 @@
+"""The project as a user meets it: README quick start, CI script, wheel contents, CLI basics."""
+
+import re
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def quick_start_commands():
+    """The command lines of the README's quick-start block."""
+    text = (ROOT / "README.md").read_text()
+    block = re.search(r"## Quick start.*?```(?:bash|sh)?\n(.*?)```", text, re.S)
+    assert block, "README.md has no '## Quick start' code block"
+    return [line for line in block.group(1).splitlines() if line.strip() and not line.startswith("#")]
+
+
+def test_quick_start_is_two_commands_and_ci_runs_the_test_one():
+    commands = quick_start_commands()
+    assert len(commands) == 2
+    assert "fsswarp " in commands[0]
+    ci_lines = [line for line in (ROOT / ".ci/run").read_text().splitlines()
+                if line.strip() and not line.startswith(("#", "set ", "cd "))]
+    assert ci_lines == [commands[1]]
+    assert "pytest" in commands[1]
+
+
+def test_wheel_ships_the_kernel_sources(tmp_path):
+    """The wheel carries kernels/ as fsswarp/kernels (hatchling force-include)."""
+    subprocess.run([sys.executable, "-m", "build", "--wheel", "--no-isolation", "--outdir", str(tmp_path), str(ROOT)],
+                   check=True, capture_output=True)
+    wheel = next(tmp_path.glob("fsswarp-*.whl"))
+    names = set(zipfile.ZipFile(wheel).namelist())
+    sources = sorted(p.name for p in (ROOT / "kernels").iterdir() if p.suffix in (".cl", ".h"))
+    assert sources, "kernels/ holds no OpenCL sources"
+    for name in sources:
+        assert f"fsswarp/kernels/{name}" in names
+    assert "fsswarp/cli.py" in names
+
+
+def run_cli(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "fsswarp", *args], capture_output=True, text=True, cwd=cwd)
+
+
+def test_help_explains_every_command():
+    done = run_cli("--help")
+    assert done.returncode == 0
+    for command in ("info", "check", "scene"):
+        assert command in done.stdout
+    for command in ("info", "check", "scene"):
+        sub = run_cli(command, "--help")
+        assert sub.returncode == 0 and "Usage" in sub.stdout
+
+
+@pytest.mark.parametrize("args, needle", [
+    (("nosuchcommand",), "nosuchcommand"),
+    (("--backend", "cuda-magic", "info"), "--backend"),
+    (("check", "no/such/path"), "no/such/path"),
+    (("scene", "reef", "--out", "x.toml"), "reef"),
+    (("scene", "coral-one", "--out", "x.txt"), "x.txt"),
+    (("--backend", "warp", "--device", "cuda:7", "info"), "cuda:7"),
+    (("--backend", "opencl", "--device", "nosuchdevice", "info"), "nosuchdevice"),
+])
+def test_user_mistakes_exit_2_with_one_line(tmp_path, args, needle):
+    done = run_cli(*args, cwd=tmp_path)
+    assert done.returncode == 2, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and needle in lines[0] and "Traceback" not in done.stderr
+    assert list(tmp_path.iterdir()) == []
