@@ -154,6 +154,80 @@ class Backend(abc.ABC):
         arrays with P, V >= 1. Returns (V, P) int32 beam, int32 bin, uint8 inside (0 or 1)."""
 
 
+    # --- ray casting and image synthesis ------------------------------------------------------
+    def load_mesh(self, vertices, faces) -> Any:
+        """Upload a triangle mesh once for many launches; returns an opaque handle.
+
+        vertices : (Nv, 3) float, faces : (Nf, 3) int, indices into vertices (Nf >= 1)
+        The handle keeps the device copy (Warp: ``wp.Mesh``; OpenCL: a flattened BVH)."""
+        verts = _float32_array("vertices", vertices, ("Nv", 3))
+        tris = np.asarray(faces)
+        if tris.ndim != 2 or tris.shape[1] != 3 or tris.shape[0] == 0 or tris.dtype.kind not in "iu":
+            raise ValueError(f"faces must be a non-empty (Nf, 3) integer array, got {tris.shape} {tris.dtype}")
+        if tris.min() < 0 or tris.max() >= verts.shape[0]:
+            raise ValueError(f"faces index vertices 0..{verts.shape[0] - 1}, got {tris.min()}..{tris.max()}")
+        return self._load_mesh(verts, np.ascontiguousarray(tris, dtype=np.int32))
+
+    def cast_rays(self, mesh, origins, directions, max_distance: float = 1e6):
+        """First hit of every ray: ``(distance, face)``, (R,) float32 and (R,) int32.
+
+        origins : (R, 3) float, directions : (R, 3) float unit vectors
+        A ray that hits nothing within ``max_distance`` gives distance inf and face -1.
+        Watertight: a ray through a shared edge or vertex never leaks through the mesh."""
+        org = _float32_array("origins", origins, ("R", 3))
+        dirs = _float32_array("directions", directions, ("R", 3))
+        if org.shape != dirs.shape:
+            raise ValueError(f"origins and directions must have the same shape, got {org.shape} and {dirs.shape}")
+        if org.shape[0] == 0:
+            return np.zeros(0, np.float32), np.zeros(0, np.int32)
+        return self._cast_rays(mesh, org, dirs, float(max_distance))
+
+    def render(self, mesh, sonar: SonarSpec, rotations, translations, plane_normals, plane_offsets,
+               samples: tuple[int, int], *, gamma: float, surface_reflection: float) -> np.ndarray:
+        """Noise-free multipath layers of N views, one launch (the contract of fsswarp.render).
+
+        rotations (N, 3, 3), translations (N, 3): view poses (``P_ref = R @ P_view + t``);
+        plane_normals (N, 3), plane_offsets (N,): the surface ``n·P = d`` in each VIEW frame.
+        samples = (K_θ, K_φ) sub-rays per beam. Returns (N, 4, bins, beams) float32: the
+        layers object, ghost, mirror, mirror2 (``fsswarp.surface.COMPONENTS``)."""
+        rot = _float32_array("rotations", rotations, ("N", 3, 3))
+        trans = _float32_array("translations", translations, ("N", 3))
+        normals = _float32_array("plane_normals", plane_normals, ("N", 3))
+        offsets = _float32_array("plane_offsets", np.asarray(plane_offsets).reshape(-1, 1), ("N", 1))
+        if not (rot.shape[0] == trans.shape[0] == normals.shape[0] == offsets.shape[0]):
+            raise ValueError("rotations, translations, plane_normals and plane_offsets must describe "
+                             f"the same views, got {rot.shape[0]}, {trans.shape[0]}, {normals.shape[0]}, "
+                             f"{offsets.shape[0]}")
+        k_theta, k_phi = (int(k) for k in samples)
+        if rot.shape[0] == 0:
+            return np.zeros((0, 4, sonar.bins, sonar.beams), np.float32)
+        return self._render(mesh, SonarConstants.of(sonar), _beam_widths(sonar), rot, trans, normals,
+                            np.ascontiguousarray(offsets[:, 0]), k_theta, k_phi, float(gamma),
+                            float(surface_reflection))
+
+    @abc.abstractmethod
+    def _load_mesh(self, vertices: np.ndarray, faces: np.ndarray) -> Any:
+        """Device copy of a clean (Nv, 3) float32 / (Nf, 3) int32 mesh."""
+
+    @abc.abstractmethod
+    def _cast_rays(self, mesh, origins: np.ndarray, directions: np.ndarray, max_distance: float):
+        """Kernel launch of ``cast_rays``; returns (R,) float32 distance (inf: no hit), (R,) int32 face."""
+
+    @abc.abstractmethod
+    def _render(self, mesh, sonar: SonarConstants, beam_widths: np.ndarray, rotations: np.ndarray,
+                translations: np.ndarray, plane_normals: np.ndarray, plane_offsets: np.ndarray,
+                k_theta: int, k_phi: int, gamma: float, surface_reflection: float) -> np.ndarray:
+        """Kernel launch of ``render`` (the algorithm: fsswarp/render.py's docstring);
+        beam_widths: (beams,) float32 Δθ_b. Returns (N, 4, bins, beams) float32."""
+
+
+def _beam_widths(sonar: SonarSpec) -> np.ndarray:
+    """(beams,) float32 azimuth width Δθ_b of every beam: the spacing of the centres (central
+    differences inside, one-sided at the outer beams)."""
+    c = np.asarray(sonar.beam_centres, np.float64)
+    return np.gradient(c).astype(np.float32)
+
+
 def _float32_array(name: str, value: Any, shape: tuple) -> np.ndarray:
     """``value`` as a C-contiguous float32 array of ``shape`` (a letter = any length), or raise."""
     try:

@@ -21,6 +21,12 @@ import pyopencl as cl
 from pyopencl.tools import first_arg_dependent_memoize
 
 from . import Backend, SonarConstants, _OpenCLDevice
+from .bvh import FlatBVH, build_bvh
+
+#: ε (m) of the leg tests of render (fsswarp/render.py).
+RENDER_EPSILON = 1e-4
+#: Longest ray of render (m).
+RENDER_MAX_DISTANCE = 1e6
 
 #: Options of every build. No fast-math: results must match the Warp backend.
 BUILD_OPTIONS: tuple[str, ...] = ()
@@ -112,6 +118,8 @@ class OpenCLBackend(Backend):
         # Kernel objects once: pyopencl makes a new one on every attribute access. Their
         # arguments are state, so launches hold the lock (one backend may serve many threads).
         self._project_kernel = cl.Kernel(program(self.context, "project.cl"), "project_points")
+        self._cast_kernel = cl.Kernel(program(self.context, "raycast.cl"), "cast_rays")
+        self._render_kernel = cl.Kernel(program(self.context, "render.cl"), "render_views")
         self._lock = threading.Lock()
 
     def _input(self, array: np.ndarray) -> cl.Buffer:
@@ -141,3 +149,78 @@ class OpenCLBackend(Backend):
                 cl.enqueue_copy(self.queue, host, buf, is_blocking=False)
             self.queue.finish()
         return beam, bin_, inside
+
+    # --- ray casting and image synthesis --------------------------------------------------------
+    def _load_mesh(self, vertices, faces):
+        bvh = build_bvh(vertices, faces)
+        return OpenCLMesh(bvh, self._input(bvh.node_bounds), self._input(bvh.node_children),
+                          self._input(bvh.triangles), self._input(bvh.face_index))
+
+    def _cast_rays(self, mesh, origins, directions, max_distance):
+        _check_mesh(mesh)
+        n_rays = origins.shape[0]
+        distance, distance_buf = self._output((n_rays,), np.float32)
+        face, face_buf = self._output((n_rays,), np.int32)
+        with self._lock:
+            self._cast_kernel(
+                self.queue, (-(-n_rays // GROUP) * GROUP,), None,
+                mesh.nodes, mesh.children, mesh.triangles, mesh.face_index,
+                self._input(origins), self._input(directions), np.int32(n_rays),
+                np.float32(max_distance), distance_buf, face_buf)
+            cl.enqueue_copy(self.queue, distance, distance_buf, is_blocking=False)
+            cl.enqueue_copy(self.queue, face, face_buf, is_blocking=False)
+            self.queue.finish()
+        return distance, face
+
+    def _render(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations,
+                plane_normals, plane_offsets, k_theta, k_phi, gamma, surface_reflection):
+        _check_mesh(mesh)
+        n_views = rotations.shape[0]
+        if sonar.use_table:
+            centres = np.ascontiguousarray(sonar.beam_table[0], np.float32)
+        else:
+            centres = (-np.float64(sonar.half_azimuth)
+                       + np.arange(sonar.beams) / np.float64(sonar.beam_scale)).astype(np.float32)
+        sub = k_theta * k_phi
+        weight = np.float32(1.0 / sub)
+        shape = (n_views, 4, sonar.bins, sonar.beams)
+        acc = np.zeros(shape, np.int32)
+        acc_buf = cl.Buffer(self.context, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR,
+                            hostbuf=acc)
+        group = min(GROUP, 1 << (max(sub, 1) - 1).bit_length())
+        global_size = (-(-sub // group) * group, sonar.beams, n_views)
+        with self._lock:
+            self._render_kernel(
+                self.queue, global_size, (group, 1, 1),
+                mesh.nodes, mesh.children, mesh.triangles,
+                self._input(rotations), self._input(translations), self._input(plane_normals),
+                self._input(plane_offsets), self._input(centres),
+                self._input(np.ascontiguousarray(beam_widths, np.float32)),
+                self._input(sonar.beam_table), np.int32(sonar.use_table), np.int32(sonar.beams),
+                np.int32(sonar.bins), np.float32(sonar.half_azimuth), np.float32(sonar.beam_scale),
+                np.float32(sonar.range_min), np.float32(sonar.inv_range_step),
+                np.float32(sonar.half_elevation), np.int32(k_theta), np.int32(k_phi), weight,
+                np.float32(gamma), np.float32(surface_reflection), np.float32(RENDER_EPSILON),
+                np.float32(RENDER_MAX_DISTANCE), acc_buf)
+            cl.enqueue_copy(self.queue, acc, acc_buf, is_blocking=False)
+            self.queue.finish()
+        return (acc.astype(np.float64) / 16777216.0).astype(np.float32)
+
+
+class OpenCLMesh:
+    """A mesh uploaded for OpenCLBackend: the host BVH and its device buffers."""
+
+    def __init__(self, bvh: FlatBVH, nodes, children, triangles, face_index):
+        self.bvh = bvh
+        self.nodes = nodes
+        self.children = children
+        self.triangles = triangles
+        self.face_index = face_index
+
+    def __repr__(self) -> str:
+        return f"<OpenCLMesh {self.bvh.n_triangles} triangles, {self.bvh.n_nodes} nodes>"
+
+
+def _check_mesh(mesh) -> None:
+    if not isinstance(mesh, OpenCLMesh):
+        raise TypeError(f"mesh must come from OpenCLBackend.load_mesh, got {type(mesh).__name__}")

@@ -104,7 +104,261 @@ def project_points(points: wp.array(dtype=wp.vec3), rotations: wp.array(dtype=wp
         inside_out[v, p] = wp.uint8(0)
 
 
+# --- ray casting and image synthesis (fsswarp/render.py documents the algorithm) -------------
+_EPS = wp.constant(1.0e-4)  # ε of the leg tests and of the mirror2 ray start (m)
+_FAR = wp.constant(1.0e30)  # "no limit" for a ray cast
+_FIXED = wp.constant(16777216.0)  # 2^24: fixed-point scale of the accumulator
+
+
+@wp.func
+def face_normal(points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), face: int):
+    """Unit geometric normal cross(v1 − v0, v2 − v0) of a triangle (reference frame)."""
+    v0 = points[indices[face * 3 + 0]]
+    v1 = points[indices[face * 3 + 1]]
+    v2 = points[indices[face * 3 + 2]]
+    return wp.normalize(wp.cross(v1 - v0, v2 - v0))
+
+
+@wp.func
+def facing_normal(points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), face: int,
+                  r: wp.mat33, u: wp.vec3):
+    """View-frame normal Rᵀ N of a face, turned against the view-frame direction u (u·N <= 0)."""
+    n = wp.transpose(r) * face_normal(points, indices, face)
+    if wp.dot(u, n) > 0.0:
+        n = -n
+    return n
+
+
+@wp.func
+def deposit(acc: wp.array4d(dtype=wp.int32), v: int, layer: int, bin_index: int, beam: int,
+            amplitude: float, weight: float, beams: int, bins: int):
+    """Add int(amplitude · weight · 2^24 + 0.5) at (v, layer, bin, beam) if inside the image."""
+    if bin_index >= 0 and bin_index < bins and beam >= 0 and beam < beams:
+        wp.atomic_add(acc, v, layer, bin_index, beam, int(amplitude * weight * _FIXED + 0.5))
+
+
+# --- watertight ray casting against a Warp BVH over the triangles (kernels/bvh.h) ------------
+_TINY_DIR = wp.constant(1.0e-30)  # stands in for a zero direction component (1/0 -> 1e30, no NaN)
+
+
+@wp.func
+def ray_triangle(org: wp.vec3, kx: int, ky: int, kz: int, sx: float, sy: float, sz: float,
+                 a: wp.vec3, b: wp.vec3, c: wp.vec3, t_best: float):
+    """Watertight test of triangle (a, b, c) (Woop, Benthin & Wald 2013; fss_ray_triangle of
+    kernels/bvh.h, operation for operation, edge values of exactly 0 inside); returns t in
+    [0, t_best) or inf."""
+    A = a - org
+    B = b - org
+    C = c - org
+    az = A[kz]
+    bz = B[kz]
+    cz = C[kz]
+    ax = A[kx] - sx * az
+    ay = A[ky] - sy * az
+    bx = B[kx] - sx * bz
+    by = B[ky] - sy * bz
+    cx = C[kx] - sx * cz
+    cy = C[ky] - sy * cz
+    uu = cx * by - cy * bx
+    vv = ax * cy - ay * cx
+    ww = bx * ay - by * ax
+    if (uu < 0.0 or vv < 0.0 or ww < 0.0) and (uu > 0.0 or vv > 0.0 or ww > 0.0):
+        return wp.inf
+    det = uu + vv + ww
+    if det == 0.0:
+        return wp.inf
+    tt = uu * (sz * az) + vv * (sz * bz) + ww * (sz * cz)
+    if det < 0.0:
+        det = -det
+        tt = -tt
+    if not (tt >= 0.0) or not (tt < t_best * det):
+        return wp.inf
+    t = tt / det
+    if t >= 0.0 and t < t_best:
+        return t
+    return wp.inf
+
+
+@wp.struct
+class RayHit:
+    t: float
+    face: int
+
+
+@wp.func
+def nearest_hit(bvh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
+                org: wp.vec3, dir: wp.vec3, max_t: float):
+    """Nearest watertight hit of the ray in [0, max_t): candidates from the BVH over the
+    triangles' boxes, each tested exactly (face -1 and t = inf: none)."""
+    # dominant axis, shear constants (fss_make_ray)
+    ax = wp.abs(dir[0])
+    ay = wp.abs(dir[1])
+    az = wp.abs(dir[2])
+    kz = int(2)
+    if ax > ay:
+        if ax > az:
+            kz = 0
+    else:
+        if ay > az:
+            kz = 1
+    kx = kz + 1
+    if kx == 3:
+        kx = 0
+    ky = kx + 1
+    if ky == 3:
+        ky = 0
+    dz = dir[kz]
+    if dz < 0.0:
+        tmp = kx
+        kx = ky
+        ky = tmp
+    sx = dir[kx] / dz
+    sy = dir[ky] / dz
+    sz = 1.0 / dz
+    # the BVH takes 1/dir: keep zero components finite so the slab test has no 0·inf NaN
+    qdir = dir
+    for k in range(3):
+        if qdir[k] == 0.0:
+            qdir[k] = _TINY_DIR
+    best = max_t
+    best_face = int(-1)
+    query = wp.bvh_query_ray(bvh, org, qdir)
+    face = int(0)
+    while wp.bvh_query_next(query, face, best * 1.000001):
+        t = ray_triangle(org, kx, ky, kz, sx, sy, sz, points[indices[face * 3 + 0]],
+                         points[indices[face * 3 + 1]], points[indices[face * 3 + 2]], best)
+        if t < best or (t == best and best_face >= 0 and face < best_face):
+            best = t
+            best_face = face
+    hit = RayHit()
+    hit.face = best_face
+    if best_face >= 0:
+        hit.t = best
+    else:
+        hit.t = wp.inf
+    return hit
+
+
+@wp.kernel
+def cast_rays_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
+                     indices: wp.array(dtype=wp.int32), origins: wp.array(dtype=wp.vec3),
+                     directions: wp.array(dtype=wp.vec3), max_distance: float,
+                     distance_out: wp.array(dtype=float), face_out: wp.array(dtype=wp.int32)):
+    """Thread i: nearest hit of ray i within max_distance (inf and -1 if none)."""
+    i = wp.tid()
+    hit = nearest_hit(mesh, points, indices, origins[i], directions[i], max_distance)
+    if hit.face >= 0:
+        distance_out[i] = hit.t
+        face_out[i] = hit.face
+    else:
+        distance_out[i] = wp.inf
+        face_out[i] = -1
+
+
+@wp.kernel
+def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
+                  indices: wp.array(dtype=wp.int32), rotations: wp.array(dtype=wp.mat33),
+                  translations: wp.array(dtype=wp.vec3), plane_normals: wp.array(dtype=wp.vec3),
+                  plane_offsets: wp.array(dtype=float), beam_centres: wp.array(dtype=float),
+                  beam_widths: wp.array(dtype=float), beam_table: wp.array2d(dtype=float),
+                  use_table: int, beams: int, bins: int, half_azimuth: float, beam_scale: float,
+                  range_min: float, inv_range_step: float, half_elevation: float,
+                  k_theta: int, k_phi: int, weight: float, gamma: float, surface_reflection: float,
+                  acc: wp.array4d(dtype=wp.int32)):
+    """Thread (v, b, k): sub-ray (i, j) = divmod(k, K_φ) of beam b in view v; deposits its
+    object, ghost, mirror and mirror2 returns into acc (N, 4, bins, beams)."""
+    v, b, k = wp.tid()
+    i = k // k_phi
+    j = k - i * k_phi
+    rot = rotations[v]
+    org = translations[v]
+    n = plane_normals[v]
+    d = plane_offsets[v]
+
+    # 1. sub-ray direction (view frame)
+    theta = beam_centres[b] + ((float(i) + 0.5) / float(k_theta) - 0.5) * beam_widths[b]
+    phi = -half_elevation + (float(j) + 0.5) / float(k_phi) * (2.0 * half_elevation)
+    cphi = wp.cos(phi)
+    u = wp.vec3(cphi * wp.sin(theta), cphi * wp.cos(theta), wp.sin(phi))
+
+    # 2. direct leg: surface at s, first mesh hit before it
+    nu = wp.dot(n, u)
+    s = _FAR
+    has_surface = False
+    if nu > 0.0:
+        s = d / nu
+        has_surface = True
+    hit = nearest_hit(mesh, points, indices, org, rot * u, wp.min(s, _FAR))
+    if hit.face >= 0:
+        # 3. hit before the surface
+        r = hit.t
+        nrm = facing_normal(points, indices, hit.face, rot, u)
+        c = -wp.dot(u, nrm)
+        deposit(acc, v, 0, nearest_index(bin_coordinate(r, range_min, inv_range_step)), b,
+                wp.pow(c, gamma), weight, beams, bins)
+        p = r * u
+        o_m = (2.0 * d) * n
+        q = wp.length(p - o_m)
+        n_p = wp.dot(n, p)
+        lam = d / (2.0 * d - n_p)
+        qq = o_m + lam * (p - o_m)
+        if qq[1] > 0.0:
+            bq = beam_coordinate(azimuth(qq), use_table, beam_table, beams, half_azimuth, beam_scale)
+            if bq >= -0.5 and bq < float(beams) - 0.5 and wp.abs(elevation(qq)) <= half_elevation:
+                pq = p - qq
+                l_pq = wp.length(pq)
+                w = pq / l_pq
+                c_in = -wp.dot(w, nrm)
+                if c_in > 0.0:
+                    l_q = wp.length(qq)
+                    leg1 = nearest_hit(mesh, points, indices, org, rot * (qq / l_q), l_q - _EPS)
+                    if leg1.face < 0:
+                        leg2 = nearest_hit(mesh, points, indices, rot * qq + org, rot * w, l_pq - _EPS)
+                        if leg2.face < 0:
+                            a_s = surface_reflection * wp.pow(c * c_in, 0.5 * gamma)
+                            rb = nearest_index(bin_coordinate(0.5 * (r + q), range_min, inv_range_step))
+                            deposit(acc, v, 1, rb, b, a_s, weight, beams, bins)
+                            pm = p - (2.0 * (n_p - d)) * n
+                            mb = nearest_index(beam_coordinate(azimuth(pm), use_table, beam_table, beams,
+                                                               half_azimuth, beam_scale))
+                            deposit(acc, v, 2, rb, mb, a_s, weight, beams, bins)
+    elif has_surface:
+        # 4. surface first: mirror2 along the reflected ray
+        qs = s * u
+        u2 = u - (2.0 * nu) * n
+        dir2 = rot * u2
+        hit2 = nearest_hit(mesh, points, indices, rot * qs + org + _EPS * dir2, dir2, _FAR)
+        if hit2.face >= 0:
+            r2 = _EPS + hit2.t
+            nrm2 = facing_normal(points, indices, hit2.face, rot, u2)
+            c2 = -wp.dot(u2, nrm2)
+            deposit(acc, v, 3, nearest_index(bin_coordinate(s + r2, range_min, inv_range_step)), b,
+                    surface_reflection * surface_reflection * wp.pow(c2, gamma), weight, beams, bins)
+
+
 # --- the backend -----------------------------------------------------------------------------
+class _WarpMesh:
+    """Handle of a mesh uploaded to one Warp device: a ``wp.Bvh`` over the triangles' (padded)
+    boxes and the arrays (kept alive with it; the kernels read the triangles for the watertight
+    test and their geometric normals)."""
+
+    def __init__(self, bvh, points, indices, lowers, uppers, device):
+        self.bvh = bvh
+        self.points = points
+        self.indices = indices
+        self.lowers = lowers
+        self.uppers = uppers
+        self.device = device
+
+    @property
+    def id(self):
+        return self.bvh.id
+
+    def __repr__(self) -> str:
+        return (f"<warp mesh: {self.points.shape[0]} vertices, {self.indices.shape[0] // 3} faces "
+                f"on {self.device}>")
+
+
 class WarpBackend(Backend):
     """Warp on one device ("cpu", "cuda:N"). Create through ``get_backend("warp", device)``."""
 
@@ -134,3 +388,64 @@ class WarpBackend(Backend):
                       outputs=[beam, bin_, inside])
             wp.synchronize_device(self._device)
             return beam.numpy(), bin_.numpy(), inside.numpy()
+
+    # --- ray casting and image synthesis ------------------------------------------------------
+    def _load_mesh(self, vertices, faces):
+        with wp.ScopedDevice(self._device):
+            points = self._array(vertices, wp.vec3)
+            indices = self._array(np.ascontiguousarray(faces.reshape(-1), dtype=np.int32), wp.int32)
+            tri = np.asarray(vertices, np.float32)[np.asarray(faces, np.int64).reshape(-1, 3)]
+            lo = tri.min(axis=1)
+            hi = tri.max(axis=1)
+            # pad so boxes of axis-aligned triangles have volume (and rounding never loses one)
+            extent = float(np.max(np.abs(vertices))) if len(vertices) else 1.0
+            pad = np.float32(1.0e-6 * max(extent, 1.0e-12)) + 1.0e-6 * (hi - lo).max(axis=1, keepdims=True)
+            lowers = self._array(np.ascontiguousarray(lo - pad, np.float32), wp.vec3)
+            uppers = self._array(np.ascontiguousarray(hi + pad, np.float32), wp.vec3)
+            bvh = wp.Bvh(lowers, uppers)
+        return _WarpMesh(bvh, points, indices, lowers, uppers, self.device)
+
+    def _check_mesh(self, mesh) -> "_WarpMesh":
+        if not isinstance(mesh, _WarpMesh):
+            raise TypeError(f"mesh must be a handle from this backend's load_mesh, got {type(mesh).__name__}")
+        if mesh.device != self.device:
+            raise ValueError(f"mesh was loaded on {mesh.device!r}, this backend runs on {self.device!r}")
+        return mesh
+
+    def _cast_rays(self, mesh, origins, directions, max_distance):
+        mesh = self._check_mesh(mesh)
+        n_rays = origins.shape[0]
+        with wp.ScopedDevice(self._device):
+            distance = wp.empty(n_rays, dtype=float)
+            face = wp.empty(n_rays, dtype=wp.int32)
+            wp.launch(cast_rays_kernel, dim=n_rays,
+                      inputs=[mesh.id, mesh.points, mesh.indices, self._array(origins, wp.vec3), self._array(directions, wp.vec3),
+                              float(np.float32(min(max_distance, 1.0e30)))],
+                      outputs=[distance, face])
+            wp.synchronize_device(self._device)
+            return distance.numpy(), face.numpy()
+
+    def _render(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations,
+                plane_normals, plane_offsets, k_theta, k_phi, gamma, surface_reflection):
+        mesh = self._check_mesh(mesh)
+        n_views = rotations.shape[0]
+        if sonar.use_table:
+            centres = np.ascontiguousarray(sonar.beam_table[0], np.float32)
+        else:  # the centres of SonarSpec.beam_centres
+            half = float(sonar.half_azimuth)
+            centres = (-half + np.arange(sonar.beams) * (2.0 * half / max(sonar.beams - 1, 1))).astype(np.float32)
+        weight = float(np.float32(1.0 / (k_theta * k_phi)))
+        with wp.ScopedDevice(self._device):
+            acc = wp.zeros((n_views, 4, sonar.bins, sonar.beams), dtype=wp.int32)
+            wp.launch(render_kernel, dim=(n_views, sonar.beams, k_theta * k_phi),
+                      inputs=[mesh.id, mesh.points, mesh.indices, self._array(rotations, wp.mat33),
+                              self._array(translations, wp.vec3), self._array(plane_normals, wp.vec3),
+                              self._array(plane_offsets, float), self._array(centres, float),
+                              self._array(np.ascontiguousarray(beam_widths, np.float32), float),
+                              self._array(sonar.beam_table, float), sonar.use_table, sonar.beams,
+                              sonar.bins, sonar.half_azimuth, sonar.beam_scale, sonar.range_min,
+                              sonar.inv_range_step, sonar.half_elevation, int(k_theta), int(k_phi),
+                              weight, float(gamma), float(surface_reflection)],
+                      outputs=[acc])
+            wp.synchronize_device(self._device)
+            return acc.numpy().astype(np.float32) * np.float32(1.0 / 16777216.0)

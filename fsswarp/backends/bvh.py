@@ -1,0 +1,149 @@
+"""Host-side BVH for the OpenCL ray caster: a linear BVH (LBVH) built in vectorised NumPy.
+
+Triangles are sorted by the 30-bit Morton code of their centroid; the sorted range is split
+top-down, one tree level at a time (no Python loop over nodes or triangles), at the highest
+Morton bit in which the range's first and last codes differ (Karras 2012), or at the middle
+when all codes of a range are equal. Ranges of at most ``LEAF_SIZE`` triangles become leaves.
+
+Layout (``kernels/bvh.h`` reads it): a binary tree whose every node stores the boxes of its two
+children, so that one node fetch tests both children. Node 0 is the root. Child references:
+``c >= 0`` an inner node index; ``c < 0`` a leaf, ``~c = (first << 3) | count`` with ``first``
+the index of its first triangle in the reordered triangle array and ``count <= 4``
+(``count == 0``: an empty child, whose box is inverted so no ray enters it).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["FlatBVH", "build_bvh", "LEAF_SIZE"]
+
+#: Most triangles of one leaf.
+LEAF_SIZE = 4
+
+
+@dataclass(frozen=True)
+class FlatBVH:
+    """A flattened BVH.
+
+    node_bounds : (Nn, 2, 2, 4) float32
+        ``[node, child, 0 (lo) | 1 (hi), xyz + pad]``: the boxes of each node's two children.
+    node_children : (Nn, 2) int32
+        Child references (see the module docstring).
+    triangles : (Nf, 9) float32
+        Vertices v0, v1, v2 (xyz each) of the triangles in leaf order.
+    face_index : (Nf,) int32
+        Original face index of each reordered triangle.
+    """
+
+    node_bounds: np.ndarray
+    node_children: np.ndarray
+    triangles: np.ndarray
+    face_index: np.ndarray
+
+    @property
+    def n_nodes(self) -> int:
+        return int(self.node_children.shape[0])
+
+    @property
+    def n_triangles(self) -> int:
+        return int(self.face_index.shape[0])
+
+
+def _leaf(first: np.ndarray, count: np.ndarray) -> np.ndarray:
+    return ~((first.astype(np.int64) << 3) | count.astype(np.int64))
+
+
+def decode_leaf(ref) -> tuple[np.ndarray, np.ndarray]:
+    """(first, count) of leaf references (``ref < 0``)."""
+    e = ~np.asarray(ref, np.int64)
+    return e >> 3, e & 7
+
+
+def _expand_bits(v: np.ndarray) -> np.ndarray:
+    """Spread the low 10 bits of v so that two zero bits separate each (uint64 math)."""
+    v = v.astype(np.uint64) & np.uint64(0x3FF)
+    v = (v | (v << np.uint64(16))) & np.uint64(0x030000FF)
+    v = (v | (v << np.uint64(8))) & np.uint64(0x0300F00F)
+    v = (v | (v << np.uint64(4))) & np.uint64(0x030C30C3)
+    v = (v | (v << np.uint64(2))) & np.uint64(0x09249249)
+    return v
+
+
+def build_bvh(vertices: np.ndarray, faces: np.ndarray) -> FlatBVH:
+    """LBVH of a triangle mesh: vertices (Nv, 3) float32, faces (Nf, 3) int32 (Nf >= 1)."""
+    verts = np.ascontiguousarray(vertices, np.float32)
+    faces = np.ascontiguousarray(faces, np.int64)
+    n = faces.shape[0]
+    if n == 0:
+        raise ValueError("build_bvh needs at least one triangle")
+    if n >= 2**28:
+        raise ValueError(f"too many triangles for the BVH layout ({n})")
+    tri = verts[faces]                                   # (Nf, 3, 3) float32
+    tri_lo = tri.min(axis=1)
+    tri_hi = tri.max(axis=1)
+    centroid = (tri_lo.astype(np.float64) + tri_hi) * 0.5
+
+    # Morton codes of the box centres (30 bits)
+    c_lo = centroid.min(axis=0)
+    extent = centroid.max(axis=0) - c_lo
+    scale = np.where(extent > 0, 1023.0 / np.where(extent > 0, extent, 1.0), 0.0)
+    q = np.clip(((centroid - c_lo) * scale).astype(np.int64), 0, 1023)
+    codes = (_expand_bits(q[:, 0]) << np.uint64(2)) | (_expand_bits(q[:, 1]) << np.uint64(1)) \
+        | _expand_bits(q[:, 2])
+    codes = codes.astype(np.int64)
+    order = np.argsort(codes, kind="stable")
+    codes = codes[order]
+    lo_s = np.concatenate([tri_lo[order], np.zeros((1, 3), np.float32)])  # sentinel row
+    hi_s = np.concatenate([tri_hi[order], np.zeros((1, 3), np.float32)])
+
+    bounds_parts: list[np.ndarray] = []
+    children_parts: list[np.ndarray] = []
+    inverted = np.array([[np.inf] * 3 + [0.0], [-np.inf] * 3 + [0.0]], np.float32)
+
+    if n <= LEAF_SIZE:
+        b = np.zeros((1, 2, 2, 4), np.float32)
+        b[0, 0, 0, :3] = lo_s[:n].min(axis=0)
+        b[0, 0, 1, :3] = hi_s[:n].max(axis=0)
+        b[0, 1] = inverted
+        ch = np.array([[_leaf(np.array(0), np.array(n)), _leaf(np.array(0), np.array(0))]], np.int64)
+        bounds_parts.append(b)
+        children_parts.append(ch)
+    else:
+        # ranges to split at this level; their node ids are next_id .. next_id + len - 1
+        lo = np.array([0], np.int64)
+        hi = np.array([n], np.int64)
+        next_id = 0  # id of the first node of the current level
+        while lo.size:
+            m = lo.size
+            first = codes[lo]
+            last = codes[hi - 1]
+            x = first ^ last
+            bit = np.frexp(x.astype(np.float64))[1] - 1          # highest differing bit
+            target = ((first >> np.maximum(bit, 0)) | 1) << np.maximum(bit, 0)
+            split = np.searchsorted(codes, target, side="left")
+            split = np.where(x == 0, (lo + hi) // 2, split)
+            split = np.clip(split, lo + 1, hi - 1)
+            # children ranges, interleaved (left, right) per node
+            c_lo = np.stack([lo, split], axis=1).reshape(-1)
+            c_hi = np.stack([split, hi], axis=1).reshape(-1)
+            idx = np.stack([c_lo, c_hi], axis=1).reshape(-1)
+            box_lo = np.minimum.reduceat(lo_s, idx, axis=0)[::2]
+            box_hi = np.maximum.reduceat(hi_s, idx, axis=0)[::2]
+            count = c_hi - c_lo
+            inner = count > LEAF_SIZE
+            ref = _leaf(c_lo, count)
+            ref[inner] = next_id + m + np.arange(int(inner.sum()))
+            b = np.zeros((m, 2, 2, 4), np.float32)
+            b[:, :, 0, :3] = box_lo.reshape(m, 2, 3)
+            b[:, :, 1, :3] = box_hi.reshape(m, 2, 3)
+            bounds_parts.append(b)
+            children_parts.append(ref.reshape(m, 2))
+            next_id += m
+            lo, hi = c_lo[inner], c_hi[inner]
+    node_bounds = np.ascontiguousarray(np.concatenate(bounds_parts), np.float32)
+    node_children = np.ascontiguousarray(np.concatenate(children_parts), np.int32)
+    triangles = np.ascontiguousarray(tri[order].reshape(n, 9), np.float32)
+    return FlatBVH(node_bounds, node_children, triangles, order.astype(np.int32))

@@ -1,0 +1,191 @@
+/* render.cl -- noise-free multipath sonar layers of many views in one launch (DESIGN §3-4).
+ *
+ * The algorithm is the docstring of fsswarp/render.py, step by step, in float32; the Warp
+ * kernel and the float64 oracle (tests/oracle_render.py) implement the same steps.
+ *
+ * Arguments:
+ *   nodes, children, tris  the flattened BVH of the mesh in the reference frame (bvh.h)
+ *   rotations     (N, 3, 3) float  R_v row-major: P_ref = R_v P_view + t_v
+ *   translations  (N, 3) float     t_v
+ *   plane_normals (N, 3) float     n_v, unit, into the air (view frame)
+ *   plane_offsets (N,) float       d_v > 0: the surface n·P = d (view frame)
+ *   beam_centres  (beams,) float   θ_b (rad)
+ *   beam_widths   (beams,) float   Δθ_b (rad)
+ *   beam_table, use_table, half_azimuth, beam_scale: the beam coordinate (sonar.h)
+ *   beams, bins, range_min, inv_range_step, half_elevation: the image (sonar.h)
+ *   k_theta, k_phi   sub-rays per beam; weight = 1 / (k_theta k_phi) (float32)
+ *   gamma, surface_reflection   γ and r_s
+ *   epsilon       ε (m) of the leg tests, max_distance: the longest ray
+ *   acc           (N, 4, bins, beams) int  fixed-point accumulator (2^24 = 1), zeroed by the host
+ *
+ * Work size: 3-D global (k_theta k_phi rounded up, beams, N); work-item (s, b, v), sub-ray
+ * s = i k_phi + j. Items with s >= k_theta k_phi return at once.
+ */
+#include "sonar.h"
+#include "bvh.h"
+
+#define FSS_FIXED 16777216.0f
+
+typedef struct {
+    __global const float *beam_table;
+    int use_table, beams, bins;
+    float half_azimuth, beam_scale, range_min, inv_range_step;
+} fss_image;
+
+void fss_deposit(__global int *acc, int v, int layer, int beam, float range, float amplitude,
+                 float weight, int beams, int bins, float range_min, float inv_range_step)
+{
+    const int bin = fss_nearest_index(fss_bin_coordinate(range, range_min, inv_range_step));
+    if (beam < 0 || beam >= beams || bin < 0 || bin >= bins)
+        return;
+    const int value = (int)(amplitude * weight * FSS_FIXED + 0.5f);
+    if (value != 0)
+        atomic_add(acc + ((v * 4 + layer) * bins + bin) * beams + beam, value);
+}
+
+/* R q (view-frame direction to reference frame). */
+inline float3 fss_rotate(__global const float *rot, float3 q)
+{
+    return (float3)(rot[0] * q.x + rot[1] * q.y + rot[2] * q.z,
+                    rot[3] * q.x + rot[4] * q.y + rot[5] * q.z,
+                    rot[6] * q.x + rot[7] * q.y + rot[8] * q.z);
+}
+
+/* Unit geometric normal of reordered triangle k (reference frame). */
+inline float3 fss_tri_normal(__global const float *tris, int k)
+{
+    const float3 a = vload3(3 * k, tris);
+    const float3 e1 = vload3(3 * k + 1, tris) - a;
+    const float3 e2 = vload3(3 * k + 2, tris) - a;
+    const float3 nrm = (float3)(e1.y * e2.z - e1.z * e2.y, e1.z * e2.x - e1.x * e2.z,
+                                e1.x * e2.y - e1.y * e2.x);
+    const float len = sqrt(nrm.x * nrm.x + nrm.y * nrm.y + nrm.z * nrm.z);
+    return len > 0.0f ? nrm / len : nrm;
+}
+
+inline float fss_dot(float3 a, float3 b)
+{
+    return a.x * b.x + a.y * b.y + a.z * b.z;
+}
+
+__kernel void render_views(__global const float4 *nodes,
+                           __global const int *children,
+                           __global const float *tris,
+                           __global const float *rotations,
+                           __global const float *translations,
+                           __global const float *plane_normals,
+                           __global const float *plane_offsets,
+                           __global const float *beam_centres,
+                           __global const float *beam_widths,
+                           __global const float *beam_table,
+                           const int use_table,
+                           const int beams,
+                           const int bins,
+                           const float half_azimuth,
+                           const float beam_scale,
+                           const float range_min,
+                           const float inv_range_step,
+                           const float half_elevation,
+                           const int k_theta,
+                           const int k_phi,
+                           const float weight,
+                           const float gamma,
+                           const float surface_reflection,
+                           const float epsilon,
+                           const float max_distance,
+                           __global int *acc)
+{
+    const int s = (int)get_global_id(0);
+    const int b = (int)get_global_id(1);
+    const int v = (int)get_global_id(2);
+    if (s >= k_theta * k_phi)
+        return;
+    const int i = s / k_phi;
+    const int j = s - i * k_phi;
+    __global const float *rot = rotations + 9 * v;
+    const float3 t = vload3(v, translations);
+    const float3 n = vload3(v, plane_normals);
+    const float d = plane_offsets[v];
+
+    /* 1. sub-ray */
+    const float theta = beam_centres[b] + (((float)i + 0.5f) / (float)k_theta - 0.5f) * beam_widths[b];
+    const float phi = -half_elevation + ((float)j + 0.5f) / (float)k_phi * (2.0f * half_elevation);
+    const float cp = cos(phi);
+    const float3 u = (float3)(cp * sin(theta), cp * cos(theta), sin(phi));
+    const float3 u_ref = fss_rotate(rot, u);
+
+    /* 2. direct leg */
+    int tri;
+    const float r = fss_bvh_intersect(nodes, children, tris, t, u_ref, 0.0f, max_distance, &tri);
+    const float nu = fss_dot(n, u);
+    const float s_surf = nu > 0.0f ? d / nu : INFINITY;
+
+    if (tri >= 0 && r < s_surf) {
+        /* 3. hit */
+        float3 N = fss_tri_normal(tris, tri);
+        float un = fss_dot(u_ref, N);
+        if (un > 0.0f) {
+            N = -N;
+            un = -un;
+        }
+        const float c = -un;
+        fss_deposit(acc, v, 0, b, r, pow(c, gamma), weight, beams, bins, range_min, inv_range_step);
+
+        const float3 P = r * u;
+        const float3 O2 = (2.0f * d) * n;
+        const float3 PO = P - O2;
+        const float q = sqrt(fss_dot(PO, PO));
+        const float nP = fss_dot(n, P);
+        const float lambda = d / (2.0f * d - nP);
+        const float3 Q = O2 + lambda * PO;
+        if (!(Q.y > 0.0f))
+            return;
+        const float bq = fss_beam_coordinate(fss_azimuth(Q), use_table, beam_table, beams,
+                                             half_azimuth, beam_scale);
+        if (!(bq >= -0.5f && bq < (float)beams - 0.5f))
+            return;
+        if (!(fabs(fss_elevation(Q)) <= half_elevation))
+            return;
+        /* leg O -> Q clear */
+        const float qlen = fss_range(Q);
+        int blocker;
+        fss_bvh_intersect(nodes, children, tris, t, fss_rotate(rot, Q / qlen), 0.0f,
+                          qlen - epsilon, &blocker);
+        if (blocker >= 0)
+            return;
+        /* leg Q -> P clear */
+        const float3 QP = P - Q;
+        const float qp = sqrt(fss_dot(QP, QP));
+        const float3 w = QP / qp;
+        const float3 w_ref = fss_rotate(rot, w);
+        const float3 Q_ref = fss_rotate(rot, Q) + t;
+        fss_bvh_intersect(nodes, children, tris, Q_ref, w_ref, 0.0f, qp - epsilon, &blocker);
+        if (blocker >= 0)
+            return;
+        const float c_in = -fss_dot(w_ref, N);
+        if (!(c_in > 0.0f))
+            return;
+        const float a_s = surface_reflection * pow(c * c_in, 0.5f * gamma);
+        const float R_s = (r + q) * 0.5f;
+        fss_deposit(acc, v, 1, b, R_s, a_s, weight, beams, bins, range_min, inv_range_step);
+        const float3 Pm = P - (2.0f * (nP - d)) * n;
+        const int bm = fss_nearest_index(fss_beam_coordinate(fss_azimuth(Pm), use_table,
+                                                             beam_table, beams, half_azimuth,
+                                                             beam_scale));
+        fss_deposit(acc, v, 2, bm, R_s, a_s, weight, beams, bins, range_min, inv_range_step);
+    } else if (s_surf < r && s_surf < INFINITY) {
+        /* 4. surface first: mirror2 */
+        const float3 Q = s_surf * u;
+        const float3 u2 = u - (2.0f * nu) * n;
+        const float3 u2_ref = fss_rotate(rot, u2);
+        const float3 Q_ref = fss_rotate(rot, Q) + t;
+        int tri2;
+        const float r2 = fss_bvh_intersect(nodes, children, tris, Q_ref, u2_ref, epsilon,
+                                           max_distance, &tri2);
+        if (tri2 < 0)
+            return;
+        const float c2 = fabs(fss_dot(u2_ref, fss_tri_normal(tris, tri2)));
+        fss_deposit(acc, v, 3, b, s_surf + r2, surface_reflection * surface_reflection * pow(c2, gamma),
+                    weight, beams, bins, range_min, inv_range_step);
+    }
+}
