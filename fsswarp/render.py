@@ -1,0 +1,199 @@
+"""Sonar image synthesis: object, ghost, mirror and double-bounce mirror layers (DESIGN §3–4).
+
+The algorithm, which both backends' kernels implement exactly (float32), and the float64
+oracle in ``tests/oracle_render.py`` mirrors:
+
+Inputs per view: pose (R, t) with ``P_ref = R @ P_view + t``; the surface ``n·P = d`` in the
+view frame (unit n into the air, d > 0: the sonar is below it); the mesh in the reference
+frame. All ray casts run in the reference frame: origin ``t``, direction ``R @ u``.
+
+1. Sub-rays. For beam b and i < K_θ, j < K_φ:
+   ``θ = θ_b + ((i + 0.5)/K_θ − 0.5)·Δθ_b`` (Δθ_b: the beam's width, the spacing of the
+   centres), ``φ = −W_φ + (j + 0.5)/K_φ · 2W_φ``; ``u = (cosφ sinθ, cosφ cosθ, sinφ)``
+   (view frame). Every sub-ray weighs ``1/(K_θ K_φ)``.
+2. Direct leg. First mesh hit at distance ``r`` (inf if none), triangle normal N turned to face
+   the ray (``u·N < 0``), ``c = −u·N``. The ray meets the surface at ``s = d/(n·u)`` when
+   ``n·u > 0`` (else s = inf). A hit counts only when ``r < s``.
+3. Hit (``r < s``), P = r·u (view frame):
+   - object: amplitude ``c^γ`` at (b, bin(r)).
+   - surface path: O' = 2d·n (mirrored sonar), ``q = |P − O'|`` (= |P'|, P' = mirror of P),
+     reflection point ``Q = O' + λ (P − O')`` with ``λ = d / (2d − n·P)``. It counts when
+     Q lies in front (Q_y > 0), its direction lies inside the fan (beam coordinate of
+     θ(Q) in [−0.5, beams − 0.5) and |φ(Q)| ≤ W_φ), the leg O→Q is clear (no hit closer than
+     |Q| − ε), the leg Q→P is clear (the first hit from Q toward P lies at ≥ |P − Q| − ε,
+     ε = 1e-4 m), and the incoming cosine ``c_in = −w·N > 0`` with w = (P − Q)/|P − Q|.
+     Amplitude ``a_s = r_s · (c · c_in)^(γ/2)``:
+       ghost  at (b, bin((r + q)/2));
+       mirror at (beam(θ(P')), bin((r + q)/2)), P' = P − 2(n·P − d) n.
+4. Surface first (``s < r``, s finite), mirror2: Q = s·u, reflected direction
+   ``u' = u − 2(u·n) n``; first hit from Q along u' at distance r2 (from ε), normal N2 facing
+   it, ``c2 = −u'·N2``; amplitude ``r_s² · c2^γ`` at (b, bin(s + r2)).
+5. bin(R) = floor((R − R_min)/δR + 0.5), beam(θ) = floor(beam coordinate + 0.5); a return
+   outside the image is dropped. Accumulation: each deposit adds
+   ``int(amplitude · weight · 2^24 + 0.5)`` with an integer atomic to an int32 accumulator,
+   so the sum does not depend on the order of the threads; layers = accumulator / 2^24.
+
+``total`` = object + ghost + mirror + mirror2. Default γ = 1, r_s = 0.9, (K_θ, K_φ) = (2, 64).
+"""
+
+from __future__ import annotations
+
+
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import InputError
+from .rig import Rig
+from .sonar import SonarSpec, to_polar
+from .surface import COMPONENTS, apparent_returns, surface_in_views
+
+#: Layers of a rendered view, in array order: the four components, then their sum.
+LAYERS = COMPONENTS + ("total",)
+
+
+class RenderWarning(UserWarning):
+    """Something the user should change, though the render went ahead."""
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """Image-formation settings (DESIGN §4).
+
+    samples : (K_θ, K_φ) sub-rays per beam across its width and the elevation aperture
+    gamma : exponent γ of the Lambertian-type echo ``cos^γ``
+    surface_reflection : r_s, the sea surface's reflection coefficient per bounce
+    """
+
+    samples: tuple[int, int] = (2, 64)
+    gamma: float = 1.0
+    surface_reflection: float = 0.9
+
+    def __post_init__(self) -> None:
+        k = self.samples
+        if (len(k) != 2 or any(isinstance(v, bool) or not isinstance(v, (int, np.integer)) for v in k)
+                or not (1 <= k[0] <= 64 and 1 <= k[1] <= 1024)):
+            raise InputError("must be two integers K_theta in 1..64 and K_phi in 1..1024",
+                             field="samples", value=tuple(k))
+        if not (np.isfinite(self.gamma) and 0 < self.gamma <= 10):
+            raise InputError("must be in (0, 10]", field="gamma", value=self.gamma)
+        if not (np.isfinite(self.surface_reflection) and 0 <= self.surface_reflection <= 1):
+            raise InputError("must be in [0, 1]", field="surface_reflection", value=self.surface_reflection)
+
+
+def check_mesh(mesh, *, name: str = "mesh"):
+    """``(vertices (Nv, 3) float64, faces (Nf, 3) int64)`` of a trimesh, or InputError if it holds
+    no triangles or non-finite vertices; warns (RenderWarning) when it is not watertight."""
+    vertices = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))), np.float64)
+    faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), np.int64)
+    if faces.ndim != 2 or faces.shape[0] == 0 or faces.shape[1] != 3:
+        raise InputError("holds no triangles", field=name, value=f"{len(faces)} faces")
+    if not np.all(np.isfinite(vertices)):
+        raise InputError("has non-finite vertices", field=name, value=int((~np.isfinite(vertices)).sum()))
+    if hasattr(mesh, "is_watertight") and not mesh.is_watertight:
+        warnings.warn(f"{name} is not watertight: ghost and mirror legs may leak through holes; "
+                      "close it (e.g. trimesh's fill_holes) or use a closed mesh", RenderWarning, stacklevel=2)
+    return vertices, faces
+
+
+def render_views(mesh, sonar: SonarSpec, rotations, translations, plane_normals, plane_offsets, *,
+                 settings: RenderSettings = RenderSettings(), backend=None) -> np.ndarray:
+    """Noise-free layers of N views of ``mesh`` (reference frame), in one launch.
+
+    rotations (N, 3, 3), translations (N, 3): poses, ``P_ref = R @ P_view + t``;
+    plane_normals (N, 3), plane_offsets (N,): the surface in each view frame (the grid search
+    passes one (pose, plane) pair per cell and view). Returns (N, 5, bins, beams) float32 in
+    the order of ``LAYERS``. ``backend`` defaults to ``get_backend("auto")``.
+    """
+    from .backends import get_backend
+
+    vertices, faces = check_mesh(mesh)
+    rotations = _finite("pose rotations", rotations, 3)
+    translations = _finite("pose translations", translations, 2)
+    normals = _finite("plane normals", plane_normals, 2)
+    offsets = _finite("plane offsets", plane_offsets, 1)
+    if np.any(offsets <= 0):
+        raise InputError("the sonar must lie below the surface (offset > 0)", field="plane offsets",
+                         value=float(offsets.min()))
+    backend = backend or get_backend()
+    handle = backend.load_mesh(vertices, faces)
+    layers = backend.render(handle, sonar, rotations, translations, normals, offsets, settings.samples,
+                            gamma=settings.gamma, surface_reflection=settings.surface_reflection)
+    return np.concatenate([layers, layers.sum(axis=1, keepdims=True, dtype=np.float32)], axis=1)
+
+
+def render(mesh, sonar: SonarSpec, rig: Rig, depth: float, tilt: float, *, views=None,
+           settings: RenderSettings = RenderSettings(), backend=None) -> dict[str, np.ndarray]:
+    """Synthetic views of ``mesh`` (reference frame) at the rig's poses for (depth m, tilt rad).
+
+    views : names to render (default: all). Returns ``{view name: (5, bins, beams) float32}``
+    with layers in the order of ``LAYERS``. Warns when the mesh falls outside a view's window.
+    """
+    if not (np.isfinite(depth) and depth > 0):
+        raise InputError("must be a finite depth > 0 (m)", field="depth", value=depth)
+    if not (np.isfinite(tilt) and abs(tilt) < np.pi / 2):
+        raise InputError("must be a finite tilt in (-90, 90) degrees", field="tilt", value=np.degrees(tilt))
+    names = rig.names if views is None else list(views)
+    index = [rig.index(name) for name in names]
+    rot, t = rig.relative_poses(depth, tilt)
+    n, d = surface_in_views(rig, depth, tilt)
+    warn_outside_window(mesh, sonar, rot[index], t[index], n[index], d[index], names)
+    images = render_views(mesh, sonar, rot[index], t[index], n[index], d[index], settings=settings,
+                          backend=backend)
+    return dict(zip(names, images))
+
+
+def warn_outside_window(mesh, sonar: SonarSpec, rotations, translations, normals, offsets, names) -> None:
+    """Warn (RenderWarning) naming the views where the object or its ghost falls outside the
+    range window or the fan, and what to change."""
+    points = np.asarray(mesh.vertices, np.float64)
+    for name, rot, t, n, d in zip(names, rotations, translations, normals, offsets):
+        p = (points - t) @ rot
+        rng, theta, phi = to_polar(p)
+        seen = sonar.in_elevation(phi) & sonar.beam_bin(theta, rng)[2]
+        if not seen.any():
+            warnings.warn(f"view {name}: the object lies outside the range window, fan or elevation "
+                          f"aperture (ranges {rng.min():.2f}-{rng.max():.2f} m, window "
+                          f"{sonar.range_min:g}-{sonar.range_max:g} m): move the target or widen the window",
+                          RenderWarning, stacklevel=3)
+            continue
+        ghost_range = apparent_returns(p[seen], n, d)["ghost"][1]
+        if ghost_range.max() > sonar.range_max:
+            warnings.warn(f"view {name}: ghost returns reach {ghost_range.max():.2f} m, beyond range_max_m = "
+                          f"{sonar.range_max:g}: raise range_max_m to see them", RenderWarning, stacklevel=3)
+
+
+def add_noise(image, rng: np.random.Generator, *, looks: float = 4.0, background: float = 0.05) -> np.ndarray:
+    """Seeded speckle and background noise on a (bins, beams) linear image.
+
+    Multiplicative speckle ~ Gamma(looks, 1/looks) (mean 1) and additive background ~
+    Exponential with mean ``background`` × the image's 99th percentile of non-zero values.
+    Returns float32 ≥ 0 of the same shape."""
+    image = np.asarray(image, np.float32)
+    nonzero = image[image > 0]
+    scale = float(np.percentile(nonzero, 99)) if nonzero.size else 1.0
+    speckle = rng.gamma(looks, 1.0 / looks, size=image.shape)
+    floor = rng.exponential(background * scale, size=image.shape)
+    return (image * speckle + floor).astype(np.float32)
+
+
+def log_compress(image, *, dynamic_range_db: float = 60.0, peak: float | None = None) -> np.ndarray:
+    """DIDSON-style 8-bit log compression of a linear image: ``255·(1 + 20 log10(I/peak)/DR)``,
+    clipped to 0..255. ``peak`` defaults to the image maximum. Returns uint8, same shape."""
+    image = np.asarray(image, np.float64)
+    peak = float(image.max()) if peak is None else float(peak)
+    if not peak > 0:
+        return np.zeros(image.shape, np.uint8)
+    with np.errstate(divide="ignore"):
+        db = 20.0 * np.log10(np.maximum(image, 0.0) / peak)
+    return np.clip(np.rint(255.0 * (1.0 + db / dynamic_range_db)), 0, 255).astype(np.uint8)
+
+
+def _finite(name: str, value, ndim: int) -> np.ndarray:
+    array = np.asarray(value, np.float64)
+    if array.ndim != ndim:
+        raise InputError(f"must have {ndim} dimensions", field=name, value=array.shape)
+    if not np.all(np.isfinite(array)):
+        raise InputError("must be finite", field=name, value="NaN/inf")
+    return array
