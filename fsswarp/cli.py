@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import sys
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -103,6 +104,109 @@ def scene(state: State, name: str, out: Path) -> None:
     state.echo(f"wrote {out}: {name}, {len(manifest.rig.views)} views")
 
 
+@app.command()
+@click.argument("scene_name", metavar="SCENE")
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="Dataset folder to write.")
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0), help="Noise seed.")
+@click.option("--samples", nargs=2, type=int, default=(2, 64), show_default=True,
+              help="Sub-rays per beam: K_theta across the beam, K_phi over the elevation aperture.")
+@click.option("--no-noise", is_flag=True, help="Write the noise-free total as the images.")
+@click.pass_obj
+def simulate(state: State, scene_name: str, out: Path, seed: int, samples, no_noise: bool) -> None:
+    """Synthesize a dataset of SCENE, a scene file or a built-in scene (coral-one, coral-two,
+    table): noisy images plus the noise-free object, ghost, mirror and mirror2 layers and the
+    truth model under truth/."""
+    import time
+
+    from .render import RenderSettings
+    from .simulate import simulate as run
+
+    settings = RenderSettings(samples=tuple(samples))
+    backend = state.get_backend()
+    start = time.perf_counter()
+    dataset = run(scene_name, out, seed=seed, settings=settings, noise=not no_noise, backend=backend)
+    seconds = time.perf_counter() - start
+    figure = simulation_figure(dataset, out / "figures" / "layers.png")
+    state.echo(f"wrote {out}: {len(dataset.images)} views of {scene_name} "
+               f"({backend.name} on {backend.device}, {seconds:.2f} s); figure {figure}")
+
+
+def simulation_figure(dataset, path: Path) -> Path:
+    """Layers and noisy data of up to three views (roll 0, the largest positive and the most
+    negative roll of the reference position) as beam-bin and fan images."""
+    import numpy as np
+
+    from .figures import layers_figure
+    from .surface import COMPONENTS
+
+    views = dataset.rig.views
+    ref = views[dataset.rig.reference]
+    same = [v for v in views if v.position == ref.position and v.heading == ref.heading]
+    chosen = {min(same, key=lambda v: abs(v.roll)).name, max(same, key=lambda v: v.roll).name,
+              min(same, key=lambda v: v.roll).name}
+    stacks = {name: np.stack([dataset.truth_layer(name, c) for c in COMPONENTS] + [dataset.images[name]])
+              for name in [v.name for v in same if v.name in chosen]}
+    return layers_figure(stacks, dataset.sonar, path, layers=COMPONENTS + ("data",),
+                         title="simulated layers (noise-free) and data (noisy)")
+
+
+@app.command()
+@click.argument("model", type=click.Path(path_type=Path))
+@click.option("--dataset", "dataset_dir", required=True, type=click.Path(path_type=Path),
+              help="Dataset folder whose sonar and view poses to use.")
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="Folder for the TIFF layers.")
+@click.option("--depth", type=float, default=None, help="Sonar depth D (m); default: the dataset's measured depth.")
+@click.option("--tilt", type=float, default=None, help="Sonar tilt (deg); default: the dataset's measured tilt.")
+@click.option("--view", "view_names", multiple=True, help="Render only this view (repeatable).")
+@click.option("--samples", nargs=2, type=int, default=(2, 64), show_default=True,
+              help="Sub-rays per beam: K_theta across the beam, K_phi over the elevation aperture.")
+@click.pass_obj
+def render(state: State, model: Path, dataset_dir: Path, out: Path, depth, tilt, view_names, samples) -> None:
+    """Render synthetic views of the mesh MODEL (in the dataset's reference frame) at the
+    dataset's poses: OUT/<view>_{total,object,ghost,mirror,mirror2}.tiff."""
+    import json
+
+    import tifffile
+
+    from .atomic import output_folder
+    from .dataset import load_manifest
+    from .render import LAYERS, RenderSettings
+    from .render import render as run
+
+    manifest = load_manifest(dataset_dir)
+    mesh = load_mesh_file(model)
+    depth = manifest.surface.depth if depth is None else depth
+    tilt = manifest.surface.tilt if tilt is None else math.radians(tilt)
+    settings = RenderSettings(samples=tuple(samples))
+    backend = state.get_backend()
+    views = run(mesh, manifest.sonar, manifest.rig, depth, tilt, views=view_names or None,
+                settings=settings, backend=backend)
+    with output_folder(out, marker="render.json") as tmp:
+        for name, stack in views.items():
+            for layer, image in zip(LAYERS, stack):
+                tifffile.imwrite(tmp / f"{name}_{layer}.tiff", image, compression="zlib")
+        (tmp / "render.json").write_text(json.dumps({
+            "model": str(model), "dataset": str(dataset_dir), "depth_m": depth, "tilt_deg": math.degrees(tilt),
+            "views": list(views), "samples": list(samples), "backend": backend.name, "device": backend.device,
+        }, indent=2))
+    state.echo(f"wrote {out}: {len(views)} views x {len(LAYERS)} layers")
+
+
+def load_mesh_file(path: Path):
+    """A triangle mesh from a file, or InputError naming it."""
+    import trimesh
+
+    if not path.is_file():
+        raise InputError("no such mesh file", field="MODEL", value=str(path))
+    try:
+        mesh = trimesh.load_mesh(path, process=True)
+    except Exception as err:  # trimesh raises many kinds for unreadable files
+        raise InputError(f"cannot read mesh ({' '.join(str(err).split())})", field="MODEL", value=str(path)) from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise InputError("holds no triangles", field="MODEL", value=str(path))
+    return mesh
+
+
 def describe_manifest(manifest) -> str:
     """A few lines that summarize a manifest for people."""
     sonar, surface, rig = manifest.sonar, manifest.surface, manifest.rig
@@ -145,10 +249,16 @@ def format_backends(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    print(f"fsswarp: warning: {' '.join(str(message).split())}", file=sys.stderr)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; returns the exit status."""
     try:
-        app.main(args=argv, prog_name="fsswarp", standalone_mode=False)
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning
+            app.main(args=argv, prog_name="fsswarp", standalone_mode=False)
     except InputError as err:
         print(f"fsswarp: error: {err}", file=sys.stderr)
         return 2

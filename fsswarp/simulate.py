@@ -1,0 +1,55 @@
+"""Simulate a dataset from a scene: render the truth layers, add seeded noise, save (DESIGN §12)."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from .dataset import Dataset, Manifest, Truth, load_dataset, load_scene, save_dataset
+from .errors import InputError
+from .render import LAYERS, RenderSettings, add_noise, render
+from .rig import world_to_reference
+from .scenes import builtin_scene, target_world_mesh
+from .targets import BUILTIN_TARGETS
+
+
+def resolve_scene(scene: str | Path) -> tuple[Manifest, Path | None]:
+    """A built-in scene name or a scene file → (manifest, folder that resolves its mesh path)."""
+    if str(scene) in BUILTIN_TARGETS:
+        return builtin_scene(str(scene)), None
+    path = Path(scene)
+    if not path.is_file():
+        raise InputError(f"neither a scene file nor a built-in scene ({', '.join(BUILTIN_TARGETS)})",
+                         field="SCENE", value=str(scene))
+    return load_scene(path), path.parent
+
+
+def simulate(scene: str | Path | Manifest, out: str | Path, *, seed: int = 0,
+             settings: RenderSettings = RenderSettings(), noise: bool = True, backend=None) -> Dataset:
+    """Synthesize the dataset of ``scene`` (a built-in name, a scene file or a scene Manifest)
+    into the folder ``out``: noisy images, the noise-free layers and the truth model (in the
+    reference frame of the true depth and tilt). Returns the saved Dataset."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise InputError("must be an integer >= 0", field="--seed", value=seed)
+    manifest, base = (scene, None) if isinstance(scene, Manifest) else resolve_scene(scene)
+    if manifest.target is None or manifest.truth is None:
+        raise InputError("a scene needs [target] and [truth]", field="scene", value=str(scene))
+    truth = manifest.truth
+    world = target_world_mesh(manifest.target, base=base)
+    model = trimesh.Trimesh(world_to_reference(world.vertices, manifest.rig, truth.depth, truth.tilt),
+                            world.faces, process=False)
+    views = render(model, manifest.sonar, manifest.rig, truth.depth, truth.tilt, settings=settings,
+                   backend=backend)
+    images, layers = {}, {}
+    for index, (name, stack) in enumerate(views.items()):
+        total = stack[LAYERS.index("total")]
+        images[name] = add_noise(total, np.random.default_rng([seed, index])) if noise else total
+        layers[name] = {layer: stack[i] for i, layer in enumerate(LAYERS) if layer != "total"}
+    dataset_manifest = dataclasses.replace(manifest, target=None,
+                                           truth=Truth(depth=truth.depth, tilt=truth.tilt))
+    dataset = Dataset(dataset_manifest, images)
+    save_dataset(dataset, out, truth_layers=layers, truth_mesh=model)
+    return load_dataset(out)

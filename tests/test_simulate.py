@@ -1,0 +1,133 @@
+"""fsswarp simulate and render as a user runs them: outputs, determinism, bad input."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import tifffile
+import trimesh
+
+from fsswarp.dataset import load_dataset, save_scene
+from fsswarp.render import LAYERS, RenderSettings, RenderWarning, log_compress
+from fsswarp.scenes import builtin_scene
+from fsswarp.simulate import simulate
+
+FAST = RenderSettings(samples=(1, 16))
+
+
+def run_cli(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "fsswarp", "--backend", "opencl", *args],
+                          capture_output=True, text=True, cwd=cwd)
+
+
+@pytest.fixture(scope="module")
+def coral(tmp_path_factory):
+    from fsswarp.backends import get_backend
+
+    out = tmp_path_factory.mktemp("sim") / "coral"
+    return simulate("coral-one", out, seed=3, settings=FAST, backend=get_backend("opencl")), out
+
+
+def test_simulated_dataset_holds_noisy_images_and_truth_layers(coral):
+    dataset, out = coral
+    assert len(dataset.images) == 16
+    for name in ("S0", "Np67p5"):
+        object_ = dataset.truth_layer(name, "object")
+        ghost = dataset.truth_layer(name, "ghost")
+        assert object_.sum() > 0 and ghost.sum() > 0
+        total = sum(dataset.truth_layer(name, c) for c in ("object", "ghost", "mirror", "mirror2"))
+        image = dataset.images[name]
+        assert not np.array_equal(image, total)          # noise was added
+        echo, water = total > 0, total == 0
+        background = image[water].mean()                 # exponential floor: 5% of the p99 echo
+        assert background == pytest.approx(0.05 * np.percentile(total[echo], 99), rel=0.1)
+        # speckle has mean one: over the echo, data ≈ echo + floor
+        assert (image[echo].mean() - background) / total[echo].mean() == pytest.approx(1.0, abs=0.15)
+    assert (out / "truth" / "model.ply").is_file()
+    assert run_cli("check", str(out)).returncode == 0
+
+
+def test_same_seed_same_images_other_seed_other_images(coral, tmp_path):
+    from fsswarp.backends import get_backend
+
+    dataset, _ = coral
+    again = simulate("coral-one", tmp_path / "a", seed=3, settings=FAST, backend=get_backend("opencl"))
+    other = simulate("coral-one", tmp_path / "b", seed=4, settings=FAST, backend=get_backend("opencl"))
+    for name in dataset.images:
+        np.testing.assert_array_equal(again.images[name], dataset.images[name])
+    assert not np.array_equal(other.images["S0"], dataset.images["S0"])
+
+
+def test_render_command_writes_every_layer(coral, tmp_path):
+    _, out = coral
+    done = run_cli("render", str(out / "truth" / "model.ply"), "--dataset", str(out), "--out",
+                   str(tmp_path / "r"), "--view", "S0", "--view", "Sp45", "--samples", "1", "16")
+    assert done.returncode == 0, done.stderr
+    names = sorted(p.name for p in (tmp_path / "r").iterdir())
+    assert names == sorted([f"{v}_{layer}.tiff" for v in ("S0", "Sp45") for layer in LAYERS] + ["render.json"])
+    stack = [tifffile.imread(tmp_path / "r" / f"Sp45_{layer}.tiff") for layer in LAYERS]
+    np.testing.assert_allclose(stack[-1], sum(stack[:-1]), rtol=1e-5, atol=1e-7)
+    assert json.loads((tmp_path / "r" / "render.json").read_text())["views"] == ["S0", "Sp45"]
+
+
+def scene_file(tmp_path, **changes):
+    import dataclasses
+
+    manifest = builtin_scene("coral-one")
+    manifest = dataclasses.replace(manifest, **changes)
+    return save_scene(manifest, tmp_path / "scene.toml")
+
+
+def test_empty_mesh_exits_2(tmp_path):
+    import dataclasses
+
+    (tmp_path / "empty.ply").write_text("ply\nformat ascii 1.0\nelement vertex 0\nelement face 0\n"
+                                        "property list uchar int vertex_indices\nend_header\n")
+    target = dataclasses.replace(builtin_scene("coral-one").target, builtin=None, mesh="empty.ply")
+    path = scene_file(tmp_path, target=target)
+    done = run_cli("simulate", str(path), "--out", str(tmp_path / "out"))
+    assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert "target.mesh" in done.stderr and not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("edit, field", [
+    (("range_min_m = 1.0", "range_min_m = 3.0"), "range_max_m"),   # empty window
+    (("range_max_m = 3.0", "range_max_m = 0.5"), "range_max_m"),   # inverted window
+    (("heading_deg = 0.0", "heading_deg = nan"), "heading_deg"),   # NaN pose
+])
+def test_bad_scene_values_exit_2(tmp_path, edit, field):
+    path = scene_file(tmp_path)
+    text = path.read_text()
+    assert edit[0] in text
+    path.write_text(text.replace(edit[0], edit[1], 1))
+    done = run_cli("simulate", str(path), "--out", str(tmp_path / "out"))
+    assert done.returncode == 2 and field in done.stderr and "Traceback" not in done.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_open_mesh_and_missed_window_warn(tmp_path):
+    import dataclasses
+
+    from fsswarp.backends import get_backend
+    from fsswarp.sonar import SonarSpec
+
+    box = trimesh.creation.box(extents=(0.2, 0.2, 0.2))
+    box.update_faces(np.arange(len(box.faces)) != 0)   # a hole
+    box.export(tmp_path / "open.ply")
+    target = dataclasses.replace(builtin_scene("coral-one").target, builtin=None, mesh="open.ply")
+    manifest = dataclasses.replace(builtin_scene("coral-one"), target=target,
+                                   sonar=SonarSpec(range_min=2.5, range_max=4.0))
+    path = save_scene(manifest, tmp_path / "scene.toml")
+    with pytest.warns(RenderWarning) as caught:
+        simulate(path, tmp_path / "out", settings=FAST, backend=get_backend("opencl"))
+    text = " ".join(str(w.message) for w in caught)
+    assert "not watertight" in text and "outside the range window" in text
+
+
+def test_log_compression_maps_decades_linearly():
+    image = np.array([[1.0, 0.1, 0.001, 0.0]], np.float32)
+    out = log_compress(image, dynamic_range_db=60)
+    assert out.dtype == np.uint8
+    assert out.tolist() == [[255, 170, 0, 0]]
