@@ -91,6 +91,23 @@ float fss_ray_triangle(const fss_ray *ray, float3 a, float3 b, float3 c, float t
 
 /* Entry distance of the ray into box [lo, hi] within (t_min, t_best), else INFINITY.
  * The exit distance is widened by 2 gamma(3) (Ize 2013) so rounding never loses a box. */
+/* Test the triangles of leaf reference c (~c = first << 3 | count), keeping the nearest hit
+   below *best in (*best, *best_tri). */
+inline void fss_intersect_leaf(const fss_ray *ray, __global const float *tris, const int c,
+                               const float t_min, float *best, int *best_tri)
+{
+    const int e = ~c;
+    const int first = e >> 3, end = first + (e & 7);
+    for (int k = first; k < end; ++k) {
+        const float t = fss_ray_triangle(ray, vload3(3 * k, tris), vload3(3 * k + 1, tris),
+                                         vload3(3 * k + 2, tris), t_min, *best);
+        if (t < *best) {
+            *best = t;
+            *best_tri = k;
+        }
+    }
+}
+
 inline float fss_ray_box(const fss_ray *ray, float4 lo, float4 hi, float t_min, float t_best)
 {
     const float3 t0 = (lo.xyz - ray->org) * ray->inv_dir;
@@ -127,29 +144,11 @@ float fss_bvh_intersect(__global const float4 *nodes, __global const int *childr
             const float tt = t0; t0 = t1; t1 = tt;
         }
         if (c0 < 0 && t0 < INFINITY) {
-            const int e = ~c0;
-            const int first = e >> 3, end = first + (e & 7);
-            for (int k = first; k < end; ++k) {
-                const float t = fss_ray_triangle(&ray, vload3(3 * k, tris), vload3(3 * k + 1, tris),
-                                                 vload3(3 * k + 2, tris), t_min, best);
-                if (t < best) {
-                    best = t;
-                    best_tri = k;
-                }
-            }
+            fss_intersect_leaf(&ray, tris, c0, t_min, &best, &best_tri);
             t0 = INFINITY;
         }
         if (c1 < 0 && t1 < best) {
-            const int e = ~c1;
-            const int first = e >> 3, end = first + (e & 7);
-            for (int k = first; k < end; ++k) {
-                const float t = fss_ray_triangle(&ray, vload3(3 * k, tris), vload3(3 * k + 1, tris),
-                                                 vload3(3 * k + 2, tris), t_min, best);
-                if (t < best) {
-                    best = t;
-                    best_tri = k;
-                }
-            }
+            fss_intersect_leaf(&ray, tris, c1, t_min, &best, &best_tri);
             t1 = INFINITY;
         }
         const int go0 = t0 < best;
