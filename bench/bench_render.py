@@ -4,9 +4,12 @@
 
 Renders coral-one (5120 triangles) with the default 96-beam × 512-bin sonar, samples (2, 64)
 (12,288 primary sub-rays per view), all four layers, N views in one launch (the scene's 16
-poses repeated with extra rolls). Times are medians of K runs after a warm-up, measured end
-to end through ``Backend.render`` (upload of poses, kernel, read-back of the (N, 4, 512, 96)
-images). Embree (trimesh + embreex, CPU) casts the same primary rays for comparison.
+poses repeated with extra rolls). Times are medians of K runs after a warm-up, two ways:
+"synthesis" through ``Backend.render_device`` (pose upload, zeroing, the render kernel and
+the fixed-point conversion, synchronized; the layers stay on the device, as the grid search
+uses them) and "end to end" through ``Backend.render`` (the same plus the read-back of the
+(N, 4, 512, 96) float32 images, 786 KB per view). Embree (trimesh + embreex, CPU) casts the
+same primary rays for comparison.
 """
 
 from __future__ import annotations
@@ -50,11 +53,15 @@ def time_call(fn, repeat: int):
 
 def bench_backend(backend, sonar, mesh, rot, t, n, d, samples, repeat):
     handle = backend.load_mesh(mesh.vertices, mesh.faces)
-    call = lambda: backend.render(handle, sonar, rot, t, n, d, samples, gamma=1.0, surface_reflection=0.9)  # noqa: E731
-    med, lo, hi = time_call(call, repeat)
-    rays = len(rot) * sonar.beams * samples[0] * samples[1]
-    return {"backend": backend.name, "device": backend.device, "views": len(rot), "median_s": med,
-            "min_s": lo, "max_s": hi, "views_per_s": len(rot) / med, "primary_rays_per_s": rays / med}
+    args = (handle, sonar, rot, t, n, d, samples)
+    rows = []
+    for mode, method in (("synthesis", backend.render_device), ("end to end", backend.render)):
+        med, lo, hi = time_call(lambda: method(*args, gamma=1.0, surface_reflection=0.9), repeat)  # noqa: B023
+        rays = len(rot) * sonar.beams * samples[0] * samples[1]
+        rows.append({"backend": backend.name, "device": backend.device, "mode": mode, "views": len(rot),
+                     "median_s": med, "min_s": lo, "max_s": hi, "views_per_s": len(rot) / med,
+                     "primary_rays_per_s": rays / med})
+    return rows
 
 
 def primary_rays(sonar, rot, t, samples, limit):
@@ -113,14 +120,14 @@ def main() -> None:
     for name, device in devices:
         backend = get_backend(name, device)
         views = args.views if backend.is_gpu or backend.name == "opencl" else min(args.views, 16)
-        results["render"].append(bench_backend(backend, sonar, mesh, rot[:views], t[:views], n[:views], d[:views],
+        results["render"].extend(bench_backend(backend, sonar, mesh, rot[:views], t[:views], n[:views], d[:views],
                                                samples, args.repeat))
         results["cast"].append(bench_cast(backend, mesh, origins, dirs, args.repeat))
     embree = bench_embree(mesh, origins, dirs, args.repeat)
     if embree:
         results["cast"].append(embree)
     for row in results["render"]:
-        print(f"render {row['backend']:7s} {row['device'][:40]:40s} {row['views']:6d} views  "
+        print(f"render {row['mode']:10s} {row['backend']:7s} {row['device'][:40]:40s} {row['views']:6d} views  "
               f"median {row['median_s'] * 1e3:9.2f} ms  {row['views_per_s']:10.1f} views/s  "
               f"{row['primary_rays_per_s'] / 1e6:8.2f} Mrays/s")
     for row in results["cast"]:

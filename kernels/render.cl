@@ -189,3 +189,11 @@ __kernel void render_views(__global const float4 *nodes,
                     weight, beams, bins, range_min, inv_range_step);
     }
 }
+
+/* layers[i] = acc[i] / 2^24: the accumulator's fixed point as float (n items). */
+__kernel void fixed_to_float(__global const int *acc, __global float *layers, const int n)
+{
+    const int i = get_global_id(0);
+    if (i < n)
+        layers[i] = (float)acc[i] * (1.0f / FSS_FIXED);
+}

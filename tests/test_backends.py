@@ -351,3 +351,18 @@ def test_build_error_names_options_and_saved_source(backend_for_label):
             assert handle.read() == source
     finally:
         os.unlink(saved)
+
+
+def test_build_log_of_a_successful_build_is_not_raised(backend_for_label):
+    """NVIDIA's OpenCL compiler logs on success and pyopencl warns about any log (an error under
+    -W error): ``build`` must return the program regardless. A #warning makes PoCL log too."""
+    opencl = backend_for_label("opencl-cpu")
+    import pyopencl as cl
+
+    from fsswarp.backends.opencl_backend import build
+
+    source = "#warning fsswarp test: a log on success\n__kernel void fine(__global float *x) { x[0] = 1.0f; }\n"
+    with pytest.warns(cl.CompilerWarning):
+        cl.Program(opencl.context, source).build()
+    program = build(opencl.context, source, (), label="fine.cl")
+    assert program.get_info(cl.program_info.NUM_KERNELS) == 1

@@ -302,15 +302,37 @@ def test_backend_matches_oracle_other_parameters(backend):
             assert l1 < 0.02, f"view {v} {name}: relative L1 {l1:.4f}"
 
 
-def test_warp_and_opencl_agree_on_coral(backend_for_label):
-    """Same float32 arithmetic on both: they differ only at rounding boundaries (FMA
-    contraction, transcendental ulps), so relative L1 per layer < 0.5 %."""
-    warp = coral_render(backend_for_label("warp-cpu"))
-    opencl = coral_render(backend_for_label("opencl-cpu"))
-    for v in range(warp.shape[0]):
+@pytest.mark.parametrize("pair", [
+    ("warp-cpu", "opencl-cpu"),
+    pytest.param(("warp-cuda", "opencl-gpu"), marks=pytest.mark.gpu),
+    pytest.param(("warp-cuda", "warp-cpu"), marks=pytest.mark.gpu),
+    pytest.param(("opencl-gpu", "opencl-cpu"), marks=pytest.mark.gpu),
+], ids="-vs-".join)
+def test_backends_agree_on_coral(backend_for_label, pair):
+    """Same float32 arithmetic everywhere, no fma contraction: backends and devices differ only
+    at rounding boundaries (transcendental ulps: sin, cos, atan2, pow), so relative L1 per
+    layer < 0.5 %."""
+    first = coral_render(backend_for_label(pair[0]))
+    second = coral_render(backend_for_label(pair[1]))
+    for v in range(first.shape[0]):
         for layer, name in enumerate(COMPONENTS):
-            l1 = relative_l1(warp[v, layer], opencl[v, layer])
+            l1 = relative_l1(first[v, layer], second[v, layer])
             assert l1 < 0.005, f"{CORAL_VIEWS[v]} {name}: relative L1 {l1:.5f}"
+
+
+def test_render_device_keeps_layers_on_the_device(backend):
+    """render_device: complete layers in device memory, equal to render's host copy."""
+    sonar, mesh, rot, trans, normals, offsets = coral_inputs()
+    handle = backend.load_mesh(mesh.vertices, mesh.faces)
+    args = (handle, sonar, rot[:2], trans[:2], normals[:2], offsets[:2], SAMPLES)
+    on_device = backend.render_device(*args, gamma=GAMMA, surface_reflection=RS)
+    assert on_device.shape == (2, 4, sonar.bins, sonar.beams)
+    host = on_device.numpy()
+    assert host.dtype == np.float32 and host.sum() > 0
+    np.testing.assert_array_equal(host, backend.render(*args, gamma=GAMMA, surface_reflection=RS))
+    empty = backend.render_device(handle, sonar, rot[:0], trans[:0], normals[:0], offsets[:0], SAMPLES,
+                                  gamma=GAMMA, surface_reflection=RS)
+    assert empty.numpy().shape == (0, 4, sonar.bins, sonar.beams)
 
 
 def test_render_is_deterministic(backend):
@@ -335,6 +357,21 @@ def test_load_mesh_rejects_bad_faces(backend):
         backend.load_mesh(vertices, np.array([[0, -1, 2]]))
     with pytest.raises(ValueError):
         backend.load_mesh(np.array([[0, 0, np.nan], [1, 0, 0], [0, 1, 0]]), np.array([[0, 1, 2]]))
+
+
+def test_render_rejects_bad_batches(backend):
+    """A batch beyond one launch's 2^31 pixels and non-positive sub-ray counts are refused."""
+    mesh = sphere_mesh()
+    handle = backend.load_mesh(mesh.vertices, mesh.faces)
+    rot, trans, normals, offsets = sphere_views()
+    many = 2**31 // (4 * WIDE_SONAR.bins * WIDE_SONAR.beams) + 1
+    pick = np.zeros(many, int)
+    with pytest.raises(ValueError, match="split the batch"):
+        backend.render(handle, WIDE_SONAR, rot[pick], trans[pick], normals[pick], offsets[pick], SAMPLES,
+                       gamma=GAMMA, surface_reflection=RS)
+    with pytest.raises(ValueError, match="samples"):
+        backend.render(handle, WIDE_SONAR, rot, trans, normals, offsets, (0, 64), gamma=GAMMA,
+                       surface_reflection=RS)
 
 
 def test_render_rejects_nan_pose(backend):

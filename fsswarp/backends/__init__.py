@@ -37,7 +37,7 @@ import numpy as np
 from ..errors import InputError
 from ..sonar import SonarSpec
 
-__all__ = ["Backend", "SonarConstants", "get_backend", "describe_backends", "BACKEND_NAMES",
+__all__ = ["Backend", "DeviceLayers", "SonarConstants", "get_backend", "describe_backends", "BACKEND_NAMES",
            "INSTALL_WARP", "INSTALL_OPENCL"]
 
 #: Values of ``--backend``.
@@ -153,6 +153,78 @@ class Backend(abc.ABC):
         """Kernel launch of ``project``: clean float32 C-contiguous (P, 3), (V, 3, 3), (V, 3)
         arrays with P, V >= 1. Returns (V, P) int32 beam, int32 bin, uint8 inside (0 or 1)."""
 
+    def carve(self, masks, rotations, translations, sonar: SonarSpec, voxel_size: float, *,
+              origin=None, shape=None, centres=None):
+        """Space carving: how many views see each voxel and how many reject it (DESIGN §6).
+
+        masks : (V, bins, beams) bool or integer, nonzero = the view's feasible region
+        rotations : (V, 3, 3) float, translations : (V, 3) float
+            View poses, ``P_ref = R @ P_view + t`` (V <= 255).
+        sonar : SonarSpec
+        voxel_size : h (m), the side of every voxel (a cube)
+        origin (3,) float and shape (nx, ny, nz) : a regular grid, voxel (i, j, k) centred
+            at ``origin + h·(i, j, k)`` (computed in float32), flattened in C order; or
+        centres : (P, 3) float, explicit voxel centres (the fine levels of coarse-to-fine)
+
+        Returns ``(seen, rejected)``, (P,) uint8: the views whose window holds the voxel's
+        centre (the rule of ``project``), and the views that reject it: the cube's bounding
+        sphere lies wholly inside the view's window and the box of beams and bins that the
+        sphere projects into holds no feasible pixel (fsswarp/carve.py explains the rule and
+        why it is conservative; ``fsswarp.carve.carve_reference`` is the float64 oracle).
+        Float32 on the device: decisions differ from the oracle only where a bound lies
+        within float32 rounding of a half-index boundary or of the elevation edge.
+        """
+        rot = _float32_array("rotations", rotations, ("V", 3, 3))
+        trans = _float32_array("translations", translations, ("V", 3))
+        if rot.shape[0] != trans.shape[0]:
+            raise ValueError(f"rotations and translations must describe the same views, got "
+                             f"{rot.shape[0]} rotations and {trans.shape[0]} translations")
+        if not isinstance(sonar, SonarSpec):
+            raise TypeError(f"sonar must be a fsswarp.sonar.SonarSpec, got {type(sonar).__name__}")
+        feasible = np.asarray(masks)
+        if feasible.dtype.kind not in "biu":
+            raise TypeError(f"masks must be bool or integer, got dtype {feasible.dtype}")
+        if feasible.shape != (rot.shape[0], sonar.bins, sonar.beams):
+            raise ValueError(f"masks must have shape (V, bins, beams) = ({rot.shape[0]}, {sonar.bins}, "
+                             f"{sonar.beams}), got {feasible.shape}")
+        if rot.shape[0] > 255:
+            raise ValueError(f"at most 255 views per launch (uint8 counts), got {rot.shape[0]}")
+        size = float(voxel_size) if isinstance(voxel_size, (int, float, np.number)) else np.nan
+        if not (np.isfinite(np.float32(size)) and np.float32(size) > 0):
+            raise ValueError(f"voxel_size must be a finite number > 0, got {voxel_size!r}")
+        grid = origin is not None or shape is not None
+        if grid == (centres is not None) or (grid and (origin is None or shape is None)):
+            raise ValueError("give either origin and shape (a grid) or centres")
+        if centres is not None:
+            points = _float32_array("centres", centres, ("P", 3))
+            n_voxels, start, dims = points.shape[0], None, None
+        else:
+            start = _float32_array("origin", np.asarray(origin).reshape(-1), (3,))
+            dims = tuple(shape) if isinstance(shape, (tuple, list, np.ndarray)) else ()
+            if len(dims) != 3 or any(isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0
+                                     for n in dims):
+                raise ValueError(f"shape must be three integers >= 0, got {shape!r}")
+            dims = tuple(int(n) for n in dims)
+            n_voxels, points = dims[0] * dims[1] * dims[2], None
+        if n_voxels >= 2**31 - 2**10:
+            raise ValueError(f"too many voxels for one launch ({n_voxels}); split them")
+        if n_voxels == 0 or rot.shape[0] == 0:
+            return np.zeros(n_voxels, np.uint8), np.zeros(n_voxels, np.uint8)
+        integral = np.zeros((rot.shape[0], sonar.bins + 1, sonar.beams + 1), np.int32)
+        np.cumsum(np.cumsum(feasible != 0, axis=1, dtype=np.int32), axis=2, out=integral[:, 1:, 1:])
+        radius = float(np.float32(size * np.sqrt(3.0) / 2.0))
+        return self._carve(integral, rot, trans, SonarConstants.of(sonar), float(np.float32(size)), radius,
+                           start, dims, points)
+
+    @abc.abstractmethod
+    def _carve(self, integral: np.ndarray, rotations: np.ndarray, translations: np.ndarray,
+               sonar: SonarConstants, voxel_size: float, radius: float, origin: np.ndarray | None,
+               shape: tuple[int, int, int] | None, centres: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """Kernel launch of ``carve``: integral (V, bins + 1, beams + 1) int32 summed-area
+        tables of the masks, clean float32 poses, the float32 voxel size and circumradius,
+        and either a grid (origin (3,) float32, shape) or centres (P, 3) float32, P, V >= 1.
+        Returns (P,) uint8 seen and rejected counts."""
+
 
     # --- ray casting and image synthesis ------------------------------------------------------
     def load_mesh(self, vertices, faces) -> Any:
@@ -190,6 +262,15 @@ class Backend(abc.ABC):
         plane_normals (N, 3), plane_offsets (N,): the surface ``n·P = d`` in each VIEW frame.
         samples = (K_θ, K_φ) sub-rays per beam. Returns (N, 4, bins, beams) float32: the
         layers object, ghost, mirror, mirror2 (``fsswarp.surface.COMPONENTS``)."""
+        return self.render_device(mesh, sonar, rotations, translations, plane_normals, plane_offsets,
+                                  samples, gamma=gamma, surface_reflection=surface_reflection).numpy()
+
+    def render_device(self, mesh, sonar: SonarSpec, rotations, translations, plane_normals,
+                      plane_offsets, samples: tuple[int, int], *, gamma: float,
+                      surface_reflection: float) -> "DeviceLayers":
+        """``render`` with the layers left on the device (for kernels that consume them there,
+        and for timing the synthesis without the read-back). Returns once the layers are
+        complete; ``.numpy()`` copies them to the host."""
         rot = _float32_array("rotations", rotations, ("N", 3, 3))
         trans = _float32_array("translations", translations, ("N", 3))
         normals = _float32_array("plane_normals", plane_normals, ("N", 3))
@@ -199,8 +280,13 @@ class Backend(abc.ABC):
                              f"the same views, got {rot.shape[0]}, {trans.shape[0]}, {normals.shape[0]}, "
                              f"{offsets.shape[0]}")
         k_theta, k_phi = (int(k) for k in samples)
+        if k_theta < 1 or k_phi < 1:
+            raise ValueError(f"samples must be two positive counts, got {tuple(samples)}")
+        if rot.shape[0] * 4 * sonar.bins * sonar.beams >= 2**31:
+            raise ValueError(f"{rot.shape[0]} views of {sonar.bins} x {sonar.beams} exceed one launch's "
+                             f"2^31 pixels; split the batch")
         if rot.shape[0] == 0:
-            return np.zeros((0, 4, sonar.bins, sonar.beams), np.float32)
+            return HostLayers(np.zeros((0, 4, sonar.bins, sonar.beams), np.float32))
         return self._render(mesh, SonarConstants.of(sonar), _beam_widths(sonar), rot, trans, normals,
                             np.ascontiguousarray(offsets[:, 0]), k_theta, k_phi, float(gamma),
                             float(surface_reflection))
@@ -216,9 +302,31 @@ class Backend(abc.ABC):
     @abc.abstractmethod
     def _render(self, mesh, sonar: SonarConstants, beam_widths: np.ndarray, rotations: np.ndarray,
                 translations: np.ndarray, plane_normals: np.ndarray, plane_offsets: np.ndarray,
-                k_theta: int, k_phi: int, gamma: float, surface_reflection: float) -> np.ndarray:
-        """Kernel launch of ``render`` (the algorithm: fsswarp/render.py's docstring);
-        beam_widths: (beams,) float32 Δθ_b. Returns (N, 4, bins, beams) float32."""
+                k_theta: int, k_phi: int, gamma: float, surface_reflection: float) -> "DeviceLayers":
+        """Kernel launch of ``render_device`` (the algorithm: fsswarp/render.py's docstring);
+        beam_widths: (beams,) float32 Δθ_b. Returns the (N, 4, bins, beams) float32 layers,
+        complete, on the device."""
+
+
+class DeviceLayers(abc.ABC):
+    """Rendered layers in a backend's device memory; ``shape`` = (N, 4, bins, beams) float32."""
+
+    shape: tuple[int, int, int, int]
+
+    @abc.abstractmethod
+    def numpy(self) -> np.ndarray:
+        """A host copy, (N, 4, bins, beams) float32."""
+
+
+class HostLayers(DeviceLayers):
+    """Layers already on the host (an empty batch)."""
+
+    def __init__(self, array: np.ndarray):
+        self.array = array
+        self.shape = array.shape
+
+    def numpy(self) -> np.ndarray:
+        return self.array
 
 
 def _beam_widths(sonar: SonarSpec) -> np.ndarray:

@@ -14,13 +14,14 @@ import importlib.resources
 import re
 import tempfile
 import threading
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pyopencl as cl
 from pyopencl.tools import first_arg_dependent_memoize
 
-from . import Backend, SonarConstants, _OpenCLDevice
+from . import Backend, DeviceLayers, SonarConstants, _OpenCLDevice
 from .bvh import FlatBVH, build_bvh
 
 #: ε (m) of the leg tests of render (fsswarp/render.py).
@@ -88,9 +89,13 @@ def program(context: cl.Context, name: str, options: tuple[str, ...] = BUILD_OPT
 
 def build(context: cl.Context, source: str, options: tuple[str, ...], *, label: str) -> cl.Program:
     """Build ``source``; on failure raise KernelBuildError with the options, the build log and
-    a path to a saved copy of the source."""
+    a path to a saved copy of the source. A successful build's log is dropped: vendor
+    compilers (NVIDIA's among them) print informational logs that pyopencl would raise as
+    ``CompilerWarning``."""
     try:
-        return cl.Program(context, source).build(options=list(options))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", cl.CompilerWarning)
+            return cl.Program(context, source).build(options=list(options))
     except cl.Error as err:
         with tempfile.NamedTemporaryFile("w", prefix=f"fsswarp-{Path(label).stem}-", suffix=".cl",
                                          delete=False, encoding="utf-8") as saved:
@@ -118,8 +123,11 @@ class OpenCLBackend(Backend):
         # Kernel objects once: pyopencl makes a new one on every attribute access. Their
         # arguments are state, so launches hold the lock (one backend may serve many threads).
         self._project_kernel = cl.Kernel(program(self.context, "project.cl"), "project_points")
+        self._carve_grid_kernel = cl.Kernel(program(self.context, "carve.cl"), "carve_grid")
+        self._carve_points_kernel = cl.Kernel(program(self.context, "carve.cl"), "carve_points")
         self._cast_kernel = cl.Kernel(program(self.context, "raycast.cl"), "cast_rays")
         self._render_kernel = cl.Kernel(program(self.context, "render.cl"), "render_views")
+        self._fixed_kernel = cl.Kernel(program(self.context, "render.cl"), "fixed_to_float")
         self._lock = threading.Lock()
 
     def _input(self, array: np.ndarray) -> cl.Buffer:
@@ -149,6 +157,28 @@ class OpenCLBackend(Backend):
                 cl.enqueue_copy(self.queue, host, buf, is_blocking=False)
             self.queue.finish()
         return beam, bin_, inside
+
+    def _carve(self, integral, rotations, translations, sonar: SonarConstants, voxel_size, radius, origin,
+               shape, centres):
+        n_voxels = centres.shape[0] if centres is not None else shape[0] * shape[1] * shape[2]
+        seen, seen_buf = self._output((n_voxels,), np.uint8)
+        rejected, rejected_buf = self._output((n_voxels,), np.uint8)
+        common = (np.int32(n_voxels), self._input(rotations), self._input(translations), self._input(integral),
+                  np.int32(rotations.shape[0]), self._input(sonar.beam_table), np.int32(sonar.use_table),
+                  np.int32(sonar.beams), np.int32(sonar.bins), np.float32(sonar.half_azimuth),
+                  np.float32(sonar.beam_scale), np.float32(sonar.range_min), np.float32(sonar.inv_range_step),
+                  np.float32(sonar.half_elevation), np.float32(radius), seen_buf, rejected_buf)
+        global_size = (-(-n_voxels // GROUP) * GROUP,)
+        with self._lock:
+            if centres is not None:
+                self._carve_points_kernel(self.queue, global_size, None, self._input(centres), *common)
+            else:
+                self._carve_grid_kernel(self.queue, global_size, None, self._input(origin), np.float32(voxel_size),
+                                        *(np.int32(n) for n in shape), *common)
+            cl.enqueue_copy(self.queue, seen, seen_buf, is_blocking=False)
+            cl.enqueue_copy(self.queue, rejected, rejected_buf, is_blocking=False)
+            self.queue.finish()
+        return seen, rejected
 
     # --- ray casting and image synthesis --------------------------------------------------------
     def _load_mesh(self, vertices, faces):
@@ -184,12 +214,13 @@ class OpenCLBackend(Backend):
         sub = k_theta * k_phi
         weight = np.float32(1.0 / sub)
         shape = (n_views, 4, sonar.bins, sonar.beams)
-        acc = np.zeros(shape, np.int32)
-        acc_buf = cl.Buffer(self.context, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR,
-                            hostbuf=acc)
+        size = int(np.prod(shape))
+        acc_buf = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=4 * size)
+        layers_buf = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=4 * size)
         group = min(GROUP, 1 << (max(sub, 1) - 1).bit_length())
         global_size = (-(-sub // group) * group, sonar.beams, n_views)
         with self._lock:
+            cl.enqueue_fill_buffer(self.queue, acc_buf, np.int32(0), 0, 4 * size)
             self._render_kernel(
                 self.queue, global_size, (group, 1, 1),
                 mesh.nodes, mesh.children, mesh.triangles,
@@ -202,9 +233,25 @@ class OpenCLBackend(Backend):
                 np.float32(sonar.half_elevation), np.int32(k_theta), np.int32(k_phi), weight,
                 np.float32(gamma), np.float32(surface_reflection), np.float32(RENDER_EPSILON),
                 np.float32(RENDER_MAX_DISTANCE), acc_buf)
-            cl.enqueue_copy(self.queue, acc, acc_buf, is_blocking=False)
+            self._fixed_kernel(self.queue, (-(-size // GROUP) * GROUP,), None, acc_buf, layers_buf,
+                               np.int32(size))
             self.queue.finish()
-        return (acc.astype(np.float64) / 16777216.0).astype(np.float32)
+        acc_buf.release()
+        return OpenCLLayers(self.queue, layers_buf, shape)
+
+
+class OpenCLLayers(DeviceLayers):
+    """Rendered layers in an OpenCL buffer (``.buffer``) of (N, 4, bins, beams) float32."""
+
+    def __init__(self, queue: cl.CommandQueue, buffer: cl.Buffer, shape: tuple[int, int, int, int]):
+        self.queue = queue
+        self.buffer = buffer
+        self.shape = shape
+
+    def numpy(self) -> np.ndarray:
+        host = np.empty(self.shape, np.float32)
+        cl.enqueue_copy(self.queue, host, self.buffer, is_blocking=True)
+        return host
 
 
 class OpenCLMesh:

@@ -11,7 +11,12 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from . import Backend, SonarConstants, _warp
+from . import Backend, DeviceLayers, SonarConstants, _warp
+
+# No contraction of a*b + c into fma: the watertight ray-triangle test relies on a shared edge
+# giving the same float expression in both triangles (with fma on CUDA, 6 of 10,248 rays
+# through vertices and edges leaked), and kernels/*.cl build with FP_CONTRACT OFF too.
+wp.set_module_options({"fuse_fp": False})
 
 _INDEX_LIMIT = wp.constant(1073741824.0)  # ±2^30: far-away points cannot overflow int32
 
@@ -336,7 +341,113 @@ def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
                     surface_reflection * surface_reflection * wp.pow(c2, gamma), weight, beams, bins)
 
 
+@wp.kernel
+def fixed_to_float(acc: wp.array(dtype=wp.int32), layers: wp.array(dtype=float)):
+    """Thread i: layers[i] = acc[i] / 2^24 (the accumulator's fixed point)."""
+    i = wp.tid()
+    layers[i] = float(acc[i]) * (1.0 / _FIXED)
+
+
+# --- voxel space carving (kernels/carve.cl documents the rule and the arguments) -------------
+@wp.func
+def carve_test(c: wp.vec3, r: wp.mat33, t: wp.vec3, integral: wp.array3d(dtype=wp.int32), v: int,
+               beam_table: wp.array2d(dtype=float), use_table: int, beams: int, bins: int,
+               half_azimuth: float, beam_scale: float, range_min: float, inv_range_step: float,
+               half_elevation: float, radius: float):
+    """0: view v does not see the voxel at c; 1: sees and keeps it; 2: sees and rejects it
+    (fss_carve_test of kernels/carve.cl, operation for operation)."""
+    q = to_view(c, r, t)
+    theta = azimuth(q)
+    phi = elevation(q)
+    rng = sonar_range(q)
+    b = nearest_index(beam_coordinate(theta, use_table, beam_table, beams, half_azimuth, beam_scale))
+    bb = nearest_index(bin_coordinate(rng, range_min, inv_range_step))
+    if not (b >= 0 and b < beams and bb >= 0 and bb < bins and wp.abs(phi) <= half_elevation):
+        return 0
+    rho = wp.sqrt(q[0] * q[0] + q[1] * q[1])
+    if radius >= rho:
+        return 1
+    d_phi = wp.asin(radius / rng)
+    if wp.abs(phi) + d_phi > half_elevation:
+        return 1
+    d_theta = wp.asin(radius / rho)
+    b_lo = nearest_index(beam_coordinate(theta - d_theta, use_table, beam_table, beams, half_azimuth, beam_scale))
+    b_hi = nearest_index(beam_coordinate(theta + d_theta, use_table, beam_table, beams, half_azimuth, beam_scale))
+    bin_lo = nearest_index(bin_coordinate(rng - radius, range_min, inv_range_step))
+    bin_hi = nearest_index(bin_coordinate(rng + radius, range_min, inv_range_step))
+    if b_lo < 0 or b_hi >= beams or bin_lo < 0 or bin_hi >= bins:
+        return 1
+    count = (integral[v, bin_hi + 1, b_hi + 1] - integral[v, bin_lo, b_hi + 1]
+             - integral[v, bin_hi + 1, b_lo] + integral[v, bin_lo, b_lo])
+    if count == 0:
+        return 2
+    return 1
+
+
+@wp.func
+def carve_voxel(c: wp.vec3, p: int, rotations: wp.array(dtype=wp.mat33), translations: wp.array(dtype=wp.vec3),
+                integral: wp.array3d(dtype=wp.int32), beam_table: wp.array2d(dtype=float), use_table: int,
+                beams: int, bins: int, half_azimuth: float, beam_scale: float, range_min: float,
+                inv_range_step: float, half_elevation: float, radius: float,
+                seen_out: wp.array(dtype=wp.uint8), rejected_out: wp.array(dtype=wp.uint8)):
+    """Counts of the views that see and that reject the voxel at c, written at p."""
+    seen = int(0)
+    rejected = int(0)
+    for v in range(rotations.shape[0]):
+        test = carve_test(c, rotations[v], translations[v], integral, v, beam_table, use_table, beams, bins,
+                          half_azimuth, beam_scale, range_min, inv_range_step, half_elevation, radius)
+        if test > 0:
+            seen += 1
+        if test == 2:
+            rejected += 1
+    seen_out[p] = wp.uint8(seen)
+    rejected_out[p] = wp.uint8(rejected)
+
+
+@wp.kernel
+def carve_grid(origin: wp.vec3, voxel_size: float, ny: int, nz: int, rotations: wp.array(dtype=wp.mat33),
+               translations: wp.array(dtype=wp.vec3), integral: wp.array3d(dtype=wp.int32),
+               beam_table: wp.array2d(dtype=float), use_table: int, beams: int, bins: int,
+               half_azimuth: float, beam_scale: float, range_min: float, inv_range_step: float,
+               half_elevation: float, radius: float, seen_out: wp.array(dtype=wp.uint8),
+               rejected_out: wp.array(dtype=wp.uint8)):
+    """Thread p = (i·ny + j)·nz + k: the voxel centred at origin + h·(i, j, k)."""
+    p = wp.tid()
+    k = p % nz
+    j = (p // nz) % ny
+    i = p // (nz * ny)
+    c = wp.vec3(origin[0] + voxel_size * float(i), origin[1] + voxel_size * float(j),
+                origin[2] + voxel_size * float(k))
+    carve_voxel(c, p, rotations, translations, integral, beam_table, use_table, beams, bins, half_azimuth,
+                beam_scale, range_min, inv_range_step, half_elevation, radius, seen_out, rejected_out)
+
+
+@wp.kernel
+def carve_points(centres: wp.array(dtype=wp.vec3), rotations: wp.array(dtype=wp.mat33),
+                 translations: wp.array(dtype=wp.vec3), integral: wp.array3d(dtype=wp.int32),
+                 beam_table: wp.array2d(dtype=float), use_table: int, beams: int, bins: int,
+                 half_azimuth: float, beam_scale: float, range_min: float, inv_range_step: float,
+                 half_elevation: float, radius: float, seen_out: wp.array(dtype=wp.uint8),
+                 rejected_out: wp.array(dtype=wp.uint8)):
+    """Thread p: the voxel centred at centres[p]."""
+    p = wp.tid()
+    carve_voxel(centres[p], p, rotations, translations, integral, beam_table, use_table, beams, bins,
+                half_azimuth, beam_scale, range_min, inv_range_step, half_elevation, radius, seen_out,
+                rejected_out)
+
+
 # --- the backend -----------------------------------------------------------------------------
+class WarpLayers(DeviceLayers):
+    """Rendered layers in a (N, 4, bins, beams) float32 ``wp.array`` (``.array``)."""
+
+    def __init__(self, array: wp.array):
+        self.array = array
+        self.shape = tuple(array.shape)
+
+    def numpy(self) -> np.ndarray:
+        return self.array.numpy()
+
+
 class _WarpMesh:
     """Handle of a mesh uploaded to one Warp device: a ``wp.Bvh`` over the triangles' (padded)
     boxes and the arrays (kept alive with it; the kernels read the triangles for the watertight
@@ -435,8 +546,9 @@ class WarpBackend(Backend):
             half = float(sonar.half_azimuth)
             centres = (-half + np.arange(sonar.beams) * (2.0 * half / max(sonar.beams - 1, 1))).astype(np.float32)
         weight = float(np.float32(1.0 / (k_theta * k_phi)))
+        shape = (n_views, 4, sonar.bins, sonar.beams)
         with wp.ScopedDevice(self._device):
-            acc = wp.zeros((n_views, 4, sonar.bins, sonar.beams), dtype=wp.int32)
+            acc = wp.zeros(shape, dtype=wp.int32)
             wp.launch(render_kernel, dim=(n_views, sonar.beams, k_theta * k_phi),
                       inputs=[mesh.id, mesh.points, mesh.indices, self._array(rotations, wp.mat33),
                               self._array(translations, wp.vec3), self._array(plane_normals, wp.vec3),
@@ -447,5 +559,28 @@ class WarpBackend(Backend):
                               sonar.inv_range_step, sonar.half_elevation, int(k_theta), int(k_phi),
                               weight, float(gamma), float(surface_reflection)],
                       outputs=[acc])
+            layers = wp.empty(shape, dtype=float)
+            wp.launch(fixed_to_float, dim=acc.size, inputs=[acc.flatten()], outputs=[layers.flatten()])
             wp.synchronize_device(self._device)
-            return acc.numpy().astype(np.float32) * np.float32(1.0 / 16777216.0)
+            return WarpLayers(layers)
+
+    # --- voxel space carving -------------------------------------------------------------------
+    def _carve(self, integral, rotations, translations, sonar: SonarConstants, voxel_size, radius, origin,
+               shape, centres):
+        n_voxels = centres.shape[0] if centres is not None else shape[0] * shape[1] * shape[2]
+        with wp.ScopedDevice(self._device):
+            seen = wp.empty(n_voxels, dtype=wp.uint8)
+            rejected = wp.empty(n_voxels, dtype=wp.uint8)
+            common = [self._array(rotations, wp.mat33), self._array(translations, wp.vec3),
+                      self._array(integral, wp.int32), self._array(sonar.beam_table, float), sonar.use_table,
+                      sonar.beams, sonar.bins, sonar.half_azimuth, sonar.beam_scale, sonar.range_min,
+                      sonar.inv_range_step, sonar.half_elevation, radius]
+            if centres is not None:
+                wp.launch(carve_points, dim=n_voxels, inputs=[self._array(centres, wp.vec3), *common],
+                          outputs=[seen, rejected])
+            else:
+                wp.launch(carve_grid, dim=n_voxels,
+                          inputs=[wp.vec3(*(float(x) for x in origin)), voxel_size, shape[1], shape[2], *common],
+                          outputs=[seen, rejected])
+            wp.synchronize_device(self._device)
+            return seen.numpy(), rejected.numpy()
