@@ -12,8 +12,15 @@ from __future__ import annotations
 import functools
 
 import pytest
+from hypothesis import settings
 
 from fsswarp.backends import describe_backends, get_backend
+
+# Property tests draw the same examples on every run and machine (the suite is deterministic;
+# raise max_examples locally to search wider), with no example database and no deadline
+# (CI machines are slow and shared).
+settings.register_profile("fsswarp", derandomize=True, database=None, deadline=None)
+settings.load_profile("fsswarp")
 
 #: Labels of the ``backend`` fixture: "<backend>-<device kind>".
 BACKEND_LABELS = [
