@@ -158,38 +158,55 @@ def simulation_figure(dataset, path: Path) -> Path:
 @click.option("--depth", type=float, default=None, help="Sonar depth D (m); default: the dataset's measured depth.")
 @click.option("--tilt", type=float, default=None, help="Sonar tilt (deg); default: the dataset's measured tilt.")
 @click.option("--view", "view_names", multiple=True, help="Render only this view (repeatable).")
+@click.option("--roll", "rolls", type=float, multiple=True,
+              help="Also render a new view at this roll (deg), at the position and heading of the "
+                   "--at view, named roll<DEG> (repeatable). With --roll alone only the new views render.")
+@click.option("--at", "at_view", default=None, help="View whose position and heading --roll uses "
+                                                    "(default: the reference view).")
 @click.option("--samples", nargs=2, type=int, default=(2, 64), show_default=True,
               help="Sub-rays per beam: K_theta across the beam, K_phi over the elevation aperture.")
 @click.pass_obj
-def render(state: State, model: Path, dataset_dir: Path, out: Path, depth, tilt, view_names, samples) -> None:
+def render(state: State, model: Path, dataset_dir: Path, out: Path, depth, tilt, view_names, rolls, at_view,
+           samples) -> None:
     """Render synthetic views of the mesh MODEL (in the dataset's reference frame) at the
-    dataset's poses: OUT/<view>_{total,object,ghost,mirror,mirror2}.tiff."""
+    dataset's poses or at new rolls: OUT/<view>_{total,object,ghost,mirror,mirror2}.tiff and
+    OUT/layers.png (beam-bin and fan images of up to six views)."""
     import json
 
     import tifffile
 
     from .atomic import output_folder
     from .dataset import load_manifest
+    from .figures import layers_figure
     from .render import LAYERS, RenderSettings
     from .render import render as run
+    from .rig import with_rolls
 
     manifest = load_manifest(dataset_dir)
     mesh = load_mesh_file(model)
     depth = manifest.surface.depth if depth is None else depth
     tilt = manifest.surface.tilt if tilt is None else math.radians(tilt)
     settings = RenderSettings(samples=tuple(samples))
+    rig, new_names = with_rolls(manifest.rig, [math.radians(r) for r in rolls], at=at_view)
+    names = list(view_names) + new_names if (view_names or new_names) else None
     backend = state.get_backend()
-    views = run(mesh, manifest.sonar, manifest.rig, depth, tilt, views=view_names or None,
-                settings=settings, backend=backend)
+    views = run(mesh, manifest.sonar, rig, depth, tilt, views=names, settings=settings, backend=backend)
     with output_folder(out, marker="render.json") as tmp:
         for name, stack in views.items():
             for layer, image in zip(LAYERS, stack):
                 tifffile.imwrite(tmp / f"{name}_{layer}.tiff", image, compression="zlib")
+        shown = dict(list(views.items())[:6])
+        layers_figure(shown, manifest.sonar, tmp / "layers.png",
+                      title=f"{model.name}: D = {depth:.3f} m, tilt = {math.degrees(tilt):.2f} deg"
+                            + (f" (first 6 of {len(views)} views)" if len(views) > 6 else ""))
         (tmp / "render.json").write_text(json.dumps({
             "model": str(model), "dataset": str(dataset_dir), "depth_m": depth, "tilt_deg": math.degrees(tilt),
-            "views": list(views), "samples": list(samples), "backend": backend.name, "device": backend.device,
+            "views": list(views), "new_views": {v.name: {"roll_deg": math.degrees(v.roll), "at": at_view or
+                                                         manifest.rig.views[manifest.rig.reference].name}
+                                                for v in rig.views if v.name in new_names},
+            "samples": list(samples), "backend": backend.name, "device": backend.device,
         }, indent=2))
-    state.echo(f"wrote {out}: {len(views)} views x {len(LAYERS)} layers")
+    state.echo(f"wrote {out}: {len(views)} views x {len(LAYERS)} layers, figure {out / 'layers.png'}")
 
 
 def load_mesh_file(path: Path):
@@ -205,6 +222,51 @@ def load_mesh_file(path: Path):
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise InputError("holds no triangles", field="MODEL", value=str(path))
     return mesh
+
+
+@app.command("import-aris")
+@click.argument("file", type=click.Path(path_type=Path))
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="Dataset folder to write.")
+@click.option("--frames", "frames_spec", default="all", show_default=True,
+              help="Frames to import, 0-based positions in the file: 'all' or a list like '0-3,5'.")
+@click.option("--elevation-fov-deg", type=float, default=None,
+              help="Full elevation aperture (deg); the file does not hold it. Default 14 (ARIS 1200/1800/3000 "
+                   "standard lenses; unconfirmed for the telephoto lens).")
+@click.option("--poses", type=click.Path(path_type=Path), default=None,
+              help="CSV of view poses: frame,x_m,y_m,heading_deg,roll_deg[,depth_offset_m,tilt_offset_deg]. "
+                   "Default: every view at the origin, heading 0, roll 0.")
+@click.option("--depth", type=float, default=None,
+              help="Measured sonar depth D0 (m); default: the frames' Depth sensor value (required when "
+                   "the recording has none).")
+@click.option("--tilt", type=float, default=None,
+              help="Measured sonar tilt (deg, positive = up); default: the frames' CompassPitch sensor value.")
+@click.pass_obj
+def import_aris(state: State, file: Path, out: Path, frames_spec: str, elevation_fov_deg, poses, depth,
+                tilt) -> None:
+    """Import a Sound Metrics ARIS recording (.aris) as a dataset: one view per frame (f0000,
+    f0001, ...), the lens's beam-angle table, the sensors' depth and tilt as the measured D0
+    and tilt, and figures/frame0_fan.png (the first imported frame)."""
+    import json
+
+    from .aris import import_aris as run
+    from .figures import fan_figure
+
+    dataset = run(file, out, frames=frames_spec, elevation_fov_deg=elevation_fov_deg, poses=poses,
+                  depth_m=depth, tilt_deg=tilt)
+    record = json.loads((out / "aris.json").read_text())
+    first = dataset.rig.views[0].name
+    figure = fan_figure(dataset.images[first], dataset.sonar, out / "figures" / "frame0_fan.png",
+                        title=f"{file.name} {first} ({record['system']}, {record['lens']} lens)")
+    frame0 = record["frames"][0]
+    surface = record["surface"]
+    state.echo(f"wrote {out}: {len(dataset.images)} views of {file} ({record['system']}, {record['lens']} lens, "
+               f"{record['beams']} beams x {record['samples_per_beam']} samples); figure {figure}")
+    state.echo(f"  range {dataset.sonar.range_min:.4g}-{dataset.sonar.range_max:.4g} m computed; window start "
+               f"{frame0['window_start_m']:.4g} m, length {frame0['window_length_m']:.4g} m "
+               f"(stored {frame0['window_start_m_stored']:.4g} m, {frame0['window_length_m_stored']:.4g} m)")
+    state.echo(f"  measured depth {surface['depth_m']:.4g} m ({surface['depth_source']}), tilt "
+               f"{surface['tilt_deg']:.4g} deg ({surface['tilt_source']}); elevation "
+               f"{record['elevation_fov_deg']:g} deg ({record['elevation_source']})")
 
 
 def describe_manifest(manifest) -> str:

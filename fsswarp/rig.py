@@ -137,6 +137,25 @@ class Rig:
         return rt @ rot_w, (rt @ (s_w - s_ref[..., None, :])[..., None])[..., 0]
 
 
+def with_rolls(rig: Rig, rolls, *, at: str | None = None) -> tuple[Rig, list[str]]:
+    """``rig`` plus one new view per roll (rad) at the position, heading and offsets of view
+    ``at`` (default: the reference view), named ``roll<degrees>`` (e.g. ``roll45``,
+    ``roll-22.5``). Returns the extended rig (same reference) and the new views' names."""
+    base = rig.views[rig.reference if at is None else rig.index(at)]
+    names, added = [], []
+    for roll in rolls:
+        if not math.isfinite(roll):
+            raise InputError("must be a finite angle", field="--roll", value=roll)
+        name = f"roll{math.degrees(roll):g}"
+        if name in rig.names:
+            raise InputError("the dataset already has a view of that name", field="--roll", value=name)
+        if name not in names:
+            names.append(name)
+            added.append(View(name, base.position, base.heading, roll, base.depth_offset,
+                              base.tilt_offset, optimize=False))
+    return Rig(rig.views + tuple(added), rig.reference), names
+
+
 def world_to_reference(points, rig: Rig, depth: float, tilt: float) -> np.ndarray:
     """(..., 3) world points expressed in the reference frame for (depth, tilt)."""
     rot, s = rig.reference_pose(depth, tilt)

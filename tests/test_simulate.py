@@ -66,10 +66,35 @@ def test_render_command_writes_every_layer(coral, tmp_path):
                    str(tmp_path / "r"), "--view", "S0", "--view", "Sp45", "--samples", "1", "16")
     assert done.returncode == 0, done.stderr
     names = sorted(p.name for p in (tmp_path / "r").iterdir())
-    assert names == sorted([f"{v}_{layer}.tiff" for v in ("S0", "Sp45") for layer in LAYERS] + ["render.json"])
+    assert names == sorted([f"{v}_{layer}.tiff" for v in ("S0", "Sp45") for layer in LAYERS]
+                           + ["layers.png", "render.json"])
     stack = [tifffile.imread(tmp_path / "r" / f"Sp45_{layer}.tiff") for layer in LAYERS]
     np.testing.assert_allclose(stack[-1], sum(stack[:-1]), rtol=1e-5, atol=1e-7)
     assert json.loads((tmp_path / "r" / "render.json").read_text())["views"] == ["S0", "Sp45"]
+
+
+def test_render_at_new_rolls(coral, tmp_path):
+    """--roll 45 at the reference position reproduces the dataset's own 45° view there (Sp45),
+    and a new roll gets its own files; clashing names and unknown --at views exit 2."""
+    _, out = coral
+    model = str(out / "truth" / "model.ply")
+    common = ["--dataset", str(out), "--samples", "1", "16"]
+    done = run_cli("render", model, *common, "--out", str(tmp_path / "r"), "--view", "Sp45",
+                   "--roll", "45", "--roll", "90")
+    assert done.returncode == 0, done.stderr
+    report = json.loads((tmp_path / "r" / "render.json").read_text())
+    assert report["views"] == ["Sp45", "roll45", "roll90"]
+    assert report["new_views"]["roll90"] == {"roll_deg": 90.0, "at": "Sm90"}
+    for layer in LAYERS:
+        np.testing.assert_array_equal(tifffile.imread(tmp_path / "r" / f"roll45_{layer}.tiff"),
+                                      tifffile.imread(tmp_path / "r" / f"Sp45_{layer}.tiff"))
+    roll90 = tifffile.imread(tmp_path / "r" / "roll90_total.tiff")
+    assert roll90.sum() > 0 and not np.array_equal(roll90, tifffile.imread(tmp_path / "r" / "roll45_total.tiff"))
+    for extra, field in ((["--roll", "45", "--at", "nowhere"], "view = 'nowhere'"),
+                         (["--roll", "nan"], "--roll")):
+        bad = run_cli("render", model, *common, "--out", str(tmp_path / "bad"), *extra)
+        assert bad.returncode == 2 and field in bad.stderr and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
+        assert not (tmp_path / "bad").exists()
 
 
 def scene_file(tmp_path, **changes):

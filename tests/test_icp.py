@@ -1,0 +1,202 @@
+"""IRLS-ICP of 2-D contours (fsswarp.icp; paper §2.4, eq. 5) on seeded synthetic curves."""
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from fsswarp.icp import contour_error, icp
+
+finite = dict(allow_nan=False, allow_infinity=False)
+#: Misalignments of the kind contour alignment meets: up to 2.9° about the contour and 2 cm.
+#: ICP is local: it needs the misalignment well below the distance from the contour to the
+#: outliers (at ±4.6° and 3 cm, outliers 5 cm off drew a few seeds into wrong minima).
+angles = st.floats(-0.05, 0.05, **finite)
+shifts = st.floats(-0.02, 0.02, **finite)
+seeds = st.integers(0, 2**16)
+CENTRE = np.array([0.0, 1.9])  # fan-plane point (m) the misalignment rotates about
+
+
+def curve(n, s0=-1.2, s1=1.2):
+    """(n, 2) frontal-contour-like curve in the fan plane (m): an elliptic arc 2 m ahead with
+    bumps, so that no rigid motion slides it onto itself (a circular arc would)."""
+    s = np.linspace(s0, s1, n)
+    return np.stack([0.35 * np.sin(s), 2.0 - 0.15 * np.cos(s) + 0.06 * np.sin(4 * s)], axis=1)
+
+
+def rigid(angle, shift):
+    """The true transform, rotation by ``angle`` about CENTRE then ``shift``, as (R, t)."""
+    c, s = math.cos(angle), math.sin(angle)
+    rot = np.array([[c, -s], [s, c]])
+    return rot, CENTRE + np.asarray(shift) - rot @ CENTRE
+
+
+def misplace(points, rot, trans):
+    """Points that the transform (rot, trans) moves onto ``points``."""
+    return (points - trans) @ rot
+
+
+def false_highlights(points, rng):
+    """Outliers of a frontal contour: each point pulled 5–30 cm toward the sonar along its beam
+    (a spurious highlight in front of the object)."""
+    rng_m = np.linalg.norm(points, axis=1, keepdims=True)
+    return points * (1.0 - rng.uniform(0.05, 0.3, (len(points), 1)) / rng_m)
+
+
+def clutter(clean, count, rng):
+    """``count`` outlier points at least 5 cm from every point of ``clean``, within 0.3 m of it."""
+    lo, hi = clean.min(axis=0) - 0.3, clean.max(axis=0) + 0.3
+    out = np.empty((0, 2))
+    while len(out) < count:
+        cand = rng.uniform(lo, hi, (4 * count, 2))
+        dist = np.min(np.linalg.norm(cand[:, None, :] - clean[None, :, :], axis=2), axis=1)
+        out = np.concatenate([out, cand[(dist >= 0.05) & (dist <= 0.3)]])
+    return out[:count]
+
+
+def transform_error(result, rot, trans, points):
+    """RMS distance (m) between where the estimate and the truth put ``points``."""
+    return float(np.sqrt(np.mean(np.sum((result.apply(points) - (points @ rot.T + trans)) ** 2, axis=1))))
+
+
+# --- exact cases -------------------------------------------------------------------------------
+
+@given(seed=seeds, n=st.integers(2, 300))
+@settings(derandomize=True, max_examples=30, deadline=None)
+def test_identical_sets_give_identity_and_zero_error(seed, n):
+    points = curve(n) + np.random.default_rng(seed).normal(0.0, 0.005, (n, 2))
+    res = icp(points, points)  # identity to rounding
+    np.testing.assert_allclose(res.rotation, np.eye(2), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(res.translation, np.zeros(2), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(res.motions, np.zeros((n, 2)), rtol=0, atol=1e-14)
+    np.testing.assert_array_equal(res.pairs, np.stack([np.arange(n), np.arange(n)], axis=1))
+    assert res.error <= 1e-14 and abs(res.angle) <= 1e-15
+    assert res.converged and res.iterations <= 2
+
+
+@given(angle=st.floats(-0.01, 0.01, **finite), sx=st.floats(-5e-4, 5e-4, **finite),
+       sy=st.floats(-5e-4, 5e-4, **finite))
+@settings(derandomize=True, max_examples=30, deadline=None)
+def test_small_motion_of_matched_points_is_exact(angle, sx, sy):
+    # 2 cm spacing, sub-mm motion: the nearest neighbours are the true pairs from the start,
+    # and weighted Procrustes solves the rigid motion exactly.
+    target = curve(60)
+    rot, trans = rigid(angle, (sx, sy))
+    res = icp(misplace(target, rot, trans), target)
+    assert res.converged
+    np.testing.assert_allclose(res.rotation, rot, atol=1e-12)
+    np.testing.assert_allclose(res.translation, trans, atol=1e-11)
+    assert res.angle == pytest.approx(angle, abs=1e-12)
+    assert res.error == pytest.approx(0.0, abs=1e-11)
+    np.testing.assert_array_equal(res.pairs[:, 0], res.pairs[:, 1])
+
+
+# --- recovery of a known transform ------------------------------------------------------------
+
+# name: (noise σ per axis on both sets (m), outlier fraction of the target, angle tol (rad),
+#        RMS point tol (m))
+CASES = {
+    "clean": (0.0, 0.0, 1e-3, 5e-4),
+    "noise": (0.001, 0.0, 0.01, 4e-3),
+    "outliers": (0.0, 0.2, 2e-3, 1.5e-3),
+    "noise+outliers": (0.001, 0.2, 0.01, 4e-3),
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+@given(angle=angles, sx=shifts, sy=shifts, seed=seeds)
+@settings(derandomize=True, max_examples=15, deadline=None)
+def test_recovers_known_transform(case, angle, sx, sy, seed):
+    # Unequal counts (300 data vs 170 synthetic points) and partial overlap: each contour
+    # covers a stretch that the other lacks.
+    noise, outliers, angle_tol, point_tol = CASES[case]
+    rng = np.random.default_rng(seed)
+    clean_target = curve(300, -1.2, 0.9)
+    target = clean_target + rng.normal(0.0, noise, clean_target.shape)
+    n_out = int(round(outliers * len(target)))
+    if n_out:
+        bad = rng.choice(len(target), n_out, replace=False)
+        target[bad] = false_highlights(target[bad], rng)
+    truth_source = curve(170, -0.9, 1.1)
+    rot, trans = rigid(angle, (sx, sy))
+    source = misplace(truth_source + rng.normal(0.0, noise, truth_source.shape), rot, trans)
+    res = icp(source, target)
+    assert abs(res.angle - angle) <= angle_tol
+    overlap = truth_source[:, 0] <= clean_target[-1, 0]
+    assert transform_error(res, rot, trans, source[overlap]) <= point_tol
+    np.testing.assert_allclose(res.motions, res.apply(source) - source, atol=1e-15)
+    # CE (eq. 5) over the inlier pairs: the noise level of the residuals, never the outliers
+    moved = res.apply(source)
+    assert res.error == pytest.approx(contour_error(target[res.pairs[:, 1]], moved[res.pairs[:, 0]]))
+    assert res.error <= 2.0 * math.sqrt(2.0) * noise + 1e-3
+    # the stretch of the source beyond the data's end is no inlier
+    assert not np.any(truth_source[res.pairs[:, 0], 0] > clean_target[-1, 0] + 0.02)
+
+
+def test_clutter_is_never_an_inlier():
+    rng = np.random.default_rng(7)
+    clean = curve(250)
+    target = clean.copy()
+    bad = rng.choice(len(target), 50, replace=False)
+    target[bad] = clutter(clean, 50, rng)
+    rot, trans = rigid(0.04, (0.015, -0.015))
+    source = misplace(curve(140, -1.0, 1.0), rot, trans)
+    res = icp(source, target)
+    assert transform_error(res, rot, trans, source) <= 1e-3
+    assert not np.isin(res.pairs[:, 1], bad).any()
+    dist = np.linalg.norm(target[res.pairs[:, 1]] - res.apply(source)[res.pairs[:, 0]], axis=1)
+    assert np.all(dist <= 3.0 * res.scale)  # the stated gate
+    assert res.weights.shape == (140,) and np.all((res.weights > 0) & (res.weights <= 1))
+
+
+def test_max_distance_gates_pairs():
+    target = curve(200)
+    source = np.concatenate([curve(100, -1.0, 1.0), [[5.0, 5.0], [-5.0, 6.0]]])
+    res = icp(source, target, max_distance=0.1)
+    assert set(res.pairs[:, 0].tolist()) == set(range(100))
+    assert res.weights[100:].tolist() == [0.0, 0.0]
+    far = icp(source + 10.0, target, max_distance=0.1)
+    assert len(far.pairs) == 0 and math.isnan(far.error) and not far.converged
+    np.testing.assert_array_equal(far.rotation, np.eye(2))
+
+
+def test_deterministic():
+    rng = np.random.default_rng(3)
+    target = curve(300) + rng.normal(0, 0.003, (300, 2))
+    rot, trans = rigid(-0.04, (0.01, 0.02))
+    source = misplace(curve(123, -0.7, 1.2), rot, trans)
+    a, b = icp(source, target), icp(source.copy(), target.copy())
+    for field in ("rotation", "translation", "pairs", "motions", "weights"):
+        np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+    assert (a.error, a.iterations, a.scale) == (b.error, b.iterations, b.scale)
+
+
+# --- CE and validation ---------------------------------------------------------------------------
+
+def test_contour_error_closed_form():
+    # eq. (5): distances 0, 5 and 1 -> mean 2
+    data = [[0.0, 0.0], [3.0, 4.0], [1.0, 1.0]]
+    synthetic = [[0.0, 0.0], [0.0, 0.0], [1.0, 2.0]]
+    assert contour_error(data, synthetic) == pytest.approx(2.0)
+    assert math.isnan(contour_error(np.empty((0, 2)), np.empty((0, 2))))
+    with pytest.raises(ValueError, match="must match"):
+        contour_error(data, synthetic[:2])
+
+
+@pytest.mark.parametrize("source, target, kwargs, message", [
+    (np.zeros((5, 3)), np.zeros((5, 2)), {}, r"shape \(N, 2\)"),
+    (np.zeros(10), np.zeros((5, 2)), {}, r"shape \(N, 2\)"),
+    (np.zeros((1, 2)), np.zeros((5, 2)), {}, "at least 2"),
+    (np.zeros((5, 2)), np.zeros((1, 2)), {}, "at least 2"),
+    (np.array([[0.0, np.nan], [1.0, 1.0]]), np.zeros((5, 2)), {}, "non-finite"),
+    (np.zeros((5, 2)), np.array([[0.0, np.inf], [1.0, 1.0]]), {}, "non-finite"),
+    (np.zeros((5, 2)), np.zeros((5, 2)), {"max_iterations": 0}, "max_iterations"),
+    (np.zeros((5, 2)), np.zeros((5, 2)), {"gate": -1.0}, "gate"),
+    (np.zeros((5, 2)), np.zeros((5, 2)), {"tol": math.nan}, "tol"),
+    (np.zeros((5, 2)), np.zeros((5, 2)), {"max_distance": 0.0}, "max_distance"),
+])
+def test_bad_inputs_raise(source, target, kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        icp(source, target, **kwargs)

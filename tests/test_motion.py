@@ -1,0 +1,333 @@
+"""3-D patch motions from 2-D motions, E_mu (eq. 6) and the image metrics (eq. 8–11)
+(fsswarp.motion) against finite differences, the coral-one rig and closed forms."""
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from fsswarp.motion import (average_contour_error, average_intensity_error, image_error, image_jacobian,
+                            intensity_error, normalized_errors, patch_motions, pose_error, view_errors)
+from fsswarp.rig import world_to_reference
+from fsswarp.scenes import builtin_scene
+from fsswarp.sonar import fan_xy, from_polar, to_polar
+from fsswarp.surface import (apparent_returns, mirror_points, mirror_vectors, surface_in_reference,
+                             surface_in_views)
+
+finite = dict(allow_nan=False, allow_infinity=False)
+fast = settings(derandomize=True, max_examples=40, deadline=None)
+
+
+def image_coordinates(points, plane, surface=None):
+    """(..., 2) image coordinates of the object return of ``points`` or, with ``surface``, the
+    mirror return of the virtual points ``points`` (through surface.apparent_returns)."""
+    if surface is None:
+        rng, theta, _ = to_polar(points)
+    else:
+        theta, rng = apparent_returns(mirror_points(points, *surface), *surface)["mirror"]
+    if plane == "polar":
+        return np.stack([theta, rng], axis=-1)
+    return np.stack(fan_xy(theta, rng), axis=-1)
+
+
+def central_difference(points, plane, surface=None, h=1e-6):
+    """(..., 2, 3) Jacobian by central differences."""
+    cols = []
+    for j in range(3):
+        e = np.zeros(3)
+        e[j] = h
+        cols.append((image_coordinates(points + e, plane, surface) -
+                     image_coordinates(points - e, plane, surface)) / (2 * h))
+    return np.stack(cols, axis=-1)
+
+
+# --- Jacobians -----------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("plane", ["fan", "polar"])
+@given(rng=st.floats(0.5, 5.0, **finite), theta=st.floats(-0.8, 0.8, **finite),
+       phi=st.floats(-0.4, 0.4, **finite))
+@fast
+def test_jacobian_matches_central_differences(plane, rng, theta, phi):
+    p = from_polar(rng, theta, phi)
+    np.testing.assert_allclose(image_jacobian(p, plane=plane), central_difference(p, plane), atol=1e-8)
+
+
+@pytest.mark.parametrize("plane", ["fan", "polar"])
+@given(rng=st.floats(0.5, 4.0, **finite), theta=st.floats(-0.4, 0.4, **finite),
+       phi=st.floats(-0.2, 0.2, **finite), tilt=st.floats(-0.3, 0.3, **finite),
+       depth=st.floats(0.2, 1.0, **finite))
+@fast
+def test_mirror_jacobian_matches_central_differences(plane, rng, theta, phi, tilt, depth):
+    normal = np.array([0.0, math.sin(tilt), math.cos(tilt)])
+    q = mirror_points(from_polar(rng, theta, phi), normal, depth)  # a virtual mirror point
+    surface = (normal, depth)
+    np.testing.assert_allclose(image_jacobian(q, plane=plane, surface=surface),
+                               central_difference(q, plane, surface), atol=1e-7)
+
+
+def test_jacobian_closed_form_on_the_axis():
+    j_polar = image_jacobian([0.0, 2.0, 0.0], plane="polar")
+    np.testing.assert_allclose(j_polar, [[0.5, 0.0, 0.0], [0.0, 1.0, 0.0]], atol=1e-15)
+    j_fan = image_jacobian([0.0, 2.0, 0.0])
+    np.testing.assert_allclose(j_fan, [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], atol=1e-15)
+
+
+@given(rng=st.floats(0.5, 5.0, **finite), theta=st.floats(-0.8, 0.8, **finite),
+       phi=st.floats(-0.4, 0.4, **finite))
+@fast
+def test_elevation_direction_is_the_null_space(rng, theta, phi):
+    tangent = np.array([-math.sin(phi) * math.sin(theta), -math.sin(phi) * math.cos(theta), math.cos(phi)])
+    for plane in ("fan", "polar"):
+        np.testing.assert_allclose(image_jacobian(from_polar(rng, theta, phi), plane=plane) @ tangent,
+                                   0.0, atol=1e-14)
+
+
+def test_jacobian_rejects_bad_points():
+    with pytest.raises(ValueError, match="plane"):
+        image_jacobian([0.0, 1.0, 0.0], plane="xy")
+    with pytest.raises(ValueError, match=r"\(\.\.\., 3\)"):
+        image_jacobian([0.0, 1.0])
+    with pytest.raises(ValueError, match="non-finite"):
+        image_jacobian([np.nan, 1.0, 0.0])
+    with pytest.raises(ValueError, match="vertical axis"):
+        image_jacobian([0.0, 0.0, 1.0])
+
+
+# --- 3-D patch motions on the coral-one rig -------------------------------------------------
+
+@pytest.fixture(scope="module")
+def rig_case():
+    """Patch centres around the coral-one target, small known 3-D motions, and the rig's true
+    relative poses and surface (reference frame)."""
+    scene = builtin_scene("coral-one")
+    depth, tilt = scene.truth.depth, scene.truth.tilt
+    rot, trans = scene.rig.relative_poses(depth, tilt)
+    rng = np.random.default_rng(11)
+    centre = world_to_reference(np.array(scene.target.position), scene.rig, depth, tilt)
+    centres = centre + rng.normal(0.0, 0.06, (40, 3))
+    delta = rng.normal(0.0, 0.003, (40, 3))
+    return dict(scene=scene, depth=depth, tilt=tilt, rot=rot, trans=trans, centres=centres, delta=delta,
+                surface=surface_in_reference(scene.rig, depth, tilt))
+
+
+def in_view(points, sonar):
+    """(...,) whether view-frame points lie inside the sonar's window."""
+    rng, theta, phi = to_polar(points)
+    return ((np.abs(theta) <= sonar.half_azimuth) & sonar.in_elevation(phi) &
+            (rng >= sonar.range_min) & (rng <= sonar.range_max))
+
+
+def observe(case, centres, delta, plane="fan", mirror=False):
+    """True 2-D motions (K, V, 2) of P -> P + δ projected in every view, and visibility (K, V).
+    ``mirror``: the motions of the mirror returns (the patch seen from the mirrored sonar)."""
+    rot, trans = case["rot"], case["trans"]
+
+    def view_points(p):
+        return np.einsum("kvi,vij->kvj", p[:, None, :] - trans[None], rot)
+
+    before, after = view_points(centres), view_points(centres + delta)
+    sonar = case["scene"].sonar
+    if not mirror:
+        seen = in_view(before, sonar) & in_view(after, sonar)
+        return image_coordinates(after, plane) - image_coordinates(before, plane), seen
+    n, d = surface_in_views(case["scene"].rig, case["depth"], case["tilt"])
+    q0, q1 = mirror_points(before, n, d), mirror_points(after, n, d)
+    seen = in_view(before, sonar) & in_view(q0, sonar) & in_view(q1, sonar)
+    return image_coordinates(q1, plane, (n, d)) - image_coordinates(q0, plane, (n, d)), seen
+
+
+@pytest.mark.parametrize("plane", ["fan", "polar"])
+def test_least_squares_recovers_3d_motion(rig_case, plane):
+    motions, seen = observe(rig_case, rig_case["centres"], rig_case["delta"], plane)
+    assert seen.sum(axis=1).min() >= 8
+    res = patch_motions(rig_case["centres"], motions, seen, rig_case["rot"], rig_case["trans"], plane=plane)
+    delta = rig_case["delta"]
+    err = np.linalg.norm(res.motion - delta, axis=1) / np.linalg.norm(delta, axis=1)
+    assert err.max() < 0.01  # first-order model: the error is O(|δ|/R) ~ 1e-3
+    assert res.rank.tolist() == [3] * 40
+    np.testing.assert_array_equal(res.views, seen.sum(axis=1))
+    assert res.residual.max() < 1e-4
+
+
+def test_mirror_motion_is_the_reflected_object_motion(rig_case):
+    # The paper's "consistent manner": with the true surface, the 3-D motion recovered from the
+    # mirror returns is the object motion reflected across the surface, V^M = H V^O.
+    n, d = rig_case["surface"]
+    q = mirror_points(rig_case["centres"], n, d)
+    motions, seen = observe(rig_case, rig_case["centres"], rig_case["delta"], mirror=True)
+    res = patch_motions(q, motions, seen, rig_case["rot"], rig_case["trans"], surface=(n, d))
+    full = res.rank == 3
+    assert full.sum() >= 30
+    expected = mirror_vectors(rig_case["delta"], n)
+    err = np.linalg.norm(res.motion - expected, axis=1) / np.linalg.norm(rig_case["delta"], axis=1)
+    assert err[full].max() < 0.01
+    # so E_mu's mirror term vanishes and E_mu is the mean object-motion norm
+    frontal = np.ones((1, 40), dtype=bool)
+    e_mu = pose_error(rig_case["delta"], frontal, mirror_motion=res.motion,
+                      mirror_frontal=full[None], normal=n)
+    assert float(e_mu) == pytest.approx(np.linalg.norm(rig_case["delta"], axis=1).mean(), rel=0.01)
+
+
+def test_one_view_leaves_elevation_at_zero(rig_case):
+    # One view cannot see motion along its elevation direction ∂P/∂φ: the minimum-norm
+    # solution recovers δ less its elevation component, with rank 2.
+    motions, seen = observe(rig_case, rig_case["centres"], rig_case["delta"])
+    view = 3
+    only = np.zeros_like(seen)
+    only[:, view] = seen[:, view]
+    assert only.sum() == 40
+    res = patch_motions(rig_case["centres"], motions, only, rig_case["rot"], rig_case["trans"])
+    rot, trans = rig_case["rot"][view], rig_case["trans"][view]
+    _, theta, phi = to_polar((rig_case["centres"] - trans) @ rot)
+    tangent = np.stack([-np.sin(phi) * np.sin(theta), -np.sin(phi) * np.cos(theta), np.cos(phi)], axis=1)
+    elevation = tangent @ rot.T  # into the reference frame
+    delta = rig_case["delta"]
+    expected = delta - np.sum(delta * elevation, axis=1, keepdims=True) * elevation
+    np.testing.assert_allclose(res.motion, expected, atol=0.01 * np.abs(delta).max())
+    assert np.abs(np.sum(res.motion * elevation, axis=1)).max() < 1e-12
+    assert res.rank.tolist() == [2] * 40 and res.views.tolist() == [1] * 40
+
+
+def test_unseen_patches_and_ignored_entries(rig_case):
+    motions, seen = observe(rig_case, rig_case["centres"], rig_case["delta"])
+    seen = seen.copy()
+    seen[:5] = False
+    motions = np.where(seen[..., None], motions, np.nan)  # invisible entries are ignored
+    res = patch_motions(rig_case["centres"], motions, seen, rig_case["rot"], rig_case["trans"])
+    np.testing.assert_array_equal(res.motion[:5], 0.0)
+    assert res.rank[:5].tolist() == [0] * 5 and res.views[:5].tolist() == [0] * 5
+    assert res.residual[:5].tolist() == [0.0] * 5
+    assert np.all(np.isfinite(res.motion)) and np.all(res.rank[5:] == 3)
+    seen[5, 0] = True
+    motions[5, 0] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        patch_motions(rig_case["centres"], motions, seen, rig_case["rot"], rig_case["trans"])
+
+
+def test_grid_of_candidates_broadcasts(rig_case):
+    # A (D, β) grid: poses and surface gain a leading axis; each cell solves like a lone call.
+    scene = rig_case["scene"]
+    depth = np.array([0.40, 0.47])
+    tilt = np.radians([9.5, 11.1])
+    rot, trans = scene.rig.relative_poses(depth, tilt)  # (2, V, 3, 3), (2, V, 3)
+    n, d = surface_in_reference(scene.rig, depth, tilt)  # (2, 3), (2,)
+    centres = rig_case["centres"][:6]
+    q = mirror_points(centres[None], n[:, None, :], d[:, None])  # (2, 6, 3)
+    motions = np.random.default_rng(5).normal(0.0, 0.002, (2, 6, 16, 2))
+    seen = np.random.default_rng(6).random((6, 16)) < 0.7
+    batch = patch_motions(q, motions, seen, rot, trans, surface=(n, d))
+    assert batch.motion.shape == (2, 6, 3) and batch.rank.shape == (2, 6)
+    for g in range(2):
+        one = patch_motions(q[g], motions[g], seen, rot[g], trans[g], surface=(n[g], d[g]))
+        np.testing.assert_allclose(batch.motion[g], one.motion, rtol=1e-10, atol=1e-15)
+        np.testing.assert_array_equal(batch.rank[g], one.rank)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(motions=np.zeros((4, 16, 3))), r"motions \(\.\.\., K, V, 2\)"),
+    (dict(visible=np.ones((4, 15), dtype=bool)), "shapes disagree"),
+    (dict(visible=np.ones((4, 16))), "bool"),
+    (dict(centres=np.full((4, 3), np.nan)), "non-finite"),
+    (dict(rcond=0.0), "rcond"),
+    (dict(surface=(np.array([0.0, 0.0, 2.0]), 0.4)), "unit"),
+    (dict(surface=(np.array([0.0, 0.0, 1.0]), np.nan)), "offset"),
+])
+def test_patch_motions_rejects_bad_inputs(rig_case, kwargs, message):
+    args = dict(centres=rig_case["centres"][:4], motions=np.zeros((4, 16, 2)),
+                visible=np.ones((4, 16), dtype=bool), rotations=rig_case["rot"],
+                translations=rig_case["trans"])
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=message):
+        patch_motions(**args)
+
+
+# --- E_mu (eq. 6) ------------------------------------------------------------------------------
+
+def test_view_errors_closed_form():
+    # 3 patches, 2 views, surface normal +Z (H flips z).
+    vo = np.array([[3.0, 4.0, 0.0], [0.0, 0.0, 2.0], [1.0, 0.0, 0.0]])
+    vm = np.array([[3.0, 4.0, 0.0], [0.0, 0.0, 1.0], [np.nan, np.nan, np.nan]])
+    object_frontal = np.array([[True, True, False], [False, True, True]])
+    mirror_frontal = np.array([[True, True, False], [False, False, False]])
+    mu = view_errors(vo, object_frontal, mirror_motion=vm, mirror_frontal=mirror_frontal,
+                     normal=[0.0, 0.0, 1.0])
+    # view 0: object (5 + 2)/2; mirror |H vo - vm| = 0 and |(0,0,-2) - (0,0,1)| = 3 -> 3/2
+    # view 1: object (2 + 1)/2; no distinct mirror -> 0
+    np.testing.assert_allclose(mu, [3.5 + 1.5, 1.5])
+    assert float(pose_error(vo, object_frontal, mirror_motion=vm, mirror_frontal=mirror_frontal,
+                            normal=[0.0, 0.0, 1.0])) == pytest.approx(3.25)
+    # object term alone
+    np.testing.assert_allclose(view_errors(vo, object_frontal), [3.5, 1.5])
+
+
+def test_same_frontal_sets_read_as_eq6():
+    # With one frontal set for both terms, μ^m = (1/Z_m) Σ_z (‖V^O‖ + ‖H V^O - Ṽ^M‖).
+    rng = np.random.default_rng(2)
+    vo, vm = rng.normal(size=(7, 3)), rng.normal(size=(7, 3))
+    n = np.array([0.0, math.sin(0.2), math.cos(0.2)])
+    frontal = rng.random((4, 7)) < 0.6
+    frontal[:, 0] = True
+    mu = view_errors(vo, frontal, mirror_motion=vm, mirror_frontal=frontal, normal=n)
+    terms = np.linalg.norm(vo, axis=1) + np.linalg.norm(mirror_vectors(vo, n) - vm, axis=1)
+    np.testing.assert_allclose(mu, (frontal * terms).sum(axis=1) / frontal.sum(axis=1), rtol=1e-12)
+
+
+def test_pose_error_skips_views_without_patches_and_batches():
+    vo = np.array([[[1.0, 0.0, 0.0], [0.0, 2.0, 0.0]], [[0.0, 0.0, 0.0], [0.0, 0.0, 4.0]]])  # (G=2, K=2, 3)
+    frontal = np.array([[True, False], [False, False], [True, True]])  # view 1 sees nothing
+    mu = view_errors(vo, frontal)
+    assert mu.shape == (2, 3) and np.isnan(mu[:, 1]).all()
+    np.testing.assert_allclose(pose_error(vo, frontal), [(1.0 + 1.5) / 2, (0.0 + 2.0) / 2])
+    assert np.isnan(pose_error(vo, np.zeros((3, 2), dtype=bool))).all()
+
+
+def test_pose_error_rejects_bad_inputs():
+    vo = np.zeros((3, 3))
+    with pytest.raises(ValueError, match="go together"):
+        view_errors(vo, np.ones((2, 3), dtype=bool), mirror_motion=vo)
+    with pytest.raises(ValueError, match="bool"):
+        view_errors(vo, np.ones((2, 3)))
+    with pytest.raises(ValueError, match="object_frontal"):
+        view_errors(vo, np.ones((2, 4), dtype=bool))
+    bad = vo.copy()
+    bad[1, 0] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        view_errors(bad, np.ones((2, 3), dtype=bool))
+    # a NaN motion of a patch no view uses is fine
+    assert view_errors(bad, np.array([[True, False, True]])).tolist() == [0.0]
+
+
+# --- image metrics (eq. 8–11) ----------------------------------------------------------------------
+
+def test_intensity_errors_closed_form():
+    synthetic = np.array([[[1.0, 2.0], [3.0, 4.0]], [[0.0, 0.0], [0.0, 0.0]], [[5.0, 5.0], [5.0, 5.0]]])
+    data = np.array([[[2.0, 2.0], [0.0, np.nan]], [[1.0, 1.0], [1.0, 1.0]], [[5.0, 5.0], [5.0, 5.0]]])
+    regions = np.array([[[True, True], [True, False]], [[False, False], [False, False]],
+                        [[True, False], [False, True]]])
+    ie = intensity_error(synthetic, data, regions)
+    # view 0: (1 + 0 + 3)/3; view 1: empty Ω -> NaN; view 2: 0
+    np.testing.assert_allclose(ie, [4.0 / 3.0, np.nan, 0.0])
+    assert average_intensity_error(synthetic, data, regions) == pytest.approx(2.0 / 3.0)
+    assert float(intensity_error(synthetic[0], data[0], regions[0])) == pytest.approx(4.0 / 3.0)
+    with pytest.raises(ValueError, match="non-finite"):
+        intensity_error(synthetic, data, np.ones_like(regions))
+    with pytest.raises(ValueError, match="bool"):
+        intensity_error(synthetic, data, regions.astype(float))
+    with pytest.raises(ValueError, match="one shape"):
+        intensity_error(synthetic, data[:2], regions)
+
+
+def test_contour_and_image_errors_closed_form():
+    assert average_contour_error([1.0, 2.0, np.nan, 3.0]) == pytest.approx(2.0)  # eq. 9
+    assert math.isnan(average_contour_error([np.nan]))
+    assert normalized_errors(2.0, 3.0, 4.0, 12.0) == pytest.approx((0.5, 0.25))  # eq. 10
+    assert image_error(2.0, 3.0, 4.0, 12.0) == pytest.approx(0.375)  # eq. 11
+    assert image_error(4.0, 12.0, 4.0, 12.0) == 1.0  # iteration 0
+    with pytest.raises(ValueError, match="> 0"):
+        image_error(1.0, 1.0, 0.0, 1.0)
+    with pytest.raises(ValueError, match=">= 0"):
+        normalized_errors(-1.0, 1.0, 1.0, 1.0)
+    with pytest.raises(ValueError, match="1-D"):
+        average_contour_error([[1.0]])
