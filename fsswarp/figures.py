@@ -115,10 +115,10 @@ def fan_figure(image: np.ndarray, sonar: SonarSpec, path: str | Path, *, title: 
     return write_bytes(path, buffer.getvalue())
 
 
-def carve_figure(mesh, path: str | Path, *, truth=None, title: str = "") -> Path:
+def carve_figure(mesh, path: str | Path, *, truth=None, title: str = "", label: str = "carved") -> Path:
     """Save a PNG of a mesh's XY, XZ and YZ projections (reference frame, metres), over the
-    truth's projections when ``truth`` (a mesh) is given: filled triangles, carved in blue,
-    truth in black."""
+    truth's projections when ``truth`` (a mesh) is given: filled triangles, the mesh (named
+    ``label``) in blue, truth in black."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -127,7 +127,7 @@ def carve_figure(mesh, path: str | Path, *, truth=None, title: str = "") -> Path
 
     fig, axes = plt.subplots(1, 3, figsize=(12.6, 4.4))
     meshes = [(m, colour, alpha, label) for m, colour, alpha, label in
-              ((truth, "black", 0.35, "truth"), (mesh, "tab:blue", 0.35, "carved")) if m is not None]
+              ((truth, "black", 0.35, "truth"), (mesh, "tab:blue", 0.35, label)) if m is not None]
     points = np.concatenate([np.asarray(m.vertices) for m, *_ in meshes])
     pad = 0.05 * float(np.ptp(points, axis=0).max())
     for ax, (i, j) in zip(axes, ((0, 1), (0, 2), (1, 2))):
@@ -144,6 +144,93 @@ def carve_figure(mesh, path: str | Path, *, truth=None, title: str = "") -> Path
     if truth is not None:
         axes[0].legend(handles=[matplotlib.patches.Patch(color=c, alpha=0.5, label=lab) for _, c, _, lab in meshes],
                        fontsize=7, loc="upper right")
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=110)
+    plt.close(fig)
+    return write_bytes(path, buffer.getvalue())
+
+
+def pose_figure(result, path: str | Path, *, truth: tuple[float, float] | None = None, title: str = "") -> Path:
+    """Save a PNG of the (D, β) grid search of ``fsswarp.pose.estimate_pose``: one panel per
+    level, the surrogate cost (mm) over depth (m) and tilt (deg), with the level's minimum
+    (white ×), and where they fall inside the panel the start (triangle), the estimate (star)
+    and, when given, the ``truth`` (depth m, tilt rad; circle)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    levels = result.levels
+    fig, axes = plt.subplots(1, len(levels), figsize=(4.2 * len(levels), 4.3), squeeze=False)
+    marks = [((result.depth0, result.tilt0), dict(marker="^", color="tab:orange", markersize=7, ls="none"), "start"),
+             ((result.depth, result.tilt), dict(marker="*", color="tab:red", markersize=11, ls="none"), "estimate")]
+    if truth is not None:
+        marks.append((truth, dict(marker="o", mfc="none", mec="white", markersize=11, mew=1.5, ls="none"), "truth"))
+    handles = {}
+    for k, (ax, level) in enumerate(zip(axes[0], levels)):
+        depths, tilts = level.depths, np.degrees(level.tilts)
+        step = (depths[1] - depths[0], tilts[1] - tilts[0])
+        extent = (depths[0] - step[0] / 2, depths[-1] + step[0] / 2, tilts[0] - step[1] / 2, tilts[-1] + step[1] / 2)
+        shown = ax.imshow(level.costs.T * 1000.0, origin="lower", aspect="auto", extent=extent, cmap="viridis")
+        fig.colorbar(shown, ax=ax, label="surrogate (mm)", shrink=0.85)
+        i, j = np.unravel_index(int(np.argmin(level.costs)), level.costs.shape)
+        handles["grid minimum"], = ax.plot(depths[i], tilts[j], "x", color="white", markersize=9, mew=2)
+        for (depth, tilt), style, label in marks:
+            if extent[0] <= depth <= extent[1] and extent[2] <= math.degrees(tilt) <= extent[3]:
+                handles[label], = ax.plot(depth, math.degrees(tilt), **style)
+        ax.set_xlim(extent[0], extent[1])
+        ax.set_ylim(extent[2], extent[3])
+        ax.set_xlabel("depth D (m)")
+        ax.set_ylabel("tilt β (deg)")
+        ax.set_title(f"level {k + 1}: {len(depths)} x {len(tilts)} cells, "
+                     f"{step[0] * 1000:.2f} mm x {step[1]:.3f} deg", fontsize=8)
+        ax.tick_params(labelsize=7)
+    legend = fig.legend(list(handles.values()), list(handles), loc="lower center", ncol=len(handles), fontsize=7,
+                        facecolor="lightgrey")
+    legend.get_frame().set_edgecolor("none")
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=110)
+    plt.close(fig)
+    return write_bytes(path, buffer.getvalue())
+
+
+def history_figure(history: list[dict], path: str | Path, *, truth_depth: float | None = None,
+                   truth_tilt_deg: float | None = None, title: str = "") -> Path:
+    """Save a PNG like the paper's Figures 7–8: depth and tilt against iteration (truth dashed),
+    and E_I, E_mu and (with a truth model) E_V against iteration. ``history``: the entries of
+    ``result.json``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    it = [h["iteration"] for h in history]
+    fig, axes = plt.subplots(1, 3, figsize=(12.6, 3.6))
+    for ax, key, unit, truth in ((axes[0], "depth_m", "depth D (m)", truth_depth),
+                                 (axes[1], "tilt_deg", "tilt (deg)", truth_tilt_deg)):
+        ax.plot(it, [h[key] for h in history], "o-", color="tab:blue", label="estimate")
+        if truth is not None:
+            ax.axhline(truth, color="black", linestyle="--", label="truth")
+        ax.set_xlabel("iteration")
+        ax.set_ylabel(unit)
+        ax.legend(fontsize=7)
+    ax = axes[2]
+    ax.plot(it, [h["E_I"] for h in history], "o-", label="E_I")
+    ax.plot(it, [h["E_mu"] / history[0]["E_mu"] for h in history], "s-", label="E_mu / E_mu(0)")
+    if "E_V" in history[0]:
+        ax.plot(it, [h["E_V"] for h in history], "^-", label="E_V")
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("error")
+    ax.legend(fontsize=7)
+    for a in axes:
+        a.set_xticks(it)
+        a.tick_params(labelsize=7)
     if title:
         fig.suptitle(title, fontsize=9)
     fig.tight_layout()

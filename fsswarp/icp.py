@@ -16,6 +16,13 @@ which is Rayleigh), and solves the weighted Procrustes problem for the whole rot
 translation from the original source in closed form. It stops when no transformed source point
 moves more than ``tol`` × the source's RMS radius between iterations.
 
+Starts: nearest-neighbour matching is local, and a contour with a stretch the other lacks plus
+false highlights can hold a wrong minimum a few degrees from the truth (a probe found one at
+0.064 rad from a start at the true angle). ICP therefore runs from three deterministic starts,
+the identity and rotations by ``±START_ANGLE`` (0.05 rad) about the source's centroid, and keeps
+the run with the smallest final robust scale σ (the median residual: outliers and unmatched
+stretches do not move it); ties go to the earlier start, so exact matches return the identity.
+
 Inliers: after the last iteration a pair (i, k(i)) is an inlier when ``r ≤ gate · σ``
 (default 3σ) and, if given, ``r ≤ max_distance``. CE (eq. 5) is the mean distance of the
 inlier pairs after alignment.
@@ -33,6 +40,8 @@ from scipy.spatial import cKDTree
 CAUCHY_C = 2.3849
 #: median(r) / σ for the distance r of a 2-D Gaussian error with per-axis σ (Rayleigh median).
 RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))
+#: Rotation (rad) of the two extra starts about the source's centroid.
+START_ANGLE = 0.05
 
 
 @dataclass(frozen=True)
@@ -108,9 +117,31 @@ def icp(source, target, *, max_iterations: int = 200, tol: float = 1e-10, gate: 
     floor = min_scale if min_scale is not None else 1e-9 * max(_rms_radius(tgt), src_size, 1e-300)
     step_tol = tol * max(src_size, floor)
     tree = cKDTree(tgt)
+    centre = src.mean(axis=0)
+    best = None
+    for angle in (0.0, START_ANGLE, -START_ANGLE):
+        rot0 = _rotation(angle)
+        run = _irls(src, tree, tgt, rot0, centre - rot0 @ centre, max_iterations, step_tol, max_distance,
+                    floor, tuning)
+        if best is None or run[-1] < best[-1]:
+            best = run
+    rot, trans, moved, iterations, converged, _ = best
+    dist, nearest, usable, sigma = _match(tree, moved, max_distance, floor)
+    weights = np.where(usable, 1.0 / (1.0 + (dist / (tuning * sigma)) ** 2), 0.0)
+    inlier = usable & (dist <= gate * sigma)
+    index = np.flatnonzero(inlier)
+    pairs = np.stack([index, nearest[index]], axis=1).astype(np.int64)
+    error = contour_error(tgt[nearest[index]], moved[index])
+    return ICPResult(rotation=rot, angle=float(math.atan2(rot[1, 0], rot[0, 0])), translation=trans,
+                     pairs=pairs, motions=moved - src, error=error, scale=sigma, weights=weights,
+                     iterations=iterations, converged=converged)
 
-    rot, trans = np.eye(2), np.zeros(2)
-    moved = src
+
+def _irls(src: np.ndarray, tree: cKDTree, tgt: np.ndarray, rot: np.ndarray, trans: np.ndarray,
+          max_iterations: int, step_tol: float, max_distance: float | None, floor: float, tuning: float):
+    """One IRLS-ICP run from the transform (rot, trans): (rotation, translation, moved source,
+    iterations, converged, final robust scale σ)."""
+    moved = src @ rot.T + trans
     converged = False
     iterations = 0
     for iterations in range(1, max_iterations + 1):
@@ -125,16 +156,13 @@ def icp(source, target, *, max_iterations: int = 200, tol: float = 1e-10, gate: 
         if step <= step_tol:
             converged = True
             break
+    sigma = _match(tree, moved, max_distance, floor)[3]
+    return rot, trans, moved, iterations, converged, sigma
 
-    dist, nearest, usable, sigma = _match(tree, moved, max_distance, floor)
-    weights = np.where(usable, 1.0 / (1.0 + (dist / (tuning * sigma)) ** 2), 0.0)
-    inlier = usable & (dist <= gate * sigma)
-    index = np.flatnonzero(inlier)
-    pairs = np.stack([index, nearest[index]], axis=1).astype(np.int64)
-    error = contour_error(tgt[nearest[index]], moved[index])
-    return ICPResult(rotation=rot, angle=float(math.atan2(rot[1, 0], rot[0, 0])), translation=trans,
-                     pairs=pairs, motions=moved - src, error=error, scale=sigma, weights=weights,
-                     iterations=iterations, converged=converged)
+
+def _rotation(angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, -s], [s, c]])
 
 
 def _match(tree: cKDTree, moved: np.ndarray, max_distance: float | None, floor: float):
@@ -150,9 +178,7 @@ def _weighted_procrustes(src: np.ndarray, dst: np.ndarray, weights: np.ndarray):
     w = weights / weights.sum()
     cs, cd = w @ src, w @ dst
     h = (src - cs).T @ ((dst - cd) * w[:, None])  # Σ w s̄ d̄ᵀ
-    angle = math.atan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1])
-    c, s = math.cos(angle), math.sin(angle)
-    rot = np.array([[c, -s], [s, c]])
+    rot = _rotation(math.atan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1]))
     return rot, cd - rot @ cs
 
 

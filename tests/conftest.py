@@ -68,3 +68,14 @@ def wp_device(request) -> str:
     if request.param not in {r["device"] for r in rows}:
         pytest.skip(f"no Warp device {request.param} here")
     return request.param
+
+
+@pytest.fixture(scope="session")
+def coral_one(tmp_path_factory):
+    """coral-one simulated once per session with noise (seed 1, default render settings, the
+    OpenCL backend when present): the loaded Dataset (its ``root`` is the folder)."""
+    from fsswarp.simulate import simulate
+
+    rows = [r for r in _rows() if r["backend"] == "opencl" and r["kind"] == "cpu" and r["available"]]
+    backend = get_backend("opencl", rows[0]["index"]) if rows else get_backend()
+    return simulate("coral-one", tmp_path_factory.mktemp("carve") / "coral-one", seed=1, backend=backend)

@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from fsswarp.icp import contour_error, icp
@@ -107,6 +107,8 @@ CASES = {
 
 @pytest.mark.parametrize("case", list(CASES))
 @given(angle=angles, sx=shifts, sy=shifts, seed=seeds)
+# a wrong minimum 0.064 rad away holds ICP started at the true angle (fixed by the extra starts)
+@example(angle=0.0, sx=0.015625, sy=0.01953125, seed=27)
 @settings(derandomize=True, max_examples=15, deadline=None)
 def test_recovers_known_transform(case, angle, sx, sy, seed):
     # Unequal counts (300 data vs 170 synthetic points) and partial overlap: each contour

@@ -166,11 +166,15 @@ class Backend(abc.ABC):
             at ``origin + h·(i, j, k)`` (computed in float32), flattened in C order; or
         centres : (P, 3) float, explicit voxel centres (the fine levels of coarse-to-fine)
 
-        Returns ``(seen, rejected)``, (P,) uint8: the views whose window holds the voxel's
-        centre (the rule of ``project``), and the views that reject it: the cube's bounding
-        sphere lies wholly inside the view's window and the box of beams and bins that the
-        sphere projects into holds no feasible pixel (fsswarp/carve.py explains the rule and
-        why it is conservative; ``fsswarp.carve.carve_reference`` is the float64 oracle).
+        Returns ``(seen, rejected)``, (P,) uint8. A view sees a voxel when its window holds
+        the whole voxel (its bounding sphere inside the elevation aperture, and the box of
+        beams and bins it projects into, by the rounding rule of ``project``, inside the
+        image); it rejects it when it sees it and its feasible mask is empty in that box.
+        Views are taken in order and the first rejection ends a voxel's loop: ``rejected`` is
+        1 when a view rejects the voxel, else 0; ``seen`` counts the views that see it up to
+        and including that view (all of them for a voxel no view rejects). fsswarp/carve.py
+        explains the rule and why it is conservative; ``fsswarp.carve.carve_reference`` is
+        the float64 oracle.
         Float32 on the device: decisions differ from the oracle only where a bound lies
         within float32 rounding of a half-index boundary or of the elevation edge.
         """
@@ -306,6 +310,77 @@ class Backend(abc.ABC):
         """Kernel launch of ``render_device`` (the algorithm: fsswarp/render.py's docstring);
         beam_widths: (beams,) float32 Δθ_b. Returns the (N, 4, bins, beams) float32 layers,
         complete, on the device."""
+
+    # --- frontal contours and their distance to the data's (the (D, β) grid search) ----------
+    def contour_cost(self, layers, view_index, thresholds, windows, masks, distances, shifts,
+                     smoothing) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Frontal contours of N synthetic views and their distances to the data's contours
+        (the grid surrogate of fsswarp/pose.py; kernels/pose.cl states the rule exactly).
+
+        layers : (N, 4, bins, beams) float32, a ``DeviceLayers`` of this backend's
+            ``render_device`` (read where it lies) or a host array
+        view_index : (N,) int, the data view 0 <= v < V that pair n is compared with
+        thresholds : (V, bins) float, the data view's detection threshold of every row
+        windows : (V, 2) int, rows [lo, hi) scanned, 0 <= lo < hi <= bins
+        masks : (V, 2, beams) bool, beams where the object (0) and mirror (1) contours count
+        distances : (V, 2, bins, beams) float >= 0, each pixel's distance (m) to the data's
+            object and mirror contour
+        shifts : (S,) float, range shifts (rows) at which the distances are read
+        smoothing : (range_weights (2 rB + 1,), beam_weights (2 rb + 1,)) float, odd lengths
+
+        Returns ``(contours, sums, counts)``: (N, 2, beams) float32 fractional row of the first
+        threshold crossing of the smoothed object + ghost (0) and mirror + double-bounce (1)
+        layers, -1 where none; (N, 2, S) float32 sums of the distances over the contour
+        points; (N, 2) int32 their counts. Float32 on the device, summed in beam order.
+        """
+        thr = _float32_array("thresholds", thresholds, ("V", "bins"))
+        dist = _float32_array("distances", distances, ("V", 2, "bins", "beams"))
+        n_views, bins, beams = thr.shape[0], thr.shape[1], dist.shape[3]
+        if dist.shape[0] != n_views or dist.shape[2] != bins:
+            raise ValueError(f"distances must have shape (V, 2, bins, beams) = ({n_views}, 2, {bins}, "
+                             f"beams) like thresholds, got {dist.shape}")
+        if np.any(dist < 0):
+            raise ValueError("distances must be >= 0")
+        mask = np.asarray(masks)
+        if mask.dtype != np.bool_ or mask.shape != (n_views, 2, beams):
+            raise ValueError(f"masks must be a bool array of shape ({n_views}, 2, {beams}), got "
+                             f"{mask.dtype} {mask.shape}")
+        win = np.asarray(windows)
+        if win.dtype.kind not in "iu" or win.shape != (n_views, 2) or np.any(win[:, 0] < 0) \
+                or np.any(win[:, 1] > bins) or np.any(win[:, 0] >= win[:, 1]):
+            raise ValueError(f"windows must be ({n_views}, 2) integers with 0 <= lo < hi <= {bins}, got {win!r}")
+        index = np.asarray(view_index)
+        if index.dtype.kind not in "iu" or index.ndim != 1 or (index.size and (index.min() < 0
+                                                                             or index.max() >= n_views)):
+            raise ValueError(f"view_index must be a 1-D integer array of views 0..{n_views - 1}")
+        steps = _float32_array("shifts", shifts, ("S",))
+        if steps.shape[0] == 0:
+            raise ValueError("shifts must hold at least one shift")
+        weights = [_float32_array(name, w, ("K",)) for name, w in zip(("range weights", "beam weights"),
+                                                                      smoothing)]
+        if len(smoothing) != 2 or any(w.shape[0] % 2 == 0 for w in weights):
+            raise ValueError("smoothing must be two 1-D weight arrays of odd lengths")
+        if not isinstance(layers, DeviceLayers):
+            layers = HostLayers(_float32_array("layers", layers, ("N", 4, bins, beams)))
+        if tuple(layers.shape) != (index.shape[0], 4, bins, beams):
+            raise ValueError(f"layers must have shape (N, 4, bins, beams) = ({index.shape[0]}, 4, {bins}, "
+                             f"{beams}), got {tuple(layers.shape)}")
+        n_pairs, n_shifts = index.shape[0], steps.shape[0]
+        if n_pairs == 0:
+            return (np.zeros((0, 2, beams), np.float32), np.zeros((0, 2, n_shifts), np.float32),
+                    np.zeros((0, 2), np.int32))
+        return self._contour_cost(layers, np.ascontiguousarray(index, np.int32), thr,
+                                  np.ascontiguousarray(win, np.int32), np.ascontiguousarray(mask, np.uint8),
+                                  weights[0], weights[1], dist, steps)
+
+    @abc.abstractmethod
+    def _contour_cost(self, layers: "DeviceLayers", view_index: np.ndarray, thresholds: np.ndarray,
+                      windows: np.ndarray, masks: np.ndarray, range_weights: np.ndarray,
+                      beam_weights: np.ndarray, distances: np.ndarray,
+                      shifts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Kernel launches of ``contour_cost``: layers a DeviceLayers of this backend or
+        HostLayers, clean C-contiguous int32 / float32 / uint8 arrays, N >= 1. Returns (N, 2,
+        beams) float32 contours, (N, 2, S) float32 sums, (N, 2) int32 counts."""
 
 
 class DeviceLayers(abc.ABC):

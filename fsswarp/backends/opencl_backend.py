@@ -128,6 +128,8 @@ class OpenCLBackend(Backend):
         self._cast_kernel = cl.Kernel(program(self.context, "raycast.cl"), "cast_rays")
         self._render_kernel = cl.Kernel(program(self.context, "render.cl"), "render_views")
         self._fixed_kernel = cl.Kernel(program(self.context, "render.cl"), "fixed_to_float")
+        self._frontal_kernel = cl.Kernel(program(self.context, "pose.cl"), "frontal_contour")
+        self._contour_cost_kernel = cl.Kernel(program(self.context, "pose.cl"), "contour_cost")
         self._lock = threading.Lock()
 
     def _input(self, array: np.ndarray) -> cl.Buffer:
@@ -238,6 +240,38 @@ class OpenCLBackend(Backend):
             self.queue.finish()
         acc_buf.release()
         return OpenCLLayers(self.queue, layers_buf, shape)
+
+    # --- frontal contours and their distance to the data's ------------------------------------
+    def _contour_cost(self, layers, view_index, thresholds, windows, masks, range_weights, beam_weights,
+                      distances, shifts):
+        n_pairs, bins, beams = view_index.shape[0], distances.shape[2], distances.shape[3]
+        n_shifts = shifts.shape[0]
+        if isinstance(layers, OpenCLLayers) and layers.queue.context == self.context:
+            stack = layers.buffer
+        else:
+            stack = self._input(np.ascontiguousarray(layers.numpy(), np.float32))
+        index = self._input(view_index)
+        contour = np.empty((n_pairs, 2, beams), np.float32)
+        contour_buf = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=contour.nbytes)
+        sums, sums_buf = self._output((n_pairs, 2, n_shifts), np.float32)
+        counts, counts_buf = self._output((n_pairs, 2), np.int32)
+        with self._lock:
+            self._frontal_kernel(
+                self.queue, (-(-beams // GROUP) * GROUP, 2, n_pairs), (GROUP, 1, 1),
+                stack, index, self._input(thresholds), self._input(windows), self._input(masks),
+                self._input(range_weights), np.int32((range_weights.shape[0] - 1) // 2),
+                self._input(beam_weights), np.int32((beam_weights.shape[0] - 1) // 2), np.int32(bins),
+                np.int32(beams), contour_buf)
+            group = min(GROUP, 1 << (n_shifts - 1).bit_length())
+            self._contour_cost_kernel(
+                self.queue, (-(-n_shifts // group) * group, 2, n_pairs), (group, 1, 1),
+                contour_buf, index, self._input(distances), self._input(shifts), np.int32(n_shifts),
+                np.int32(bins), np.int32(beams), sums_buf, counts_buf)
+            for host, buf in ((contour, contour_buf), (sums, sums_buf), (counts, counts_buf)):
+                cl.enqueue_copy(self.queue, host, buf, is_blocking=False)
+            self.queue.finish()
+        contour_buf.release()
+        return contour, sums, counts
 
 
 class OpenCLLayers(DeviceLayers):

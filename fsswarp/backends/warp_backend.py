@@ -354,29 +354,25 @@ def carve_test(c: wp.vec3, r: wp.mat33, t: wp.vec3, integral: wp.array3d(dtype=w
                beam_table: wp.array2d(dtype=float), use_table: int, beams: int, bins: int,
                half_azimuth: float, beam_scale: float, range_min: float, inv_range_step: float,
                half_elevation: float, radius: float):
-    """0: view v does not see the voxel at c; 1: sees and keeps it; 2: sees and rejects it
-    (fss_carve_test of kernels/carve.cl, operation for operation)."""
+    """0: view v does not see the voxel at c (wholly); 1: sees and keeps it; 2: sees and rejects
+    it (fss_carve_test of kernels/carve.cl, operation for operation)."""
     q = to_view(c, r, t)
+    rho = wp.sqrt(q[0] * q[0] + q[1] * q[1])
+    if not (radius < rho):
+        return 0
     theta = azimuth(q)
     phi = elevation(q)
     rng = sonar_range(q)
-    b = nearest_index(beam_coordinate(theta, use_table, beam_table, beams, half_azimuth, beam_scale))
-    bb = nearest_index(bin_coordinate(rng, range_min, inv_range_step))
-    if not (b >= 0 and b < beams and bb >= 0 and bb < bins and wp.abs(phi) <= half_elevation):
-        return 0
-    rho = wp.sqrt(q[0] * q[0] + q[1] * q[1])
-    if radius >= rho:
-        return 1
     d_phi = wp.asin(radius / rng)
-    if wp.abs(phi) + d_phi > half_elevation:
-        return 1
+    if not (wp.abs(phi) + d_phi <= half_elevation):
+        return 0
     d_theta = wp.asin(radius / rho)
     b_lo = nearest_index(beam_coordinate(theta - d_theta, use_table, beam_table, beams, half_azimuth, beam_scale))
     b_hi = nearest_index(beam_coordinate(theta + d_theta, use_table, beam_table, beams, half_azimuth, beam_scale))
     bin_lo = nearest_index(bin_coordinate(rng - radius, range_min, inv_range_step))
     bin_hi = nearest_index(bin_coordinate(rng + radius, range_min, inv_range_step))
     if b_lo < 0 or b_hi >= beams or bin_lo < 0 or bin_hi >= bins:
-        return 1
+        return 0
     count = (integral[v, bin_hi + 1, b_hi + 1] - integral[v, bin_lo, b_hi + 1]
              - integral[v, bin_hi + 1, b_lo] + integral[v, bin_lo, b_lo])
     if count == 0:
@@ -390,7 +386,8 @@ def carve_voxel(c: wp.vec3, p: int, rotations: wp.array(dtype=wp.mat33), transla
                 beams: int, bins: int, half_azimuth: float, beam_scale: float, range_min: float,
                 inv_range_step: float, half_elevation: float, radius: float,
                 seen_out: wp.array(dtype=wp.uint8), rejected_out: wp.array(dtype=wp.uint8)):
-    """Counts of the views that see and that reject the voxel at c, written at p."""
+    """Views that see the voxel at c up to the first that rejects it, and whether one does
+    (written at p; the loop stops at the first rejection)."""
     seen = int(0)
     rejected = int(0)
     for v in range(rotations.shape[0]):
@@ -399,7 +396,8 @@ def carve_voxel(c: wp.vec3, p: int, rotations: wp.array(dtype=wp.mat33), transla
         if test > 0:
             seen += 1
         if test == 2:
-            rejected += 1
+            rejected = 1
+            break
     seen_out[p] = wp.uint8(seen)
     rejected_out[p] = wp.uint8(rejected)
 
@@ -584,3 +582,95 @@ class WarpBackend(Backend):
                           outputs=[seen, rejected])
             wp.synchronize_device(self._device)
             return seen.numpy(), rejected.numpy()
+
+    # --- frontal contours and their distance to the data's (kernels after the class) ---------
+    def _contour_cost(self, layers, view_index, thresholds, windows, masks, range_weights, beam_weights,
+                      distances, shifts):
+        n_pairs, beams = view_index.shape[0], distances.shape[3]
+        with wp.ScopedDevice(self._device):
+            if isinstance(layers, WarpLayers) and layers.array.device == self._device:
+                stack = layers.array
+            else:
+                stack = self._array(np.ascontiguousarray(layers.numpy(), np.float32), float)
+            index = self._array(view_index, wp.int32)
+            contour = wp.empty((n_pairs, 2, beams), dtype=float)
+            wp.launch(frontal_contour, dim=(n_pairs, 2, beams),
+                      inputs=[stack, index, self._array(thresholds, float), self._array(windows, wp.int32),
+                              self._array(masks, wp.uint8), self._array(range_weights, float),
+                              (range_weights.shape[0] - 1) // 2, self._array(beam_weights, float),
+                              (beam_weights.shape[0] - 1) // 2],
+                      outputs=[contour])
+            sums = wp.empty((n_pairs, 2, shifts.shape[0]), dtype=float)
+            counts = wp.empty((n_pairs, 2), dtype=wp.int32)
+            wp.launch(contour_cost_kernel, dim=(n_pairs, 2, shifts.shape[0]),
+                      inputs=[contour, index, self._array(distances, float), self._array(shifts, float)],
+                      outputs=[sums, counts])
+            wp.synchronize_device(self._device)
+            return contour.numpy(), sums.numpy(), counts.numpy()
+
+
+# --- frontal contours and their distance to the data's (kernels/pose.cl documents the rule) --
+@wp.kernel
+def frontal_contour(layers: wp.array4d(dtype=float), view_index: wp.array(dtype=wp.int32),
+                    threshold: wp.array2d(dtype=float), window: wp.array2d(dtype=wp.int32),
+                    mask: wp.array3d(dtype=wp.uint8), w_range: wp.array(dtype=float), r_range: int,
+                    w_beam: wp.array(dtype=float), r_beam: int, contour: wp.array3d(dtype=float)):
+    """Thread (n, c, b): first threshold crossing of the smoothed component c of pair n in beam b."""
+    n, c, b = wp.tid()
+    v = view_index[n]
+    bins = layers.shape[2]
+    beams = layers.shape[3]
+    result = float(-1.0)
+    if mask[v, c, b] != wp.uint8(0):
+        lo = window[v, 0]
+        hi = window[v, 1]
+        previous = float(0.0)
+        row_index = int(lo)
+        while row_index < hi:
+            s = float(0.0)
+            for i in range(2 * r_range + 1):
+                bi = wp.clamp(row_index + i - r_range, 0, bins - 1)
+                row = float(0.0)
+                for j in range(2 * r_beam + 1):
+                    bj = wp.clamp(b + j - r_beam, 0, beams - 1)
+                    row += w_beam[j] * (layers[n, 2 * c, bi, bj] + layers[n, 2 * c + 1, bi, bj])
+                s += w_range[i] * row
+            f = s - threshold[v, row_index]
+            if f > 0.0:
+                if row_index == lo:
+                    result = float(lo)
+                else:
+                    result = float(row_index - 1) + previous / (previous - f)
+                row_index = hi
+            else:
+                previous = f
+                row_index += 1
+    contour[n, c, b] = result
+
+
+@wp.kernel
+def contour_cost_kernel(contour: wp.array3d(dtype=float), view_index: wp.array(dtype=wp.int32),
+                        dist: wp.array4d(dtype=float), shifts: wp.array(dtype=float),
+                        sums: wp.array3d(dtype=float), counts: wp.array2d(dtype=wp.int32)):
+    """Thread (n, c, s): distances of pair n's contour c to the data's, read at shift s."""
+    n, c, s = wp.tid()
+    v = view_index[n]
+    bins = dist.shape[2]
+    beams = dist.shape[3]
+    shift = shifts[s]
+    last = float(bins - 1)
+    total = float(0.0)
+    count = int(0)
+    for b in range(beams):
+        x = contour[n, c, b]
+        if x >= 0.0:
+            y = wp.clamp(x + shift, 0.0, last)
+            b0 = int(wp.floor(y))
+            b1 = wp.min(b0 + 1, bins - 1)
+            t = y - float(b0)
+            total += (1.0 - t) * dist[v, c, b0, b] + t * dist[v, c, b1, b]
+            count += 1
+    sums[n, c, s] = total
+    if s == 0:
+        counts[n, c] = count
+

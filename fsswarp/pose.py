@@ -1,0 +1,728 @@
+"""Sonar depth D and tilt β from frontal contours (paper §2.4, eq. 6–7; DESIGN §2, §3, §7).
+
+Two objectives of (D, β) for a given model (reference frame) and dataset, over the views
+marked ``optimize``:
+
+- E_mu, the paper's eq. (6), exact (:meth:`PoseProblem.exact`, :func:`pose_objective`). The
+  views are synthesized at (D, β); IRLS-ICP (``fsswarp.icp``) aligns each synthetic frontal
+  contour (object, and the distinct mirror blob) with the data's in the fan plane, giving the
+  2-D motion of every synthetic contour point; the frontal patch of a point is the triangle
+  whose echo (object) or single-bounce mirror echo (mirror, DESIGN §3) arrives first in that
+  beam, found by ray casting; ``fsswarp.motion.patch_motions`` turns the 2-D motions of the
+  views that see a patch into the 3-D motion of its centre (of its virtual mirror centre for
+  the mirror); ``fsswarp.motion.view_errors`` gives μ_m, and E_mu is their mean over the
+  views (``pose_error``). A mirror patch that is frontal in no view's object contour takes
+  the object motion of the nearest object-frontal patch.
+- The grid surrogate (:meth:`PoseProblem.surrogate`), for a whole grid of cells in one
+  ``Backend.render_device`` launch and one ``Backend.contour_cost`` launch: per cell and view,
+  the mean distance (m) of the synthetic object and mirror contour points to the data's
+  contour (a distance transform of the data's contour pixels, saturating at a cap), each data
+  point with no synthetic counterpart counting the cap; a view's cost is its object term plus
+  its mirror term, a cell's the mean over the views. It needs neither ICP nor ray casting, so
+  it runs on the device; on a 5 × 5 grid of 5 mm × 0.2° around the truth both objectives are
+  smallest at the truth (tests/test_pose.py).
+
+Contours. Data: the ``fsswarp.segment`` highlight, per beam its first row inside the view's
+range window. Synthetic: per beam the first crossing, interpolated between rows, of the data's
+detection threshold by the synthetic layers smoothed with the segmentation's Gaussian (object
++ ghost for the object contour, mirror + double-bounce mirror for the mirror): where the
+expected data image would cross the threshold that segmented the data. The threshold of row
+B is ``(m + low·s − 1)·level(B)``, segmentation steps 1–2 (the background level, the smoothed
+image's median m and robust spread s) replayed by :func:`detection_threshold`. A plain "first
+non-zero row" contour sat 1.5–2 rows behind the data's, more in some views than in others.
+
+Detection bias. What remains is a range offset, ~0.4 row on the simulated scenes plus the 0.5
+row of the data's whole rows. It matters: a wrong tilt moves the object contours of the views
+away from the reference position (~2.4 mm per 0.2°) and could absorb it, while the object
+contours of the views at the reference position (same position, heading and offsets: the
+"anchor" views) depend on neither D nor β. The synthetic rows are therefore shifted by the
+shift of ``shifts`` (refined by a parabola) that best fits the anchor views' object contours,
+measured once per estimate. Without anchor views each cell takes its own best shift (a
+nuisance parameter shared by the views), which flattens the surrogate's valley.
+
+Mirror distinctness. The model is synthesized at the current estimate; a view's object span
+is the beams of its object + ghost contour there, widened by ``margin_beams``; its range
+window the rows of all its synthetic returns ± ``window``. The mirror beams are those beyond
+the object span on the side where the data's highlight has more beams in the window (the
+data decides: a start off by 5 cm and 2° can put the synthetic mirror on the wrong side). A
+view has a mirror term when the data has at least ``min_mirror_beams`` contour points there,
+and the synthetic mirror counts only in those beams: at rolls near 0 the mirror falls on the
+object and ghost, and the view keeps the object term only. The object moves little with
+(D, β) (not at all with D; in azimuth ~0.01° per 0.2° of tilt), the mirror a lot (in azimuth,
+at ±90° roll, ~0.27° per 5 mm of D and ~0.38° per 0.2° of tilt), so the mirror pins a
+combination of D and β (a valley along ~3.3 cm per degree) and the object contours of the
+views away from the reference position pin β along it.
+
+Search (:func:`estimate_pose`, eq. 7): a ``grid[0]`` × ``grid[1]`` grid over
+[D0 ± e_D] × [β0 ± e_β], then ``levels − 1`` finer grids, each centred on the previous
+level's best cell and spanning ± two of its cells (the spacing halves), every cell and view
+of a level in one launch; the cap halves per level from ``cap`` to ``min_cap`` (a coarse
+cell far from the truth still sees the mirror; a fine one weighs the valley's floor). After
+each level the data contours and the detection shift are found again from the new
+estimate. Then nlopt's BOBYQA polishes on E_mu, in a frame fitted to the finest level (a
+quadratic through its 5 × 5 best cells: ± two cells along its valley, ± one across), since
+the finest grid's cells straddle the narrow valley and its best cell can lie a few mm and
+0.1° along it. The result is kept only if E_mu falls below its value at the start (greedy
+acceptance), both E_mu computed with the final data contours.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from dataclasses import dataclass, field
+from typing import Callable
+
+import nlopt
+import numpy as np
+
+from .errors import InputError
+from .icp import icp
+from .motion import patch_motions, view_errors
+from .render import check_mesh
+from .segment import SegmentSettings, segment
+from .surface import mirror_points, surface_in_reference, surface_in_views
+
+#: Ray-cast ε (m) of the frontal-patch search, as the renderer's leg tests.
+EPSILON = 1e-4
+#: ICP stops when no contour point moves more than this × the contour's RMS radius (~5 cm):
+#: well below a micrometre, and 3–4× fewer iterations than fsswarp.icp's default.
+ICP_TOL = 1e-6
+#: Half-width of the polish box in cells of the finest grid level.
+POLISH_CELLS = 2
+#: Default grid half-widths in units of the manifest's depth and tilt uncertainties.
+BOUNDS_FACTOR = 1.2
+#: A mirror patch counts as seen directly from the sonar when the first hit toward it lies
+#: within this distance (m) of it.
+VISIBLE = 2e-3
+
+
+class PoseWarning(UserWarning):
+    """A view left out of the pose estimation (the model is not seen in it)."""
+
+
+@dataclass(frozen=True)
+class PoseSettings:
+    """Options of the (D, β) estimation (the module docstring explains each).
+
+    samples : (K_θ, K_φ) sub-rays of the grid's synthetic views; exact_samples : those of
+        E_mu and of the prediction that places windows and mirror beams. Both default to the
+        renderer's (2, 64): on a CPU the grid's time goes to the images' memory, not the rays
+        ((1, 16) saved 25 % on PoCL), and fewer sub-rays roughen the contours
+    grid : (cells along D, cells along β) per level
+    cap, min_cap : distance (m) at which the surrogate's contour distances saturate: ``cap``
+        on the first grid level, halved per level down to ``min_cap`` (used by the detection
+        shift and E_mu)
+    margin_beams : beams added on each side of a predicted object span
+    min_mirror_beams : fewest mirror contour points for a view's mirror term
+    window : m added before and after the predicted returns to make a view's range window
+    shifts : candidate range shifts (rows) of the synthetic contours (the detection bias)
+    polish : nlopt evaluations of E_mu at most (0: no polish)
+    patch_rays : elevation rays per beam of the frontal-patch search
+    launch_bytes : most device memory (bytes) of one render launch's layers (2 × 16 B per
+        pixel); a larger grid level is split into several launches
+    segment : segmentation of the data
+    """
+
+    samples: tuple[int, int] = (2, 64)
+    exact_samples: tuple[int, int] = (2, 64)
+    grid: tuple[int, int] = (9, 9)
+    cap: float = 0.05
+    min_cap: float = 0.015
+    margin_beams: int = 2
+    min_mirror_beams: int = 4
+    window: float = 0.1
+    shifts: tuple[float, ...] = tuple(0.5 + 0.1 * k for k in range(-20, 21))
+    polish: int = 30
+    patch_rays: int = 64
+    launch_bytes: int = 4 << 30
+    segment: SegmentSettings = field(default_factory=SegmentSettings)
+
+    def __post_init__(self) -> None:
+        for name in ("samples", "exact_samples", "grid"):
+            pair = getattr(self, name)
+            if len(pair) != 2 or any(isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1
+                                     for k in pair):
+                raise InputError("must be two integers >= 1", field=f"pose.{name}", value=pair)
+        if min(self.grid) < 3:
+            raise InputError("needs at least 3 cells along each axis", field="pose.grid", value=self.grid)
+        for name in ("cap", "min_cap", "window"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise InputError("must be a finite number > 0 (m)", field=f"pose.{name}", value=value)
+        for name, lowest in (("margin_beams", 0), ("min_mirror_beams", 2), ("polish", 0), ("patch_rays", 1),
+                             ("launch_bytes", 1)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lowest:
+                raise InputError(f"must be an integer >= {lowest}", field=f"pose.{name}", value=value)
+        if len(self.shifts) == 0 or not all(math.isfinite(s) for s in self.shifts):
+            raise InputError("must be a non-empty list of finite shifts (rows)", field="pose.shifts",
+                             value=self.shifts)
+
+
+@dataclass(frozen=True)
+class DataContours:
+    """The data side of both objectives for the V views where the model is seen, found with
+    the model synthesized at the current estimate (``PoseProblem.locate``).
+
+    views : (V,) dataset view indices; names : their names
+    threshold : (V, bins) detection threshold per row; windows : (V, 2) rows [lo, hi)
+    masks : (V, 2, beams) bool beams of the object (0) and mirror (1) contours
+    rows : (V, 2, beams) int first highlight row of each contour, -1 where none
+    distances : (V, 2, bins, beams) float32 distance (m) to the contour, inf without one
+    """
+
+    views: tuple[int, ...]
+    names: tuple[str, ...]
+    threshold: np.ndarray
+    windows: np.ndarray
+    masks: np.ndarray
+    rows: np.ndarray
+    distances: np.ndarray
+
+    @property
+    def counts(self) -> np.ndarray:
+        """(V, 2) number of data contour points."""
+        return (self.rows >= 0).sum(axis=-1)
+
+    @property
+    def mirror_views(self) -> tuple[str, ...]:
+        """Names of the views with a mirror term."""
+        return tuple(n for n, k in zip(self.names, self.counts[:, 1]) if k > 0)
+
+
+@dataclass(frozen=True)
+class ExactError:
+    """E_mu at one (D, β) and what it came from.
+
+    value : E_mu (m); per_view : (V,) μ_m (NaN: no object patch); shift : the detection-bias
+    shift used (rows); object_patches, mirror_patches : patches with a 3-D motion
+    """
+
+    value: float
+    per_view: np.ndarray
+    shift: float
+    object_patches: int
+    mirror_patches: int
+
+
+@dataclass(frozen=True)
+class GridLevel:
+    """One level of the grid search: depths (nD,) m, tilts (nβ,) rad, costs (nD, nβ) of the
+    surrogate (m), and the best cell's (depth, tilt)."""
+
+    depths: np.ndarray
+    tilts: np.ndarray
+    costs: np.ndarray
+    best: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class PoseResult:
+    """What :func:`estimate_pose` found.
+
+    depth, tilt : the accepted estimate (m, rad); depth0, tilt0 : where it started
+    candidate : (depth, tilt) the search proposed; accepted : whether E_mu fell there
+    error_before, error_after : E_mu at the start and at the accepted estimate (m)
+    levels : the grid levels, coarse to fine; polish_error : E_mu after the polish
+    shift : the detection shift (rows; None: per cell); anchors : the anchor views
+    evaluations : {"grid_cells", "surrogate_cells", "exact"} counts; seconds : wall time
+    views, mirror_views : view names used, and those with a mirror term
+    """
+
+    depth: float
+    tilt: float
+    depth0: float
+    tilt0: float
+    candidate: tuple[float, float]
+    accepted: bool
+    error_before: float
+    error_after: float
+    levels: tuple[GridLevel, ...]
+    polish_error: float
+    shift: float | None
+    anchors: tuple[str, ...]
+    evaluations: dict
+    seconds: float
+    views: tuple[str, ...]
+    mirror_views: tuple[str, ...]
+
+
+# --- the problem -----------------------------------------------------------------------------
+
+class PoseProblem:
+    """A model, a dataset and a backend, with the data contours found at (depth, tilt).
+
+    model : trimesh-like mesh in the reference frame; dataset : fsswarp.dataset.Dataset;
+    depth (m), tilt (rad) : the estimate that places windows and mirror beams.
+    Raises InputError when no view is marked optimize or the model is seen in none of them.
+    """
+
+    def __init__(self, model, dataset, depth: float, tilt: float, *, settings: PoseSettings = PoseSettings(),
+                 backend=None):
+        from .backends import get_backend
+
+        _check_pose(depth, tilt)
+        vertices, faces = check_mesh(model, name="model")
+        self.dataset, self.settings = dataset, settings
+        self.sonar, self.rig = dataset.sonar, dataset.rig
+        self.backend = backend or get_backend()
+        self.mesh = self.backend.load_mesh(vertices, faces)
+        self.vertices, self.faces = vertices, faces
+        self.smoothing = (_gaussian(settings.segment.sigma_bins), _gaussian(settings.segment.sigma_beams))
+        self.shifts = np.asarray(settings.shifts, np.float64)
+        self.counters = {"grid_cells": 0, "surrogate_cells": 0, "exact": 0}
+        self.views = [i for i, v in enumerate(self.rig.views) if v.optimize]
+        if not self.views:
+            raise InputError("no view takes part in the optimization: every view has optimize = false",
+                             file=dataset.root, field="views.optimize", value=False)
+        names = [self.rig.views[i].name for i in self.views]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # views without a highlight get no contour
+            self.highlight = [segment(dataset.images[n], settings.segment, name=f"images/{n}").highlight
+                              for n in names]
+        self.threshold = np.stack([detection_threshold(dataset.images[n], settings.segment) for n in names])
+        self._unseen: set[str] = set()
+        self.locate(depth, tilt)
+
+    def locate(self, depth: float, tilt: float) -> None:
+        """Find the data contours (``data``), the anchor views and the detection shift
+        (``anchors``, ``shift``) with the model synthesized at (depth m, tilt rad), the current
+        estimate; ``estimate`` records it."""
+        _check_pose(depth, tilt)
+        self.data, predicted = self._data_contours(depth, tilt)
+        self.anchors, self.shift = self._detection_shift(predicted, depth, tilt)
+        self.estimate = (float(depth), float(tilt))
+
+    # --- data contours ---------------------------------------------------------------------
+    def _data_contours(self, depth: float, tilt: float):
+        """(DataContours, (V, 4, bins, beams) layers synthesized at (depth, tilt)) of the views
+        where the model is seen."""
+        sonar, st, views, highlight, threshold = self.sonar, self.settings, self.views, self.highlight, self.threshold
+        names = [self.rig.views[i].name for i in views]
+        full = np.stack([np.array([0, sonar.bins])] * len(views))
+        every = np.ones((len(views), 2, sonar.beams), bool)
+        layers = self._render(views, np.array([depth]), np.array([tilt]), st.exact_samples)
+        contour, _, _ = self.backend.contour_cost(layers, np.arange(len(views)), threshold, full, every,
+                                                  np.zeros((len(views), 2, sonar.bins, sonar.beams), np.float32),
+                                                  [0.0], self.smoothing)
+        seen = (contour[:, 0] >= 0).any(axis=1)
+        if not seen.any():
+            raise InputError(f"the model is seen in none of the views to optimize at depth {depth:.3f} m, tilt "
+                             f"{math.degrees(tilt):.2f} deg: it must be in the reference frame of the dataset",
+                             field="model", value=f"{len(self.faces)} faces")
+        unseen = {n for n, s in zip(names, seen) if not s} - self._unseen
+        if unseen:
+            self._unseen |= unseen
+            warnings.warn(f"views {', '.join(sorted(unseen))}: the model is not seen in them at depth {depth:.3f} m, "
+                          f"tilt {math.degrees(tilt):.2f} deg; the pose estimation leaves them out", PoseWarning,
+                          stacklevel=4)
+        keep = np.flatnonzero(seen)
+        beams = np.arange(sonar.beams)
+        pad = int(math.ceil(st.window / sonar.range_step))
+        windows, masks, rows, distances = [], [], [], []
+        for k in keep:
+            first = contour[k][contour[k] >= 0]
+            lo, hi = int(math.floor(first.min())) - pad, int(math.ceil(first.max())) + pad + 1
+            windows.append((max(lo, 0), min(hi, sonar.bins)))
+            span = np.flatnonzero(contour[k, 0] >= 0)
+            obj = (beams >= span.min() - st.margin_beams) & (beams <= span.max() + st.margin_beams)
+            hl = highlight[k][windows[-1][0]:windows[-1][1]]
+            first_row = np.where(hl.any(axis=0), hl.argmax(axis=0) + windows[-1][0], -1)
+            left, right = beams < span.min() - st.margin_beams, beams > span.max() + st.margin_beams
+            found = first_row >= 0
+            mir = left if np.sum(found & left) > np.sum(found & right) else right
+            if np.sum(found & mir) < st.min_mirror_beams:
+                mir = np.zeros_like(obj)
+            row = np.stack([np.where(obj, first_row, -1), np.where(mir, first_row, -1)])
+            masks.append(np.stack([obj, mir]))
+            rows.append(row)
+            distances.append(np.stack([self._distance(r) for r in row]))
+        data = DataContours(tuple(views[k] for k in keep), tuple(names[k] for k in keep), threshold[keep],
+                            np.asarray(windows, np.int64), np.asarray(masks), np.asarray(rows),
+                            np.asarray(distances, np.float32))
+        return data, layers.numpy()[keep]
+
+    def _detection_shift(self, predicted: np.ndarray, depth: float, tilt: float):
+        """(anchor view names, shift in rows or None): the views whose pose relative to the
+        reference depends neither on D nor on β (at the reference position), and the shift of
+        ``settings.shifts`` (refined by a parabola through its neighbours) that minimizes their
+        object term; None without anchor views (each cell then takes its own best shift).
+        predicted : (V, 4, bins, beams) layers of the data views at (depth, tilt)."""
+        data = self.data
+        pose_a = self.rig.relative_poses(depth, tilt)
+        pose_b = self.rig.relative_poses(depth + 0.01, tilt + 0.01)
+        fixed = [k for k, v in enumerate(data.views)
+                 if all(np.allclose(a[v], b[v], rtol=0, atol=1e-12) for a, b in zip(pose_a, pose_b))]
+        if not fixed:
+            return (), None
+        _, sums, counts = self.backend.contour_cost(
+            predicted[fixed], np.asarray(fixed), data.threshold, data.windows, data.masks,
+            np.minimum(data.distances, np.float32(self.settings.min_cap)), self.shifts, self.smoothing)
+        sums[:, 1], counts[:, 1] = 0.0, 0
+        counts_data = data.counts[fixed]
+        counts_data[:, 1] = 0
+        cost = _view_cost(sums[None], counts[None], counts_data, self.settings.min_cap)[0].mean(axis=0)
+        return tuple(data.names[k] for k in fixed), _parabola_minimum(self.shifts, cost)
+
+    def _distance(self, rows: np.ndarray) -> np.ndarray:
+        """(bins, beams) distance (m) of every pixel to the contour pixels (row per beam): the
+        range axis in δR, the beam axis in arc length at the contour's median range."""
+        from scipy.ndimage import distance_transform_edt
+
+        sonar = self.sonar
+        beams = np.flatnonzero(rows >= 0)
+        if beams.size == 0:
+            return np.full((sonar.bins, sonar.beams), np.inf)
+        pixels = np.ones((sonar.bins, sonar.beams), bool)
+        pixels[rows[beams], beams] = False
+        arc = float(np.median(sonar.bin_range(rows[beams]))) * float(np.mean(np.diff(sonar.beam_centres)))
+        return distance_transform_edt(pixels, sampling=(sonar.range_step, arc))
+
+    # --- synthesis and the surrogate -------------------------------------------------------
+    def _poses(self, views, depths: np.ndarray, tilts: np.ndarray):
+        """(G, V) poses and planes of cells (G,) in the dataset views ``views``."""
+        rot, t = self.rig.relative_poses(depths, tilts)
+        n, d = surface_in_views(self.rig, depths, tilts)
+        v = list(views)
+        return rot[:, v], t[:, v], n[:, v], d[:, v]
+
+    def _render(self, views, depths: np.ndarray, tilts: np.ndarray, samples):
+        """DeviceLayers (G·V, 4, bins, beams) of cells (G,) in the dataset views ``views``."""
+        rot, t, n, d = self._poses(views, depths, tilts)
+        if np.any(d <= 0):
+            raise InputError("the sonar must lie below the surface in every view", field="depth",
+                             value=float(np.min(depths)))
+        return self.backend.render_device(self.mesh, self.sonar, rot.reshape(-1, 3, 3), t.reshape(-1, 3),
+                                          n.reshape(-1, 3), d.reshape(-1), samples, gamma=1.0,
+                                          surface_reflection=0.9)
+
+    def _view_costs(self, depths: np.ndarray, tilts: np.ndarray, samples, cap: float):
+        """(G, V, S) surrogate view costs of cells (G,) at the detection shift (S = 1) or, without
+        one, at every candidate shift; and (G, V, 2, beams) synthetic contours. One launch unless
+        the layers would exceed ``settings.launch_bytes``."""
+        data, sonar = self.data, self.sonar
+        n_views = len(data.views)
+        per = max(1, self.settings.launch_bytes // (32 * sonar.bins * sonar.beams * n_views))
+        distances = np.minimum(data.distances, np.float32(cap))
+        costs, contours = [], []
+        for start in range(0, len(depths), per):
+            cell_d, cell_t = depths[start:start + per], tilts[start:start + per]
+            layers = self._render(data.views, cell_d, cell_t, samples)
+            contour, sums, counts = self.backend.contour_cost(
+                layers, np.tile(np.arange(n_views), len(cell_d)), data.threshold, data.windows, data.masks,
+                distances, self.shifts if self.shift is None else [self.shift], self.smoothing)
+            del layers
+            g = len(cell_d)
+            costs.append(_view_cost(sums.reshape(g, n_views, 2, -1), counts.reshape(g, n_views, 2), data.counts, cap))
+            contours.append(contour.reshape(g, n_views, 2, -1))
+        self.counters["surrogate_cells"] += len(depths)
+        return np.concatenate(costs), np.concatenate(contours)
+
+    def surrogate(self, depths, tilts, *, cap: float | None = None, samples=None) -> np.ndarray:
+        """Surrogate cost (m) of cells: depths (m), tilts (rad) of one shape -> that shape, the
+        mean over the views of the object + mirror contour terms at the detection shift (or,
+        without anchor views, at the cell's best shift).
+        cap : saturation distance (default ``settings.cap``); samples : default ``settings.samples``."""
+        depths, tilts = np.broadcast_arrays(np.asarray(depths, np.float64), np.asarray(tilts, np.float64))
+        costs, _ = self._view_costs(depths.reshape(-1), tilts.reshape(-1), samples or self.settings.samples,
+                                    self.settings.cap if cap is None else cap)
+        return costs.mean(axis=1).min(axis=-1).reshape(depths.shape)
+
+    # --- E_mu --------------------------------------------------------------------------------
+    def exact(self, depth: float, tilt: float) -> ExactError:
+        """E_mu (eq. 6) at (depth m, tilt rad), with its per-view μ_m."""
+        _check_pose(depth, tilt)
+        self.counters["exact"] += 1
+        data, sonar = self.data, self.sonar
+        costs, contours = self._view_costs(np.array([depth]), np.array([tilt]), self.settings.exact_samples,
+                                           self.settings.min_cap)
+        shift = self.shift if self.shift is not None else _parabola_minimum(self.shifts, costs[0].mean(axis=0))
+        contour = contours[0]  # (V, 2, beams)
+        rot, t, n_view, d_view = (a[0] for a in self._poses(data.views, np.array([depth]), np.array([tilt])))
+        normal, offset = surface_in_reference(self.rig, depth, tilt)
+        theta = sonar.beam_centres
+        n_views = len(data.views)
+        motion = {0: {}, 1: {}}  # component -> {(view, face): [2-D motions]}
+        for k in range(n_views):
+            for c in (0, 1):
+                beams = np.flatnonzero((contour[k, c] >= 0) & data.masks[k, c])
+                target = np.flatnonzero(data.rows[k, c] >= 0)
+                if len(beams) < 2 or len(target) < 2:
+                    continue
+                source = _fan(theta[beams], sonar.bin_range(contour[k, c, beams] + shift))
+                result = icp(source, _fan(theta[target], sonar.bin_range(data.rows[k, c, target])), tol=ICP_TOL)
+                faces = self._frontal_faces(rot[k], t[k], n_view[k], float(d_view[k]), theta[beams], mirror=c == 1)
+                for face, vector in zip(faces, result.motions):
+                    if face >= 0:
+                        motion[c].setdefault((k, int(face)), []).append(vector)
+        faces = sorted({f for c in (0, 1) for (_, f) in motion[c]})
+        if not motion[0]:
+            return ExactError(math.nan, np.full(n_views, np.nan), shift, 0, 0)
+        column = {f: i for i, f in enumerate(faces)}
+        centres = self.vertices[self.faces[faces]].mean(axis=1)
+        fields = []
+        for c in (0, 1):
+            moves = np.full((len(faces), n_views, 2), np.nan)
+            seen = np.zeros((len(faces), n_views), bool)
+            for (k, f), vectors in motion[c].items():
+                moves[column[f], k] = np.mean(vectors, axis=0)
+                seen[column[f], k] = True
+            fields.append((moves, seen))
+        obj = patch_motions(centres, *fields[0], rot, t).motion
+        object_seen = fields[0][1].any(axis=1)
+        if not object_seen.all():  # mirror-only patches: the nearest object patch's motion
+            from scipy.spatial import cKDTree
+
+            _, nearest = cKDTree(centres[object_seen]).query(centres[~object_seen])
+            obj[~object_seen] = obj[object_seen][nearest]
+        mirror_seen = fields[1][1]
+        mirror = {}
+        if mirror_seen.any():
+            virtual = mirror_points(centres, normal, offset)
+            mir = patch_motions(virtual, *fields[1], rot, t, surface=(normal, offset)).motion
+            mirror = dict(mirror_motion=np.where(mirror_seen.any(axis=1)[:, None], mir, 0.0),
+                          mirror_frontal=mirror_seen.T, normal=normal)
+        per_view = view_errors(obj, fields[0][1].T, **mirror)
+        finite = per_view[np.isfinite(per_view)]
+        return ExactError(float(finite.mean()) if finite.size else math.nan, per_view, shift,
+                          int(object_seen.sum()), int(mirror_seen.any(axis=1).sum()))
+
+    def _frontal_faces(self, rot, t, n, d, theta, *, mirror: bool) -> np.ndarray:
+        """(len(theta),) face of the frontal patch of each beam azimuth in one view, -1 where none:
+        the hit at the shortest range (object), or at the shortest mirror range (|P| + |P'|)/2
+        over the beam's elevation rays that meet the surface first (mirror, DESIGN §3)."""
+        sonar = self.sonar
+        k = self.settings.patch_rays
+        phi = -sonar.half_elevation + (np.arange(k) + 0.5) / k * sonar.elevation_fov
+        th, ph = np.meshgrid(theta, phi, indexing="ij")
+        u = np.stack([np.cos(ph) * np.sin(th), np.cos(ph) * np.cos(th), np.sin(ph)], axis=-1).reshape(-1, 3)
+        up = u @ n
+        surface = np.where(up > 0, d / np.where(up > 0, up, 1.0), np.inf)
+        dist, face = self.backend.cast_rays(self.mesh, np.broadcast_to(t, u.shape), u @ rot.T)
+        dist = dist.astype(np.float64)
+        if not mirror:
+            rng = np.where(dist < surface, dist, np.inf)
+        else:  # sonar -> surface (Q) -> patch P -> back to the sonar: seen at (|P| + |Q| + |P - Q|)/2
+            rng = np.full(len(u), np.inf)
+            face = np.full(len(u), -1)
+            bounce = np.flatnonzero(np.isfinite(surface) & (surface < dist))
+            q = u[bounce] * surface[bounce, None]
+            w = u[bounce] - 2.0 * up[bounce, None] * n
+            r2, hit = self.backend.cast_rays(self.mesh, (q + EPSILON * w) @ rot.T + t, w @ rot.T)
+            keep = np.isfinite(r2)
+            bounce, q, w, r2, hit = bounce[keep], q[keep], w[keep], r2[keep].astype(np.float64) + EPSILON, hit[keep]
+            p = q + r2[:, None] * w
+            length = np.linalg.norm(p, axis=1)
+            back, _ = self.backend.cast_rays(self.mesh, np.broadcast_to(t, p.shape), (p / length[:, None]) @ rot.T)
+            inside = (np.abs(np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1]))) <= sonar.half_elevation) \
+                & (np.abs(np.arctan2(p[:, 0], p[:, 1])) <= sonar.half_azimuth)
+            ok = inside & (back >= length - VISIBLE)
+            rng[bounce[ok]] = 0.5 * (length[ok] + surface[bounce[ok]] + r2[ok])
+            face[bounce[ok]] = hit[ok]
+        rng = rng.reshape(len(theta), k)
+        best = np.argmin(rng, axis=1)
+        hit = np.isfinite(rng[np.arange(len(theta)), best])
+        return np.where(hit, face.reshape(len(theta), k)[np.arange(len(theta)), best], -1)
+
+
+# --- public functions --------------------------------------------------------------------------
+
+def pose_objective(model, dataset, depth: float, tilt: float, *, settings: PoseSettings = PoseSettings(),
+                   backend=None) -> float:
+    """E_mu (eq. 6, m) of ``model`` (reference frame) against ``dataset`` at (depth m, tilt rad),
+    the data contours found at the same (depth, tilt)."""
+    return PoseProblem(model, dataset, depth, tilt, settings=settings, backend=backend).exact(depth, tilt).value
+
+
+def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float | None = None,
+                  bounds: tuple[float, float] | None = None, levels: int = 3,
+                  settings: PoseSettings = PoseSettings(), backend=None,
+                  progress: Callable[[str], None] | None = None) -> PoseResult:
+    """Estimate the sonar depth D and tilt β (paper §2.4, eq. 7) for ``model`` (reference frame).
+
+    depth0 (m), tilt0 (rad) : the start, default the dataset's measured values
+    bounds : (e_D m, e_β rad), the half-widths of the first grid [D0 ± e_D] × [β0 ± e_β];
+        default ``BOUNDS_FACTOR`` × the manifest's uncertainties (``surface.depth_sigma_m``,
+        ``tilt_sigma_deg``): 6 cm and 2.4° for the default 5 cm and 2°, so that a start at the
+        edge of the stated uncertainty keeps the truth inside the grid, not on its edge
+    levels : grid levels (>= 1), each in one launch; the polish follows (``settings.polish``)
+    progress : called with one line per step
+    Returns a PoseResult; the estimate moves from (depth0, tilt0) only where E_mu falls.
+    """
+    start = time.perf_counter()
+    surface = dataset.manifest.surface
+    depth0 = surface.depth if depth0 is None else float(depth0)
+    tilt0 = surface.tilt if tilt0 is None else float(tilt0)
+    _check_pose(depth0, tilt0)
+    if bounds is None:
+        bounds = (BOUNDS_FACTOR * surface.depth_sigma, BOUNDS_FACTOR * surface.tilt_sigma)
+    e_d, e_b = (float(b) for b in bounds) if len(bounds) == 2 else (math.nan, math.nan)
+    if not (math.isfinite(e_d) and 0 < e_d < depth0 and math.isfinite(e_b) and 0 < e_b < math.pi / 4):
+        raise InputError("must be (e_D, e_beta) with 0 < e_D < depth0 m and 0 < e_beta < 45 deg",
+                         field="bounds", value=bounds)
+    if isinstance(levels, bool) or not isinstance(levels, (int, np.integer)) or levels < 1:
+        raise InputError("must be an integer >= 1", field="levels", value=levels)
+    say = progress or (lambda line: None)
+    problem = PoseProblem(model, dataset, depth0, tilt0, settings=settings, backend=backend)
+    say(f"start: D {depth0:.4f} m, beta {math.degrees(tilt0):.3f} deg; {len(problem.data.views)} views, "
+        f"mirror term in {len(problem.data.mirror_views)}")
+
+    lo = np.array([depth0 - e_d, tilt0 - e_b])
+    hi = np.array([depth0 + e_d, tilt0 + e_b])
+    best, half = np.array([depth0, tilt0]), np.array([e_d, e_b])
+    grid = np.asarray(settings.grid)
+    found = []
+    for level in range(levels):
+        low = np.clip(best - half, lo, hi - 2 * half)
+        axes = [np.linspace(low[i], low[i] + 2 * half[i], grid[i]) for i in (0, 1)]
+        dd, tt = np.meshgrid(*axes, indexing="ij")
+        cap = max(settings.cap / 2 ** level, settings.min_cap)
+        costs = problem.surrogate(dd, tt, cap=cap)
+        problem.counters["grid_cells"] += costs.size
+        i, j = np.unravel_index(int(np.argmin(costs)), costs.shape)
+        best = np.array([dd[i, j], tt[i, j]])
+        found.append(GridLevel(axes[0], axes[1], costs, (float(best[0]), float(best[1]))))
+        step = 2 * half / (grid - 1)
+        say(f"level {level + 1}: {grid[0]} x {grid[1]} cells, spacing {step[0] * 1000:.2f} mm x "
+            f"{math.degrees(step[1]):.3f} deg, cap {cap * 1000:.0f} mm; best D {best[0]:.4f} m, beta "
+            f"{math.degrees(best[1]):.3f} deg, cost {costs[i, j] * 1000:.3f} mm")
+        half = 2 * step
+        problem.locate(*best)  # the data contours and the detection shift, seen from the new estimate
+
+    candidate, polish_error = _polish(problem, *_valley(found[-1], step), lo, hi, settings.polish)
+    say(f"polish: D {candidate[0]:.4f} m, beta {math.degrees(candidate[1]):.3f} deg, E_mu {polish_error * 1000:.3f} mm")
+    before, after = problem.exact(depth0, tilt0).value, problem.exact(*candidate).value
+    accepted = bool(np.isfinite(after) and (not np.isfinite(before) or after < before))
+    depth, tilt = (candidate if accepted else (depth0, tilt0))
+    say(f"E_mu {before * 1000:.3f} mm at the start, {after * 1000:.3f} mm at the candidate: "
+        f"{'accepted' if accepted else 'rejected (E_mu did not fall)'}")
+    return PoseResult(depth=float(depth), tilt=float(tilt), depth0=depth0, tilt0=tilt0,
+                      candidate=(float(candidate[0]), float(candidate[1])), accepted=accepted,
+                      error_before=float(before), error_after=float(after if accepted else before),
+                      levels=tuple(found), polish_error=float(polish_error), shift=problem.shift,
+                      anchors=problem.anchors, evaluations=dict(problem.counters),
+                      seconds=time.perf_counter() - start, views=problem.data.names,
+                      mirror_views=problem.data.mirror_views)
+
+
+# --- helpers -------------------------------------------------------------------------------
+
+def detection_threshold(image, settings: SegmentSettings = SegmentSettings()) -> np.ndarray:
+    """(bins,) linear intensity at which the segmentation's hysteresis low threshold lies in
+    each row of a (bins, beams) image, less the background: ``(m + low·s − 1)·level(B)``
+    (``fsswarp.segment`` steps 1–2: the same background level, median m and spread s)."""
+    from scipy import ndimage
+
+    array = np.asarray(image, np.float64)
+    peak = float(array.max()) if array.size else 0.0
+    level = ndimage.median_filter(np.median(array, axis=1) / math.log(2.0), settings.background_rows,
+                                  mode="nearest")
+    level = np.maximum(level, 1e-6 * peak if peak > 0 else 1e-30)
+    smooth = ndimage.gaussian_filter(array / level[:, None], (settings.sigma_bins, settings.sigma_beams),
+                                     mode="nearest")
+    centre = float(np.median(smooth))
+    spread = max(1.4826 * float(np.median(np.abs(smooth - centre))), 0.01 * (float(smooth.max()) - centre))
+    return np.maximum(centre + settings.low * spread - 1.0, 0.0) * level
+
+
+def _gaussian(sigma: float) -> np.ndarray:
+    """scipy.ndimage.gaussian_filter's 1-D weights for ``sigma`` (truncate 4), (2r + 1,)."""
+    radius = int(4.0 * sigma + 0.5)
+    if radius == 0:
+        return np.ones(1)
+    x = np.arange(-radius, radius + 1)
+    w = np.exp(-0.5 * (x / sigma) ** 2)
+    return w / w.sum()
+
+
+def _parabola_minimum(x: np.ndarray, y: np.ndarray) -> float:
+    """Where the parabola through the smallest of the (S,) values ``y`` at uniform ``x`` and its
+    two neighbours is smallest (the end point itself at an end, or where flat)."""
+    i = int(np.argmin(y))
+    if i == 0 or i == len(y) - 1:
+        return float(x[i])
+    curvature = y[i - 1] - 2.0 * y[i] + y[i + 1]
+    if curvature <= 0:
+        return float(x[i])
+    return float(x[i] + 0.5 * (x[1] - x[0]) * (y[i - 1] - y[i + 1]) / curvature)
+
+
+def _view_cost(sums: np.ndarray, counts: np.ndarray, data_counts: np.ndarray, cap: float) -> np.ndarray:
+    """(G, V, S) object + mirror terms from (G, V, 2, S) sums, (G, V, 2) counts and the data's
+    (V, 2) counts: ``(Σ d + cap · max(0, n_data − n)) / max(n, n_data)``, 0 for empty terms."""
+    n = counts[..., None].astype(np.float64)
+    n_data = data_counts[None, :, :, None].astype(np.float64)
+    total = sums + cap * np.maximum(n_data - n, 0.0)
+    terms = np.divide(total, np.maximum(n, n_data), out=np.zeros(total.shape), where=np.maximum(n, n_data) > 0)
+    return terms.sum(axis=2)
+
+
+def _valley(level: GridLevel, step: np.ndarray):
+    """The polish frame from a quadratic fitted (least squares) to the level's costs at the
+    5 × 5 cells around its minimum: (centre (2,), axes (2, 2)) in (m, rad); column 0 runs
+    along the fit's valley (smallest curvature) over ``POLISH_CELLS`` cells, column 1 across it
+    over one cell (cells scaled to the grid spacing ``step``). The centre is the fit's minimum
+    when that lies within one cell of the best cell, else the best cell; without a convex fit
+    the axes are the grid's, ``POLISH_CELLS`` cells each."""
+    costs = level.costs
+    i, j = np.unravel_index(int(np.argmin(costs)), costs.shape)
+    rows = np.arange(max(i - 2, 0), min(i + 3, costs.shape[0]))
+    cols = np.arange(max(j - 2, 0), min(j + 3, costs.shape[1]))
+    x, y = (a.ravel().astype(np.float64) for a in np.meshgrid(rows - i, cols - j, indexing="ij"))
+    design = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=1)
+    best = np.array([level.depths[i], level.tilts[j]])
+    if len(rows) < 3 or len(cols) < 3:
+        return best, np.diag(POLISH_CELLS * step)
+    c = np.linalg.lstsq(design, costs[np.ix_(rows, cols)].ravel(), rcond=None)[0]
+    hessian = np.array([[2 * c[3], c[4]], [c[4], 2 * c[5]]])
+    curvature, vectors = np.linalg.eigh(hessian)
+    if curvature[0] <= 0:
+        return best, np.diag(POLISH_CELLS * step)
+    shift = -np.linalg.solve(hessian, c[1:3])
+    centre = best + (shift * step if np.all(np.abs(shift) <= 1.0) else 0.0)
+    return centre, np.stack([POLISH_CELLS * vectors[:, 0] * step, vectors[:, 1] * step], axis=1)
+
+
+def _polish(problem: PoseProblem, centre, axes, lo, hi, evaluations: int):
+    """BOBYQA (nlopt) on E_mu over ``centre + axes @ u``, u in [-1, 1]² (points clipped to the
+    bounds ``lo``, ``hi``), from u = 0. Returns the best point seen and its E_mu."""
+    def point(u):
+        return np.clip(centre + axes @ np.asarray(u, np.float64), lo, hi)
+
+    start = problem.exact(*point((0.0, 0.0)))
+    seen = {"x": point((0.0, 0.0)), "f": start.value}
+    if evaluations == 0 or not math.isfinite(start.value):
+        return seen["x"], seen["f"]
+    def objective(u, grad):
+        x = point(u)
+        value = start.value if np.all(np.asarray(u) == 0.0) else problem.exact(x[0], x[1]).value
+        if value < seen["f"]:
+            seen["x"], seen["f"] = x, value
+        return value if math.isfinite(value) else 1.0  # 1 m: far worse than any E_mu seen
+
+    opt = nlopt.opt(nlopt.LN_BOBYQA, 2)
+    opt.set_lower_bounds([-1.0, -1.0])
+    opt.set_upper_bounds([1.0, 1.0])
+    opt.set_min_objective(objective)
+    opt.set_maxeval(evaluations)
+    opt.set_initial_step(0.25)
+    opt.set_xtol_abs(0.01)
+    try:
+        opt.optimize([0.0, 0.0])
+    except nlopt.RoundoffLimited:
+        pass
+    return seen["x"], seen["f"]
+
+
+def _fan(theta, rng) -> np.ndarray:
+    """(N, 2) fan-plane points R (sin θ, cos θ) (paper eq. 3)."""
+    return np.stack([rng * np.sin(theta), rng * np.cos(theta)], axis=1)
+
+
+def _check_pose(depth: float, tilt: float) -> None:
+    if not (isinstance(depth, (int, float, np.floating)) and math.isfinite(depth) and depth > 0):
+        raise InputError("must be a finite depth > 0 (m)", field="depth", value=depth)
+    if not (isinstance(tilt, (int, float, np.floating)) and math.isfinite(tilt) and abs(tilt) < math.pi / 2):
+        raise InputError("must be a finite tilt in (-90, 90) degrees", field="tilt", value=tilt)

@@ -1,0 +1,179 @@
+"""Segmentation of beam-bin images: object highlight, feasible region, shadow, frontal contour.
+
+The highlight is every echo that stands out of the water's noise: object, ghost and mirror
+alike (the ghost falls behind the object in the same beams, inside the feasible region; the
+mirror world above the surface is removed by the carving, fsswarp/carve.py). Steps, for a
+(bins, beams) linear image I:
+
+1. Background level per range row: the row's median over the beams divided by ln 2 (the
+   median of an exponential background is ln 2 times its mean), smoothed along range by a
+   running median of ``background_rows`` rows; x = I / level is the image in units of the
+   local background mean (range-dependent gain cancels).
+2. x is smoothed by a Gaussian of (``sigma_bins``, ``sigma_beams``) pixels; the smoothed
+   image's median m and robust spread s = 1.4826 · MAD (floored at 1% of its peak above m,
+   so noise-free images threshold at a fraction of their peak) give a hysteresis
+   threshold: pixels above m + ``high``·s seed the highlight, which grows through
+   8-connected pixels above m + ``low``·s.
+3. Highlight blobs of fewer than ``min_pixels`` pixels are dropped (speckle).
+
+Why the linear image and not its logarithm: the logarithm of an exponential background has
+a wide lower tail (std 1.28 in log units), which inflates the spread; thin returns one pixel
+wide (the table's edges seen at ±90° roll) then fall below any safe threshold. Averaging the
+linear image is the matched filter for the background-normalised echo.
+
+Feasible region (DESIGN §6): along each beam, every bin from the first highlight to the end of
+the window. Conservative margin: a beam's feasible region starts no later than that of any
+beam within ``dilate_beams`` of it (faint beams at the object's azimuthal edges are missed
+more often than bright ones). Shadow: the feasible pixels that are not highlight. Frontal
+contour: per beam the first highlight bin, -1 where the beam holds none.
+
+Thresholds. The smoothed background is far from Gaussian (a smoothed exponential): 17
+pixels of a 512 × 96 noise image exceed 6 robust standard deviations, 0.1 exceed 10. So
+seeds need ``high`` = 10 (a blob in 2 of 40 pure-noise images), while growth at ``low`` = 2
+reaches the faint edges of the object that carving must not lose. On the simulated scenes
+(noise: Gamma speckle of 4 looks, exponential background at 5% of the 99th-percentile echo)
+the feasible region holds 98.8% (coral-one), 98.9% (coral-two) and 99.3% (table) of the true
+object pixels on average, and the frontal contour lies 1-2 bins in front of the true one
+(median; tests/test_segment.py prints the numbers).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import InputError
+
+
+def _is_real(value) -> bool:
+    return not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating)) \
+        and math.isfinite(value)
+
+
+class SegmentWarning(UserWarning):
+    """A view whose segmentation is suspect (no highlight at all)."""
+
+
+@dataclass(frozen=True)
+class SegmentSettings:
+    """Options of :func:`segment` (the module docstring explains each step).
+
+    sigma_bins, sigma_beams : Gaussian smoothing (pixels) along range and across beams
+    low, high : hysteresis thresholds, in robust standard deviations of the smoothed image
+    min_pixels : smallest highlight blob kept (8-connected pixels)
+    background_rows : running-median length (rows) of the background level along range
+    dilate_beams : the feasible region of a beam starts no later than its neighbours' within
+        this many beams (0: no margin)
+    """
+
+    sigma_bins: float = 1.0
+    sigma_beams: float = 0.7
+    low: float = 2.0
+    high: float = 10.0
+    min_pixels: int = 15
+    background_rows: int = 31
+    dilate_beams: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("sigma_bins", "sigma_beams"):
+            value = getattr(self, name)
+            if not (_is_real(value) and 0 <= value <= 50):
+                raise InputError("must be a number in [0, 50] (pixels)", field=f"segment.{name}", value=value)
+        if not (_is_real(self.low) and _is_real(self.high) and 0 < self.low <= self.high):
+            raise InputError("thresholds must satisfy 0 < low <= high", field="segment.low",
+                             value=(self.low, self.high))
+        for name, lowest in (("min_pixels", 1), ("background_rows", 1), ("dilate_beams", 0)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lowest:
+                raise InputError(f"must be an integer >= {lowest}", field=f"segment.{name}", value=value)
+
+
+@dataclass(frozen=True)
+class Segmentation:
+    """One view's segmentation; every mask is (bins, beams) bool.
+
+    highlight : echo above the noise (object, ghost and mirror)
+    feasible : the carving region: per beam from the (beam-dilated) first highlight to the end
+    shadow : feasible and not highlight
+    contour : (beams,) int32 frontal contour: first highlight bin per beam, -1 where none
+    """
+
+    highlight: np.ndarray
+    feasible: np.ndarray
+    shadow: np.ndarray
+    contour: np.ndarray
+
+    @property
+    def empty(self) -> bool:
+        """Whether the view holds no highlight at all."""
+        return not bool(self.highlight.any())
+
+
+def segment(image, settings: SegmentSettings = SegmentSettings(), *, name: str = "image") -> Segmentation:
+    """Segment one (bins, beams) linear beam-bin image (float, finite, >= 0).
+
+    ``name`` labels errors and the warning (SegmentWarning) given when nothing stands out of
+    the noise; the result is then empty (no feasible pixel)."""
+    array = np.asarray(image)
+    if array.ndim != 2 or min(array.shape) < 2:
+        raise InputError("must be a (bins, beams) image with at least 2 rows and columns", field=name,
+                         value=array.shape)
+    if array.dtype.kind not in "fiu":
+        raise InputError("must hold real numbers", field=name, value=str(array.dtype))
+    array = array.astype(np.float64)
+    if not np.all(np.isfinite(array)):
+        raise InputError("holds non-finite values", field=name, value=int((~np.isfinite(array)).sum()))
+    if array.min() < 0:
+        raise InputError("must be linear intensity >= 0", field=name, value=float(array.min()))
+    highlight = _highlight(array, settings)
+    if not highlight.any():
+        warnings.warn(f"{name}: no object highlight stands out of the noise; its feasible region is empty",
+                      SegmentWarning, stacklevel=2)
+    return from_highlight(highlight, dilate_beams=settings.dilate_beams)
+
+
+def from_highlight(highlight, *, dilate_beams: int = 0) -> Segmentation:
+    """The segmentation that a (bins, beams) highlight mask implies: contour, feasible region
+    (from the first highlight of the beam, or of a beam within ``dilate_beams``, to the end of
+    the window) and shadow. Also builds the true segmentation from a truth layer (``> 0``)."""
+    mask = np.asarray(highlight, bool)
+    bins, beams = mask.shape
+    any_hit = mask.any(axis=0)
+    contour = np.where(any_hit, mask.argmax(axis=0), -1).astype(np.int32)
+    start = np.where(any_hit, contour, bins).astype(np.int64)
+    shifted = start.copy()
+    for step in range(1, dilate_beams + 1):
+        shifted[step:] = np.minimum(shifted[step:], start[:-step])
+        shifted[:-step] = np.minimum(shifted[:-step], start[step:])
+    feasible = np.arange(bins)[:, None] >= shifted[None, :]
+    return Segmentation(highlight=mask, feasible=feasible, shadow=feasible & ~mask, contour=contour)
+
+
+def _highlight(image: np.ndarray, settings: SegmentSettings) -> np.ndarray:
+    """(bins, beams) bool highlight of a clean float64 image (steps 1-3 of the module docstring)."""
+    from scipy import ndimage
+    from skimage.filters import apply_hysteresis_threshold
+    from skimage.measure import label
+
+    level = ndimage.median_filter(np.median(image, axis=1) / math.log(2.0), settings.background_rows,
+                                  mode="nearest")
+    peak = float(image.max())
+    if peak <= 0:
+        return np.zeros(image.shape, bool)
+    level = np.maximum(level, 1e-6 * peak)  # noise-free rows hold exact zeros
+    smooth = ndimage.gaussian_filter(image / level[:, None], (settings.sigma_bins, settings.sigma_beams),
+                                     mode="nearest")
+    centre = float(np.median(smooth))
+    top = float(smooth.max()) - centre
+    if top <= 0:
+        return np.zeros(image.shape, bool)
+    spread = max(1.4826 * float(np.median(np.abs(smooth - centre))), 0.01 * top)
+    mask = apply_hysteresis_threshold(smooth - centre, settings.low * spread, settings.high * spread)
+    labels = label(mask, connectivity=2)
+    sizes = np.bincount(labels.ravel())
+    keep = sizes >= settings.min_pixels
+    keep[0] = False
+    return keep[labels]

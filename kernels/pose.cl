@@ -1,0 +1,127 @@
+/* pose.cl -- frontal contours of synthetic views and their distance to the data's contours:
+ * the surrogate of the (D, β) grid search (DESIGN §7; fsswarp/pose.py explains it).
+ *
+ * Purpose: N rendered views ("pairs": one grid cell and one data view each, from
+ * render_views) are compared with V data views. Component c of pair n is the sum of two
+ * layers: c = 0 object + ghost (layers 0, 1), c = 1 mirror + double-bounce mirror (layers 2, 3).
+ *
+ * frontal_contour, work-item (b, c, n) = (beam, component, pair), v = view_index[n]:
+ *   contour[n][c][b] = -1 when mask[v][c][b] == 0; else the component is smoothed with the
+ *   separable weights (wB: 2 rB + 1 taps along range, wb: 2 rb + 1 taps across beams; indices
+ *   clamped to the image, scipy's "nearest" border):
+ *     row_i = Σ_j wb[j] · (L[n][2c][B_i][b_j] + L[n][2c+1][B_i][b_j]),  s(B) = Σ_i wB[i] · row_i
+ *   with B_i = clamp(B + i − rB), b_j = clamp(b + j − rb), sums in index order. The first row B
+ *   of the window lo <= B < hi (window[v]) where f(B) = s(B) − threshold[v][B] > 0 gives the
+ *   crossing: lo when B == lo, else (B − 1) + f(B − 1) / (f(B − 1) − f(B)) (fractional row,
+ *   linear interpolation); -1 when no row of the window crosses.
+ * contour_cost, work-item (s, c, n) = (shift, component, pair), v = view_index[n]:
+ *   over the beams b (in order) with contour x = contour[n][c][b] >= 0, the data distance
+ *   dist[v][c][·][b] read at y = clamp(x + shift[s], 0, bins − 1) by linear interpolation
+ *   between rows floor(y) and floor(y) + 1 (clamped): sums[n][c][s] = Σ_b of it, and
+ *   counts[n][c] = the number of such beams (written by s == 0).
+ *
+ * Arguments:
+ *   layers       (N, 4, bins, beams) float
+ *   view_index   (N,) int        data view of each pair
+ *   threshold    (V, bins) float  detection threshold of each data view and row
+ *   window       (V, 2) int       rows lo, hi scanned (0 <= lo < hi <= bins)
+ *   mask         (V, 2, beams) uchar  beams where each component's contour counts
+ *   wB, rB       (2 rB + 1,) float range weights;  wb, rb  (2 rb + 1,) float beam weights
+ *   dist         (V, 2, bins, beams) float  distance (m) of every pixel to the data's contour
+ *   shifts       (S,) float       range shifts (rows)
+ *   contour      (N, 2, beams) float  out (frontal_contour), in (contour_cost)
+ *   sums         (N, 2, S) float;  counts (N, 2) int   out
+ *
+ * Work size: 3-D, global (beams or S rounded up to the work-group size, 2, N); items past
+ * the first dimension's extent return at once. The host validates everything; no checks here.
+ */
+#include "sonar.h"
+
+__kernel void frontal_contour(__global const float *layers,
+                              __global const int *view_index,
+                              __global const float *threshold,
+                              __global const int *window,
+                              __global const uchar *mask,
+                              __global const float *wB,
+                              const int rB,
+                              __global const float *wb,
+                              const int rb,
+                              const int bins,
+                              const int beams,
+                              __global float *contour)
+{
+    const int b = get_global_id(0);
+    const int c = get_global_id(1);
+    const int n = get_global_id(2);
+    if (b >= beams)
+        return;
+    const int v = view_index[n];
+    __global float *out = contour + ((size_t)n * 2 + c) * beams + b;
+    if (mask[((size_t)v * 2 + c) * beams + b] == 0) {
+        *out = -1.0f;
+        return;
+    }
+    const size_t plane = (size_t)bins * beams;
+    __global const float *l0 = layers + ((size_t)n * 4 + 2 * c) * plane;
+    __global const float *l1 = l0 + plane;
+    __global const float *thr = threshold + (size_t)v * bins;
+    const int lo = window[2 * v];
+    const int hi = window[2 * v + 1];
+    float previous = 0.0f;
+    for (int B = lo; B < hi; ++B) {
+        float s = 0.0f;
+        for (int i = 0; i <= 2 * rB; ++i) {
+            const int Bi = clamp(B + i - rB, 0, bins - 1);
+            float row = 0.0f;
+            for (int j = 0; j <= 2 * rb; ++j) {
+                const size_t k = (size_t)Bi * beams + clamp(b + j - rb, 0, beams - 1);
+                row += wb[j] * (l0[k] + l1[k]);
+            }
+            s += wB[i] * row;
+        }
+        const float f = s - thr[B];
+        if (f > 0.0f) {
+            *out = (B == lo) ? (float)lo : (float)(B - 1) + previous / (previous - f);
+            return;
+        }
+        previous = f;
+    }
+    *out = -1.0f;
+}
+
+__kernel void contour_cost(__global const float *contour,
+                           __global const int *view_index,
+                           __global const float *dist,
+                           __global const float *shifts,
+                           const int n_shifts,
+                           const int bins,
+                           const int beams,
+                           __global float *sums,
+                           __global int *counts)
+{
+    const int s = get_global_id(0);
+    const int c = get_global_id(1);
+    const int n = get_global_id(2);
+    if (s >= n_shifts)
+        return;
+    const int v = view_index[n];
+    __global const float *x = contour + ((size_t)n * 2 + c) * beams;
+    __global const float *d = dist + ((size_t)v * 2 + c) * (size_t)bins * beams;
+    const float shift = shifts[s];
+    const float last = (float)(bins - 1);
+    float total = 0.0f;
+    int count = 0;
+    for (int b = 0; b < beams; ++b) {
+        if (x[b] < 0.0f)
+            continue;
+        const float y = clamp(x[b] + shift, 0.0f, last);
+        const int B0 = (int)floor(y);
+        const int B1 = min(B0 + 1, bins - 1);
+        const float t = y - (float)B0;
+        total += (1.0f - t) * d[(size_t)B0 * beams + b] + t * d[(size_t)B1 * beams + b];
+        count += 1;
+    }
+    sums[((size_t)n * 2 + c) * n_shifts + s] = total;
+    if (s == 0)
+        counts[(size_t)n * 2 + c] = count;
+}

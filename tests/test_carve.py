@@ -1,0 +1,352 @@
+"""Space carving: the kernels against the float64 NumPy oracle and each other, the voxel rule's
+conservativeness and coarse-to-fine, carving of simulated coral-one, bad input and the CLI.
+
+Tolerance of the kernel tests. Kernels compute in float32, ``carve_reference`` in float64 on
+the same float32 voxel centres. A decision can differ only where one of its bounds lies within
+float32 rounding of a boundary: a beam or bin coordinate of the footprint box within
+``MARGIN`` of a half-index (widened to four float32 ulps of the θ or R behind it), the
+elevation bound within ``ELEVATION_MARGIN`` of W_φ, or r within 1e-6 relative of ρ. Voxels
+with such a pair are left out, and at least 98% must be compared.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+import warnings
+
+import numpy as np
+import pytest
+import trimesh
+
+from fsswarp.carve import (CarveSettings, CarveWarning, carve, carve_masks, carve_reference, common_region,
+                           voxel_mesh, _Carver)
+from fsswarp.errors import InputError
+from fsswarp.metrics import inside_grid
+from fsswarp.rig import rotation_x, rotation_y, rotation_z, to_view
+from fsswarp.segment import from_highlight
+from fsswarp.sonar import SonarSpec, to_polar
+from fsswarp.surface import surface_in_reference
+
+MARGIN = 1e-4  # index units
+ULPS = 4.0
+ELEVATION_MARGIN = 1e-6  # rad
+EPS32 = 2.0**-23
+SONARS = {"linear": SonarSpec, "table": lambda: SonarSpec(
+    beam_angles=math.radians(14.4) * (0.7 * np.linspace(-1, 1, 96) + 0.3 * np.linspace(-1, 1, 96) ** 3),
+    azimuth_fov=math.radians(28.8))}
+
+
+def carve_scene(seed: int, sonar: SonarSpec, n_views: int = 6):
+    """Seeded views looking roughly along +Y (view 0 the identity), feasible masks that start at a
+    random bin in 80% of the beams plus scattered feasible pixels, and a grid of 3 cm voxels
+    over the fans (27 x 54 x 27)."""
+    rng = np.random.default_rng(seed)
+    rotations = (rotation_z(rng.uniform(-0.3, 0.3, n_views)) @ rotation_x(rng.uniform(-0.2, 0.2, n_views))
+                 @ rotation_y(rng.uniform(-1.6, 1.6, n_views)))
+    translations = rng.uniform(-0.2, 0.2, (n_views, 3))
+    rotations[0], translations[0] = np.eye(3), 0.0
+    first = np.where(rng.random((n_views, sonar.beams)) < 0.8,
+                     rng.integers(100, 480, (n_views, sonar.beams)), sonar.bins)
+    masks = np.arange(sonar.bins)[None, :, None] >= first[:, None, :]
+    for v in range(n_views):
+        masks[v, rng.integers(0, sonar.bins, 40), rng.integers(0, sonar.beams, 40)] = True
+    grid = dict(origin=(-0.39, 1.11, -0.39), shape=(27, 54, 27))
+    return masks, rotations, translations, 0.03, grid
+
+
+def decidable(points, rotations, translations, sonar: SonarSpec, voxel_size: float) -> np.ndarray:
+    """(P,) whether float32 rounding cannot change any view's decision on the voxel."""
+    points = np.asarray(points, np.float32).astype(np.float64)
+    radius = float(np.float32(voxel_size * math.sqrt(3.0) / 2.0))
+    ok = np.ones(len(points), bool)
+    for rot, t in zip(rotations, translations):
+        q = to_view(points, rot, t)
+        rng, theta, phi = to_polar(q)
+        rho = np.hypot(q[:, 0], q[:, 1])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            d_theta = np.arcsin(np.minimum(radius / rho, 1.0))
+            d_phi = np.arcsin(np.minimum(radius / rng, 1.0))
+        for angle in (theta - d_theta, theta + d_theta):
+            h = 1e-7
+            slope = np.abs(sonar.beam_coordinate(angle + h) - sonar.beam_coordinate(angle - h)) / (2 * h)
+            margin = np.maximum(MARGIN, ULPS * EPS32 * np.maximum(np.abs(angle), 1.0) * slope)
+            ok &= _to_boundary(sonar.beam_coordinate(angle)) > margin
+        for r in (rng - radius, rng + radius):
+            ok &= _to_boundary(sonar.bin_coordinate(r)) > np.maximum(MARGIN, ULPS * EPS32 * rng / sonar.range_step)
+        ok &= np.abs(np.abs(phi) + d_phi - sonar.half_elevation) > ELEVATION_MARGIN
+        ok &= np.abs(rho - radius) > 1e-6 * rho
+    return ok
+
+
+def _to_boundary(coordinate):
+    shifted = coordinate + 0.5
+    return np.abs(shifted - np.round(shifted))
+
+
+def grid_centres(origin, voxel_size, shape) -> np.ndarray:
+    """Float32 centres of a grid, formed as the kernels form them."""
+    idx = np.stack(np.meshgrid(*(np.arange(n, dtype=np.float32) for n in shape), indexing="ij"), -1)
+    return (np.asarray(origin, np.float32) + np.float32(voxel_size) * idx).reshape(-1, 3)
+
+
+# --- the kernels ---------------------------------------------------------------------------------
+@pytest.mark.parametrize("sonar_kind", SONARS)
+def test_carve_kernel_matches_reference(backend, sonar_kind):
+    sonar = SONARS[sonar_kind]()
+    masks, rot, trans, h, grid = carve_scene(5, sonar)
+    seen, rejected = backend.carve(masks, rot, trans, sonar, h, **grid)
+    want_seen, want_rejected = carve_reference(masks, rot, trans, sonar, h, **grid)
+    ok = decidable(grid_centres(grid["origin"], h, grid["shape"]), rot, trans, sonar, h)
+    assert ok.mean() >= 0.98
+    assert 0.2 < (want_seen > 0).mean() < 0.95 and 0.1 < (want_rejected > 0).mean() < 0.9  # both outcomes
+    assert 0.1 < ((want_seen >= 2) & (want_rejected == 0)).mean() < 0.9
+    for what, got, want in (("seen", seen, want_seen), ("rejected", rejected, want_rejected)):
+        bad = (got != want) & ok
+        assert not bad.any(), f"{what}: {bad.sum()} of {ok.sum()} voxels differ, first {np.flatnonzero(bad)[0]}"
+
+    # explicit centres: the same decisions as the grid, voxel for voxel
+    centres = grid_centres(grid["origin"], h, grid["shape"])
+    pick = np.random.default_rng(0).choice(len(centres), 5000, replace=False)
+    by_points = backend.carve(masks, rot, trans, sonar, h, centres=centres[pick])
+    np.testing.assert_array_equal(by_points[0], seen[pick])
+    np.testing.assert_array_equal(by_points[1], rejected[pick])
+
+
+@pytest.mark.parametrize("pair", [
+    pytest.param(("warp-cpu", "opencl-cpu"), id="warp-cpu-vs-opencl-cpu"),
+    pytest.param(("warp-cuda", "opencl-cpu"), id="warp-cuda-vs-opencl-cpu", marks=pytest.mark.gpu),
+    pytest.param(("warp-cpu", "opencl-gpu"), id="warp-cpu-vs-opencl-gpu", marks=pytest.mark.gpu),
+])
+def test_carve_warp_matches_opencl(backend_for_label, pair):
+    warp, opencl = (backend_for_label(label) for label in pair)
+    sonar = SONARS["table"]()
+    masks, rot, trans, h, grid = carve_scene(9, sonar)
+    ok = decidable(grid_centres(grid["origin"], h, grid["shape"]), rot, trans, sonar, h)
+    for a, b in zip(warp.carve(masks, rot, trans, sonar, h, **grid), opencl.carve(masks, rot, trans, sonar, h, **grid)):
+        assert not ((a != b) & ok).any()
+
+
+def test_carve_contract(backend):
+    sonar = SonarSpec()
+    masks, rot, trans, h, grid = carve_scene(2, sonar, n_views=3)
+    seen, rejected = backend.carve(masks.astype(np.uint8), rot, trans, sonar, h, **grid)
+    for array in (seen, rejected):
+        assert array.shape == (27 * 54 * 27,) and array.dtype == np.uint8 and array.flags.c_contiguous
+    assert np.all(rejected <= seen) and seen.max() <= 3 and set(np.unique(rejected)) == {0, 1}
+    empty = backend.carve(masks, rot, trans, sonar, h, origin=grid["origin"], shape=(4, 0, 2))
+    assert empty[0].shape == (0,) and empty[1].dtype == np.uint8
+    none = backend.carve(masks[:0], rot[:0], trans[:0], sonar, h, centres=np.zeros((5, 3)))
+    assert none[0].tolist() == [0] * 5
+
+
+@pytest.mark.parametrize("change, error, text", [
+    ({"masks": np.zeros((3, 10, 96), bool)}, ValueError, "masks must have shape (V, bins, beams) = (3, 512, 96)"),
+    ({"masks": np.zeros((3, 512, 96), np.float32)}, TypeError, "masks must be bool or integer"),
+    ({"voxel_size": 0.0}, ValueError, "voxel_size must be a finite number > 0"),
+    ({"voxel_size": float("nan")}, ValueError, "voxel_size"),
+    ({"shape": (2, 2)}, ValueError, "shape must be three integers >= 0"),
+    ({"shape": (2, -1, 2)}, ValueError, "shape must be three integers >= 0"),
+    ({"centres": np.zeros((4, 3))}, ValueError, "give either origin and shape (a grid) or centres"),
+    ({"origin": None}, ValueError, "give either origin and shape"),
+    ({"origin": (0, np.inf, 0)}, ValueError, "origin must be finite"),
+    ({"translations": np.zeros((2, 3))}, ValueError, "3 rotations and 2 translations"),
+])
+def test_carve_rejects_bad_input(backend, change, error, text):
+    sonar = SonarSpec()
+    call = dict(masks=np.zeros((3, 512, 96), bool), rotations=np.tile(np.eye(3), (3, 1, 1)),
+                translations=np.zeros((3, 3)), sonar=sonar, voxel_size=0.01, origin=(0, 1, 0), shape=(2, 2, 2))
+    call.update(change)
+    with pytest.raises(error) as info:
+        backend.carve(**call)
+    assert text in str(info.value)
+
+
+# --- the rule ----------------------------------------------------------------------------------
+def sphere_scene(sonar: SonarSpec):
+    """A 6 cm sphere 2 m ahead, seen by 8 level views from both sides (four rolls each), with the
+    masks its surface points imply (dense samples projected by the float64 rule)."""
+    from fsswarp.rig import Rig, View
+
+    views = tuple(View(f"v{k}", position=(0.0, -2.0 if k < 4 else 2.0), heading=0.0 if k < 4 else math.pi,
+                       roll=math.radians(-90 + 45 * (k % 4))) for k in range(8))
+    rig = Rig(views)
+    rot, trans = rig.relative_poses(0.5, 0.0)
+    centre = np.array([0.0, 2.0, 0.0])  # the world point (0, 0, -0.5) in the reference frame
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.06)
+    sphere.apply_translation(centre)
+    points = trimesh.sample.sample_surface_even(sphere, 60_000, seed=1)[0]
+    masks = np.zeros((len(views), sonar.bins, sonar.beams), bool)
+    for v in range(len(views)):
+        rng, theta, phi = to_polar(to_view(points, rot[v], trans[v]))
+        b, bb, inside = sonar.beam_bin(theta, rng)
+        inside &= sonar.in_elevation(phi)
+        highlight = np.zeros((sonar.bins, sonar.beams), bool)
+        highlight[bb[inside], b[inside]] = True
+        masks[v] = from_highlight(highlight).feasible
+    return sphere, masks, rot, trans
+
+
+def test_carving_is_conservative_and_coarse_to_fine_is_exact(backend):
+    """With masks that mark every surface point, every voxel holding part of the sphere is kept;
+    coarse-to-fine keeps exactly what a full grid at the finest level keeps, plus a few interior
+    voxels it does not test (never fewer)."""
+    sonar = SonarSpec()
+    sphere, masks, rot, trans = sphere_scene(sonar)
+    carved = carve_masks(masks, rot, trans, sonar, resolution=48, backend=backend)
+    full = _Carver(backend, masks, rot, trans, sonar, None, 2).grid(carved.origin, carved.voxel_size,
+                                                                    carved.occupancy.shape)
+    assert not (full & ~carved.occupancy).any()
+    assert (carved.occupancy & ~full).sum() <= 0.01 * full.sum()
+    # every voxel whose centre lies in the sphere is kept, and the hull is not far larger
+    inside = inside_grid(sphere, carved.origin, carved.voxel_size, carved.occupancy.shape)
+    assert inside.sum() > 1000 and not (inside & ~carved.occupancy).any()
+    assert carved.kept < 3.0 * inside.sum()
+    mesh = voxel_mesh(carved, faces=3000)
+    assert mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0 and len(mesh.faces) <= 3000
+    assert trimesh.boolean.intersection([mesh, sphere], engine="manifold").volume >= 0.99 * sphere.volume
+
+
+def test_common_region_of_the_sphere_scene():
+    sonar = SonarSpec()
+    _, _, rot, trans = sphere_scene(sonar)
+    lo, hi = common_region(sonar, rot, trans)
+    assert lo[1] < 1.5 and hi[1] > 2.5  # the two positions' windows overlap from y = 1 to 3
+    assert common_region(sonar, rot, trans, plane=(np.array([0.0, 0.0, 1.0]), -5.0)) is None  # all above water
+    away = rot.copy()
+    away[3] = rotation_z(math.pi) @ away[3]  # one view looks the other way
+    assert common_region(sonar, away, trans) is None
+
+
+# --- simulated coral-one -------------------------------------------------------------------------
+def truth_volume_kept(carving, truth) -> float:
+    """Share of the truth's voxel-centre samples (at the carving's grid) inside kept voxels."""
+    inside = inside_grid(truth, carving.origin, carving.voxel_size, carving.occupancy.shape)
+    return float((inside & carving.occupancy).sum() / inside.sum())
+
+
+def test_carving_with_true_masks_keeps_the_true_volume(coral_one):
+    """The carving rule with the true feasible masks (object layer > 0) keeps >= 99% of the truth."""
+    truth = trimesh.load(coral_one.truth_model_path)
+    masks = {v: from_highlight(coral_one.truth_layer(v, "object") > 0).feasible for v in coral_one.rig.names}
+    t = coral_one.manifest.truth
+    result = carve(coral_one, t.depth, t.tilt, resolution=64, masks=masks, settings=CarveSettings(faces=4000))
+    kept = truth_volume_kept(result.voxels, truth)
+    print(f"true masks, true D/tilt: {kept:.4f} of the true volume kept")
+    assert kept >= 0.99
+
+
+def test_carve_coral_one(coral_one):
+    """Segmented noisy data: with the true (D, tilt) the carved mesh holds >= 95% of the true
+    volume; with the measured (D0, tilt0) it loses a little more (printed)."""
+    truth = trimesh.load(coral_one.truth_model_path)
+    t = coral_one.manifest.truth
+    kept = {}
+    for label, depth, tilt in (("true", t.depth, t.tilt), ("measured", None, None)):
+        result = carve(coral_one, depth, tilt, resolution=64, settings=CarveSettings(faces=4000))
+        mesh = result.mesh
+        assert mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0
+        kept[label] = trimesh.boolean.intersection([mesh, truth], engine="manifold").volume / truth.volume
+        print(f"{label} D/tilt: {kept[label]:.4f} of the true volume inside the carved mesh, carved volume "
+              f"{mesh.volume / truth.volume:.2f} x the truth")
+    assert kept["true"] >= 0.95
+    assert kept["measured"] >= 0.90
+
+
+def test_a_view_without_highlight_is_left_out(coral_one):
+    images = dict(coral_one.images)
+    images["Np45"] = np.full_like(images["Np45"], 0.004)
+    from fsswarp.dataset import Dataset
+
+    broken = Dataset(coral_one.manifest, images, coral_one.root)
+    with pytest.warns(CarveWarning, match="views Np45: no object highlight"):
+        result = carve(broken, resolution=32, settings=CarveSettings(smooth=0, faces=0))
+    assert "Np45" not in result.views and len(result.views) == 15
+
+
+def test_carve_bad_input(coral_one):
+    t = coral_one.manifest.truth
+    with pytest.raises(InputError, match="--box.*outside the region"):
+        carve(coral_one, t.depth, t.tilt, resolution=32, box=[[1, 1, 1], [2, 2, 2]])
+    with pytest.raises(InputError, match="--box.*x0 < x1"):
+        carve(coral_one, t.depth, t.tilt, resolution=32, box=[[0, 2, 0], [-1, 3, 1]])
+    with pytest.raises(InputError, match="--resolution"):
+        carve(coral_one, resolution=4)
+    with pytest.raises(InputError, match="--depth"):
+        carve(coral_one, -0.4)
+    with pytest.raises(InputError, match="at least 2 views"):
+        carve(coral_one, views=["S0"])
+    empty = {v: np.zeros((512, 96), bool) for v in coral_one.rig.names}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", CarveWarning)
+        with pytest.raises(InputError, match="views"):
+            carve(coral_one, masks=empty)
+    # views that see nothing in common: every N view turned to look away from the target
+    from dataclasses import replace
+
+    from fsswarp.dataset import Dataset
+    from fsswarp.rig import Rig
+
+    rig = coral_one.rig
+    turned = Rig(tuple(replace(v, heading=0.0) if v.name.startswith("N") else v for v in rig.views), rig.reference)
+    away = Dataset(replace(coral_one.manifest, rig=turned), coral_one.images, coral_one.root)
+    with pytest.raises(InputError, match="no region in common"):
+        carve(away, resolution=32)
+    # everything carved away: masks that are feasible only far from the object
+    far = {v: np.zeros((512, 96), bool) for v in coral_one.rig.names}
+    for m in far.values():
+        m[500:, :5] = True
+    with pytest.raises(InputError, match="every voxel was carved away"):
+        carve(coral_one, masks=far, resolution=32)
+
+
+def test_surface_clip_removes_the_mirror_world(coral_one):
+    """Without the sea-surface rule a mirror copy of the object survives above the surface."""
+    t = coral_one.manifest.truth
+    normal, offset = surface_in_reference(coral_one.rig, t.depth, t.tilt)
+    result = carve(coral_one, t.depth, t.tilt, resolution=32, settings=CarveSettings(surface_margin=1.0, faces=0,
+                                                                                    smooth=0))
+    above = result.voxels.centres() @ normal > offset + 0.02
+    clipped = carve(coral_one, t.depth, t.tilt, resolution=32, settings=CarveSettings(faces=0, smooth=0))
+    print(f"voxels above the surface without the rule: {above.mean():.2f}")
+    assert above.mean() > 0.2
+    assert not (clipped.voxels.centres() @ normal > offset + clipped.voxels.voxel_size).any()
+
+
+# --- the command line ------------------------------------------------------------------------------
+def run_cli(*args):
+    return subprocess.run([sys.executable, "-m", "fsswarp", "--backend", "opencl", *args], capture_output=True,
+                          text=True)
+
+
+def test_cli_carve(coral_one, tmp_path):
+    out = tmp_path / "carved"
+    done = run_cli("carve", str(coral_one.root), "--out", str(out), "--resolution", "48", "--faces", "3000")
+    assert done.returncode == 0, done.stderr
+    assert "E_V" in done.stdout and "wrote" in done.stdout
+    assert sorted(p.name for p in out.iterdir()) == ["carve.json", "carve.png", "carved.ply"]
+    record = json.loads((out / "carve.json").read_text())
+    assert record["depth_tilt_source"] == "measured" and record["depth_m"] == coral_one.manifest.surface.depth
+    assert record["voxels_kept"] > 0 and len(record["grid"]["shape"]) == 3 and record["mesh"]["watertight"]
+    assert set(record["timings_s"]) >= {"segment_s", "carve_s", "mesh_s", "metrics_s"}
+    assert 0 < record["metrics"]["E_V"] < 1 and record["metrics"]["truth_volume_kept"] > 0.9
+    mesh = trimesh.load(out / "carved.ply")
+    assert mesh.is_watertight and len(mesh.faces) <= 3000
+
+    quiet = subprocess.run([sys.executable, "-m", "fsswarp", "--backend", "opencl", "--quiet", "carve",
+                            str(coral_one.root), "--out", str(out), "--resolution", "32", "--tilt", "10.3",
+                            "--depth", "0.43"], capture_output=True, text=True)
+    assert quiet.returncode == 0 and quiet.stdout == ""
+    assert json.loads((out / "carve.json").read_text())["depth_tilt_source"] == "given"
+
+
+def test_cli_carve_bad_input_writes_nothing(coral_one, tmp_path):
+    out = tmp_path / "nothing"
+    done = run_cli("carve", str(coral_one.root), "--out", str(out), "--box", "1", "1", "1", "2", "2", "2")
+    assert done.returncode == 2
+    assert done.stderr.startswith("fsswarp: error: --box = ") and len(done.stderr.strip().splitlines()) == 1
+    assert not out.exists()
+    done = run_cli("carve", str(tmp_path / "missing"), "--out", str(out))
+    assert done.returncode == 2 and "no such folder" in done.stderr and not out.exists()

@@ -1,0 +1,137 @@
+"""Backend.contour_cost (kernels/pose.cl and its Warp twin) against a float64 NumPy oracle,
+and Warp against OpenCL on rendered views."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from fsswarp.pose import _gaussian
+from fsswarp.rig import Rig, View
+from fsswarp.sonar import SonarSpec
+from fsswarp.surface import surface_in_views
+
+
+def contour_cost_reference(layers, view_index, thresholds, windows, masks, distances, shifts, smoothing):
+    """The rule of kernels/pose.cl in float64: (contours (N, 2, beams), sums (N, 2, S), counts (N, 2))."""
+    from scipy.ndimage import correlate1d
+
+    layers = np.asarray(layers, np.float64)
+    n_pairs, _, bins, beams = layers.shape
+    w_range, w_beam = (np.asarray(w, np.float64) for w in smoothing)
+    contours = np.full((n_pairs, 2, beams), -1.0)
+    for n, v in enumerate(view_index):
+        for c in (0, 1):
+            image = layers[n, 2 * c] + layers[n, 2 * c + 1]
+            smooth = correlate1d(correlate1d(image, w_beam, axis=1, mode="nearest"), w_range, axis=0,
+                                 mode="nearest")
+            lo, hi = windows[v]
+            f = smooth[lo:hi] - np.asarray(thresholds[v], np.float64)[lo:hi, None]
+            for b in np.flatnonzero(masks[v, c]):
+                above = np.flatnonzero(f[:, b] > 0)
+                if above.size:
+                    i = above[0]
+                    contours[n, c, b] = lo if i == 0 else lo + i - 1 + f[i - 1, b] / (f[i - 1, b] - f[i, b])
+    sums = np.zeros((n_pairs, 2, len(shifts)))
+    for s, shift in enumerate(shifts):
+        y = np.clip(contours + shift, 0, bins - 1)
+        b0 = np.floor(y).astype(int)
+        b1 = np.minimum(b0 + 1, bins - 1)
+        t = y - b0
+        cols = np.arange(beams)
+        for n, v in enumerate(view_index):
+            for c in (0, 1):
+                d = np.asarray(distances[v, c], np.float64)
+                value = (1 - t[n, c]) * d[b0[n, c], cols] + t[n, c] * d[b1[n, c], cols]
+                sums[n, c, s] = value[contours[n, c] >= 0].sum()
+    return contours, sums, (contours >= 0).sum(axis=-1)
+
+
+def random_case(seed, n_pairs=7, n_views=3, bins=48, beams=14):
+    rng = np.random.default_rng(seed)
+    layers = rng.exponential(1.0, (n_pairs, 4, bins, beams)).astype(np.float32)
+    layers *= (rng.uniform(0, 1, (n_pairs, 4, bins, 1)) ** 3).astype(np.float32)  # rows of weak and strong echo
+    thresholds = rng.uniform(0.3, 1.5, (n_views, bins)).astype(np.float32)
+    lo = rng.integers(0, bins // 2, n_views)
+    windows = np.stack([lo, lo + rng.integers(1, bins - lo + 1)], axis=1)
+    masks = rng.uniform(size=(n_views, 2, beams)) < 0.7
+    distances = rng.uniform(0, 0.05, (n_views, 2, bins, beams)).astype(np.float32)
+    view_index = rng.integers(0, n_views, n_pairs)
+    shifts = np.array([-1.0, 0.0, 0.25, 0.5, 3.5])
+    return layers, view_index, thresholds, windows, masks, distances, shifts, (_gaussian(1.0), _gaussian(0.7))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_matches_numpy_oracle(backend, seed):
+    case = random_case(seed)
+    contours, sums, counts = backend.contour_cost(*case)
+    ref_contours, ref_sums, ref_counts = contour_cost_reference(*case)
+    np.testing.assert_array_equal(contours >= 0, ref_contours >= 0)
+    np.testing.assert_allclose(contours, ref_contours, rtol=0, atol=2e-4)
+    np.testing.assert_array_equal(counts, ref_counts)
+    np.testing.assert_allclose(sums, ref_sums, rtol=1e-5, atol=1e-6)
+    assert contours.dtype == np.float32 and sums.dtype == np.float32 and counts.dtype == np.int32
+
+
+def test_crossing_rules(backend):
+    # one beam, ramp 0, 0, 1, 3 (rows 0..3) against threshold 2: crossing at row 2.5; a window
+    # starting above the threshold gives its first row; no crossing gives -1
+    layers = np.zeros((3, 4, 4, 1), np.float32)
+    layers[:, 0, :, 0] = [0.0, 0.0, 1.0, 3.0]
+    thresholds = np.full((3, 4), 2.0, np.float32)
+    windows = np.array([[0, 4], [3, 4], [0, 3]])
+    masks = np.ones((3, 2, 1), bool)
+    distances = np.zeros((3, 2, 4, 1), np.float32)
+    distances[:, 0, :, 0] = [0.0, 1.0, 2.0, 3.0]
+    contours, sums, counts = backend.contour_cost(layers, [0, 1, 2], thresholds, windows, masks, distances,
+                                                  [0.0, 0.25, 9.0], ([1.0], [1.0]))
+    np.testing.assert_allclose(contours[:, 0, 0], [2.5, 3.0, -1.0], atol=1e-6)
+    np.testing.assert_array_equal(contours[:, 1, 0], [-1, -1, -1])  # the mirror layers are empty
+    np.testing.assert_allclose(sums[0, 0], [2.5, 2.75, 3.0], atol=1e-6)  # read at 2.5, 2.75, clamped to 3
+    np.testing.assert_array_equal(counts, [[1, 0], [1, 0], [0, 0]])
+
+
+def test_warp_and_opencl_agree_on_rendered_views(backend_for_label):
+    warp, opencl = backend_for_label("warp-cpu"), backend_for_label("opencl-cpu")
+    sonar = SonarSpec(beams=64, bins=160, range_min=1.5, range_max=2.5)
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
+    mesh.vertices += (0.0, 2.0, -0.12)  # 2 cm below the surface
+    rig = Rig(tuple(View(f"r{k}", roll=np.radians(r)) for k, r in enumerate((-90, -45, 0, 45, 90))))
+    depths, tilts = np.array([0.28, 0.3, 0.32]), np.radians([9.0, 10.0, 11.0])
+    rot, t = rig.relative_poses(depths, tilts)
+    n, d = surface_in_views(rig, depths, tilts)
+    thresholds = np.full((5, sonar.bins), 2e-3, np.float32)
+    windows = np.tile([20, 150], (5, 1))
+    masks = np.ones((5, 2, sonar.beams), bool)
+    distances = np.random.default_rng(0).uniform(0, 0.05, (5, 2, sonar.bins, sonar.beams))
+    out = {}
+    for b in (warp, opencl):
+        handle = b.load_mesh(mesh.vertices, mesh.faces)
+        layers = b.render_device(handle, sonar, rot.reshape(-1, 3, 3), t.reshape(-1, 3), n.reshape(-1, 3),
+                                 d.reshape(-1), (1, 32), gamma=1.0, surface_reflection=0.9)
+        out[b.name] = b.contour_cost(layers, np.tile(np.arange(5), 3), thresholds, windows, masks, distances,
+                                     [0.0, 0.5], (_gaussian(1.0), _gaussian(0.7)))
+    (c_w, s_w, n_w), (c_o, s_o, n_o) = out["warp"], out["opencl"]
+    assert (c_w[:, 0] >= 0).sum() >= 60 and (c_w[:, 1] >= 0).sum() >= 60  # object and mirror contours
+    np.testing.assert_array_equal(c_w >= 0, c_o >= 0)
+    np.testing.assert_allclose(c_w, c_o, rtol=0, atol=1e-4)  # fractional rows
+    np.testing.assert_array_equal(n_w, n_o)
+    np.testing.assert_allclose(s_w, s_o, rtol=1e-5, atol=1e-6)  # metres
+
+
+@pytest.mark.parametrize("change, message", [
+    (dict(view_index=[0, 5]), "view_index"),
+    (dict(windows=np.array([[5, 5], [0, 8], [0, 8]])), "windows"),
+    (dict(masks=np.ones((3, 2, 4), np.uint8)), "masks"),
+    (dict(distances=-np.ones((3, 2, 8, 4))), ">= 0"),
+    (dict(shifts=[]), "shifts"),
+    (dict(smoothing=([0.5, 0.5], [1.0])), "odd"),
+    (dict(layers=np.zeros((2, 4, 8, 5))), "layers"),
+])
+def test_bad_inputs_raise(backend_for_label, change, message):
+    backend = backend_for_label("opencl-cpu")
+    args = dict(layers=np.zeros((2, 4, 8, 4)), view_index=[0, 2], thresholds=np.ones((3, 8)),
+                windows=np.tile([0, 8], (3, 1)), masks=np.ones((3, 2, 4), bool), distances=np.zeros((3, 2, 8, 4)),
+                shifts=[0.0], smoothing=([1.0], [1.0]))
+    args.update(change)
+    with pytest.raises(ValueError, match=message):
+        backend.contour_cost(**args)

@@ -1,0 +1,144 @@
+"""Depth and tilt estimation (fsswarp.pose; paper §2.4, DESIGN §7) on the simulated coral-one
+(noisy images, the true model)."""
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import trimesh
+
+from fsswarp.backends import get_backend
+from fsswarp.dataset import Dataset
+from fsswarp.errors import InputError
+from fsswarp.figures import pose_figure
+from fsswarp.pose import PoseProblem, PoseSettings, estimate_pose, pose_objective
+from fsswarp.rig import Rig
+from fsswarp.surface import COMPONENTS
+
+
+@pytest.fixture(scope="module")
+def truth_model(coral_one):
+    return trimesh.load(coral_one.truth_model_path, process=False)
+
+
+@pytest.fixture(scope="module")
+def opencl():
+    return get_backend("opencl")
+
+
+@pytest.fixture(scope="module")
+def truth_problem(coral_one, truth_model, opencl):
+    truth = coral_one.manifest.truth
+    return PoseProblem(truth_model, coral_one, truth.depth, truth.tilt, backend=opencl)
+
+
+@pytest.fixture(scope="module")
+def estimate(coral_one, truth_model, opencl):
+    """estimate_pose from initial errors of +4 cm in D and -1.5° in β."""
+    truth = coral_one.manifest.truth
+    lines = []
+    result = estimate_pose(truth_model, coral_one, depth0=truth.depth + 0.04, tilt0=truth.tilt - math.radians(1.5),
+                           backend=opencl, progress=lines.append)
+    return result, lines
+
+
+def test_recovers_depth_and_tilt(coral_one, estimate):
+    result, lines = estimate
+    truth = coral_one.manifest.truth
+    assert abs(result.depth - truth.depth) <= 0.005
+    assert abs(math.degrees(result.tilt - truth.tilt)) <= 0.2
+    assert result.accepted and result.error_after < 0.2 * result.error_before
+    assert (result.depth, result.tilt) == result.candidate
+    # the default grid spans 1.2 x the manifest's uncertainties (5 cm, 2 deg), halving per level
+    assert [level.costs.shape for level in result.levels] == [(9, 9)] * 3
+    first = result.levels[0]
+    assert first.depths[-1] - first.depths[0] == pytest.approx(0.12)
+    assert math.degrees(first.tilts[-1] - first.tilts[0]) == pytest.approx(4.8)
+    spacing = [level.depths[1] - level.depths[0] for level in result.levels]
+    assert spacing == pytest.approx([0.015, 0.0075, 0.00375])
+    assert result.evaluations["grid_cells"] == 243 and 3 <= result.evaluations["exact"] <= 33
+    assert result.anchors == ("Sm90", "Sm67p5", "Sm45", "Sp45", "Sp67p5") and 0.5 < result.shift < 1.5
+    assert len(lines) == 6 and lines[0].startswith("start:") and "accepted" in lines[-1]
+    assert result.views == tuple(v.name for v in coral_one.rig.views if v.optimize)
+
+
+def test_mirror_term_only_where_the_mirror_is_distinct(coral_one, truth_model, opencl):
+    # every view optimized: at roll 0 the mirror falls on the object and ghost, so those views
+    # keep the object term only; at |roll| >= 45 deg it stands apart
+    rig = coral_one.rig
+    every = Rig(tuple(dataclasses.replace(v, optimize=True) for v in rig.views), rig.reference)
+    dataset = Dataset(dataclasses.replace(coral_one.manifest, rig=every), coral_one.images, coral_one.root)
+    truth = coral_one.manifest.truth
+    problem = PoseProblem(truth_model, dataset, truth.depth + 0.03, truth.tilt + math.radians(1.0), backend=opencl)
+    mirror = set(problem.data.mirror_views)
+    assert not mirror & {"S0", "N0"}
+    assert {v.name for v in rig.views if abs(math.degrees(v.roll)) >= 45} <= mirror
+    counts = dict(zip(problem.data.names, problem.data.counts.tolist()))
+    assert all(counts[name][0] >= 10 for name in counts)  # every view has its object contour
+
+
+def test_synthetic_contours_meet_the_data_contours(coral_one, truth_problem):
+    # the true noise-free layers' detection contours against the noisy data's first highlight
+    # rows: on average 0.5 row (the data's whole rows) plus a small detection bias
+    data = truth_problem.data
+    layers = np.stack([np.stack([coral_one.truth_layer(n, c) for c in COMPONENTS]) for n in data.names])
+    contours, _, _ = truth_problem.backend.contour_cost(layers, np.arange(len(layers)), data.threshold, data.windows,
+                                                        data.masks, data.distances, [0.0], truth_problem.smoothing)
+    both = (contours >= 0) & (data.rows >= 0)
+    offset = (data.rows - contours)[both]
+    assert both[:, 0].sum() >= 150 and both[:, 1].sum() >= 100
+    assert 0.5 <= np.median(offset) <= 1.25
+    assert np.mean(np.abs(offset - np.median(offset)) <= 2.0) >= 0.9
+
+
+def test_surrogate_and_exact_minima_agree(coral_one, truth_problem):
+    # a 5 x 5 grid around the truth at 5 mm x 0.2 deg: both objectives are smallest at the truth
+    truth = coral_one.manifest.truth
+    depths, tilts = np.meshgrid(truth.depth + np.linspace(-0.01, 0.01, 5),
+                                truth.tilt + np.radians(np.linspace(-0.4, 0.4, 5)), indexing="ij")
+    surrogate = truth_problem.surrogate(depths, tilts)
+    exact = np.vectorize(lambda d, t: truth_problem.exact(d, t).value)(depths, tilts)
+    assert np.unravel_index(np.argmin(surrogate), surrogate.shape) == (2, 2)
+    assert np.unravel_index(np.argmin(exact), exact.shape) == (2, 2)
+    assert exact[2, 2] < 0.004 and surrogate[2, 2] < 0.013  # metres
+    assert np.all(np.isfinite(surrogate)) and np.all(np.isfinite(exact))
+
+
+def test_pose_objective_is_e_mu(coral_one, truth_model, opencl):
+    truth = coral_one.manifest.truth
+    value = pose_objective(truth_model, coral_one, truth.depth, truth.tilt, backend=opencl)
+    detail = PoseProblem(truth_model, coral_one, truth.depth, truth.tilt, backend=opencl).exact(truth.depth, truth.tilt)
+    assert value == detail.value
+    assert detail.per_view.shape == (10,) and np.all(np.isfinite(detail.per_view))
+    assert detail.value == pytest.approx(np.mean(detail.per_view))
+    assert detail.object_patches >= 50 and detail.mirror_patches >= 50
+
+
+def test_figure(tmp_path, coral_one, estimate):
+    truth = coral_one.manifest.truth
+    path = pose_figure(estimate[0], tmp_path / "pose.png", truth=(truth.depth, truth.tilt), title="coral-one")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_bad_input(coral_one, truth_model, opencl):
+    truth = coral_one.manifest.truth
+    rig = coral_one.rig
+    none = Rig(tuple(dataclasses.replace(v, optimize=False) for v in rig.views), rig.reference)
+    held_out = Dataset(dataclasses.replace(coral_one.manifest, rig=none), coral_one.images, coral_one.root)
+    with pytest.raises(InputError, match="views.optimize = False: no view takes part"):
+        estimate_pose(truth_model, held_out, backend=opencl)
+    far = truth_model.copy()
+    far.vertices += (0.0, 10.0, 0.0)
+    with pytest.raises(InputError, match="model = .*: the model is seen in none of the views"):
+        pose_objective(far, coral_one, truth.depth, truth.tilt, backend=opencl)
+    with pytest.raises(InputError, match="holds no triangles"):
+        pose_objective(trimesh.Trimesh(), coral_one, truth.depth, truth.tilt, backend=opencl)
+    with pytest.raises(InputError, match="bounds"):
+        estimate_pose(truth_model, coral_one, bounds=(0.0, 0.01), backend=opencl)
+    with pytest.raises(InputError, match="levels"):
+        estimate_pose(truth_model, coral_one, levels=0, backend=opencl)
+    with pytest.raises(InputError, match="tilt"):
+        estimate_pose(truth_model, coral_one, tilt0=math.radians(95.0), backend=opencl)
+    with pytest.raises(InputError, match="pose.grid"):
+        PoseSettings(grid=(2, 9))

@@ -1,0 +1,108 @@
+"""Segmentation of beam-bin images against the truth layers of simulated coral-one, and on bad
+input.
+
+Numbers on coral-one (seed 1, noise: Gamma speckle of 4 looks and an exponential background at
+5% of the 99th-percentile echo), printed by ``test_segmentation_of_coral_one``: highlight
+precision against every echo layer, recall of the object layer (pixels and echo energy), the
+share of object pixels inside the feasible region, and the frontal contour's offset from the
+true one (bins; negative = in front).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from fsswarp.errors import InputError
+from fsswarp.render import add_noise
+from fsswarp.segment import SegmentSettings, SegmentWarning, from_highlight, segment
+from fsswarp.surface import COMPONENTS
+
+
+def test_segmentation_of_coral_one(coral_one):
+    precision, recall, energy, covered, front = [], [], [], [], []
+    for name in coral_one.rig.names:
+        seg = segment(coral_one.images[name], name=name)
+        obj = coral_one.truth_layer(name, "object")
+        echo = sum(coral_one.truth_layer(name, c) for c in COMPONENTS)
+        precision.append((seg.highlight & (echo > 0)).sum() / seg.highlight.sum())
+        recall.append((seg.highlight & (obj > 0)).sum() / (obj > 0).sum())
+        energy.append(obj[seg.highlight].sum() / obj.sum())
+        covered.append((seg.feasible & (obj > 0)).sum() / (obj > 0).sum())
+        true_front = from_highlight(obj > 0).contour
+        both = (true_front >= 0) & (seg.contour >= 0)
+        front.append(np.mean(seg.contour[both] - true_front[both]))
+        assert np.array_equal(seg.shadow, seg.feasible & ~seg.highlight)
+    print(f"highlight precision {np.mean(precision):.3f} (min {np.min(precision):.3f}), object recall "
+          f"{np.mean(recall):.3f} of pixels, {np.mean(energy):.3f} of echo energy; feasible holds "
+          f"{np.mean(covered):.4f} (min {np.min(covered):.4f}) of object pixels; contour offset "
+          f"{np.mean(front):+.2f} bins")
+    assert np.mean(precision) >= 0.8 and np.min(precision) >= 0.6
+    assert np.mean(energy) >= 0.95 and np.mean(recall) >= 0.75
+    assert np.mean(covered) >= 0.98 and np.min(covered) >= 0.9
+    assert -3.0 <= np.mean(front) <= 0.5
+
+
+def test_noise_alone_has_no_highlight():
+    """The simulator's background alone: at most one of ten images shows a (false) blob, and an
+    image without highlight warns and has an empty feasible region."""
+    images = [add_noise(np.zeros((512, 96), np.float32), np.random.default_rng(seed)) for seed in range(10)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SegmentWarning)
+        empty = [segment(image).empty for image in images]
+    assert sum(empty) >= 9
+    with pytest.warns(SegmentWarning, match="S9: no object highlight"):
+        seg = segment(images[empty.index(True)], name="S9")
+    assert seg.empty and not seg.feasible.any() and (seg.contour == -1).all()
+    with pytest.warns(SegmentWarning):
+        assert segment(np.zeros((512, 96), np.float32)).empty
+
+
+def test_noise_free_image_and_range_gain():
+    """A noise-free image (exact zeros around the echo) thresholds at a fraction of its peak; a
+    background that grows with range is normalised away."""
+    image = np.zeros((512, 96), np.float32)
+    image[200:206, 40:50] = 1.0
+    image[206:230, 40:50] = 0.02  # faint tail, under 3% of the peak after smoothing
+    seg = segment(image)
+    assert ((seg.contour[40:50] >= 197) & (seg.contour[40:50] <= 200)).all()
+    assert (seg.contour[:38] == -1).all() and (seg.contour[52:] == -1).all()
+
+    rng = np.random.default_rng(5)
+    gain = np.linspace(1.0, 20.0, 512)[:, None]
+    noisy = (rng.exponential(0.004, (512, 96)) * gain).astype(np.float32)
+    noisy[300:304, 30:40] += 0.8
+    seg = segment(noisy)
+    assert set(np.flatnonzero(seg.contour >= 0)) <= set(range(28, 42)) and (seg.contour[31:39] >= 298).all()
+
+
+def test_from_highlight():
+    mask = np.zeros((10, 5), bool)
+    mask[4, 1] = mask[7, 1] = mask[2, 3] = True
+    seg = from_highlight(mask)
+    assert seg.contour.tolist() == [-1, 4, -1, 2, -1]
+    assert seg.feasible[:, 1].tolist() == [False] * 4 + [True] * 6
+    assert not seg.feasible[:, 0].any() and seg.shadow.sum() == (6 - 2) + (8 - 1)
+    wide = from_highlight(mask, dilate_beams=1)
+    assert [int(np.argmax(c)) if c.any() else -1 for c in wide.feasible.T] == [4, 4, 2, 2, 2]
+    assert wide.contour.tolist() == seg.contour.tolist()
+
+
+@pytest.mark.parametrize("image, text", [
+    (np.zeros(10, np.float32), "(bins, beams) image"),
+    (np.full((8, 8), np.nan, np.float32), "non-finite"),
+    (-np.ones((8, 8), np.float32), "linear intensity >= 0"),
+    (np.full((8, 8), "a"), "real numbers"),
+])
+def test_segment_bad_input(image, text):
+    with pytest.raises(InputError, match=text.replace("(", r"\(").replace(")", r"\)")):
+        segment(image, name="images/S0.tiff")
+
+
+@pytest.mark.parametrize("field, value", [("low", 0.0), ("min_pixels", 0), ("sigma_bins", -1.0),
+                                          ("dilate_beams", 1.5)])
+def test_segment_settings_are_checked(field, value):
+    with pytest.raises(InputError, match=f"segment.{field}" if field != "low" else "segment.low"):
+        SegmentSettings(**{field: value})
