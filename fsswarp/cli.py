@@ -6,6 +6,7 @@ Exit status: 0 done; 2 bad input (one line on stderr naming the file, field and 
 
 from __future__ import annotations
 
+import json
 import math
 import sys
 import warnings
@@ -171,7 +172,6 @@ def render(state: State, model: Path, dataset_dir: Path, out: Path, depth, tilt,
     """Render synthetic views of the mesh MODEL (in the dataset's reference frame) at the
     dataset's poses or at new rolls: OUT/<view>_{total,object,ghost,mirror,mirror2}.tiff and
     OUT/layers.png (beam-bin and fan images of up to six views)."""
-    import json
 
     import tifffile
 
@@ -246,8 +246,6 @@ def import_aris(state: State, file: Path, out: Path, frames_spec: str, elevation
     """Import a Sound Metrics ARIS recording (.aris) as a dataset: one view per frame (f0000,
     f0001, ...), the lens's beam-angle table, the sensors' depth and tilt as the measured D0
     and tilt, and figures/frame0_fan.png (the first imported frame)."""
-    import json
-
     from .aris import import_aris as run
     from .figures import fan_figure
 
@@ -267,6 +265,167 @@ def import_aris(state: State, file: Path, out: Path, frames_spec: str, elevation
     state.echo(f"  measured depth {surface['depth_m']:.4g} m ({surface['depth_source']}), tilt "
                f"{surface['tilt_deg']:.4g} deg ({surface['tilt_source']}); elevation "
                f"{record['elevation_fov_deg']:g} deg ({record['elevation_source']})")
+
+
+@app.command()
+@click.argument("dataset_dir", metavar="DIR", type=click.Path(path_type=Path))
+@click.option("--out", required=True, type=click.Path(path_type=Path),
+              help="Folder for carved.ply, carve.json and carve.png.")
+@click.option("--depth", type=float, default=None, help="Sonar depth D (m); default: the dataset's measured depth.")
+@click.option("--tilt", type=float, default=None, help="Sonar tilt (deg); default: the dataset's measured tilt.")
+@click.option("--resolution", default=128, show_default=True, type=int,
+              help="Voxels along the longest side of the carving box at the finest level.")
+@click.option("--box", nargs=6, type=float, default=None, metavar="X0 Y0 Z0 X1 Y1 Z1",
+              help="Carve only inside this box (reference frame, m); default: the region every view sees.")
+@click.option("--faces", default=20_000, show_default=True, type=click.IntRange(min=0),
+              help="Decimate the mesh to at most this many triangles (0: keep all).")
+@click.pass_obj
+def carve(state: State, dataset_dir: Path, out: Path, depth, tilt, resolution: int, box, faces: int) -> None:
+    """Segment every view and carve the voxels they agree on into a closed mesh (space carving):
+    OUT/carved.ply (reference frame), OUT/carve.json (grid, voxels kept, timings, and metrics
+    against truth/model.ply when the dataset has one) and OUT/carve.png."""
+    import dataclasses
+    import time
+
+    import numpy as np
+    import trimesh
+
+    from .atomic import output_folder
+    from .carve import CarveSettings
+    from .carve import carve as run
+    from .dataset import load_dataset
+    from .figures import carve_figure
+    from .metrics import compare
+
+    start = time.perf_counter()
+    dataset = load_dataset(dataset_dir)
+    loaded = time.perf_counter() - start
+    given = depth is not None or tilt is not None
+    tilt = None if tilt is None else math.radians(tilt)
+    backend = state.get_backend()
+    state.echo(f"carving {dataset_dir}: {len(dataset.images)} views, resolution {resolution} "
+               f"({backend.name} on {backend.device})")
+    result = run(dataset, depth, tilt, resolution=resolution, box=None if box is None else np.reshape(box, (2, 3)),
+                 settings=dataclasses.replace(CarveSettings(), faces=faces), backend=backend)
+    voxels, mesh = result.voxels, result.mesh
+    state.echo(f"  depth {result.depth:.4g} m, tilt {math.degrees(result.tilt):.4g} deg "
+               f"({'given' if given else 'measured'}); {voxels.kept} voxels of "
+               f"{voxels.voxel_size * 1e3:.3g} mm kept; mesh {len(mesh.faces)} triangles, "
+               f"{mesh.volume * 1e6:.4g} cm3")
+    timings = {"load_s": loaded, **result.timings}
+    truth_path = dataset.truth_model_path
+    metrics = None
+    if truth_path is not None and truth_path.is_file():
+        begin = time.perf_counter()
+        truth = load_mesh_file(truth_path)
+        metrics = compare(mesh, truth)
+        timings["metrics_s"] = time.perf_counter() - begin
+        state.echo(f"  vs truth: E_V {metrics['E_V']:.3f}, true volume kept {metrics['truth_volume_kept']:.3f}, "
+                   f"Chamfer {metrics['chamfer_m'] * 1e3:.2f} mm, F-score {metrics['fscore']:.3f} "
+                   f"(tau {metrics['tau_m'] * 1e3:.2f} mm)")
+    else:
+        truth = None
+    record = {
+        "dataset": str(dataset_dir), "depth_m": result.depth, "tilt_deg": math.degrees(result.tilt),
+        "depth_tilt_source": "given" if given else "measured", "views": list(result.views),
+        "views_left_out": [n for n in dataset.rig.names if n not in result.views],
+        "resolution": resolution,
+        "grid": {"origin_m": voxels.origin.tolist(), "voxel_size_m": voxels.voxel_size,
+                 "shape": list(voxels.occupancy.shape), "domain_m": voxels.domain.tolist(),
+                 "origin_is": "centre of voxel (0, 0, 0)"},
+        "voxels_kept": voxels.kept, "voxels_tested": voxels.tested,
+        "mesh": {"faces": len(mesh.faces), "vertices": len(mesh.vertices), "volume_m3": float(mesh.volume),
+                 "watertight": bool(mesh.is_watertight)},
+        "backend": result.backend, "device": result.device, "timings_s": timings, "metrics": metrics,
+    }
+    with output_folder(out, marker="carve.json") as tmp:
+        mesh.export(tmp / "carved.ply")
+        carve_figure(mesh, tmp / "carve.png", truth=truth,
+                     title=f"{dataset_dir.name}: carved (D = {result.depth:.3f} m, tilt = "
+                           f"{math.degrees(result.tilt):.2f} deg)" + (" over the truth" if truth is not None else ""))
+        (tmp / "carve.json").write_text(json.dumps(record, indent=2))
+    state.echo(f"wrote {out}: carved.ply, carve.json, carve.png ({sum(timings.values()):.2f} s)")
+
+
+@app.command()
+@click.argument("dataset_dir", metavar="DIR", type=click.Path(path_type=Path))
+@click.option("--out", required=True, type=click.Path(path_type=Path),
+              help="Folder for model.ply, carved.ply, result.json and figures/.")
+@click.option("--iterations", default=10, show_default=True, type=click.IntRange(min=0),
+              help="Most pose + shape iterations after the carving.")
+@click.option("--resolution", default=128, show_default=True, type=click.IntRange(min=16),
+              help="Voxels along the longest side of the carving box.")
+@click.pass_obj
+def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, resolution: int) -> None:
+    """Reconstruct the object and estimate the sonar's depth and tilt from the dataset DIR
+    (carve, then alternate pose and shape steps): OUT/model.ply, OUT/carved.ply,
+    OUT/result.json and OUT/figures/."""
+    from .dataset import load_dataset
+    from .reconstruct import ReconstructSettings
+
+    dataset = load_dataset(dataset_dir)
+    run_reconstruction(state, dataset, out, ReconstructSettings(iterations=iterations, resolution=resolution))
+
+
+@app.command()
+@click.argument("scene_name", metavar="[SCENE]", default="coral-one")
+@click.option("--out", default=Path("demo-out"), show_default=True, type=click.Path(path_type=Path),
+              help="Folder for the dataset (OUT/dataset) and the reconstruction (OUT/reconstruction).")
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0), help="Noise seed.")
+@click.option("--iterations", default=10, show_default=True, type=click.IntRange(min=0),
+              help="Most pose + shape iterations after the carving.")
+@click.pass_obj
+def demo(state: State, scene_name: str, out: Path, seed: int, iterations: int) -> None:
+    """Simulate a built-in scene (coral-one, coral-two, table) or a scene file, then reconstruct
+    it from its noisy images and measured depth and tilt, with figures."""
+    import time
+
+    from .atomic import output_folder
+    from .reconstruct import ReconstructSettings
+    from .simulate import simulate as run_simulation
+
+    backend = state.get_backend()
+    start = time.perf_counter()
+    with output_folder(out, marker="demo.json") as tmp:
+        state.echo(f"simulating {scene_name} ({backend.name} on {backend.device})")
+        dataset = run_simulation(scene_name, tmp / "dataset", seed=seed, backend=backend)
+        simulation_figure(dataset, tmp / "dataset" / "figures" / "layers.png")
+        state.echo(f"  {len(dataset.images)} noisy views in {time.perf_counter() - start:.1f} s")
+        run_reconstruction(state, dataset, tmp / "reconstruction", ReconstructSettings(iterations=iterations),
+                           shown=out / "reconstruction")
+        (tmp / "demo.json").write_text(json.dumps({"scene": scene_name, "seed": seed,
+                                                   "seconds": time.perf_counter() - start}, indent=2))
+    state.echo(f"wrote {out}: dataset/, reconstruction/ ({time.perf_counter() - start:.1f} s in all)")
+
+
+def run_reconstruction(state: State, dataset, out: Path, settings, *, shown: Path | None = None) -> None:
+    """Reconstruct ``dataset`` and write OUT/model.ply, carved.ply, result.json and figures
+    (``shown``: the folder's name in messages, when OUT is a temporary folder)."""
+    from .atomic import output_folder
+    from .figures import carve_figure, history_figure
+    from .reconstruct import reconstruct as run
+
+    backend = state.get_backend()
+    state.echo(f"reconstructing {len(dataset.images)} views ({backend.name} on {backend.device})")
+    result = run(dataset, settings=settings, backend=backend, progress=lambda line: state.echo("  " + line))
+    truth = dataset.manifest.truth
+    truth_path = dataset.truth_model_path
+    truth_mesh = load_mesh_file(truth_path) if truth_path is not None and truth_path.is_file() else None
+    with output_folder(out, marker="result.json") as tmp:
+        result.model.export(tmp / "model.ply")
+        result.carved.export(tmp / "carved.ply")
+        history_figure(result.history, tmp / "figures" / "history.png",
+                       truth_depth=None if truth is None else truth.depth,
+                       truth_tilt_deg=None if truth is None else math.degrees(truth.tilt),
+                       title=f"{dataset.root.name}: depth and tilt, and errors, per iteration")
+        carve_figure(result.carved, tmp / "figures" / "carved.png", truth=truth_mesh, title="carved model (iteration 0)")
+        carve_figure(result.model, tmp / "figures" / "model.png", truth=truth_mesh, label="final",
+                     title=f"final model (iteration {result.iterations})")
+        (tmp / "result.json").write_text(json.dumps(result.summary(), indent=2))
+    last = result.history[-1]
+    state.echo(f"wrote {shown or out}: D {result.depth:.4f} m, tilt {math.degrees(result.tilt):.3f} deg after "
+               f"{result.iterations} iterations ({'converged' if result.converged else 'iteration limit'}), "
+               f"E_I {last['E_I']:.3f}, {result.seconds:.1f} s")
 
 
 def describe_manifest(manifest) -> str:

@@ -1,0 +1,239 @@
+"""The unified optimization of the paper's Figure 3a (DESIGN §1): carve, then alternate pose
+and shape steps until the objective stops falling.
+
+Iteration 0 carves the model S0 with the measured (D0, β0), from every view (the held-out
+views too: on coral-one, carving from the 10 optimized views alone left E_V at 0.59 against
+0.39 from all 16). Each later iteration t:
+
+1. pose step: ``fsswarp.pose.estimate_pose`` searches the (D, β) grid around the current
+   estimate for the current model and keeps the result only if E_mu falls (greedy);
+2. shape step: the views' relative poses follow β (DESIGN §2), so the model is re-carved with
+   the views moved to the new (D, β), which keeps the model and its views consistent, then
+   refined against the images (``fsswarp.refine.refine_shape``: contour and mirror-contour
+   motions of frontal triangles, an overshoot term that pulls the bloated carved surface in);
+3. record D, β, E_mu, AIE, ACE, E_I and, with a truth model, E_V, Chamfer and F-score.
+
+Before the first pose step the carved model is refined at (D0, β0) too: a carved model is
+too big, and E_mu's minimum for a too-big model lies away from the truth. The loop stops when
+the pose step is refused (E_mu did not fall), when D and β move less than ``settle_depth``
+and ``settle_tilt``, or after ``iterations``.
+
+Image metrics (paper eq. 8–11), over the views marked ``optimize``, with the synthetic views
+of the model at the iteration's (D, β):
+
+- Ω_m, the uncorrupted object region: pixels of the synthetic object layer above 1% of its
+  peak where ghost, mirror and double-bounce together stay below 10% of the object there.
+- IE: data and synthetic total are each divided by their mean over Ω_m (the data's scale is
+  unknown), then IE = mean |Ĩ − I| over Ω_m; AIE is the mean over views.
+- CE: IRLS-ICP (``fsswarp.icp``) of the synthetic frontal contour (per beam, the first row of
+  Ω_m's object) to the data's (``fsswarp.segment``'s), in the fan plane (m); ACE their mean.
+- E_I = (AIE/AIE⁰ + ACE/ACE⁰)/2, 1 at iteration 0.
+
+Truth metrics compare the model with ``truth/model.ply`` in the reference frame: both are the
+object relative to the reference sonar, which the reference view observes directly whatever
+(D, β) is assumed.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from .carve import CarveSettings, carve
+from .errors import InputError
+from .icp import icp
+from .motion import average_contour_error, average_intensity_error
+from .pose import PoseSettings, estimate_pose, pose_objective
+from .refine import RefineSettings, refine_shape
+from .render import RenderSettings, render
+from .segment import SegmentSettings, segment
+from .sonar import fan_xy
+
+
+@dataclass(frozen=True)
+class ReconstructSettings:
+    """Options of :func:`reconstruct`.
+
+    iterations : T, the most pose + shape iterations after the carving
+    resolution : voxels along the longest side of the carving box
+    settle_depth (m), settle_tilt (rad) : stop when a pose step moves less than both
+    render : synthetic views for the image metrics; carve, pose, refine, segment : the steps'
+        settings (refine.iterations: refinement updates per shape step)
+    """
+
+    iterations: int = 10
+    resolution: int = 128
+    settle_depth: float = 0.5e-3
+    settle_tilt: float = math.radians(0.02)
+    carve: CarveSettings = field(default_factory=CarveSettings)
+    pose: PoseSettings = field(default_factory=PoseSettings)
+    refine: RefineSettings = field(default_factory=lambda: RefineSettings(iterations=3))
+    render: RenderSettings = field(default_factory=RenderSettings)
+    segment: SegmentSettings = field(default_factory=SegmentSettings)
+
+    def __post_init__(self) -> None:
+        for name, lowest in (("iterations", 0), ("resolution", 16)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lowest:
+                raise InputError(f"must be an integer >= {lowest}", field=f"--{name}", value=value)
+        for name in ("settle_depth", "settle_tilt"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise InputError("must be a finite number >= 0", field=name, value=value)
+
+
+@dataclass
+class ReconstructResult:
+    """What :func:`reconstruct` made.
+
+    model : the final mesh (reference frame of (depth, tilt)); carved : the iteration-0 mesh
+    depth (m), tilt (rad) : the final estimate; iterations : pose + shape iterations run
+    converged : whether it stopped because the objective settled (not because T ran out)
+    history : one dict per iteration (0 = the carved model), the keys of DESIGN §12
+    seconds : wall time; backend, device : where the kernels ran
+    """
+
+    model: object
+    carved: object
+    depth: float
+    tilt: float
+    iterations: int
+    converged: bool
+    history: list[dict]
+    seconds: float
+    backend: str
+    device: str
+
+    def summary(self) -> dict:
+        """``result.json`` (DESIGN §12)."""
+        return {"depth_m": self.depth, "tilt_deg": math.degrees(self.tilt), "iterations": self.iterations,
+                "converged": self.converged, "backend": self.backend, "device": self.device,
+                "seconds": self.seconds, "history": self.history}
+
+
+def reconstruct(dataset, *, settings: ReconstructSettings = ReconstructSettings(), backend=None,
+                progress: Callable[[str], None] | None = None) -> ReconstructResult:
+    """Run the loop of the module docstring on ``dataset`` from its measured (D0, β0).
+
+    progress : called with one line per stage (``fsswarp reconstruct`` prints them)."""
+    from .backends import get_backend
+
+    backend = backend or get_backend()
+    say = progress or (lambda line: None)
+    start = time.perf_counter()
+    truth = _truth_model(dataset)
+    depth, tilt = dataset.manifest.surface.depth, dataset.manifest.surface.tilt
+    say(f"iteration 0: carving at the measured D0 = {depth:.4f} m, tilt0 = {math.degrees(tilt):.3f} deg")
+    carved = carve(dataset, depth, tilt, resolution=settings.resolution, settings=settings.carve,
+                   backend=backend).mesh
+    model = carved
+    first = _record(0, model, dataset, depth, tilt, truth, settings, backend, None)
+    if settings.iterations:
+        model = refine_shape(carved, dataset, depth, tilt, settings=settings.refine, backend=backend).mesh
+    history = [first]
+    say(_line(first))
+    converged = False
+    for iteration in range(1, settings.iterations + 1):
+        pose = estimate_pose(model, dataset, depth0=depth, tilt0=tilt, settings=settings.pose,
+                             backend=backend)
+        if not pose.accepted:
+            say(f"iteration {iteration}: the pose step found no (D, tilt) with a lower E_mu; stopping")
+            converged = True
+            break
+        moved_depth, moved_tilt = abs(pose.depth - depth), abs(pose.tilt - tilt)
+        depth, tilt = pose.depth, pose.tilt
+        model = carve(dataset, depth, tilt, resolution=settings.resolution, settings=settings.carve,
+                      backend=backend).mesh
+        model = refine_shape(model, dataset, depth, tilt, settings=settings.refine, backend=backend).mesh
+        entry = _record(iteration, model, dataset, depth, tilt, truth, settings, backend, first)
+        history.append(entry)
+        say(_line(entry))
+        if moved_depth < settings.settle_depth and moved_tilt < settings.settle_tilt:
+            converged = True
+            break
+    return ReconstructResult(model=model, carved=carved, depth=depth, tilt=tilt, iterations=len(history) - 1,
+                             converged=converged, history=history, seconds=time.perf_counter() - start,
+                             backend=backend.name, device=backend.device)
+
+
+def image_errors(model, dataset, depth: float, tilt: float, *, settings: ReconstructSettings = ReconstructSettings(),
+                 backend=None) -> dict:
+    """AIE and ACE (paper eq. 8–9, as the module docstring defines them) of ``model`` at
+    (depth, tilt) over the dataset's optimized views: {"AIE", "ACE", "views": {name: {"IE", "CE"}}}."""
+    names = [v.name for v in dataset.rig.views if v.optimize]
+    if not names:
+        raise InputError("no view is marked optimize", file=dataset.root, field="views.optimize", value=False)
+    views = render(model, dataset.sonar, dataset.rig, depth, tilt, views=names, settings=settings.render,
+                   backend=backend)
+    sonar = dataset.sonar
+    theta = sonar.beam_centres
+    ranges = sonar.bin_ranges
+    synthetic, data, regions, errors, per_view = [], [], [], [], {}
+    for name in names:
+        obj, ghost, mirror, mirror2, total = views[name]
+        region = (obj > 0.01 * max(float(obj.max()), 1e-30)) & (ghost + mirror + mirror2 < 0.1 * obj)
+        image = dataset.images[name].astype(np.float64)
+        if region.any():
+            synthetic.append(total / total[region].mean())
+            data.append(image / max(image[region].mean(), 1e-30))
+            regions.append(region)
+        seg = segment(image, settings.segment, name=f"images/{name}")
+        rows = np.where(region.any(axis=0), region.argmax(axis=0), -1)
+        ce = _contour_error(rows, seg.contour, theta, ranges)
+        errors.append(ce)
+        per_view[name] = {"CE": ce}
+    aie = average_intensity_error(np.stack(synthetic), np.stack(data), np.stack(regions)) if regions else math.nan
+    return {"AIE": aie, "ACE": average_contour_error(np.asarray(errors)), "views": per_view}
+
+
+def _contour_error(synthetic_rows, data_rows, theta, ranges) -> float:
+    """CE (m) of ICP from the synthetic to the data frontal contour (rows per beam, -1: none);
+    NaN when either has fewer than two points or no inlier pair."""
+    points = []
+    for rows in (synthetic_rows, data_rows):
+        beams = np.flatnonzero(rows >= 0)
+        x, y = fan_xy(theta[beams], ranges[rows[beams]])
+        points.append(np.column_stack([x, y]))
+    if min(len(p) for p in points) < 2:
+        return math.nan
+    return float(icp(points[0], points[1]).error)
+
+
+def _record(iteration: int, model, dataset, depth: float, tilt: float, truth, settings: ReconstructSettings,
+            backend, first: dict | None) -> dict:
+    """One history entry (DESIGN §12's keys)."""
+    from .metrics import compare
+
+    images = image_errors(model, dataset, depth, tilt, settings=settings, backend=backend)
+    entry = {"iteration": iteration, "depth_m": depth, "tilt_deg": math.degrees(tilt),
+             "E_mu": pose_objective(model, dataset, depth, tilt, settings=settings.pose, backend=backend),
+             "AIE": images["AIE"], "ACE": images["ACE"]}
+    base = first or entry
+    entry["E_I"] = 0.5 * (entry["AIE"] / base["AIE"] + entry["ACE"] / base["ACE"])
+    if truth is not None:
+        metrics = compare(model, truth)
+        entry.update(E_V=metrics["E_V"], chamfer_m=metrics["chamfer_m"], fscore=metrics["fscore"])
+    return entry
+
+
+def _line(entry: dict) -> str:
+    text = (f"iteration {entry['iteration']}: D {entry['depth_m']:.4f} m, tilt {entry['tilt_deg']:.3f} deg, "
+            f"E_mu {entry['E_mu'] * 1e3:.2f} mm, AIE {entry['AIE']:.3f}, ACE {entry['ACE'] * 1e3:.2f} mm, "
+            f"E_I {entry['E_I']:.3f}")
+    if "E_V" in entry:
+        text += f", E_V {entry['E_V']:.3f}, Chamfer {entry['chamfer_m'] * 1e3:.2f} mm, F {entry['fscore']:.3f}"
+    return text
+
+
+def _truth_model(dataset):
+    """The dataset's truth mesh, or None."""
+    import trimesh
+
+    path = dataset.truth_model_path
+    if path is None or not path.is_file():
+        return None
+    return trimesh.load_mesh(path, process=True)

@@ -1,0 +1,364 @@
+"""Shape refinement: move the model's vertices so that its synthetic views agree with the data
+(paper §2.2–2.3, Figure 3b; DESIGN §8).
+
+One step at a given (D, β), over the views marked ``optimize``:
+
+1. Synthesis and contours. ``fsswarp.pose.PoseProblem`` synthesizes the views and finds the
+   frontal contours of the object and of the distinct mirror blob in the data and in the
+   synthetic views (with the data's detection threshold and the common detection-bias shift;
+   ``fsswarp.pose`` explains both). The mirror contour is used only beyond the predicted
+   object span, so mirror beams that fall on the object or the ghost are left out.
+2. Contour motions. IRLS-ICP (``fsswarp.icp``) aligns each synthetic contour with the data's in
+   the fan plane. The 2-D motion of a synthetic contour point is the vector to its matched data
+   point after the alignment (an inlier pair), else the rigid motion of the alignment: the
+   rigid part moves the whole contour, the residual bends it. The frontal patch of each beam
+   (ray casting, ``PoseProblem._frontal_faces``) collects the motions of its beams.
+3. 3-D motions of the frontal patch centres: per patch one least-squares solve over every view
+   and both components, truncated SVD (``rcond``) as ``fsswarp.motion.patch_motions``. A
+   mirror contour point is the return of the virtual mirror point Q = H·P + 2d·n, so its row is
+   ``J_mirror(Q) H``, H = I − 2nnᵀ (the mirror regularizer: the mirror is a view from the
+   mirrored sonar and constrains elevation).
+4. Overshoot (the intensity term of eq. 4, reduced to where echoes are and are not). Contours
+   pin only the front; the carved model is too big behind it. Every view casts K_θ × K_φ rays
+   per beam; a hit whose pixel the synthetic view calls bright (smoothed object + ghost above
+   the data's detection threshold), the data calls dark (farther than ``tolerance`` m from
+   every data highlight pixel: the distance in the fan's range and arc metric), and neither
+   synthetic ghost nor mirror reaches (those pixels are masked out as corrupted), votes to move
+   its triangle inward along its normal by that distance. Carving is conservative (the truth
+   lies inside the carved model), so an echo where the data has none means surface where the
+   object is not. A triangle with a contour motion keeps that one; the others that got votes
+   move by the mean vote.
+5. Vertex displacements. Each vertex takes the area-weighted average of the motions of its
+   moving triangles, with a confidence equal to their share of its adjacent area; a membrane
+   solve spreads and smooths the field: ``(C + λ L) U = C Û`` (C the confidences, L the
+   graph Laplacian of the mesh edges, λ = ``smoothing``), so unobserved regions follow their
+   neighbours and the motion decays away from the evidence. Motions are capped at
+   ``max_motion`` and scaled by ``step``.
+6. Safety. The topology never changes, so the mesh stays closed and 2-manifold; a step that
+   turns any triangle's normal by more than ``max_turn`` from the previous one, or reverses
+   the volume, is halved (up to ``halvings`` times) and otherwise refused. Small steps with
+   a smooth field are this module's guard against self-intersection: no exact test is run.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import InputError
+from .icp import icp
+from .motion import image_jacobian
+from .pose import PoseProblem, PoseSettings, PoseWarning, _fan  # _fan: pose's fan-plane helper
+from .render import check_mesh
+from .segment import segment
+from .surface import surface_in_reference
+
+
+@dataclass(frozen=True)
+class RefineSettings:
+    """Options of :func:`refine_shape` (the module docstring explains each).
+
+    iterations : shape updates per call; step : fraction of the estimated motion applied
+    max_motion : cap (m) of a patch motion per update; smoothing : membrane weight λ
+    shrink : weight of the overshoot term (0: contours only); tolerance : (m) overshoot dead band
+    mirror : use the mirror contours; rays : (K_θ, K_φ) rays per beam of the overshoot term
+    corrupt : a pixel counts as ghost/mirror corrupted where the smoothed synthetic ghost +
+        mirror layers exceed ``corrupt`` × the detection threshold
+    rcond : truncated-SVD cut-off of the patch solves; max_turn : (rad) largest normal turn
+    halvings : step halvings before a step is refused; pose : contour settings (PoseSettings)
+    """
+
+    iterations: int = 1
+    step: float = 0.7
+    max_motion: float = 0.02
+    smoothing: float = 4.0
+    shrink: float = 1.5
+    tolerance: float = 0.002
+    mirror: bool = True
+    rays: tuple[int, int] = (2, 32)
+    corrupt: float = 0.5
+    rcond: float = 1e-2
+    max_turn: float = math.radians(60.0)
+    halvings: int = 4
+    pose: PoseSettings = field(default_factory=PoseSettings)
+
+    def __post_init__(self) -> None:
+        for name, lowest in (("iterations", 1), ("halvings", 0)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lowest:
+                raise InputError(f"must be an integer >= {lowest}", field=f"refine.{name}", value=value)
+        for name, zero, high in (("step", False, 2.0), ("max_motion", False, 1.0), ("smoothing", False, 1e6),
+                                 ("shrink", True, 10.0), ("tolerance", True, 1.0), ("corrupt", False, 1e6),
+                                 ("rcond", False, 1.0), ("max_turn", False, math.pi)):
+            value = getattr(self, name)
+            ok = isinstance(value, (int, float)) and math.isfinite(value) and value <= high
+            if not (ok and (value >= 0 if zero else value > 0)):
+                raise InputError(f"must be a number in {'[' if zero else '('}0, {high}]", field=f"refine.{name}",
+                                 value=value)
+        if len(self.rays) != 2 or any(isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1
+                                      for k in self.rays):
+            raise InputError("must be two integers >= 1", field="refine.rays", value=self.rays)
+
+
+@dataclass(frozen=True)
+class RefineStep:
+    """One shape update: patches with a contour motion and with an overshoot vote, the mean
+    vertex displacement (m) applied, the step factor used (0: refused), and the ACE (m) of
+    the model it started from."""
+
+    contour_patches: int
+    shrink_patches: int
+    mean_displacement: float
+    step: float
+    ace: float
+
+
+@dataclass(frozen=True)
+class RefineResult:
+    """What :func:`refine_shape` did.
+
+    mesh : the refined trimesh (same topology); views : names of the views used
+    ce_before, ce_after : (V,) per-view CE (eq. 5, m; NaN: no contour) of the object contours
+    ace_before, ace_after : their means (ACE, eq. 9); steps : one RefineStep per update
+    mean_displacement : mean vertex displacement (m) over all updates; seconds : wall time
+    """
+
+    mesh: object
+    views: tuple[str, ...]
+    ce_before: np.ndarray
+    ce_after: np.ndarray
+    ace_before: float
+    ace_after: float
+    steps: tuple[RefineStep, ...]
+    mean_displacement: float
+    seconds: float
+
+    @property
+    def patches_moved(self) -> int:
+        """Triangles with a motion (contour or overshoot), summed over the updates."""
+        return sum(s.contour_patches + s.shrink_patches for s in self.steps)
+
+
+def refine_shape(model, dataset, depth: float, tilt: float, *, settings: RefineSettings = RefineSettings(),
+                 backend=None) -> RefineResult:
+    """Refine ``model`` (closed trimesh, reference frame of (depth m, tilt rad)) against the
+    optimized views of ``dataset``: ``settings.iterations`` updates of the module docstring.
+    Raises InputError when the model is seen in none of the optimized views."""
+    import trimesh
+
+    from .backends import get_backend
+
+    start = time.perf_counter()
+    vertices, faces = check_mesh(model, name="model")
+    backend = backend or get_backend()
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    steps, moved = [], []
+    ce_before, views = None, ()
+    for _ in range(settings.iterations):
+        update = _Update(mesh, dataset, depth, tilt, settings, backend)
+        if ce_before is None:
+            ce_before, views = update.errors, update.problem.data.names
+        displacement = update.displacement()
+        mesh, factor = _apply(mesh, displacement, settings)
+        norm = float(np.linalg.norm(displacement, axis=1).mean()) * factor
+        moved.append(norm)
+        steps.append(RefineStep(update.contour_patches, update.shrink_patches, norm, factor,
+                                _nanmean(update.errors)))
+        if factor == 0.0:
+            break
+    after = _Update(mesh, dataset, depth, tilt, settings, backend, motions=False)
+    ce_after = np.array([after.errors[after.problem.data.names.index(n)]
+                         if n in after.problem.data.names else math.nan for n in views])
+    return RefineResult(mesh=mesh, views=views, ce_before=ce_before, ce_after=ce_after,
+                        ace_before=_nanmean(ce_before), ace_after=_nanmean(ce_after), steps=tuple(steps),
+                        mean_displacement=float(np.mean(moved)), seconds=time.perf_counter() - start)
+
+
+class _Update:
+    """Contours, CE per view and (unless ``motions`` is False) the patch motions of one model."""
+
+    def __init__(self, mesh, dataset, depth, tilt, settings: RefineSettings, backend, *, motions: bool = True):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", PoseWarning)  # unseen views are simply not used
+            self.problem = problem = PoseProblem(mesh, dataset, depth, tilt, settings=settings.pose,
+                                                 backend=backend)
+        self.mesh, self.settings, self.depth, self.tilt = mesh, settings, depth, tilt
+        data, sonar = problem.data, problem.sonar
+        _, contours = problem._view_costs(np.array([depth]), np.array([tilt]), settings.pose.exact_samples,
+                                          settings.pose.min_cap)  # at the problem's detection shift
+        shift = float(problem.shift)
+        self.rot, self.t, self.n_view, self.d_view = (a[0] for a in problem._poses(data.views, np.array([depth]),
+                                                                                   np.array([tilt])))
+        theta = sonar.beam_centres
+        n_views = len(data.views)
+        self.errors = np.full(n_views, math.nan)
+        self.contour = {}  # (component, view) -> (beams, 2-D motions (beams, 2))
+        for k in range(n_views):
+            for c in (0, 1) if settings.mirror else (0,):
+                beams = np.flatnonzero((contours[0, k, c] >= 0) & data.masks[k, c])
+                target = np.flatnonzero(data.rows[k, c] >= 0)
+                if len(beams) < 2 or len(target) < 2:
+                    continue
+                source = _fan(theta[beams], sonar.bin_range(contours[0, k, c, beams] + shift))
+                goal = _fan(theta[target], sonar.bin_range(data.rows[k, c, target]))
+                result = icp(source, goal)
+                if c == 0:
+                    self.errors[k] = result.error
+                if motions:
+                    vectors = result.motions.copy()
+                    i, j = result.pairs[:, 0], result.pairs[:, 1]
+                    vectors[i] = goal[j] - source[i]
+                    self.contour[(c, k)] = (beams, vectors)
+        if motions:
+            self.motion = np.zeros((len(mesh.faces), 3))
+            contour_faces = self._contour_motions()
+            shrink_faces = self._overshoot(dataset, contour_faces) if settings.shrink > 0 else np.zeros(0, int)
+            self.contour_patches, self.shrink_patches = len(contour_faces), len(shrink_faces)
+
+    # --- contour term ---------------------------------------------------------------------
+    def _contour_motions(self) -> np.ndarray:
+        """Least-squares 3-D motions of the frontal patches (object and mirror rows jointly);
+        fills ``self.motion`` and returns the faces that got one."""
+        problem, sonar = self.problem, self.problem.sonar
+        theta = sonar.beam_centres
+        rows = {}  # face -> list of (component, view, 2-D motion)
+        for (c, k), (beams, vectors) in self.contour.items():
+            found = problem._frontal_faces(self.rot[k], self.t[k], self.n_view[k], float(self.d_view[k]),
+                                           theta[beams], mirror=c == 1)
+            for face, vector in zip(found, vectors):
+                if face >= 0:
+                    rows.setdefault(int(face), []).append((c, k, vector))
+        if not rows:
+            return np.zeros(0, int)
+        chosen = np.array(sorted(rows))
+        n_views = len(problem.data.views)
+        moves = np.zeros((len(chosen), 2, n_views, 2))
+        seen = np.zeros((len(chosen), 2, n_views), bool)
+        counts = np.zeros((len(chosen), 2, n_views))
+        for i, f in enumerate(chosen):
+            for c, k, vector in rows[f]:
+                moves[i, c, k] += vector
+                counts[i, c, k] += 1
+                seen[i, c, k] = True
+        moves = np.divide(moves, counts[..., None], out=np.zeros_like(moves), where=counts[..., None] > 0)
+        centres = self.mesh.triangles_center[chosen]
+        normal, offset = surface_in_reference(problem.rig, self.depth, self.tilt)
+        h = np.eye(3) - 2.0 * np.outer(normal, normal)
+        virtual = centres @ h + 2.0 * float(offset) * normal
+        jac = []
+        for c, points in ((0, centres), (1, virtual)):
+            p_view = np.einsum("kvi,vij->kvj", points[:, None, :] - self.t[None], self.rot)
+            p_view = np.where(seen[:, c, :, None], p_view, (0.0, 1.0, 0.0))
+            surface = None if c == 0 else (self.n_view[None], self.d_view[None])
+            j = np.einsum("kvaj,vij->kvai", image_jacobian(p_view, surface=surface), self.rot)
+            jac.append(j if c == 0 else j @ h)
+        a = np.where(seen[..., None, None], np.stack(jac, axis=1), 0.0).reshape(len(chosen), -1, 3)
+        b = np.where(seen[..., None], moves, 0.0).reshape(len(chosen), -1)
+        u, s, vt = np.linalg.svd(a, full_matrices=False)
+        inv = np.divide(1.0, s, out=np.zeros_like(s), where=s > self.settings.rcond * s[:, :1])
+        self.motion[chosen] = np.einsum("kji,kj->ki", vt, inv * np.einsum("kri,kr->ki", u, b))
+        return chosen
+
+    # --- overshoot term -------------------------------------------------------------------
+    def _overshoot(self, dataset, skip: np.ndarray) -> np.ndarray:
+        """Inward motions of triangles whose echo lands where the data is dark (module
+        docstring, step 4); fills ``self.motion`` except on ``skip``; returns the faces moved."""
+        from scipy import ndimage
+
+        problem, sonar, st = self.problem, self.problem.sonar, self.settings
+        data = problem.data
+        layers = problem._render(data.views, np.array([self.depth]), np.array([self.tilt]),
+                                 st.pose.exact_samples).numpy()
+        sigma = (st.pose.segment.sigma_bins, st.pose.segment.sigma_beams)
+        k_theta, k_phi = st.rays
+        width = float(np.mean(np.diff(sonar.beam_centres)))
+        theta = (sonar.beam_centres[:, None] + ((np.arange(k_theta) + 0.5) / k_theta - 0.5) * width).ravel()
+        phi = -sonar.half_elevation + (np.arange(k_phi) + 0.5) / k_phi * sonar.elevation_fov
+        th, ph = np.meshgrid(theta, phi, indexing="ij")
+        u = np.stack([np.cos(ph) * np.sin(th), np.cos(ph) * np.cos(th), np.sin(ph)], axis=-1).reshape(-1, 3)
+        beam_of_ray = np.repeat(np.arange(sonar.beams), k_theta * k_phi)
+        total = np.zeros(len(self.mesh.faces))
+        votes = np.zeros(len(self.mesh.faces))
+        for k, name in enumerate(data.names):
+            threshold = data.threshold[k][:, None]
+            bright = ndimage.gaussian_filter(layers[k, 0] + layers[k, 1], sigma) > threshold
+            corrupt = ndimage.gaussian_filter(layers[k, 1:].sum(axis=0), sigma) > st.corrupt * threshold
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # a view without highlight gives no vote
+                highlight = segment(dataset.images[name], st.pose.segment, name=f"images/{name}").highlight
+            if not highlight.any():
+                continue
+            rng = float(np.median(sonar.bin_ranges[np.flatnonzero(highlight.any(axis=1))]))
+            dark = ndimage.distance_transform_edt(~highlight, sampling=(sonar.range_step, rng * width))
+            up = u @ self.n_view[k]
+            surface = np.where(up > 0, self.d_view[k] / np.where(up > 0, up, 1.0), np.inf)
+            dist, face = problem.backend.cast_rays(problem.mesh, np.broadcast_to(self.t[k], u.shape),
+                                                   u @ self.rot[k].T)
+            dist = dist.astype(np.float64)
+            hit = np.isfinite(dist) & (dist < surface)
+            row = np.rint(sonar.bin_coordinate(dist[hit])).astype(int)
+            col, face = beam_of_ray[hit], face[hit]
+            inside = (row >= 0) & (row < sonar.bins)
+            row, col, face = row[inside], col[inside], face[inside]
+            gap = dark[row, col]
+            vote = bright[row, col] & ~corrupt[row, col] & (gap > st.tolerance)
+            np.add.at(total, face[vote], gap[vote])
+            np.add.at(votes, face[vote], 1.0)
+        votes[skip] = 0.0
+        chosen = np.flatnonzero(votes > 0)
+        self.motion[chosen] = -st.shrink * (total[chosen] / votes[chosen])[:, None] * self.mesh.face_normals[chosen]
+        return chosen
+
+    # --- vertex displacements -------------------------------------------------------------
+    def displacement(self) -> np.ndarray:
+        """(Nv, 3) vertex displacements: capped patch motions, area-weighted to the vertices,
+        spread and smoothed by the membrane solve (module docstring, step 5)."""
+        from scipy.sparse import coo_matrix, diags
+        from scipy.sparse.linalg import spsolve
+
+        mesh, st = self.mesh, self.settings
+        motion = self.motion
+        norm = np.linalg.norm(motion, axis=1)
+        motion = motion * np.minimum(1.0, st.max_motion / np.maximum(norm, 1e-300))[:, None]
+        moving = norm > 0
+        n = len(mesh.vertices)
+        area = np.repeat(mesh.area_faces, 3)
+        corners = mesh.faces.ravel()
+        adjacent = np.bincount(corners, weights=area, minlength=n)
+        covered = np.bincount(corners, weights=area * np.repeat(moving, 3), minlength=n)
+        target = np.stack([np.bincount(corners, weights=area * np.repeat(motion[:, i], 3), minlength=n)
+                           for i in range(3)], axis=1)
+        target = np.divide(target, covered[:, None], out=np.zeros_like(target), where=covered[:, None] > 0)
+        confidence = np.divide(covered, adjacent, out=np.zeros(n), where=adjacent > 0)
+        edges = mesh.edges_unique
+        graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+        graph = (graph + graph.T).tocsr()
+        laplacian = diags(np.asarray(graph.sum(axis=1)).ravel()) - graph
+        system = (diags(confidence + 1e-9) + st.smoothing * laplacian).tocsc()
+        return np.asarray(spsolve(system, confidence[:, None] * target))
+
+
+def _apply(mesh, displacement: np.ndarray, settings: RefineSettings):
+    """The mesh moved by ``step`` × displacement, halved while a normal turns more than
+    ``max_turn`` or the volume reverses; (mesh, factor used), factor 0 when refused."""
+    import trimesh
+
+    before = mesh.face_normals
+    factor = settings.step
+    for _ in range(settings.halvings + 1):
+        moved = trimesh.Trimesh(mesh.vertices + factor * displacement, mesh.faces, process=False)
+        turn = np.einsum("ij,ij->i", moved.face_normals, before)
+        if np.all(turn > math.cos(settings.max_turn)) and moved.volume > 0 and moved.is_watertight:
+            return moved, factor
+        factor *= 0.5
+    return mesh, 0.0
+
+
+def _nanmean(values) -> float:
+    values = np.asarray(values, np.float64)
+    finite = values[np.isfinite(values)]
+    return float(finite.mean()) if finite.size else math.nan

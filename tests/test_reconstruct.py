@@ -1,0 +1,116 @@
+"""The unified optimization loop, ``fsswarp reconstruct`` and ``fsswarp demo`` as a user runs them."""
+
+import dataclasses
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import trimesh
+
+import fsswarp.reconstruct as reconstruct_module
+from fsswarp.reconstruct import ReconstructSettings, image_errors, reconstruct
+
+HISTORY_KEYS = {"iteration", "depth_m", "tilt_deg", "E_mu", "AIE", "ACE", "E_I", "E_V", "chamfer_m", "fscore"}
+RESULT_KEYS = {"depth_m", "tilt_deg", "iterations", "converged", "backend", "device", "seconds", "history"}
+FAST = ReconstructSettings(iterations=1, resolution=64)
+
+
+def run_cli(*args):
+    return subprocess.run([sys.executable, "-m", "fsswarp", "--backend", "opencl", *args],
+                          capture_output=True, text=True)
+
+
+@pytest.fixture(scope="module")
+def one_iteration(coral_one):
+    from fsswarp.backends import get_backend
+
+    return reconstruct(coral_one, settings=FAST, backend=get_backend("opencl"))
+
+
+def test_history_follows_the_contract(one_iteration, coral_one):
+    result = one_iteration
+    assert set(result.summary()) == RESULT_KEYS
+    assert [h["iteration"] for h in result.history] == list(range(result.iterations + 1))
+    first = result.history[0]
+    assert set(first) == HISTORY_KEYS
+    surface = coral_one.manifest.surface
+    assert first["depth_m"] == surface.depth and first["tilt_deg"] == pytest.approx(math.degrees(surface.tilt))
+    assert first["E_I"] == 1.0
+    assert all(np.isfinite(h[k]) for h in result.history for k in HISTORY_KEYS)
+    assert result.model.is_watertight and result.carved.is_watertight
+    json.dumps(result.summary())  # JSON-ready
+
+
+def test_image_errors_vanish_for_the_truth_and_grow_with_a_bad_model(coral_one):
+    """The true model at the true (D, β) explains the images better than a sphere there."""
+    truth = trimesh.load_mesh(coral_one.truth_model_path)
+    true = coral_one.manifest.truth
+    good = image_errors(truth, coral_one, true.depth, true.tilt)
+    blob = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
+    blob.apply_translation(truth.centroid)
+    bad = image_errors(blob, coral_one, true.depth, true.tilt)
+    assert good["ACE"] < 0.5 * bad["ACE"] and good["AIE"] < bad["AIE"]
+    assert good["ACE"] < 0.004  # within about one 3.9 mm range bin
+
+
+def test_a_refused_pose_step_stops_the_loop(coral_one, monkeypatch):
+    """Greedy acceptance: when E_mu does not fall, the estimate stays and the loop ends."""
+    calls = []
+
+    def refused(model, dataset, *, depth0, tilt0, settings, backend):
+        calls.append((depth0, tilt0))
+        return dataclasses.make_dataclass("Refused", ["accepted", "depth", "tilt"])(False, depth0 + 0.01, tilt0)
+
+    monkeypatch.setattr(reconstruct_module, "estimate_pose", refused)
+    result = reconstruct(coral_one, settings=dataclasses.replace(FAST, iterations=5))
+    assert len(calls) == 1 and result.iterations == 0 and result.converged
+    assert result.depth == coral_one.manifest.surface.depth
+
+
+def test_settings_are_validated():
+    from fsswarp.errors import InputError
+
+    with pytest.raises(InputError, match="iterations"):
+        ReconstructSettings(iterations=-1)
+    with pytest.raises(InputError, match="resolution"):
+        ReconstructSettings(resolution=4)
+
+
+def test_reconstruct_command_writes_model_result_and_figures(coral_one, tmp_path):
+    done = run_cli("reconstruct", str(coral_one.root), "--out", str(tmp_path / "r"), "--iterations", "0",
+                   "--resolution", "48")
+    assert done.returncode == 0, done.stderr
+    names = sorted(p.relative_to(tmp_path / "r").as_posix() for p in (tmp_path / "r").rglob("*") if p.is_file())
+    assert names == ["carved.ply", "figures/carved.png", "figures/history.png", "figures/model.png",
+                     "model.ply", "result.json"]
+    result = json.loads((tmp_path / "r" / "result.json").read_text())
+    assert set(result) == RESULT_KEYS and result["iterations"] == 0
+    assert trimesh.load_mesh(tmp_path / "r" / "model.ply").is_watertight
+
+
+@pytest.mark.parametrize("args, field", [
+    (["reconstruct", "nowhere", "--out", "OUT"], "nowhere"),
+    (["demo", "no-such-scene", "--out", "OUT"], "no-such-scene"),
+])
+def test_bad_input_exits_2_and_writes_nothing(tmp_path, args, field):
+    args = [str(tmp_path / "out") if a == "OUT" else str(tmp_path / a) if a == "nowhere" else a for a in args]
+    done = run_cli(*args)
+    assert done.returncode == 2, done.stderr
+    assert field in done.stderr and len(done.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "out").exists()
+
+
+def test_demo_simulates_and_reconstructs(tmp_path):
+    out = tmp_path / "demo"
+    done = run_cli("demo", "coral-one", "--out", str(out), "--iterations", "0")
+    assert done.returncode == 0, done.stderr
+    assert "reconstruction" in done.stdout and ".tmp" not in done.stdout
+    for name in ("demo.json", "dataset/dataset.toml", "dataset/figures/layers.png", "reconstruction/model.ply",
+                 "reconstruction/result.json", "reconstruction/figures/history.png"):
+        assert (out / name).is_file(), name
+    assert run_cli("check", str(out / "dataset")).returncode == 0
+    again = run_cli("--quiet", "demo", "coral-one", "--out", str(out), "--iterations", "0")
+    assert again.returncode == 0 and again.stdout == ""  # replaces its own earlier output, silently

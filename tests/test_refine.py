@@ -1,0 +1,70 @@
+"""Shape refinement (fsswarp.refine) on coral-one at the true (D, β)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from fsswarp.backends import get_backend
+from fsswarp.carve import carve
+from fsswarp.errors import InputError
+from fsswarp.metrics import compare
+from fsswarp.refine import RefineSettings, refine_shape
+
+
+@pytest.fixture(scope="module")
+def scene(coral_one):
+    """(dataset, truth mesh, true depth, true tilt, backend)."""
+    truth = coral_one.manifest.truth
+    return coral_one, trimesh.load(coral_one.truth_model_path), truth.depth, truth.tilt, get_backend()
+
+
+def test_true_model_stays(scene):
+    dataset, truth, depth, tilt, backend = scene
+    result = refine_shape(truth, dataset, depth, tilt, backend=backend)
+    assert result.mesh.is_watertight
+    assert len(result.views) == sum(v.optimize for v in dataset.rig.views)
+    assert compare(result.mesh, truth, samples=5000)["chamfer_m"] < 1e-3
+    assert result.ace_after < result.ace_before + 5e-4
+
+
+def test_carved_model_improves(scene):
+    dataset, truth, depth, tilt, backend = scene
+    carved = carve(dataset, depth, tilt, backend=backend).mesh
+    result = refine_shape(carved, dataset, depth, tilt, settings=RefineSettings(iterations=3), backend=backend)
+    before, after = compare(carved, truth, samples=5000), compare(result.mesh, truth, samples=5000)
+    assert result.mesh.is_watertight and len(result.mesh.faces) == len(carved.faces)
+    assert result.ace_after < result.ace_before
+    assert after["chamfer_m"] < before["chamfer_m"] - 5e-4
+    assert after["E_V"] < before["E_V"] - 0.01
+    assert all(s.step > 0 for s in result.steps) and result.patches_moved > 0
+
+
+def test_inflated_model_shrinks(scene):
+    dataset, truth, depth, tilt, backend = scene
+    rng = np.random.default_rng(7)
+    centres = rng.normal(size=(8, 3)) * 0.03 + truth.centroid
+    weights = rng.uniform(0.5, 1.0, size=8)
+    field = np.exp(-np.sum((truth.vertices[:, None] - centres) ** 2, axis=-1) / (2 * 0.03 ** 2)) @ weights
+    push = 0.005 * (0.5 + 0.5 * field / field.max())  # 2.5-5 mm outward
+    inflated = trimesh.Trimesh(truth.vertices + push[:, None] * truth.vertex_normals, truth.faces, process=False)
+    result = refine_shape(inflated, dataset, depth, tilt, settings=RefineSettings(iterations=3), backend=backend)
+    before, after = compare(inflated, truth, samples=5000), compare(result.mesh, truth, samples=5000)
+    assert result.mesh.is_watertight
+    assert after["chamfer_m"] < before["chamfer_m"]
+
+
+def test_model_out_of_sight(scene):
+    dataset, truth, depth, tilt, backend = scene
+    far = truth.copy()
+    far.apply_translation((0.0, 50.0, 0.0))
+    with pytest.raises(InputError, match="seen in none"):
+        refine_shape(far, dataset, depth, tilt, backend=backend)
+
+
+def test_settings_checked():
+    with pytest.raises(InputError, match="refine.step"):
+        RefineSettings(step=0.0)
+    with pytest.raises(InputError, match="refine.rays"):
+        RefineSettings(rays=(0, 4))
