@@ -425,8 +425,10 @@ def voxel_mesh(voxels: VoxelCarving, *, smooth: int = 10, faces: int = 20_000):
     solid = _major_components(ndimage.binary_fill_holes(voxels.occupancy))
     h = voxels.voxel_size
     padded = np.pad(solid, 1).astype(np.float32)
-    vertices, triangles, _, _ = marching_cubes(padded, level=MC_LEVEL, spacing=(h, h, h), method="lewiner",
-                                               allow_degenerate=False)
+    with warnings.catch_warnings():  # scikit-image <= 0.25 sets .shape of its tables (NumPy 2.5 deprecates it)
+        warnings.filterwarnings("ignore", "Setting the shape on a NumPy array", DeprecationWarning)
+        vertices, triangles, _, _ = marching_cubes(padded, level=MC_LEVEL, spacing=(h, h, h), method="lewiner",
+                                                   allow_degenerate=False)
     mesh = trimesh.Trimesh(vertices + (voxels.origin - h), triangles, process=True)
     if mesh.volume < 0:
         mesh.invert()

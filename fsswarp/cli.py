@@ -402,7 +402,7 @@ def run_reconstruction(state: State, dataset, out: Path, settings, *, shown: Pat
     """Reconstruct ``dataset`` and write OUT/model.ply, carved.ply, result.json and figures
     (``shown``: the folder's name in messages, when OUT is a temporary folder)."""
     from .atomic import output_folder
-    from .figures import carve_figure, history_figure
+    from .figures import carve_figure, history_figure, pose_figure
     from .reconstruct import reconstruct as run
 
     backend = state.get_backend()
@@ -421,6 +421,10 @@ def run_reconstruction(state: State, dataset, out: Path, settings, *, shown: Pat
         carve_figure(result.carved, tmp / "figures" / "carved.png", truth=truth_mesh, title="carved model (iteration 0)")
         carve_figure(result.model, tmp / "figures" / "model.png", truth=truth_mesh, label="final",
                      title=f"final model (iteration {result.iterations})")
+        if result.pose_steps:
+            pose_figure(result.pose_steps[0], tmp / "figures" / "pose.png",
+                        truth=None if truth is None else (truth.depth, truth.tilt),
+                        title="first pose step: the (D, tilt) grid search around the measured values")
         (tmp / "result.json").write_text(json.dumps(result.summary(), indent=2))
     last = result.history[-1]
     state.echo(f"wrote {shown or out}: D {result.depth:.4f} m, tilt {math.degrees(result.tilt):.3f} deg after "

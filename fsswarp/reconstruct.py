@@ -95,6 +95,7 @@ class ReconstructResult:
     converged : whether it stopped because the objective settled (not because T ran out)
     history : one dict per iteration (0 = the carved model), the keys of DESIGN §12
     seconds : wall time; backend, device : where the kernels ran
+    pose_steps : the PoseResult of every pose step (grid levels, for figures)
     """
 
     model: object
@@ -107,6 +108,7 @@ class ReconstructResult:
     seconds: float
     backend: str
     device: str
+    pose_steps: list = field(default_factory=list)
 
     def summary(self) -> dict:
         """``result.json`` (DESIGN §12)."""
@@ -137,9 +139,11 @@ def reconstruct(dataset, *, settings: ReconstructSettings = ReconstructSettings(
     history = [first]
     say(_line(first))
     converged = False
+    pose_steps = []
     for iteration in range(1, settings.iterations + 1):
         pose = estimate_pose(model, dataset, depth0=depth, tilt0=tilt, settings=settings.pose,
                              backend=backend)
+        pose_steps.append(pose)
         if not pose.accepted:
             say(f"iteration {iteration}: the pose step found no (D, tilt) with a lower E_mu; stopping")
             converged = True
@@ -157,7 +161,7 @@ def reconstruct(dataset, *, settings: ReconstructSettings = ReconstructSettings(
             break
     return ReconstructResult(model=model, carved=carved, depth=depth, tilt=tilt, iterations=len(history) - 1,
                              converged=converged, history=history, seconds=time.perf_counter() - start,
-                             backend=backend.name, device=backend.device)
+                             backend=backend.name, device=backend.device, pose_steps=pose_steps)
 
 
 def image_errors(model, dataset, depth: float, tilt: float, *, settings: ReconstructSettings = ReconstructSettings(),

@@ -41,6 +41,7 @@ def test_history_follows_the_contract(one_iteration, coral_one):
     assert first["E_I"] == 1.0
     assert all(np.isfinite(h[k]) for h in result.history for k in HISTORY_KEYS)
     assert result.model.is_watertight and result.carved.is_watertight
+    assert len(result.pose_steps) == 1 and result.pose_steps[0].levels  # the figure's grid
     json.dumps(result.summary())  # JSON-ready
 
 
