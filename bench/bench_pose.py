@@ -66,7 +66,7 @@ def bench_backend(backend, n: int, repeat: int):
         rows = []
         med, lo, hi = time_call(lambda: problem.surrogate(depths, tilts), repeat)
         rows.append(dict(mode="grid evaluation", median_s=med, min_s=lo, max_s=hi))
-        layers = problem._render(data.views, depths.ravel(), tilts.ravel(), problem.settings.samples)
+        layers = problem.render_pairs(data.views, depths.ravel(), tilts.ravel(), problem.settings.samples)
         index = np.tile(np.arange(views), n * n)
         capped = np.minimum(data.distances, np.float32(problem.settings.cap))
         shift = [problem.shift]

@@ -303,7 +303,7 @@ class PoseProblem:
         names = [self.rig.views[i].name for i in views]
         full = np.stack([np.array([0, sonar.bins])] * len(views))
         every = np.ones((len(views), 2, sonar.beams), bool)
-        layers = self._render(views, np.array([depth]), np.array([tilt]), st.exact_samples)
+        layers = self.render_pairs(views, np.array([depth]), np.array([tilt]), st.exact_samples)
         contour, _, _ = self.backend.contour_cost(layers, np.arange(len(views)), threshold, full, every,
                                                   np.zeros((len(views), 2, sonar.bins, sonar.beams), np.float32),
                                                   [0.0], self.smoothing)
@@ -381,16 +381,16 @@ class PoseProblem:
         return distance_transform_edt(pixels, sampling=(sonar.range_step, arc))
 
     # --- synthesis and the surrogate -------------------------------------------------------
-    def _poses(self, views, depths: np.ndarray, tilts: np.ndarray):
+    def view_poses(self, views, depths: np.ndarray, tilts: np.ndarray):
         """(G, V) poses and planes of cells (G,) in the dataset views ``views``."""
         rot, t = self.rig.relative_poses(depths, tilts)
         n, d = surface_in_views(self.rig, depths, tilts)
         v = list(views)
         return rot[:, v], t[:, v], n[:, v], d[:, v]
 
-    def _render(self, views, depths: np.ndarray, tilts: np.ndarray, samples):
+    def render_pairs(self, views, depths: np.ndarray, tilts: np.ndarray, samples):
         """DeviceLayers (G·V, 4, bins, beams) of cells (G,) in the dataset views ``views``."""
-        rot, t, n, d = self._poses(views, depths, tilts)
+        rot, t, n, d = self.view_poses(views, depths, tilts)
         if np.any(d <= 0):
             raise InputError("the sonar must lie below the surface in every view", field="depth",
                              value=float(np.min(depths)))
@@ -398,7 +398,7 @@ class PoseProblem:
                                           n.reshape(-1, 3), d.reshape(-1), samples, gamma=1.0,
                                           surface_reflection=0.9)
 
-    def _view_costs(self, depths: np.ndarray, tilts: np.ndarray, samples, cap: float):
+    def view_costs(self, depths: np.ndarray, tilts: np.ndarray, samples, cap: float):
         """(G, V, S) surrogate view costs of cells (G,) at the detection shift (S = 1) or, without
         one, at every candidate shift; and (G, V, 2, beams) synthetic contours. One launch unless
         the layers would exceed ``settings.launch_bytes``."""
@@ -409,7 +409,7 @@ class PoseProblem:
         costs, contours = [], []
         for start in range(0, len(depths), per):
             cell_d, cell_t = depths[start:start + per], tilts[start:start + per]
-            layers = self._render(data.views, cell_d, cell_t, samples)
+            layers = self.render_pairs(data.views, cell_d, cell_t, samples)
             contour, sums, counts = self.backend.contour_cost(
                 layers, np.tile(np.arange(n_views), len(cell_d)), data.threshold, data.windows, data.masks,
                 distances, self.shifts if self.shift is None else [self.shift], self.smoothing)
@@ -426,7 +426,7 @@ class PoseProblem:
         without anchor views, at the cell's best shift).
         cap : saturation distance (default ``settings.cap``); samples : default ``settings.samples``."""
         depths, tilts = np.broadcast_arrays(np.asarray(depths, np.float64), np.asarray(tilts, np.float64))
-        costs, _ = self._view_costs(depths.reshape(-1), tilts.reshape(-1), samples or self.settings.samples,
+        costs, _ = self.view_costs(depths.reshape(-1), tilts.reshape(-1), samples or self.settings.samples,
                                     self.settings.cap if cap is None else cap)
         return costs.mean(axis=1).min(axis=-1).reshape(depths.shape)
 
@@ -436,11 +436,11 @@ class PoseProblem:
         _check_pose(depth, tilt)
         self.counters["exact"] += 1
         data, sonar = self.data, self.sonar
-        costs, contours = self._view_costs(np.array([depth]), np.array([tilt]), self.settings.exact_samples,
+        costs, contours = self.view_costs(np.array([depth]), np.array([tilt]), self.settings.exact_samples,
                                            self.settings.min_cap)
         shift = self.shift if self.shift is not None else _parabola_minimum(self.shifts, costs[0].mean(axis=0))
         contour = contours[0]  # (V, 2, beams)
-        rot, t, n_view, d_view = (a[0] for a in self._poses(data.views, np.array([depth]), np.array([tilt])))
+        rot, t, n_view, d_view = (a[0] for a in self.view_poses(data.views, np.array([depth]), np.array([tilt])))
         normal, offset = surface_in_reference(self.rig, depth, tilt)
         theta = sonar.beam_centres
         n_views = len(data.views)
@@ -451,9 +451,9 @@ class PoseProblem:
                 target = np.flatnonzero(data.rows[k, c] >= 0)
                 if len(beams) < 2 or len(target) < 2:
                     continue
-                source = _fan(theta[beams], sonar.bin_range(contour[k, c, beams] + shift))
-                result = icp(source, _fan(theta[target], sonar.bin_range(data.rows[k, c, target])), tol=ICP_TOL)
-                faces = self._frontal_faces(rot[k], t[k], n_view[k], float(d_view[k]), theta[beams], mirror=c == 1)
+                source = fan_points(theta[beams], sonar.bin_range(contour[k, c, beams] + shift))
+                result = icp(source, fan_points(theta[target], sonar.bin_range(data.rows[k, c, target])), tol=ICP_TOL)
+                faces = self.frontal_faces(rot[k], t[k], n_view[k], float(d_view[k]), theta[beams], mirror=c == 1)
                 for face, vector in zip(faces, result.motions):
                     if face >= 0:
                         motion[c].setdefault((k, int(face)), []).append(vector)
@@ -489,7 +489,7 @@ class PoseProblem:
         return ExactError(float(finite.mean()) if finite.size else math.nan, per_view, shift,
                           int(object_seen.sum()), int(mirror_seen.any(axis=1).sum()))
 
-    def _frontal_faces(self, rot, t, n, d, theta, *, mirror: bool) -> np.ndarray:
+    def frontal_faces(self, rot, t, n, d, theta, *, mirror: bool) -> np.ndarray:
         """(len(theta),) face of the frontal patch of each beam azimuth in one view, -1 where none:
         the hit at the shortest range (object), or at the shortest mirror range (|P| + |P'|)/2
         over the beam's elevation rays that meet the surface first (mirror, DESIGN §3)."""
@@ -716,7 +716,7 @@ def _polish(problem: PoseProblem, centre, axes, lo, hi, evaluations: int):
     return seen["x"], seen["f"]
 
 
-def _fan(theta, rng) -> np.ndarray:
+def fan_points(theta, rng) -> np.ndarray:
     """(N, 2) fan-plane points R (sin θ, cos θ) (paper eq. 3)."""
     return np.stack([rng * np.sin(theta), rng * np.cos(theta)], axis=1)
 

@@ -12,7 +12,7 @@ One step at a given (D, β), over the views marked ``optimize``:
    the fan plane. The 2-D motion of a synthetic contour point is the vector to its matched data
    point after the alignment (an inlier pair), else the rigid motion of the alignment: the
    rigid part moves the whole contour, the residual bends it. The frontal patch of each beam
-   (ray casting, ``PoseProblem._frontal_faces``) collects the motions of its beams.
+   (ray casting, ``PoseProblem.frontal_faces``) collects the motions of its beams.
 3. 3-D motions of the frontal patch centres: per patch one least-squares solve over every view
    and both components, truncated SVD (``rcond``) as ``fsswarp.motion.patch_motions``. A
    mirror contour point is the return of the virtual mirror point Q = H·P + 2d·n, so its row is
@@ -52,7 +52,7 @@ import numpy as np
 from .errors import InputError
 from .icp import icp
 from .motion import image_jacobian
-from .pose import PoseProblem, PoseSettings, PoseWarning, _fan  # _fan: pose's fan-plane helper
+from .pose import PoseProblem, PoseSettings, PoseWarning, fan_points
 from .render import check_mesh
 from .segment import segment
 from .surface import surface_in_reference
@@ -188,10 +188,10 @@ class _Update:
                                                  backend=backend)
         self.mesh, self.settings, self.depth, self.tilt = mesh, settings, depth, tilt
         data, sonar = problem.data, problem.sonar
-        _, contours = problem._view_costs(np.array([depth]), np.array([tilt]), settings.pose.exact_samples,
+        _, contours = problem.view_costs(np.array([depth]), np.array([tilt]), settings.pose.exact_samples,
                                           settings.pose.min_cap)  # at the problem's detection shift
         shift = float(problem.shift)
-        self.rot, self.t, self.n_view, self.d_view = (a[0] for a in problem._poses(data.views, np.array([depth]),
+        self.rot, self.t, self.n_view, self.d_view = (a[0] for a in problem.view_poses(data.views, np.array([depth]),
                                                                                    np.array([tilt])))
         theta = sonar.beam_centres
         n_views = len(data.views)
@@ -203,8 +203,8 @@ class _Update:
                 target = np.flatnonzero(data.rows[k, c] >= 0)
                 if len(beams) < 2 or len(target) < 2:
                     continue
-                source = _fan(theta[beams], sonar.bin_range(contours[0, k, c, beams] + shift))
-                goal = _fan(theta[target], sonar.bin_range(data.rows[k, c, target]))
+                source = fan_points(theta[beams], sonar.bin_range(contours[0, k, c, beams] + shift))
+                goal = fan_points(theta[target], sonar.bin_range(data.rows[k, c, target]))
                 result = icp(source, goal)
                 if c == 0:
                     self.errors[k] = result.error
@@ -227,7 +227,7 @@ class _Update:
         theta = sonar.beam_centres
         rows = {}  # face -> list of (component, view, 2-D motion)
         for (c, k), (beams, vectors) in self.contour.items():
-            found = problem._frontal_faces(self.rot[k], self.t[k], self.n_view[k], float(self.d_view[k]),
+            found = problem.frontal_faces(self.rot[k], self.t[k], self.n_view[k], float(self.d_view[k]),
                                            theta[beams], mirror=c == 1)
             for face, vector in zip(found, vectors):
                 if face >= 0:
@@ -271,7 +271,7 @@ class _Update:
 
         problem, sonar, st = self.problem, self.problem.sonar, self.settings
         data = problem.data
-        layers = problem._render(data.views, np.array([self.depth]), np.array([self.tilt]),
+        layers = problem.render_pairs(data.views, np.array([self.depth]), np.array([self.tilt]),
                                  st.pose.exact_samples).numpy()
         sigma = (st.pose.segment.sigma_bins, st.pose.segment.sigma_beams)
         k_theta, k_phi = st.rays
