@@ -55,13 +55,7 @@ def layers_figure(views: dict[str, np.ndarray], sonar: SonarSpec, path: str | Pa
                 ax.set_ylim(limits["y"])
             for a in axes[r, 2 * k: 2 * k + 2]:
                 a.tick_params(labelsize=5)
-    if title:
-        fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=110)
-    plt.close(fig)
-    return write_bytes(path, buffer.getvalue())
+    return _save(fig, path, title)
 
 
 def _zoom_limits(views: dict[str, np.ndarray], sonar: SonarSpec, peak: float, *, margin_m: float = 0.15):
@@ -82,6 +76,20 @@ def _zoom_limits(views: dict[str, np.ndarray], sonar: SonarSpec, peak: float, *,
     x = [r * math.sin(t) for r in (r_lo, r_hi) for t in (t_lo, t_hi)]
     return {"range": (r_lo, r_hi), "azimuth": (math.degrees(t_lo), math.degrees(t_hi)),
             "x": (min(x), max(x)), "y": (r_lo * math.cos(max(abs(t_lo), abs(t_hi))), r_hi)}
+
+
+def _save(fig, path: str | Path, title: str = "", *, rect=(0, 0, 1, 1)) -> Path:
+    """Title (``fig.suptitle``), lay out inside ``rect``, close and write ``fig`` as a PNG,
+    atomically; returns the path."""
+    import matplotlib.pyplot as plt
+
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout(rect=rect)
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=110)
+    plt.close(fig)
+    return write_bytes(path, buffer.getvalue())
 
 
 def _decibels(image: np.ndarray, peak: float) -> np.ndarray:
@@ -108,11 +116,7 @@ def fan_figure(image: np.ndarray, sonar: SonarSpec, path: str | Path, *, title: 
     fig.colorbar(shown, ax=ax, label="dB below peak", shrink=0.8)
     if title:
         ax.set_title(title, fontsize=9)
-    fig.tight_layout()
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=110)
-    plt.close(fig)
-    return write_bytes(path, buffer.getvalue())
+    return _save(fig, path)
 
 
 def carve_figure(mesh, path: str | Path, *, truth=None, title: str = "", label: str = "carved") -> Path:
@@ -144,13 +148,7 @@ def carve_figure(mesh, path: str | Path, *, truth=None, title: str = "", label: 
     if truth is not None:
         axes[0].legend(handles=[matplotlib.patches.Patch(color=c, alpha=0.5, label=lab) for _, c, _, lab in meshes],
                        fontsize=7, loc="upper right")
-    if title:
-        fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=110)
-    plt.close(fig)
-    return write_bytes(path, buffer.getvalue())
+    return _save(fig, path, title)
 
 
 def pose_figure(result, path: str | Path, *, truth: tuple[float, float] | None = None, title: str = "") -> Path:
@@ -191,13 +189,7 @@ def pose_figure(result, path: str | Path, *, truth: tuple[float, float] | None =
     legend = fig.legend(list(handles.values()), list(handles), loc="lower center", ncol=len(handles), fontsize=7,
                         facecolor="lightgrey")
     legend.get_frame().set_edgecolor("none")
-    if title:
-        fig.suptitle(title, fontsize=9)
-    fig.tight_layout(rect=(0, 0.07, 1, 1))
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=110)
-    plt.close(fig)
-    return write_bytes(path, buffer.getvalue())
+    return _save(fig, path, title, rect=(0, 0.07, 1, 1))
 
 
 def history_figure(history: list[dict], path: str | Path, *, truth_depth: float | None = None,
@@ -231,10 +223,40 @@ def history_figure(history: list[dict], path: str | Path, *, truth_depth: float 
     for a in axes:
         a.set_xticks(it)
         a.tick_params(labelsize=7)
-    if title:
-        fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=110)
-    plt.close(fig)
-    return write_bytes(path, buffer.getvalue())
+    return _save(fig, path, title)
+
+
+def enhance_figure(images: dict[str, np.ndarray], results: dict, sonar: SonarSpec, path: str | Path, *,
+                   title: str = "") -> Path:
+    """Save a PNG grid, one row per view: data | ghost-free (enhanced) | isolated ghost |
+    regions (object, ghost, mirror, overlap), beam-bin images in dB below the data's peak.
+
+    images : {view: (bins, beams) linear data}; results : {view: fsswarp.enhance.EnhancedView}."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(len(images), 4, figsize=(9.0, 2.7 * len(images)), squeeze=False)
+    extent = (math.degrees(sonar.beam_centres[0]), math.degrees(sonar.beam_centres[-1]),
+              sonar.range_min, sonar.range_max)
+    for row, (name, image) in enumerate(images.items()):
+        result = results[name]
+        peak = float(np.max(image)) or 1.0
+        regions = (result.object_region.astype(np.float32) + 2 * result.ghost_region + 4 * result.mirror_region)
+        panels = [(_decibels(image, peak), "data", "magma", (-60, 0)),
+                  (_decibels(result.enhanced, peak), "ghost-free", "magma", (-60, 0)),
+                  (_decibels(result.ghost, peak), "isolated ghost", "magma", (-60, 0)),
+                  (regions, "regions: 1 obj, 2 ghost, 4 mirror", "tab10", (0, 9))]
+        rows, cols = np.nonzero(result.object_region | result.ghost_region | result.mirror_region)
+        for ax, (shown, label, cmap, (low, high)) in zip(axes[row], panels):
+            ax.imshow(shown, origin="lower", aspect="auto", extent=extent, cmap=cmap, vmin=low, vmax=high,
+                      interpolation="nearest")
+            ax.set_title(f"{name} {label}", fontsize=7)
+            if rows.size:
+                ax.set_ylim(max(sonar.range_min, float(sonar.bin_ranges[rows.min()]) - 0.1),
+                            min(sonar.range_max, float(sonar.bin_ranges[rows.max()]) + 0.1))
+            ax.set_xlabel("azimuth (deg)", fontsize=6)
+            ax.set_ylabel("range (m)", fontsize=6)
+            ax.tick_params(labelsize=5)
+    return _save(fig, path, title)

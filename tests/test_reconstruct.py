@@ -110,8 +110,10 @@ def test_demo_simulates_and_reconstructs(tmp_path):
     assert done.returncode == 0, done.stderr
     assert "reconstruction" in done.stdout and ".tmp" not in done.stdout
     for name in ("demo.json", "dataset/dataset.toml", "dataset/figures/layers.png", "reconstruction/model.ply",
-                 "reconstruction/result.json", "reconstruction/figures/history.png"):
+                 "reconstruction/result.json", "reconstruction/figures/history.png", "enhance/enhance.json",
+                 "enhance/enhance.png", "enhance/S0_enhanced.tiff", "enhance/S0_ghost.tiff"):
         assert (out / name).is_file(), name
     assert run_cli("check", str(out / "dataset")).returncode == 0
+    assert json.loads((out / "enhance" / "enhance.json").read_text())["dataset"] == str(out / "dataset")
     again = run_cli("--quiet", "demo", "coral-one", "--out", str(out), "--iterations", "0")
     assert again.returncode == 0 and again.stdout == ""  # replaces its own earlier output, silently
