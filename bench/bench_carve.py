@@ -16,10 +16,11 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import statistics
 import time
 
 import numpy as np
+
+from timing import time_call
 
 
 def scene():
@@ -41,16 +42,6 @@ def scene():
     rot, t = manifest.rig.relative_poses(truth.depth, truth.tilt)
     normal, offset = surface_in_reference(manifest.rig, truth.depth, truth.tilt)
     return manifest.sonar, masks, rot, t, (normal, float(offset)), mesh.bounds.mean(axis=0)
-
-
-def time_call(fn, repeat: int):
-    fn()  # warm-up (compiles kernels, uploads)
-    times = []
-    for _ in range(repeat):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times), min(times), max(times)
 
 
 def bench_grid(backend, sonar, masks, rot, t, centre, size, repeat):

@@ -20,11 +20,11 @@ import argparse
 import dataclasses
 import json
 import platform
-import statistics
 import tempfile
-import time
 
 import numpy as np
+
+from timing import time_call
 
 
 def problem_for(backend, folder):
@@ -43,16 +43,6 @@ def problem_for(backend, folder):
     truth = dataset.manifest.truth
     return PoseProblem(model, dataset, truth.depth, truth.tilt, settings=PoseSettings(launch_bytes=8 << 30),
                        backend=backend), truth
-
-
-def time_call(fn, repeat: int):
-    fn()  # warm-up (compiles kernels, uploads)
-    times = []
-    for _ in range(repeat):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times), min(times), max(times)
 
 
 def bench_backend(backend, n: int, repeat: int):

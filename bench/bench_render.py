@@ -17,10 +17,11 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import statistics
 import time
 
 import numpy as np
+
+from timing import time_call
 
 
 def scene_batch(n_views: int):
@@ -39,16 +40,6 @@ def scene_batch(n_views: int):
     rot, t = rig.relative_poses(truth.depth, truth.tilt)
     n, d = surface_in_views(rig, truth.depth, truth.tilt)
     return scene.sonar, mesh, rot, t, n, d
-
-
-def time_call(fn, repeat: int):
-    fn()  # warm-up (compiles kernels, uploads)
-    times = []
-    for _ in range(repeat):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times), min(times), max(times)
 
 
 def bench_backend(backend, sonar, mesh, rot, t, n, d, samples, repeat):

@@ -131,13 +131,7 @@ class Backend(abc.ABC):
         with each other on the same terms.
         """
         pts = _float32_array("points", points, ("P", 3))
-        rot = _float32_array("rotations", rotations, ("V", 3, 3))
-        trans = _float32_array("translations", translations, ("V", 3))
-        if rot.shape[0] != trans.shape[0]:
-            raise ValueError(f"rotations and translations must describe the same views, got "
-                             f"{rot.shape[0]} rotations and {trans.shape[0]} translations")
-        if not isinstance(sonar, SonarSpec):
-            raise TypeError(f"sonar must be a fsswarp.sonar.SonarSpec, got {type(sonar).__name__}")
+        rot, trans = _view_poses(rotations, translations, sonar)
         if pts.shape[0] >= 2**31 - 2**10:
             raise ValueError(f"too many points for one launch ({pts.shape[0]}); split them")
         n_views, n_points = rot.shape[0], pts.shape[0]
@@ -178,13 +172,7 @@ class Backend(abc.ABC):
         Float32 on the device: decisions differ from the oracle only where a bound lies
         within float32 rounding of a half-index boundary or of the elevation edge.
         """
-        rot = _float32_array("rotations", rotations, ("V", 3, 3))
-        trans = _float32_array("translations", translations, ("V", 3))
-        if rot.shape[0] != trans.shape[0]:
-            raise ValueError(f"rotations and translations must describe the same views, got "
-                             f"{rot.shape[0]} rotations and {trans.shape[0]} translations")
-        if not isinstance(sonar, SonarSpec):
-            raise TypeError(f"sonar must be a fsswarp.sonar.SonarSpec, got {type(sonar).__name__}")
+        rot, trans = _view_poses(rotations, translations, sonar)
         feasible = np.asarray(masks)
         if feasible.dtype.kind not in "biu":
             raise TypeError(f"masks must be bool or integer, got dtype {feasible.dtype}")
@@ -409,6 +397,19 @@ def _beam_widths(sonar: SonarSpec) -> np.ndarray:
     differences inside, one-sided at the outer beams)."""
     c = np.asarray(sonar.beam_centres, np.float64)
     return np.gradient(c).astype(np.float32)
+
+
+def _view_poses(rotations, translations, sonar) -> tuple[np.ndarray, np.ndarray]:
+    """(V, 3, 3) and (V, 3) float32 view poses of the same V views, with ``sonar`` a SonarSpec,
+    or raise."""
+    rot = _float32_array("rotations", rotations, ("V", 3, 3))
+    trans = _float32_array("translations", translations, ("V", 3))
+    if rot.shape[0] != trans.shape[0]:
+        raise ValueError(f"rotations and translations must describe the same views, got "
+                         f"{rot.shape[0]} rotations and {trans.shape[0]} translations")
+    if not isinstance(sonar, SonarSpec):
+        raise TypeError(f"sonar must be a fsswarp.sonar.SonarSpec, got {type(sonar).__name__}")
+    return rot, trans
 
 
 def _float32_array(name: str, value: Any, shape: tuple) -> np.ndarray:
