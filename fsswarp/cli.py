@@ -68,6 +68,53 @@ def info(state: State) -> None:
 
 
 @app.command()
+@click.option("--out", default=Path("bench-out"), show_default=True, type=click.Path(path_type=Path),
+              help="Folder for bench.json, bench.md and one plot per family (<family>.png).")
+@click.option("--quick", is_flag=True, help="Tiny sizes: checks that every family runs, in about a minute.")
+@click.option("--families", default=",".join(("raycast", "synthesis", "carving", "pose", "reconstruction")),
+              show_default=True, help="Comma-separated families to run.")
+@click.option("--budget", default=20.0, show_default=True, type=float,
+              help="Seconds per point: a point projected to take longer is skipped, and so are larger ones.")
+@click.option("--repeat", default=3, show_default=True, type=click.IntRange(min=1),
+              help="Timed runs per figure after a warm-up (the median is reported, with min and max).")
+@click.option("--no-peers", is_flag=True, help="Leave out Embree, the NumPy reference and CuPy.")
+@click.pass_obj
+def bench(state: State, out: Path, quick: bool, families: str, budget: float, repeat: int, no_peers: bool) -> None:
+    """Benchmark the kernels (ray casting, synthesis, carving, pose grid, reconstruction) on
+    every backend present, or the one --backend/--device selects, with peers, each figure
+    beside its physical limit: OUT/bench.json, OUT/bench.md and OUT/<family>.png."""
+    import time
+
+    from . import bench as suite
+    from .atomic import output_folder
+    from .backends import describe_backends, get_backend
+
+    chosen = [f.strip() for f in families.split(",") if f.strip()]
+    suite.check_options(chosen, budget)
+    if state.backend != "auto" or state.device is not None:
+        backends = [state.get_backend()]
+    else:
+        rows = [r for r in describe_backends() if r["available"]]
+        backends = [get_backend(r["backend"], r["device"] if r["backend"] == "warp" else r["index"]) for r in rows]
+    selection = "".join(f" --{k} {v!r}" if " " in str(v) else f" --{k} {v}"
+                        for k, v in (("backend", state.backend), ("device", state.device))
+                        if v not in (None, "auto"))
+    command = (f"fsswarp{selection} bench --out {out}{' --quick' if quick else ''} --families {','.join(chosen)} "
+               f"--budget {budget:g} --repeat {repeat}{' --no-peers' if no_peers else ''}")
+    start = time.perf_counter()
+    state.echo(f"benchmarking {', '.join(chosen)} on " + "; ".join(f"{b.name} {b.device}" for b in backends))
+    run = suite.run_suite(backends, chosen, quick=quick, budget=budget, repeat=repeat, peers=not no_peers,
+                          command=command, progress=state.echo)
+    run["seconds"] = time.perf_counter() - start
+    with output_folder(out, marker="bench.json") as tmp:
+        (tmp / "bench.json").write_text(json.dumps(run, indent=1))
+        (tmp / "bench.md").write_text(f"# fsswarp bench\n\n{suite.machine_markdown(run)}\n{suite.markdown(run)}")
+        plots = [suite.plot_family(run["records"], family, tmp / f"{family}.png") for family in chosen]
+    state.echo(f"wrote {out}: bench.json, bench.md, {sum(p is not None for p in plots)} plots "
+               f"({run['seconds']:.0f} s)")
+
+
+@app.command()
 @click.argument("path", type=click.Path(path_type=Path))
 @click.pass_obj
 def check(state: State, path: Path) -> None:

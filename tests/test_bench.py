@@ -1,0 +1,199 @@
+"""The benchmark suite (fsswarp/bench.py, ``fsswarp bench``, bench/report.py) at tiny sizes:
+record structure and arithmetic, the budget's skip rule, the command line and the report.
+No assertion depends on how fast anything runs."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fsswarp import bench
+from fsswarp.cli import main
+
+from conftest import backend_for
+
+UNITS = {"raycast": "rays", "synthesis": "views", "carving": "voxel-views", "pose": "cell-views",
+         "reconstruction": "views"}
+
+
+def check_record(r: dict) -> None:
+    """What must hold of every timed record, whatever the machine."""
+    for key in ("family", "kernel", "mode", "backend", "device", "sweep", "x", "size", "work", "work_unit",
+                "median_s", "min_s", "max_s", "repeat", "throughput", "throughput_unit", "limit"):
+        assert key in r, key
+    assert r["skipped"] is None
+    assert r["work_unit"] == UNITS[r["family"]] and r["throughput_unit"] == r["work_unit"] + "/s"
+    assert 0 < r["min_s"] <= r["median_s"] <= r["max_s"] and math.isfinite(r["max_s"]) and r["repeat"] >= 1
+    assert r["throughput"] == pytest.approx(r["work"] / r["median_s"], rel=1e-12)
+    for name, value in r["rates"].items():
+        assert value > 0 and math.isfinite(value), name
+    limit = r["limit"]
+    parts = {k[:-2]: v for k, v in limit.items() if k in ("memory_s", "compute_s", "link_s")}
+    assert all(v > 0 and math.isfinite(v) for v in parts.values())
+    assert limit["limit_s"] == max(parts.values()) and limit["bound"] in parts
+    assert limit["limit_s"] == parts[limit["bound"]]
+    assert limit["fraction"] == pytest.approx(limit["limit_s"] / r["median_s"], rel=1e-12)
+    assert limit["bytes"] > 0 and limit["ops"] > 0
+    json.dumps(r, allow_nan=False)
+
+
+@pytest.fixture(scope="module")
+def carve_scene():
+    return bench.carve_scene(backend_for("opencl-cpu") if _has("opencl-cpu") else backend_for("warp-cpu"))
+
+
+def _has(label: str) -> bool:
+    try:
+        backend_for(label)
+    except pytest.skip.Exception:
+        return False
+    return True
+
+
+@pytest.mark.parametrize("label", ["warp-cpu", "opencl-cpu"])
+def test_every_family_gives_consistent_records(label, carve_scene):
+    backend = backend_for(label)
+    peer = bench.Peer("numpy", "cpu")
+    profiles = bench.probe_machine([backend, peer], quick=True)["profiles"]
+    common = dict(profiles=profiles, repeat=2, budget=30.0)
+    records = (bench.raycast(backend, (1,), rays=2048, **common)
+               + bench.synthesis(backend, (1, 2), samples=(1, 4), **common)
+               + bench.carving(backend, (8,), scene=carve_scene, **common)
+               + bench.pose_grid(backend, (2,), **common)
+               + bench.reconstruction(backend, ((0, 16),), **common)
+               + bench.numpy_carving((6,), scene=carve_scene, **common))
+    assert {r["family"] for r in records} == set(bench.FAMILIES)
+    assert {(r["family"], r["mode"]) for r in records if r["backend"] == backend.name} >= {
+        ("raycast", "resident"), ("raycast", "end to end"), ("synthesis", "resident"), ("carving", "resident"),
+        ("pose", "end to end"), ("pose", "resident"), ("reconstruction", "end to end")}
+    for r in records:
+        check_record(r)
+    ray = next(r for r in records if r["family"] == "raycast")
+    assert ray["size"] == {"triangles": 80, "rays": 2048, "hits": ray["size"]["hits"]}
+    assert 0 < ray["size"]["hits"] < 2048
+    carve = next(r for r in records if r["family"] == "carving" and r["backend"] == backend.name)
+    assert carve["work"] == 8**3 * 16 and 1 <= carve["size"]["tests_per_voxel"] <= 16
+
+
+def test_embree_peer_is_timed_or_unavailable():
+    peer = bench.Peer("embree", "cpu")
+    profiles = bench.probe_machine([peer], quick=True)["profiles"]
+    records = bench.embree_raycast((1,), profiles=profiles, repeat=1, rays=1024)
+    assert len(records) == 1
+    if records[0]["skipped"] is None:
+        check_record(records[0])
+    else:
+        assert records[0]["skipped"]["reason"].startswith("unavailable")
+
+
+def test_array_module_carving_runs_on_numpy(carve_scene):
+    sonar, masks, rot, t, centre = carve_scene
+    h, origin = bench._grid(centre, 8)
+    keep = bench.carve_array_module(np, masks, rot, t, sonar, h, origin, 8, chunk=100)
+    assert keep.shape == (512,) and keep.dtype == bool
+    assert keep.any() and not keep.all()
+    np.testing.assert_array_equal(keep, bench.carve_array_module(np, masks, rot, t, sonar, h, origin, 8))
+
+
+class FakeClock:
+    """A clock that only moves when the code under test 'runs' something."""
+
+    def __init__(self):
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_measure_stops_repeating_at_the_budget_but_keeps_one_run():
+    clock = FakeClock()
+
+    def call():
+        clock.now += 4.0
+
+    timing = bench.measure(call, 5, budget=10.0, clock=clock)
+    assert timing["repeat"] == 1 and timing["median_s"] == 4.0 and timing["timed_s"] == 8.0  # warm-up + 1
+    timing = bench.measure(call, 3, budget=100.0, clock=clock)
+    assert timing["repeat"] == 3 and timing["min_s"] == timing["max_s"] == 4.0
+    timing = bench.measure(call, 3, warmup=0, budget=1.0, clock=clock)
+    assert timing["repeat"] == 1
+
+
+def test_sweep_skips_points_projected_past_the_budget():
+    clock = FakeClock()
+    ran = []
+
+    def run_point(x):
+        clock.now += 1.0  # setup, grows with the size
+        clock.now += 2.0 * x  # timed calls, grow with the work
+        ran.append(x)
+        return [{"x": x, "timed_s": 2.0 * x}]
+
+    def skipped(x, projected):
+        return [{"x": x, "skipped": {"projected_s": projected}}]
+
+    points = [(1, 1, 1), (2, 2, 2), (4, 4, 4), (8, 8, 8), (3, 3, 3)]
+    records = bench.sweep(points, run_point, skipped, budget=10.0, clock=clock)
+    # 1 took 1 + 2 s; 2 is projected at 2 + 4 = 6 s and runs (1 + 4 s); 4 is projected at
+    # 2 + 8 = 10 s (not past the budget) and runs (1 + 8 s); 8 at 2 + 16 = 18 s is skipped,
+    # and so is every later point, even a smaller one
+    assert ran == [1, 2, 4]
+    assert [r["x"] for r in records] == [1, 2, 4, 8, 3]
+    assert records[3]["skipped"]["projected_s"] == pytest.approx(18.0)
+    assert records[4]["skipped"]["projected_s"] == pytest.approx(0.25 * 3 + 8 * 3 / 4)
+
+
+@pytest.fixture(scope="module")
+def cli_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("bench") / "run"
+    status = main(["--quiet", "bench", "--out", str(out), "--quick", "--families", "raycast,carving",
+                   "--repeat", "1"])
+    return status, out
+
+
+def test_cli_writes_json_tables_and_plots(cli_run):
+    status, out = cli_run
+    assert status == 0
+    run = json.loads((out / "bench.json").read_text())
+    assert run["quick"] and run["command"].startswith("fsswarp bench --out")
+    assert {r["family"] for r in run["records"]} == {"raycast", "carving"}
+    for r in run["records"]:
+        if r.get("skipped") is None:
+            check_record(r)
+    text = (out / "bench.md").read_text()
+    assert "| kernel | mode |" in text and "fraction of limit" in text and "measured NumPy copy" in text
+    assert (out / "raycast.png").stat().st_size > 0 and (out / "carving.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize("args", [["--families", "raycast,nope"], ["--budget", "0"], ["--budget", "nan"],
+                                  ["--repeat", "0"], ["--families", ","]])
+def test_cli_bad_options_exit_2_with_one_line(args, tmp_path, capsys):
+    assert main(["bench", "--out", str(tmp_path / "x"), *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("fsswarp: error:") and "\n" not in err
+    assert not (tmp_path / "x").exists()
+
+
+def test_report_regenerates_results_from_records(cli_run, tmp_path):
+    _, out = cli_run
+    spec = importlib.util.spec_from_file_location("bench_report", Path(__file__).parents[1] / "bench" / "report.py")
+    report = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(report)
+    records = tmp_path / "records"
+    records.mkdir()
+    (records / "tiny-cpu.json").write_bytes((out / "bench.json").read_bytes())
+    notes = tmp_path / "notes.md"
+    notes.write_text("## Notes\n\nkept by hand\n")
+    results = tmp_path / "RESULTS.md"
+    args = [str(records / "tiny-cpu.json"), "--notes", str(notes), "--out", str(results),
+            "--figures", str(tmp_path / "figures")]
+    assert report.main(args) == 0
+    text = results.read_text()
+    assert "## tiny-cpu" in text and "Furthest from their limits" in text and text.rstrip().endswith("kept by hand")
+    assert "](figures/tiny-cpu-raycast.png)" in text and (tmp_path / "figures" / "tiny-cpu-carving.png").is_file()
+    assert report.main([str(tmp_path / "missing.json"), "--out", str(tmp_path / "R2.md")]) == 2
