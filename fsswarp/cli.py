@@ -443,7 +443,8 @@ def demo(state: State, scene_name: str, out: Path, seed: int, iterations: int) -
         result = run_reconstruction(state, dataset, tmp / "reconstruction", ReconstructSettings(iterations=iterations),
                                     shown=out / "reconstruction")
         run_enhancement(state, dataset, result.model, "the reconstructed model", result.depth, result.tilt,
-                        tmp / "enhance", source="estimated", shown=out / "enhance", dataset_label=out / "dataset")
+                        tmp / "enhance", source="estimated", initial=(result.carved, "the carved model"),
+                        shown=out / "enhance", dataset_label=out / "dataset")
         (tmp / "demo.json").write_text(json.dumps({"scene": scene_name, "seed": seed,
                                                    "seconds": time.perf_counter() - start}, indent=2))
     state.echo(f"wrote {out}: dataset/, reconstruction/, enhance/ ({time.perf_counter() - start:.1f} s in all)")
@@ -490,47 +491,80 @@ def run_reconstruction(state: State, dataset, out: Path, settings, *, shown: Pat
 @click.option("--model", required=True, type=click.Path(path_type=Path),
               help="Mesh of the object in the dataset's reference frame (e.g. OUT/model.ply of reconstruct).")
 @click.option("--out", required=True, type=click.Path(path_type=Path),
-              help="Folder for <view>_enhanced.tiff, <view>_ghost.tiff, enhance.json and enhance.png.")
+              help="Folder for <view>_enhanced.tiff, <view>_ghost.tiff, enhance.json and the figures.")
 @click.option("--depth", type=float, default=None, help="Sonar depth D (m); default: the dataset's measured depth.")
 @click.option("--tilt", type=float, default=None, help="Sonar tilt (deg); default: the dataset's measured tilt.")
 @click.option("--view", "view_names", multiple=True, help="Enhance only this view (repeatable).")
+@click.option("--initial-model", type=click.Path(path_type=Path), default=None,
+              help="Initial mesh (e.g. OUT/carved.ply of reconstruct), rendered at the measured depth and tilt "
+                   "as the comparison figures' 'initial synthetic' column.")
+@click.option("--ghost-sigma", nargs=2, type=click.FloatRange(min=0.0), default=(0.0, 0.0), show_default=True,
+              metavar="BINS BEAMS", help="Despeckle the isolated ghost (Gaussian sigma inside the ghost region); "
+                                         "0 0 keeps the recorded ghost, 1 0.7 estimates the noise-free one.")
 @click.pass_obj
-def enhance(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt, view_names) -> None:
+def enhance(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt, view_names, initial_model,
+            ghost_sigma) -> None:
     """Remove the ghost from every view by the LUT method of the paper's §2.6 and isolate the
     ghost: OUT/<view>_enhanced.tiff and OUT/<view>_ghost.tiff (the data's linear units),
-    OUT/enhance.json (regions, LUTs and, for simulated data, scores against the truth layers)
-    and OUT/enhance.png."""
+    OUT/enhance.json (regions, LUTs and, for simulated data, scores against the truth layers),
+    OUT/enhance.png, and the figures of the paper's Figures 10-14, OUT/views_optimized.png and
+    OUT/views_heldout.png (data | ghost-free | [initial synthetic |] synthetic of MODEL). Views
+    that MODEL does not project into are skipped with a warning; none at all is an error."""
     from .dataset import load_dataset
 
     dataset = load_dataset(dataset_dir)
     mesh = load_mesh_file(model)
+    initial = None
+    if initial_model is not None:
+        try:
+            initial = (load_mesh_file(initial_model), str(initial_model))
+        except InputError as err:
+            raise InputError(err.message, field="--initial-model", value=str(initial_model)) from None
     given = depth is not None or tilt is not None
     depth = dataset.manifest.surface.depth if depth is None else depth
     tilt = dataset.manifest.surface.tilt if tilt is None else math.radians(tilt)
-    run_enhancement(state, dataset, mesh, model.name, depth, tilt, out, views=list(view_names) or None,
-                    source="given" if given else "measured")
+    run_enhancement(state, dataset, mesh, str(model), depth, tilt, out, views=list(view_names) or None,
+                    source="given" if given else "measured", initial=initial, ghost_sigma=tuple(ghost_sigma))
+
+
+#: The comparison figures of run_enhancement: file name and group of fsswarp.enhance.comparison_views.
+COMPARISON_FIGURES = {"views_optimized.png": "optimized", "views_heldout.png": "held-out"}
 
 
 def run_enhancement(state: State, dataset, mesh, model_name: str, depth: float, tilt: float, out: Path, *,
-                    views=None, source: str, shown: Path | None = None, dataset_label: Path | None = None) -> None:
+                    views=None, source: str, initial=None, ghost_sigma=(0.0, 0.0), shown: Path | None = None,
+                    dataset_label: Path | None = None) -> None:
     """Enhance ``dataset``'s views with ``mesh`` at (depth m, tilt rad) and write OUT/<view>_enhanced.tiff,
-    <view>_ghost.tiff, enhance.json and enhance.png (``shown``, ``dataset_label``: the names of OUT and
-    of the dataset's folder in messages and enhance.json, when they are temporary folders)."""
+    <view>_ghost.tiff, enhance.json, enhance.png and the comparison figures (COMPARISON_FIGURES; a
+    group with no view gets none). ``initial``: (mesh, name) of the initial model, rendered at the
+    measured depth and tilt for the figures' "initial synthetic" column; ``ghost_sigma``: see
+    fsswarp.enhance.enhance_view. ``shown``, ``dataset_label``:
+    the names of OUT and of the dataset's folder in messages and enhance.json, when they are
+    temporary folders."""
     import time
 
     import numpy as np
     import tifffile
 
     from .atomic import output_folder
+    from .enhance import comparison_views, match_level, render_model, score
     from .enhance import enhance as run
-    from .enhance import score
-    from .figures import enhance_figure
+    from .figures import comparison_figure, enhance_figure
+    from .render import LAYERS
 
     start = time.perf_counter()
     backend = state.get_backend()
-    state.echo(f"enhancing {len(views or dataset.images)} views with {model_name}: D {depth:.4g} m, "
+    requested = list(views or dataset.rig.names)
+    state.echo(f"enhancing {len(requested)} views with {model_name}: D {depth:.4g} m, "
                f"tilt {math.degrees(tilt):.4g} deg ({source}; {backend.name} on {backend.device})")
-    results = run(dataset, mesh, depth, tilt, views=views, backend=backend)
+    results = run(dataset, mesh, depth, tilt, views=requested, backend=backend, model_name=model_name,
+                  ghost_sigma=ghost_sigma)
+    groups = comparison_views(dataset.rig, list(results))
+    surface = dataset.manifest.surface
+    initial_layers = None
+    if initial is not None:
+        initial_layers = render_model(initial[0], dataset, surface.depth, surface.tilt,
+                                      groups["optimized"] + groups["held-out"], backend=backend, model_name=initial[1])
     has_truth = dataset.root is not None and all((dataset.root / "truth" / f"{n}_object.tiff").is_file()
                                                  for n in results)
     scores = score(dataset, results) if has_truth else None
@@ -543,10 +577,18 @@ def run_enhancement(state: State, dataset, mesh, model_name: str, depth: float, 
         if correlations:
             state.echo(f"  isolated ghost vs true ghost: Pearson r {np.mean(correlations):.3f} "
                        f"(mean; min {min(correlations):.3f})")
+    columns = ["data", "ghost-free data"] + (["initial synthetic"] if initial is not None else []) + ["optimized synthetic"]
+    figures = {file: {"views": groups[group], "columns": columns}
+               for file, group in COMPARISON_FIGURES.items() if groups[group]}
+    label = (dataset_label or dataset.root).name
     record = {"dataset": str(dataset_label or dataset.root), "model": model_name, "depth_m": depth,
               "tilt_deg": math.degrees(tilt),
               "depth_tilt_source": source,
+              "initial_model": None if initial is None else {"model": initial[1], "depth_m": surface.depth,
+                                                             "tilt_deg": math.degrees(surface.tilt)},
               "views": {name: result.summary() for name, result in results.items()},
+              "ghost_sigma": list(ghost_sigma), "views_skipped": [n for n in requested if n not in results],
+              "figures": figures,
               "scores": scores, "backend": backend.name, "device": backend.device,
               "seconds": time.perf_counter() - start}
     with output_folder(out, marker="enhance.json") as tmp:
@@ -556,11 +598,27 @@ def run_enhancement(state: State, dataset, mesh, model_name: str, depth: float, 
         first = list(results)[:6]
         enhance_figure({n: dataset.images[n] for n in first}, {n: results[n] for n in first}, dataset.sonar,
                        tmp / "enhance.png",
-                       title=f"{(dataset_label or dataset.root).name}: ghost removal with {model_name}"
+                       title=f"{label}: ghost removal with {model_name}"
                        + (f" (first 6 of {len(results)} views)" if len(results) > 6 else ""))
+        total = LAYERS.index("total")
+        for file, entry in figures.items():
+            names = entry["views"]
+            initial_images = None if initial is None else {
+                n: match_level(initial_layers[n][total], dataset.images[n]) if n in initial_layers
+                else np.zeros_like(dataset.images[n]) for n in names}
+            group = "held-out views (not optimized)" if COMPARISON_FIGURES[file] == "held-out" else "optimized views"
+            comparison_figure({n: dataset.images[n] for n in names}, {n: results[n].enhanced for n in names},
+                              {n: match_level(results[n].synthetic, dataset.images[n]) for n in names},
+                              dataset.sonar, tmp / file, initial=initial_images,
+                              title=f"{label}, {group}: {', '.join(names)}\n"
+                                    + (f"initial synthetic: {initial[1]} at the measured D0 = {surface.depth:.3f} m, "
+                                       f"tilt {math.degrees(surface.tilt):.2f} deg\n" if initial is not None else "")
+                                    + f"optimized synthetic: {model_name} at D = {depth:.3f} m, tilt "
+                                      f"{math.degrees(tilt):.2f} deg ({source})\nsynthetic: total layer, scaled to "
+                                      "the data's mean over its returns")
         (tmp / "enhance.json").write_text(json.dumps(record, indent=2))
-    state.echo(f"wrote {shown or out}: {len(results)} views, enhance.json, enhance.png "
-               f"({time.perf_counter() - start:.1f} s)")
+    state.echo(f"wrote {shown or out}: {len(results)} views, enhance.json, enhance.png"
+               + "".join(f", {file}" for file in figures) + f" ({time.perf_counter() - start:.1f} s)")
 
 
 def describe_manifest(manifest) -> str:

@@ -26,7 +26,11 @@ the model rendered at (D, β):
 
 Ghost isolation (Figure 5c–e): over G, ``ghost = max(I − enhanced, 0)`` (the data with the
 object estimate discounted in the overlap, and with the background level discounted in the
-ghost-only part); zero elsewhere. Everything returned is linear, in the data's units.
+ghost-only part) times the ghost's share of the synthetic multipath (ghost / (ghost + mirror
++ mirror2)); zero elsewhere; optionally despeckled (``ghost_sigma``). Everything returned is linear, in the data's units.
+
+For figures like the paper's Figures 10–14, ``comparison_views`` picks the views to show
+(optimized and held-out) and ``match_level`` scales a synthetic image to the data's level.
 """
 
 from __future__ import annotations
@@ -45,12 +49,14 @@ _DB_FLOOR = 1e-30
 
 @dataclass(frozen=True)
 class EnhancedView:
-    """One view's result. Images are (bins, beams) float32 in the data's linear units; masks
-    (bins, beams) bool. ``lut`` is (2, levels) float64: source dB (scaled synthetic) and target
-    dB (data) values of the table."""
+    """One view's result. Images are (bins, beams) float32 in the data's linear units but
+    ``synthetic``, the model's total layer (render's units); masks (bins, beams) bool. ``lut``
+    is (2, levels) float64: source dB (scaled synthetic) and target dB (data) values of the
+    table."""
 
     enhanced: np.ndarray
     ghost: np.ndarray
+    synthetic: np.ndarray
     object_region: np.ndarray
     ghost_region: np.ndarray
     mirror_region: np.ndarray
@@ -68,12 +74,15 @@ class EnhancedView:
 
 
 def enhance_view(image, layers, *, threshold: float = 1e-3, dilate: int = 1, levels: int = 256,
-                 name: str = "image") -> EnhancedView:
+                 ghost_sigma: tuple[float, float] = (0.0, 0.0), name: str = "image") -> EnhancedView:
     """Ghost-free object image and isolated ghost of one view (module docstring, steps 1–6).
 
     image : (bins, beams) linear data; layers : (5, bins, beams) synthetic layers in the order
-    of ``render.LAYERS``. InputError when the shapes differ or the synthetic object leaves too
-    few non-overlapping pixels (fewer than 16) to learn the LUT from."""
+    of ``render.LAYERS``. ``ghost_sigma`` (bins, beams): Gaussian σ of a despeckle of the
+    isolated ghost inside the ghost region (normalized convolution; (0, 0), the default, keeps
+    the recorded, speckled ghost; (1, 0.7), segment's smoothing, estimates the noise-free
+    one). InputError when the shapes differ or the synthetic object leaves too few
+    non-overlapping pixels (fewer than 16) to learn the LUT from."""
     image = np.asarray(image, np.float64)
     layers = np.asarray(layers, np.float64)
     if image.ndim != 2 or layers.shape != (len(LAYERS),) + image.shape:
@@ -115,15 +124,24 @@ def enhance_view(image, layers, *, threshold: float = 1e-3, dilate: int = 1, lev
     multipath = layer["ghost"] + layer["mirror"] + layer["mirror2"]
     share = np.divide(layer["ghost"], multipath, out=(~mirror).astype(np.float64), where=multipath > 0)
     isolated = np.where(ghost, np.maximum(image - enhanced, 0.0) * share, 0.0)
-    return EnhancedView(enhanced.astype(np.float32), isolated.astype(np.float32), obj, ghost, mirror, overlap,
-                        lut, background)
+    if any(ghost_sigma):
+        weight = ndimage.gaussian_filter(ghost.astype(np.float64), ghost_sigma)
+        isolated = np.where(ghost, ndimage.gaussian_filter(isolated, ghost_sigma) / np.maximum(weight, 1e-12), 0.0)
+    return EnhancedView(enhanced.astype(np.float32), isolated.astype(np.float32),
+                        layer["total"].astype(np.float32), obj, ghost, mirror, overlap, lut, background)
 
 
 def enhance(dataset, model, depth: float, tilt: float, *, views=None, settings: RenderSettings = RenderSettings(),
-            backend=None, **options) -> dict[str, EnhancedView]:
+            backend=None, model_name: str = "model", **options) -> dict[str, EnhancedView]:
     """Enhanced views of ``dataset`` (fsswarp.dataset.Dataset) with the mesh ``model`` (reference
     frame) rendered at (depth m, tilt rad). views : names (default: all). ``options`` go to
-    ``enhance_view``. InputError naming a view that is missing or the model does not reach."""
+    ``enhance_view``.
+
+    Views that cannot be enhanced, where the model does not project (an empty synthetic object
+    layer) or leaves too few object pixels free of ghost and mirror (``enhance_view``), are
+    skipped with a RenderWarning naming them and are absent from the result. InputError naming
+    a view the dataset lacks, or when no view is left: naming ``model_name`` when it projects
+    into none, else the first view's reason."""
     names = list(dataset.rig.names if views is None else views)
     if not names:
         raise InputError("no views to enhance", field="views", value=names)
@@ -131,18 +149,76 @@ def enhance(dataset, model, depth: float, tilt: float, *, views=None, settings: 
         if name not in dataset.images:
             raise InputError(f"no such view in the dataset (views: {', '.join(dataset.rig.names)})",
                              field="view", value=name)
+    rendered = render_model(model, dataset, depth, tilt, names, settings=settings, backend=backend,
+                            model_name=model_name)
+    results, failures = {}, []
+    for name, layers in rendered.items():
+        try:
+            results[name] = enhance_view(dataset.images[name], layers, name=f"view {name}", **options)
+        except InputError as err:
+            failures.append(err)
+    if not results:
+        raise failures[0]
+    for err in failures:
+        warnings.warn(f"{model_name}: {err}: skipped", RenderWarning, stacklevel=2)
+    return results
+
+
+def render_model(model, dataset, depth: float, tilt: float, names, *, settings: RenderSettings = RenderSettings(),
+                 backend=None, model_name: str = "model") -> dict[str, np.ndarray]:
+    """``render`` of the mesh ``model`` at (depth m, tilt rad) for the views ``names`` of
+    ``dataset``, less the views it does not project into (an empty object layer), which are
+    named in one RenderWarning: {view: (5, bins, beams) float32}. InputError naming
+    ``model_name`` when it projects into none of them."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", RenderWarning)
         rendered = render(model, dataset.sonar, dataset.rig, depth, tilt, views=names, settings=settings,
                           backend=backend)
-    for name in names:
-        if not rendered[name][LAYERS.index("object")].any():
-            raise InputError("the model does not project into this view: move it or check the depth "
-                             "and tilt", field="view", value=name)
-    for warning in caught:  # the views hold the model: pass on what else render had to say
-        warnings.warn(warning.message, warning.category, stacklevel=2)
-    return {name: enhance_view(dataset.images[name], rendered[name], name=f"view {name}", **options)
-            for name in names}
+    missed = [name for name in names if not rendered[name][LAYERS.index("object")].any()]
+    if len(missed) == len(names):
+        raise InputError(f"projects into none of the views ({_listed(names)}) at D = {depth:.4g} m, "
+                         f"tilt = {np.degrees(tilt):.4g} deg: is the model in the dataset's reference frame, "
+                         "and are the depth and tilt right?", file=model_name)
+    if missed:
+        warnings.warn(f"{model_name}: does not project into view(s) {_listed(missed)}: skipped",
+                      RenderWarning, stacklevel=3)
+    for warning in caught:  # pass on what render said about the views that are kept
+        if not any(str(warning.message).startswith(f"view {name}:") for name in missed):
+            warnings.warn(warning.message, warning.category, stacklevel=3)
+    return {name: stack for name, stack in rendered.items() if name not in missed}
+
+
+def _listed(names, most: int = 6) -> str:
+    return ", ".join(names[:most]) + (f" and {len(names) - most} more" if len(names) > most else "")
+
+
+def comparison_views(rig, names, *, most: int = 4) -> dict[str, list[str]]:
+    """The views to show in comparison figures (paper Figures 10–14), grouped by the
+    manifest's ``optimize`` flags: {"optimized": [...], "held-out": [...]}, each at most
+    ``most`` of ``names`` (views of ``rig``, fsswarp.rig.Rig). Held-out views come in order of
+    |roll| (the roll-0 ones first), then rig order; optimized ones are spread evenly over
+    rig order (first and last included)."""
+    order = [v for v in rig.views if v.name in set(names)]
+    held = sorted((v for v in order if not v.optimize), key=lambda v: abs(v.roll))[:most]
+    used = [v for v in order if v.optimize]
+    if len(used) > most:
+        used = [used[i] for i in np.unique(np.round(np.linspace(0, len(used) - 1, most)).astype(int))]
+    return {"optimized": [v.name for v in used], "held-out": [v.name for v in held]}
+
+
+def match_level(synthetic, image, *, threshold: float = 1e-3) -> np.ndarray:
+    """``synthetic`` (bins, beams, render's units) scaled to the data ``image`` (bins, beams,
+    linear) so that their means match over the synthetic's returns (pixels at least
+    ``threshold`` × its peak), the data's background level (median elsewhere) taken off first.
+    Returns float32 (bins, beams); all zeros for an empty synthetic."""
+    synthetic = np.asarray(synthetic, np.float64)
+    image = np.asarray(image, np.float64)
+    if not synthetic.max() > 0:
+        return np.zeros(synthetic.shape, np.float32)
+    region = synthetic >= threshold * float(synthetic.max())
+    background = float(np.median(image[~region])) if (~region).any() else 0.0
+    gain = max(float(image[region].mean()) - background, 0.0) / float(synthetic[region].mean())
+    return (gain * synthetic).astype(np.float32)
 
 
 def score(dataset, results: dict[str, EnhancedView], *, threshold: float = 1e-3, background: float = 0.05) -> dict:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import io
 import math
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -84,7 +85,8 @@ def _save(fig, path: str | Path, title: str = "", *, rect=(0, 0, 1, 1)) -> Path:
     import matplotlib.pyplot as plt
 
     if title:
-        fig.suptitle(title, fontsize=9)
+        width = max(40, int(fig.get_figwidth() * 15))  # characters of a 9-point line
+        fig.suptitle("\n".join(textwrap.fill(line, width) for line in title.splitlines()), fontsize=9)
     fig.tight_layout(rect=rect)
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=110)
@@ -259,4 +261,52 @@ def enhance_figure(images: dict[str, np.ndarray], results: dict, sonar: SonarSpe
             ax.set_xlabel("azimuth (deg)", fontsize=6)
             ax.set_ylabel("range (m)", fontsize=6)
             ax.tick_params(labelsize=5)
+    return _save(fig, path, title)
+
+
+def comparison_figure(images: dict[str, np.ndarray], enhanced: dict[str, np.ndarray],
+                      synthetic: dict[str, np.ndarray], sonar: SonarSpec, path: str | Path, *,
+                      initial: dict[str, np.ndarray] | None = None, floor_db: float = -40.0,
+                      title: str = "") -> Path:
+    """Save a PNG like the paper's Figures 10–14, one row per view: data | ghost-free data |
+    initial synthetic (only when ``initial`` is given) | optimized synthetic, as fan images
+    zoomed on the synthetic returns (x across, y ahead, metres).
+
+    Every dict is {view: (bins, beams) linear image}, keyed like ``images``; the synthetic
+    images should already be scaled to the data's level (fsswarp.enhance.match_level). One
+    colour scale per row: dB below the row's data peak, down to ``floor_db``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    columns = [("data", images), ("ghost-free data", enhanced)]
+    if initial is not None:
+        columns.append(("initial synthetic", initial))
+    columns.append(("optimized synthetic", synthetic))
+    fig = plt.figure(figsize=(2.6 * len(columns) + 0.4, 2.5 * len(images) + 1.1))
+    grid = fig.add_gridspec(len(images) + 1, len(columns), height_ratios=[1.0] * len(images) + [0.04])
+    axes = np.array([[fig.add_subplot(grid[r, c]) for c in range(len(columns))] for r in range(len(images))])
+    for row, name in enumerate(images):
+        peak = float(np.max(images[name])) or 1.0
+        models = {label: source[name] for label, source in columns[2:]}
+        model_peak = max(float(np.max(m)) for m in models.values()) or 1.0
+        limits = _zoom_limits({name: np.stack(list(models.values()))}, sonar, model_peak)
+        for col, (label, source) in enumerate(columns):
+            ax = axes[row, col]
+            with np.errstate(divide="ignore"):
+                db = np.maximum(20.0 * np.log10(np.maximum(source[name], 0) / peak), floor_db)
+            fan, extent = scan_convert(db.astype(np.float32), sonar, fill=np.nan)
+            shown = ax.imshow(fan, extent=extent, cmap="magma", vmin=floor_db, vmax=0)
+            if limits is not None:
+                ax.set_xlim(limits["x"])
+                ax.set_ylim(limits["y"])
+            ax.set_title(f"{name}: {label}", fontsize=8)
+            ax.set_xlabel("x (m)", fontsize=6)
+            ax.set_ylabel("y (m)", fontsize=6)
+            ax.tick_params(labelsize=5)
+    bar = fig.colorbar(shown, cax=fig.add_subplot(grid[-1, 1:-1] if len(columns) > 2 else grid[-1, :]),
+                       orientation="horizontal")
+    bar.set_label("dB below the row's data peak", fontsize=7)
+    bar.ax.tick_params(labelsize=6)
     return _save(fig, path, title)
