@@ -7,10 +7,14 @@ views too: on coral-one, carving from the 10 optimized views alone left E_V at 0
 
 1. pose step: ``fsswarp.pose.estimate_pose`` searches the (D, β) grid around the current
    estimate for the current model and keeps the result only if E_mu falls (greedy);
-2. shape step: the views' relative poses follow β (DESIGN §2), so the model is re-carved with
-   the views moved to the new (D, β), which keeps the model and its views consistent, then
-   refined against the images (``fsswarp.refine.refine_shape``: contour and mirror-contour
-   motions of frontal triangles, an overshoot term that pulls the bloated carved surface in);
+2. shape step: the model is refined against the images with the views at the new (D, β)
+   (``fsswarp.refine.refine_shape``: contour and mirror-contour motions of frontal
+   triangles, an overshoot term that pulls the bloated carved surface in). The model is kept
+   in the reference frame, which the reference view observes directly whatever β is, so it
+   stays valid when the views move; it is not re-carved. Re-carving at every new (D, β)
+   threw the accumulated refinement away each iteration, and it brings no information about
+   the pose: along the D–β valley (ΔD ≈ 3.5 cm per degree of β), models re-carved and refined
+   at each point have the same E_mu within noise (README, "Reconstruction");
 3. record D, β, E_mu, AIE, ACE, E_I and, with a truth model, E_V, Chamfer and F-score.
 
 Before the first pose step the carved model is refined at (D0, β0) too: a carved model is
@@ -150,8 +154,6 @@ def reconstruct(dataset, *, settings: ReconstructSettings = ReconstructSettings(
             break
         moved_depth, moved_tilt = abs(pose.depth - depth), abs(pose.tilt - tilt)
         depth, tilt = pose.depth, pose.tilt
-        model = carve(dataset, depth, tilt, resolution=settings.resolution, settings=settings.carve,
-                      backend=backend).mesh
         model = refine_shape(model, dataset, depth, tilt, settings=settings.refine, backend=backend).mesh
         entry = _record(iteration, model, dataset, depth, tilt, truth, settings, backend, first)
         history.append(entry)

@@ -68,3 +68,26 @@ def test_settings_checked():
         RefineSettings(step=0.0)
     with pytest.raises(InputError, match="refine.rays"):
         RefineSettings(rays=(0, 4))
+
+
+def test_a_step_that_folds_triangles_holds_only_their_vertices():
+    """One vertex pushed through the mesh would fold its triangles: it and its neighbours in
+    those triangles stay, every other vertex takes the full step."""
+    import trimesh
+
+    from fsswarp.refine import _apply
+
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
+    outward = 0.001 * sphere.vertex_normals
+    displacement = outward.copy()
+    displacement[0] = -0.25 * sphere.vertex_normals[0]  # 2.5 radii inward: folds its fan
+    settings = RefineSettings(step=1.0)
+    moved, factor = _apply(sphere, displacement, settings)
+    held = np.all(moved.vertices == sphere.vertices, axis=1)
+    assert held[0]
+    assert 0 < held.sum() < 20
+    free = ~held
+    np.testing.assert_allclose(moved.vertices[free], sphere.vertices[free] + outward[free], atol=1e-12)
+    assert factor == pytest.approx(free.mean())
+    turn = np.einsum("ij,ij->i", moved.face_normals, sphere.face_normals)
+    assert turn.min() > np.cos(settings.max_turn)
