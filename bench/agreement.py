@@ -38,9 +38,9 @@ def label(backend) -> str:
 
 
 def coral_layers(backend):
-    from bench_render import scene_batch
+    from fsswarp.bench import coral_batch
 
-    sonar, mesh, rot, t, n, d = scene_batch(16)
+    sonar, mesh, rot, t, n, d = coral_batch(16)
     handle = backend.load_mesh(mesh.vertices, mesh.faces)
     return backend.render(handle, sonar, rot, t, n, d, (2, 64), gamma=1.0, surface_reflection=0.9)
 
