@@ -47,7 +47,7 @@ import numpy as np
 
 from .atomic import output_folder, write_text
 from .dataset import MANIFEST_NAME, Dataset, Manifest, SurfaceEstimate, load_dataset, save_dataset
-from .errors import InputError
+from .errors import InputError, is_integer
 from .rig import Rig, View
 from .sonar import SonarSpec
 
@@ -275,7 +275,7 @@ class ArisFile:
         return FILE_HEADER_BYTES + frame * self.frame_bytes
 
     def _index(self, frame) -> int:
-        if isinstance(frame, bool) or not isinstance(frame, (int, np.integer)) or not 0 <= frame < self.frame_count:
+        if not is_integer(frame) or not 0 <= frame < self.frame_count:
             raise InputError(f"no such frame: the file holds {self.frame_count} (0-{self.frame_count - 1})",
                              file=self.path, field="frame", value=frame)
         return int(frame)
@@ -380,7 +380,7 @@ def parse_frames(spec, count: int, *, file=None) -> list[int]:
             frames.extend(range(first, last + 1))
     else:
         frames = list(spec)
-        if not all(isinstance(f, (int, np.integer)) and not isinstance(f, bool) and 0 <= f < count for f in frames):
+        if not all(is_integer(f) and 0 <= f < count for f in frames):
             raise InputError(f"must be frame numbers 0-{count - 1}", file=file, field="--frames", value=frames)
         frames = [int(f) for f in frames]
     if not frames:

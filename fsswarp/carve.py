@@ -59,7 +59,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, check_integer, is_integer
 from .rig import to_view
 from .segment import Segmentation, SegmentSettings, segment
 from .sonar import SonarSpec, from_polar, to_polar
@@ -100,9 +100,7 @@ class CarveSettings:
     def __post_init__(self) -> None:
         for name, lowest in (("domain_resolution", 8), ("coarse", 2), ("min_views", 1), ("smooth", 0),
                              ("faces", 0)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lowest:
-                raise InputError(f"must be an integer >= {lowest}", field=name, value=value)
+            check_integer(name, getattr(self, name), lowest)
         if not (isinstance(self.surface_margin, (int, float)) and math.isfinite(self.surface_margin)):
             raise InputError("must be a finite number (m)", field="surface_margin", value=self.surface_margin)
 
@@ -231,7 +229,7 @@ def carve_masks(masks, rotations, translations, sonar: SonarSpec, *, resolution:
     """
     from .backends import get_backend
 
-    if isinstance(resolution, bool) or not isinstance(resolution, (int, np.integer)) or not 8 <= resolution <= 1024:
+    if not is_integer(resolution) or not 8 <= resolution <= 1024:
         raise InputError("must be an integer in 8..1024", field="--resolution", value=resolution)
     backend = backend or get_backend()
     timings = {} if timings is None else timings

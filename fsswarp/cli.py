@@ -335,7 +335,6 @@ def carve(state: State, dataset_dir: Path, out: Path, depth, tilt, resolution: i
     import time
 
     import numpy as np
-    import trimesh
 
     from .atomic import output_folder
     from .carve import CarveSettings

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numbers
 from typing import Any
 
 _UNSET = object()
@@ -36,6 +37,17 @@ class InputError(ValueError):
             where.append(self.field if self.value is _UNSET else f"{self.field} = {_short(self.value)}")
         text = ": ".join(where + [self.message])
         return " ".join(text.split())  # always one line
+
+
+def is_integer(value: Any) -> bool:
+    """An int or NumPy integer, not a bool."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def check_integer(name: str, value: Any, minimum: int) -> None:
+    """InputError naming field ``name`` unless ``value`` is an integer >= ``minimum``."""
+    if not is_integer(value) or value < minimum:
+        raise InputError(f"must be an integer >= {minimum}", field=name, value=value)
 
 
 def _short(value: Any, limit: int = 60) -> str:

@@ -36,6 +36,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .errors import is_integer
+
 #: Cauchy tuning constant: 95 % asymptotic efficiency for Gaussian residuals.
 CAUCHY_C = 2.3849
 #: median(r) / σ for the distance r of a 2-D Gaussian error with per-axis σ (Rayleigh median).
@@ -104,8 +106,7 @@ def icp(source, target, *, max_iterations: int = 200, tol: float = 1e-10, gate: 
     """
     src = _points("source", source, minimum=2)
     tgt = _points("target", target, minimum=2)
-    if isinstance(max_iterations, bool) or not (isinstance(max_iterations, (int, np.integer))
-                                                and max_iterations >= 1):
+    if not (is_integer(max_iterations) and max_iterations >= 1):
         raise ValueError(f"max_iterations must be an integer >= 1, got {max_iterations!r}")
     for name, value in (("tol", tol), ("gate", gate), ("tuning", tuning)):
         if not (math.isfinite(value) and value > 0):

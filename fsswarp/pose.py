@@ -77,7 +77,7 @@ from typing import Callable
 import nlopt
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, check_integer, is_integer
 from .icp import icp
 from .motion import patch_motions, view_errors
 from .render import check_mesh
@@ -142,8 +142,7 @@ class PoseSettings:
     def __post_init__(self) -> None:
         for name in ("samples", "exact_samples", "grid"):
             pair = getattr(self, name)
-            if len(pair) != 2 or any(isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1
-                                     for k in pair):
+            if len(pair) != 2 or not all(is_integer(k) and k >= 1 for k in pair):
                 raise InputError("must be two integers >= 1", field=f"pose.{name}", value=pair)
         if min(self.grid) < 3:
             raise InputError("needs at least 3 cells along each axis", field="pose.grid", value=self.grid)
@@ -153,9 +152,7 @@ class PoseSettings:
                 raise InputError("must be a finite number > 0 (m)", field=f"pose.{name}", value=value)
         for name, lowest in (("margin_beams", 0), ("min_mirror_beams", 2), ("polish", 0), ("patch_rays", 1),
                              ("launch_bytes", 1)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lowest:
-                raise InputError(f"must be an integer >= {lowest}", field=f"pose.{name}", value=value)
+            check_integer(f"pose.{name}", getattr(self, name), lowest)
         if len(self.shifts) == 0 or not all(math.isfinite(s) for s in self.shifts):
             raise InputError("must be a non-empty list of finite shifts (rows)", field="pose.shifts",
                              value=self.shifts)
@@ -562,8 +559,7 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
     if not (math.isfinite(e_d) and 0 < e_d < depth0 and math.isfinite(e_b) and 0 < e_b < math.pi / 4):
         raise InputError("must be (e_D, e_beta) with 0 < e_D < depth0 m and 0 < e_beta < 45 deg",
                          field="bounds", value=bounds)
-    if isinstance(levels, bool) or not isinstance(levels, (int, np.integer)) or levels < 1:
-        raise InputError("must be an integer >= 1", field="levels", value=levels)
+    check_integer("levels", levels, 1)
     say = progress or (lambda line: None)
     problem = PoseProblem(model, dataset, depth0, tilt0, settings=settings, backend=backend)
     say(f"start: D {depth0:.4f} m, beta {math.degrees(tilt0):.3f} deg; {len(problem.data.views)} views, "

@@ -48,7 +48,7 @@ from typing import Callable
 import numpy as np
 
 from .carve import CarveSettings, carve
-from .errors import InputError
+from .errors import InputError, check_integer
 from .icp import icp
 from .motion import average_contour_error, average_intensity_error
 from .pose import PoseSettings, estimate_pose, pose_objective
@@ -81,9 +81,7 @@ class ReconstructSettings:
 
     def __post_init__(self) -> None:
         for name, lowest in (("iterations", 0), ("resolution", 16)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lowest:
-                raise InputError(f"must be an integer >= {lowest}", field=f"--{name}", value=value)
+            check_integer(f"--{name}", getattr(self, name), lowest)
         for name in ("settle_depth", "settle_tilt"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):

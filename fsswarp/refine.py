@@ -54,7 +54,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, check_integer, is_integer
 from .icp import icp
 from .motion import image_jacobian
 from .pose import PoseProblem, PoseSettings, PoseWarning, fan_points
@@ -94,9 +94,7 @@ class RefineSettings:
 
     def __post_init__(self) -> None:
         for name, lowest in (("iterations", 1), ("halvings", 0)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lowest:
-                raise InputError(f"must be an integer >= {lowest}", field=f"refine.{name}", value=value)
+            check_integer(f"refine.{name}", getattr(self, name), lowest)
         for name, zero, high in (("step", False, 2.0), ("max_motion", False, 1.0), ("smoothing", False, 1e6),
                                  ("shrink", True, 10.0), ("tolerance", True, 1.0), ("corrupt", False, 1e6),
                                  ("rcond", False, 1.0), ("max_turn", False, math.pi)):
@@ -105,8 +103,7 @@ class RefineSettings:
             if not (ok and (value >= 0 if zero else value > 0)):
                 raise InputError(f"must be a number in {'[' if zero else '('}0, {high}]", field=f"refine.{name}",
                                  value=value)
-        if len(self.rays) != 2 or any(isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1
-                                      for k in self.rays):
+        if len(self.rays) != 2 or not all(is_integer(k) and k >= 1 for k in self.rays):
             raise InputError("must be two integers >= 1", field="refine.rays", value=self.rays)
 
 

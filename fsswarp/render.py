@@ -44,7 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, is_integer
 from .rig import Rig
 from .sonar import SonarSpec, to_polar
 from .surface import COMPONENTS, apparent_returns, surface_in_views
@@ -72,7 +72,7 @@ class RenderSettings:
 
     def __post_init__(self) -> None:
         k = self.samples
-        if (len(k) != 2 or any(isinstance(v, bool) or not isinstance(v, (int, np.integer)) for v in k)
+        if (len(k) != 2 or any(not is_integer(v) for v in k)
                 or not (1 <= k[0] <= 64 and 1 <= k[1] <= 1024)):
             raise InputError("must be two integers K_theta in 1..64 and K_phi in 1..1024",
                              field="samples", value=tuple(k))

@@ -45,7 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, check_integer
 
 
 def _is_real(value) -> bool:
@@ -86,9 +86,7 @@ class SegmentSettings:
             raise InputError("thresholds must satisfy 0 < low <= high", field="segment.low",
                              value=(self.low, self.high))
         for name, lowest in (("min_pixels", 1), ("background_rows", 1), ("dilate_beams", 0)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lowest:
-                raise InputError(f"must be an integer >= {lowest}", field=f"segment.{name}", value=value)
+            check_integer(f"segment.{name}", getattr(self, name), lowest)
 
 
 @dataclass(frozen=True)

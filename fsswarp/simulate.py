@@ -9,7 +9,7 @@ import numpy as np
 import trimesh
 
 from .dataset import Dataset, Manifest, Truth, load_dataset, load_scene, save_dataset
-from .errors import InputError
+from .errors import InputError, is_integer
 from .render import LAYERS, RenderSettings, add_noise, render
 from .rig import world_to_reference
 from .scenes import builtin_scene, target_world_mesh
@@ -32,7 +32,7 @@ def simulate(scene: str | Path | Manifest, out: str | Path, *, seed: int = 0,
     """Synthesize the dataset of ``scene`` (a built-in name, a scene file or a scene Manifest)
     into the folder ``out``: noisy images, the noise-free layers and the truth model (in the
     reference frame of the true depth and tilt). Returns the saved Dataset."""
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+    if not is_integer(seed) or seed < 0:
         raise InputError("must be an integer >= 0", field="--seed", value=seed)
     manifest, base = (scene, None) if isinstance(scene, Manifest) else resolve_scene(scene)
     if manifest.target is None or manifest.truth is None:

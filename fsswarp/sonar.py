@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, check_integer
 
 
 @dataclass(frozen=True)
@@ -36,8 +36,8 @@ class SonarSpec:
     beam_angles: np.ndarray | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
-        _check_int("sonar.beams", self.beams, 2)
-        _check_int("sonar.bins", self.bins, 2)
+        check_integer("sonar.beams", self.beams, 2)
+        check_integer("sonar.bins", self.bins, 2)
         _check_angle("sonar.elevation_fov_deg", self.elevation_fov, math.pi)
         for name, value in (("sonar.range_min_m", self.range_min), ("sonar.range_max_m", self.range_max)):
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
@@ -240,11 +240,6 @@ def scan_convert(image, sonar: SonarSpec, *, pixel_m: float | None = None, fill:
                              order=1, mode="nearest")
     fan = np.where(inside, values, fill).astype(np.float32)
     return fan, (x0 - 0.5 * pixel_m, x[-1] + 0.5 * pixel_m, y[-1] - 0.5 * pixel_m, y1 + 0.5 * pixel_m)
-
-
-def _check_int(name: str, value, minimum: int) -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
-        raise InputError(f"must be an integer >= {minimum}", field=name, value=value)
 
 
 def _check_angle(name: str, value, maximum: float) -> None:

@@ -14,7 +14,7 @@ import manifold3d
 import numpy as np
 import trimesh
 
-from .errors import InputError
+from .errors import InputError, is_integer
 
 
 class CoralSpec(NamedTuple):
@@ -55,10 +55,10 @@ def coral_mesh(seed: int, *, size_m=(0.22, 0.18, 0.16), subdivisions: int = 4) -
     ``numpy.random.default_rng(seed)`` alone and does not depend on ``subdivisions``: the
     same seed gives a bit-identical mesh, and a finer mesh of the same rock.
     """
-    if not (_is_int(seed) and seed >= 0):
+    if not (is_integer(seed) and seed >= 0):
         raise InputError("must be an integer >= 0", field="seed", value=seed)
     size = _size3("size_m", size_m)
-    if not (_is_int(subdivisions) and 1 <= subdivisions <= 6):
+    if not (is_integer(subdivisions) and 1 <= subdivisions <= 6):
         raise InputError("must be an integer from 1 to 6", field="subdivisions", value=subdivisions)
 
     sphere = trimesh.creation.icosphere(subdivisions=int(subdivisions))
@@ -137,11 +137,6 @@ def _size3(name: str, value: Any) -> tuple[float, float, float]:
 def _is_real(value: Any) -> bool:
     """Whether ``value`` is a real number (a bool is not)."""
     return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
-
-
-def _is_int(value: Any) -> bool:
-    """Whether ``value`` is an integer (a bool is not)."""
-    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
 
 
 def _unit_vectors(rng: np.random.Generator, count: int) -> np.ndarray:

@@ -9,7 +9,7 @@ import pytest
 import tifffile
 import trimesh
 
-from fsswarp.dataset import load_dataset, save_scene
+from fsswarp.dataset import save_scene
 from fsswarp.render import LAYERS, RenderSettings, RenderWarning, log_compress
 from fsswarp.scenes import builtin_scene
 from fsswarp.simulate import simulate

@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, is_integer
 from ..sonar import SonarSpec
 
 __all__ = ["Backend", "DeviceLayers", "SonarConstants", "get_backend", "describe_backends", "BACKEND_NAMES",
@@ -193,7 +193,7 @@ class Backend(abc.ABC):
         else:
             start = _float32_array("origin", np.asarray(origin).reshape(-1), (3,))
             dims = tuple(shape) if isinstance(shape, (tuple, list, np.ndarray)) else ()
-            if len(dims) != 3 or any(isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0
+            if len(dims) != 3 or any(not is_integer(n) or n < 0
                                      for n in dims):
                 raise ValueError(f"shape must be three integers >= 0, got {shape!r}")
             dims = tuple(int(n) for n in dims)
