@@ -80,7 +80,7 @@ class RefineSettings:
 
     iterations: int = 1
     step: float = 0.7
-    max_motion: float = 0.02
+    max_motion: float = 0.01
     smoothing: float = 4.0
     shrink: float = 1.5
     tolerance: float = 0.002
@@ -349,16 +349,19 @@ def _apply(mesh, displacement: np.ndarray, settings: RefineSettings):
     """The mesh moved by ``step`` × displacement. Where a triangle's normal would turn by more
     than ``max_turn`` (or it degenerates), its vertices are held still and the step is tried
     again, up to ``halvings`` times; then, while any still turns too far or the volume
-    reverses, the step is halved (up to ``halvings`` times). Returns (mesh, factor used), the
-    factor scaled by the share of vertices moved, 0 when refused."""
+    reverses, the step is halved (up to ``halvings`` times). A triangle that is degenerate
+    before the step is not judged (its normal is undefined; one zero-area triangle of a carved
+    table mesh used to refuse every step). Returns (mesh, factor used), the factor scaled by
+    the share of vertices moved, 0 when refused."""
     import trimesh
 
     before = mesh.face_normals
+    judged = np.linalg.norm(before, axis=1) > 0.5  # a degenerate triangle has no normal to turn
     factor = settings.step
     free = np.ones(len(mesh.vertices), bool)
     for attempt in range(2 * settings.halvings + 1):
         moved = trimesh.Trimesh(mesh.vertices + factor * displacement * free[:, None], mesh.faces, process=False)
-        bad = np.einsum("ij,ij->i", moved.face_normals, before) <= math.cos(settings.max_turn)
+        bad = judged & (np.einsum("ij,ij->i", moved.face_normals, before) <= math.cos(settings.max_turn))
         if not bad.any() and moved.volume > 0 and moved.is_watertight:
             return moved, factor * float(free.mean())
         if attempt < settings.halvings:

@@ -91,3 +91,22 @@ def test_a_step_that_folds_triangles_holds_only_their_vertices():
     assert factor == pytest.approx(free.mean())
     turn = np.einsum("ij,ij->i", moved.face_normals, sphere.face_normals)
     assert turn.min() > np.cos(settings.max_turn)
+
+
+def test_a_degenerate_triangle_does_not_block_every_step():
+    """A zero-area triangle (as marching cubes and decimation can leave) has no normal; it
+    must not count as turning, or every step would be refused."""
+    import trimesh
+
+    from fsswarp.refine import _apply
+
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
+    vertices = sphere.vertices.copy()
+    a, b, c = sphere.faces[0]
+    vertices[c] = 0.5 * (vertices[a] + vertices[b])  # collinear: face 0 has zero area
+    mesh = trimesh.Trimesh(vertices, sphere.faces, process=False)
+    assert mesh.area_faces[0] == pytest.approx(0.0, abs=1e-15) and mesh.is_watertight
+    moved, factor = _apply(mesh, 0.01 * mesh.vertices, RefineSettings(step=1.0))  # uniform 1% growth
+    assert factor == 1.0
+    np.testing.assert_allclose(moved.vertices, 1.01 * mesh.vertices, atol=1e-15)
+
