@@ -401,8 +401,11 @@ def carve(state: State, dataset_dir: Path, out: Path, depth, tilt, resolution: i
               help="Most pose + shape iterations after the carving.")
 @click.option("--resolution", default=128, show_default=True, type=click.IntRange(min=16),
               help="Voxels along the longest side of the carving box.")
+@click.option("--depth", type=float, default=None,
+              help="Initial sonar depth D0 (m); default: the dataset's measured depth.")
+@click.option("--tilt", type=float, default=None, help="Initial sonar tilt (deg); default: the dataset's measured tilt.")
 @click.pass_obj
-def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, resolution: int) -> None:
+def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, resolution: int, depth, tilt) -> None:
     """Reconstruct the object and estimate the sonar's depth and tilt from the dataset DIR
     (carve, then alternate pose and shape steps): OUT/model.ply, OUT/carved.ply,
     OUT/result.json and OUT/figures/."""
@@ -410,7 +413,8 @@ def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, res
     from .reconstruct import ReconstructSettings
 
     dataset = load_dataset(dataset_dir)
-    run_reconstruction(state, dataset, out, ReconstructSettings(iterations=iterations, resolution=resolution))
+    run_reconstruction(state, dataset, out, ReconstructSettings(iterations=iterations, resolution=resolution),
+                       depth0=depth, tilt0=None if tilt is None else math.radians(tilt))
 
 
 @app.command()
@@ -449,17 +453,19 @@ def demo(state: State, scene_name: str, out: Path, seed: int, iterations: int) -
     state.echo(f"wrote {out}: dataset/, reconstruction/, enhance/ ({time.perf_counter() - start:.1f} s in all)")
 
 
-def run_reconstruction(state: State, dataset, out: Path, settings, *, shown: Path | None = None):
-    """Reconstruct ``dataset``, write OUT/model.ply, carved.ply, result.json and figures
-    (``shown``: the folder's name in messages, when OUT is a temporary folder); returns the
-    ReconstructResult."""
+def run_reconstruction(state: State, dataset, out: Path, settings, *, depth0: float | None = None,
+                       tilt0: float | None = None, shown: Path | None = None):
+    """Reconstruct ``dataset`` from (depth0 m, tilt0 rad; default the measured values), write
+    OUT/model.ply, carved.ply, result.json and figures (``shown``: the folder's name in
+    messages, when OUT is a temporary folder); returns the ReconstructResult."""
     from .atomic import output_folder
     from .figures import carve_figure, history_figure, pose_figure
     from .reconstruct import reconstruct as run
 
     backend = state.get_backend()
     state.echo(f"reconstructing {len(dataset.images)} views ({backend.name} on {backend.device})")
-    result = run(dataset, settings=settings, backend=backend, progress=lambda line: state.echo("  " + line))
+    result = run(dataset, depth0=depth0, tilt0=tilt0, settings=settings, backend=backend,
+                 progress=lambda line: state.echo("  " + line))
     truth = dataset.manifest.truth
     truth_path = dataset.truth_model_path
     truth_mesh = load_mesh_file(truth_path) if truth_path is not None and truth_path.is_file() else None

@@ -260,7 +260,7 @@ class PoseProblem:
                  backend=None):
         from .backends import get_backend
 
-        _check_pose(depth, tilt)
+        check_pose(depth, tilt)
         vertices, faces = check_mesh(model, name="model")
         self.dataset, self.settings = dataset, settings
         self.sonar, self.rig = dataset.sonar, dataset.rig
@@ -287,7 +287,7 @@ class PoseProblem:
         """Find the data contours (``data``), the anchor views and the detection shift
         (``anchors``, ``shift``) with the model synthesized at (depth m, tilt rad), the current
         estimate; ``estimate`` records it."""
-        _check_pose(depth, tilt)
+        check_pose(depth, tilt)
         self.data, predicted = self._data_contours(depth, tilt)
         self.anchors, self.shift = self._detection_shift(predicted, depth, tilt)
         self.estimate = (float(depth), float(tilt))
@@ -430,7 +430,7 @@ class PoseProblem:
     # --- E_mu --------------------------------------------------------------------------------
     def exact(self, depth: float, tilt: float) -> ExactError:
         """E_mu (eq. 6) at (depth m, tilt rad), with its per-view μ_m."""
-        _check_pose(depth, tilt)
+        check_pose(depth, tilt)
         self.counters["exact"] += 1
         data, sonar = self.data, self.sonar
         costs, contours = self.view_costs(np.array([depth]), np.array([tilt]), self.settings.exact_samples,
@@ -552,7 +552,7 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
     surface = dataset.manifest.surface
     depth0 = surface.depth if depth0 is None else float(depth0)
     tilt0 = surface.tilt if tilt0 is None else float(tilt0)
-    _check_pose(depth0, tilt0)
+    check_pose(depth0, tilt0)
     if bounds is None:
         bounds = (BOUNDS_FACTOR * surface.depth_sigma, BOUNDS_FACTOR * surface.tilt_sigma)
     e_d, e_b = (float(b) for b in bounds) if len(bounds) == 2 else (math.nan, math.nan)
@@ -717,7 +717,8 @@ def fan_points(theta, rng) -> np.ndarray:
     return np.stack([rng * np.sin(theta), rng * np.cos(theta)], axis=1)
 
 
-def _check_pose(depth: float, tilt: float) -> None:
+def check_pose(depth: float, tilt: float) -> None:
+    """InputError unless depth (m) > 0 and |tilt| < π/2 (rad), both finite."""
     if not (isinstance(depth, (int, float, np.floating)) and math.isfinite(depth) and depth > 0):
         raise InputError("must be a finite depth > 0 (m)", field="depth", value=depth)
     if not (isinstance(tilt, (int, float, np.floating)) and math.isfinite(tilt) and abs(tilt) < math.pi / 2):

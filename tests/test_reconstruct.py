@@ -71,6 +71,33 @@ def test_a_refused_pose_step_stops_the_loop(coral_one, monkeypatch):
     assert result.depth == coral_one.manifest.surface.depth
 
 
+def test_an_iteration_whose_image_error_rises_is_dropped(coral_one, monkeypatch):
+    """The objective only diminishes: an iteration with a higher E_I ends the loop, and the
+    result is the model and (D, β) of the iteration before it."""
+    from types import SimpleNamespace
+
+    moves, errors, meshes = iter([0.01, 0.02, 0.03]), iter([1.0, 0.8, 0.9, 0.5]), []
+
+    def accepted(model, dataset, *, depth0, tilt0, settings, backend):
+        return SimpleNamespace(accepted=True, depth=depth0 + next(moves), tilt=tilt0)
+
+    def refine(model, dataset, depth, tilt, *, settings, backend):
+        meshes.append(model.copy())
+        return SimpleNamespace(mesh=meshes[-1])
+
+    def record(iteration, model, dataset, depth, tilt, truth, settings, backend, first):
+        return {"iteration": iteration, "depth_m": depth, "E_I": next(errors)}
+
+    for name, fake in (("estimate_pose", accepted), ("refine_shape", refine), ("_record", record),
+                       ("_line", str)):
+        monkeypatch.setattr(reconstruct_module, name, fake)
+    result = reconstruct(coral_one, settings=dataclasses.replace(FAST, iterations=5))
+    start = coral_one.manifest.surface.depth
+    assert [h["E_I"] for h in result.history] == [1.0, 0.8] and result.iterations == 1
+    assert result.depth == pytest.approx(start + 0.01) and result.converged
+    assert result.model is meshes[1]  # meshes[0]: the refinement before the first pose step
+
+
 def test_settings_are_validated():
     from fsswarp.errors import InputError
 
@@ -92,12 +119,25 @@ def test_reconstruct_command_writes_model_result_and_figures(coral_one, tmp_path
     assert trimesh.load_mesh(tmp_path / "r" / "model.ply").is_watertight
 
 
+def test_reconstruct_starts_from_a_given_depth_and_tilt(coral_one, tmp_path):
+    """--depth/--tilt replace the measured D0/β0 as the start (the paper table's 2° runs)."""
+    done = run_cli("reconstruct", str(coral_one.root), "--out", str(tmp_path / "r"), "--iterations", "0",
+                   "--resolution", "32", "--depth", "0.41", "--tilt", "12.3")
+    assert done.returncode == 0, done.stderr
+    first = json.loads((tmp_path / "r" / "result.json").read_text())["history"][0]
+    assert (first["depth_m"], first["tilt_deg"]) == (0.41, pytest.approx(12.3))
+    assert "given D0 = 0.4100 m" in done.stdout
+
+
 @pytest.mark.parametrize("args, field", [
     (["reconstruct", "nowhere", "--out", "OUT"], "nowhere"),
+    (["reconstruct", "DATA", "--out", "OUT", "--depth", "-0.2"], "depth"),
+    (["reconstruct", "DATA", "--out", "OUT", "--tilt", "nan"], "tilt"),
     (["demo", "no-such-scene", "--out", "OUT"], "no-such-scene"),
 ])
-def test_bad_input_exits_2_and_writes_nothing(tmp_path, args, field):
-    args = [str(tmp_path / "out") if a == "OUT" else str(tmp_path / a) if a == "nowhere" else a for a in args]
+def test_bad_input_exits_2_and_writes_nothing(coral_one, tmp_path, args, field):
+    named = {"OUT": str(tmp_path / "out"), "nowhere": str(tmp_path / "nowhere"), "DATA": str(coral_one.root)}
+    args = [named.get(a, a) for a in args]
     done = run_cli(*args)
     assert done.returncode == 2, done.stderr
     assert field in done.stderr and len(done.stderr.strip().splitlines()) == 1
