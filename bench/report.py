@@ -2,7 +2,8 @@
 
     python bench/report.py [RECORD.json ...] [--notes FILE] [--out FILE] [--figures DIR]
 
-Defaults: every bench/records/*.json (a run's bench.json from ``fsswarp bench``), the
+Defaults: every bench/records/*.json (a run's bench.json from ``fsswarp bench``) and every
+bench/records/reconstruction/*.json (a ``bench/paper_table.py`` run, rendered first), the
 hand-written bench/notes.md appended at the end, bench/RESULTS.md and bench/figures/ (one
 log-log plot per record and family). Records are reported in the order given (sorted names by
 default); each names its machine, command and date.
@@ -11,6 +12,7 @@ default); each names its machine, command and date.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import sys
 from pathlib import Path
@@ -18,8 +20,10 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 
 
-def report(records: list[Path], notes: Path | None, figures: Path | None, base: Path) -> str:
-    """The Markdown of RESULTS.md; writes the figures under ``figures`` (links relative to ``base``)."""
+def report(records: list[Path], notes: Path | None, figures: Path | None, base: Path,
+           tables: list[Path] = ()) -> str:
+    """The Markdown of RESULTS.md; writes the figures under ``figures`` (links relative to ``base``).
+    ``tables``: records of ``bench/paper_table.py`` (the reconstruction table, first)."""
     from fsswarp.bench import FAMILIES, machine_markdown, markdown, plot_family, slowest
 
     lines = ["# Benchmark results", "",
@@ -33,6 +37,14 @@ def report(records: list[Path], notes: Path | None, figures: Path | None, base: 
              "(memory: bytes over bandwidth; compute: minimal operations over the peak rate; link: host "
              "transfers of an end-to-end GPU figure) and the fraction is limit / median (1 = at the limit).",
              ""]
+    if tables:
+        paper_table = _load_module("bench_paper_table", HERE / "paper_table.py")
+        lines += ["## Reconstruction: the paper's table, end to end", "",
+                  "Generated from `bench/records/reconstruction/*.json`, each written by one "
+                  "`python bench/paper_table.py` run (simulate each scene, reconstruct it from the measured "
+                  "start and from β 2° off; the README's \"Reconstruction\" section discusses the results).", ""]
+        for path in tables:
+            lines.append(paper_table.table_markdown(json.loads(path.read_text(encoding="utf-8")), path.stem))
     for path in records:
         run = json.loads(path.read_text(encoding="utf-8"))
         name = path.stem
@@ -64,6 +76,13 @@ def report(records: list[Path], notes: Path | None, figures: Path | None, base: 
     return "\n".join(lines)
 
 
+def _load_module(name: str, path: Path):
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("records", nargs="*", type=Path, help="recorded bench.json files (default bench/records/*.json)")
@@ -79,7 +98,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     from fsswarp.atomic import write_text
 
-    text = report(records, args.notes, args.figures.resolve(), args.out.resolve().parent)
+    tables = [] if args.records else sorted((HERE / "records" / "reconstruction").glob("*.json"))
+    text = report(records, args.notes, args.figures.resolve(), args.out.resolve().parent, tables)
     write_text(args.out, text)
     print(f"wrote {args.out} from {len(records)} record(s)")
     return 0

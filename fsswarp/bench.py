@@ -245,7 +245,7 @@ def _key(who) -> str:
 
 
 # --- machine ---------------------------------------------------------------------------------
-def _cpu_info() -> dict:
+def cpu_info() -> dict:
     """Model, logical CPUs, clock and SIMD width from /proc/cpuinfo, and the per-core peak."""
     model, mhz, flags = platform.processor() or platform.machine(), None, set()
     try:
@@ -332,7 +332,8 @@ def _gpu_copy_rates(backend, nbytes: int) -> tuple[float, float, float]:
     return rates[0], rates[1], rates[2]
 
 
-def _gpu_name(backend) -> str:
+def device_name(backend) -> str:
+    """The device's own name (GPU model, OpenCL device, or Warp's "cpu")."""
     if backend.name == "warp":
         import warp as wp
 
@@ -361,7 +362,7 @@ def _profile(who, cpu: dict, host_bw: float, *, quick: bool) -> dict:
                 "bandwidth_Bps": bandwidth, "bandwidth_source": source,
                 "peak_ops": peak, "peak_source": None if peak is None else
                 f"{cores} core(s) x {cpu['peak_derivation']}"}
-    name = _gpu_name(who)
+    name = device_name(who)
     size = (64 if quick else 512) << 20
     copy, up, down = _gpu_copy_rates(who, size) if who.name != "cupy" else _cupy_copy_rates(size)
     sheet = next((p for p in GPU_PEAKS if p[0].lower() in name.lower()), None)
@@ -402,7 +403,7 @@ def _cupy_copy_rates(nbytes: int) -> tuple[float, float, float]:
 
 def probe_machine(participants: Sequence, *, quick: bool = False) -> dict:
     """The machine and a limit profile (``_profile``) per backend or peer, keyed "name:device"."""
-    cpu = _cpu_info()
+    cpu = cpu_info()
     host_bw = _host_bandwidth((32 if quick else 256) << 20)
     versions = {"python": platform.python_version(), "numpy": np.__version__}
     for module in ("warp", "pyopencl", "trimesh", "embreex", "cupy"):

@@ -197,3 +197,55 @@ def test_report_regenerates_results_from_records(cli_run, tmp_path):
     assert "## tiny-cpu" in text and "Furthest from their limits" in text and text.rstrip().endswith("kept by hand")
     assert "](figures/tiny-cpu-raycast.png)" in text and (tmp_path / "figures" / "tiny-cpu-carving.png").is_file()
     assert report.main([str(tmp_path / "missing.json"), "--out", str(tmp_path / "R2.md")]) == 2
+
+
+def _paper_table():
+    spec = importlib.util.spec_from_file_location("bench_paper_table",
+                                                  Path(__file__).parents[1] / "bench" / "paper_table.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_paper_table_runs_both_starts_and_renders_the_table(tmp_path, capsys):
+    """bench/paper_table.py end to end at zero iterations: the record, the two starts (the
+    measured one and β 2° off on the measured side) and the Markdown that report.py renders."""
+    table = _paper_table()
+    assert table.main(["--scenes", "coral-one", "--iterations", "0", "--records", str(tmp_path),
+                       "--name", "tiny", "--backend", "opencl"]) == 0
+    record = json.loads((tmp_path / "tiny.json").read_text())
+    measured, off = record["runs"]
+    assert (measured["depth0_m"], measured["tilt0_deg"]) == (0.47, pytest.approx(11.1))
+    assert off["tilt0_deg"] == pytest.approx(10.3 + 2.0) and off["depth0_m"] == 0.47
+    for run in record["runs"]:
+        s = table.summary(run)
+        assert s["depth_error_m"] == pytest.approx(0.04) and s["E_I_change"] == 0.0 and s["E_V_change"] == 0.0
+        assert not (s["pose_ok"] or s["E_I_ok"] or s["E_V_ok"])
+    text = table.table_markdown(record, "tiny")
+    assert "| coral-one (β +2°) | 0.4700, 12.30 | 0.4700, 12.300 | +40.0 | +2.000 | no | 0 (limit) |" in text
+    assert "### tiny" in capsys.readouterr().out
+    spec = importlib.util.spec_from_file_location("bench_report", Path(__file__).parents[1] / "bench" / "report.py")
+    report = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(report)
+    rendered = report.report([], None, None, tmp_path, [tmp_path / "tiny.json"])
+    assert "## Reconstruction: the paper's table" in rendered and "### tiny" in rendered
+
+
+def test_paper_table_summary_judges_the_aims():
+    table = _paper_table()
+    run = {"depth_m": 0.433, "truth_depth_m": 0.43, "tilt_deg": 10.45, "truth_tilt_deg": 10.3,
+           "history": [{"E_I": 1.0, "E_V": 0.40}, {"E_I": 0.75, "E_V": 0.35}]}
+    s = table.summary(run)
+    assert s["depth_error_m"] == pytest.approx(0.003) and s["tilt_error_deg"] == pytest.approx(0.15)
+    assert s["pose_ok"] and s["E_I_ok"] and not s["E_V_ok"]  # E_V down 12.5% < 16%
+    assert s["E_V_change"] == pytest.approx(-0.125) and s["E_I_change"] == pytest.approx(-0.25)
+
+
+@pytest.mark.parametrize("args", [["--tilt-offset", "20"], ["--iterations", "-1"], ["--scenes", "nowhere"]])
+def test_paper_table_bad_options_exit_2(args, tmp_path):
+    table = _paper_table()
+    try:
+        code = table.main([*args, "--records", str(tmp_path)])
+    except SystemExit as stop:  # argparse's own errors
+        code = stop.code
+    assert code == 2 and not list(tmp_path.iterdir())
