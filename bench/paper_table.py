@@ -131,13 +131,12 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     from fsswarp.atomic import write_text
     from fsswarp.backends import get_backend
-    from fsswarp.errors import InputError
+    from fsswarp.errors import InputError, check_integer
 
     try:
         backend = get_backend(args.backend or "auto", args.device)
         for name in ("seed", "iterations"):
-            if getattr(args, name) < 0:
-                raise InputError("must be >= 0", field=f"--{name}", value=getattr(args, name))
+            check_integer(f"--{name}", getattr(args, name), 0)
         if not (math.isfinite(args.tilt_offset) and 0 < args.tilt_offset < 10):
             raise InputError("must be in (0, 10) degrees", field="--tilt-offset", value=args.tilt_offset)
     except InputError as err:
