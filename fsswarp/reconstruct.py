@@ -6,7 +6,8 @@ views too: on coral-one, carving from the 10 optimized views alone left E_V at 0
 0.39 from all 16). Each later iteration t:
 
 1. pose step: ``fsswarp.pose.estimate_pose`` searches the (D, β) grid around the current
-   estimate for the current model and keeps the result only if E_mu falls (greedy);
+   estimate for the current model and keeps the result only if E_mu falls (greedy; otherwise
+   D and β stay);
 2. shape step: the model is refined against the images with the views at the new (D, β)
    (``fsswarp.refine.refine_shape``: contour and mirror-contour motions of frontal
    triangles, an overshoot term that pulls the bloated carved surface in). The model is kept
@@ -18,14 +19,17 @@ views too: on coral-one, carving from the 10 optimized views alone left E_V at 0
 3. record D, β, E_mu, AIE, ACE, E_I and, with a truth model, E_V, Chamfer and F-score.
 
 Before the first pose step the carved model is refined at (D0, β0) too: a carved model is
-too big, and E_mu's minimum for a too-big model lies away from the truth. The loop stops when
-the pose step is refused (E_mu did not fall), when the image error E_I of an iteration does
-not fall below the previous one (that iteration is dropped: the result is the last
-iteration recorded, so the objective only diminishes, as in the paper's Figure 3a), when D
-and β move less than ``settle_depth`` and ``settle_tilt``, or after ``iterations``. E_I is
-the objective here because it is measurable and, in the paper, tracks the model error E_V;
-E_mu alone kept falling on coral-two while E_I rose from 0.71 to 0.98 and E_V from 0.28 to
-0.30 over three more iterations.
+too big, and E_mu's minimum for a too-big model lies away from the truth. A refused pose step
+(no grid point with a lower E_mu) keeps (D, β), and the shape step runs all the same: the
+paper's two modes alternate "as long as the objective error function diminishes" (§2.3).
+Stopping at the first refused pose step left the table at its carved model (E_I 1.0), where
+two more shape steps at the measured (D0, β0) bring E_I to 0.85. The loop stops when the
+image error E_I of an iteration does not fall below the previous one (that iteration is
+dropped: the result is the last iteration recorded, so the objective only diminishes, as in
+the paper's Figure 3a), or after ``iterations``. E_I is the objective here because it is
+measurable and, in the paper, tracks the model error E_V; E_mu alone kept falling on
+coral-two while E_I rose from 0.71 to 0.98 and E_V from 0.28 to 0.30 over three more
+iterations.
 
 Image metrics (paper eq. 8–11), over the views marked ``optimize``, with the synthetic views
 of the model at the iteration's (D, β):
@@ -69,15 +73,12 @@ class ReconstructSettings:
 
     iterations : T, the most pose + shape iterations after the carving
     resolution : voxels along the longest side of the carving box
-    settle_depth (m), settle_tilt (rad) : stop when a pose step moves less than both
     render : synthetic views for the image metrics; carve, pose, refine, segment : the steps'
         settings (refine.iterations: refinement updates per shape step)
     """
 
     iterations: int = 10
     resolution: int = 128
-    settle_depth: float = 0.5e-3
-    settle_tilt: float = math.radians(0.02)
     carve: CarveSettings = field(default_factory=CarveSettings)
     pose: PoseSettings = field(default_factory=PoseSettings)
     refine: RefineSettings = field(default_factory=lambda: RefineSettings(iterations=3))
@@ -87,10 +88,6 @@ class ReconstructSettings:
     def __post_init__(self) -> None:
         for name, lowest in (("iterations", 0), ("resolution", 16)):
             check_integer(f"--{name}", getattr(self, name), lowest)
-        for name in ("settle_depth", "settle_tilt"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise InputError("must be a finite number >= 0", field=name, value=value)
 
 
 @dataclass
@@ -99,7 +96,7 @@ class ReconstructResult:
 
     model : the final mesh (reference frame of (depth, tilt)); carved : the iteration-0 mesh
     depth (m), tilt (rad) : the final estimate; iterations : pose + shape iterations run
-    converged : whether it stopped because the objective settled (not because T ran out)
+    converged : whether it stopped because E_I stopped falling (not because T ran out)
     history : one dict per iteration (0 = the carved model), the keys of DESIGN §12
     seconds : wall time; backend, device : where the kernels ran
     pose_steps : the PoseResult of every pose step (grid levels, for figures)
@@ -157,26 +154,23 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
         pose = estimate_pose(working, dataset, depth0=depth, tilt0=tilt, settings=settings.pose,
                              backend=backend)
         pose_steps.append(pose)
-        if not pose.accepted:
-            say(f"iteration {iteration}: the pose step found no (D, tilt) with a lower E_mu; stopping")
-            converged = True
-            break
-        working = refine_shape(working, dataset, pose.depth, pose.tilt, settings=settings.refine,
+        if pose.accepted:
+            step_depth, step_tilt = pose.depth, pose.tilt
+        else:
+            step_depth, step_tilt = depth, tilt
+            say(f"iteration {iteration}: the pose step found no (D, tilt) with a lower E_mu; D and tilt stay")
+        working = refine_shape(working, dataset, step_depth, step_tilt, settings=settings.refine,
                                backend=backend).mesh
-        entry = _record(iteration, working, dataset, pose.depth, pose.tilt, truth, settings, backend, first)
+        entry = _record(iteration, working, dataset, step_depth, step_tilt, truth, settings, backend, first)
         if not entry["E_I"] < history[-1]["E_I"]:
-            say(f"iteration {iteration}: E_I {entry['E_I']:.3f} at D {pose.depth:.4f} m, tilt "
-                f"{math.degrees(pose.tilt):.3f} deg did not fall below {history[-1]['E_I']:.3f}; keeping "
+            say(f"iteration {iteration}: E_I {entry['E_I']:.3f} at D {step_depth:.4f} m, tilt "
+                f"{math.degrees(step_tilt):.3f} deg did not fall below {history[-1]['E_I']:.3f}; keeping "
                 f"iteration {history[-1]['iteration']} and stopping")
             converged = True
             break
-        settled = abs(pose.depth - depth) < settings.settle_depth and abs(pose.tilt - tilt) < settings.settle_tilt
-        kept, depth, tilt = working, pose.depth, pose.tilt
+        kept, depth, tilt = working, step_depth, step_tilt
         history.append(entry)
         say(_line(entry))
-        if settled:
-            converged = True
-            break
     return ReconstructResult(model=kept, carved=carved, depth=depth, tilt=tilt, iterations=len(history) - 1,
                              converged=converged, history=history, seconds=time.perf_counter() - start,
                              backend=backend.name, device=backend.device, pose_steps=pose_steps)

@@ -57,18 +57,32 @@ def test_image_errors_vanish_for_the_truth_and_grow_with_a_bad_model(coral_one):
     assert good["ACE"] < 0.004  # within about one 3.9 mm range bin
 
 
-def test_a_refused_pose_step_stops_the_loop(coral_one, monkeypatch):
-    """Greedy acceptance: when E_mu does not fall, the estimate stays and the loop ends."""
-    calls = []
+def test_a_refused_pose_step_keeps_the_estimate_and_the_shape_step_runs(coral_one, monkeypatch):
+    """Greedy acceptance: when E_mu does not fall, D and β stay, the shape is refined at them,
+    and the loop goes on while E_I falls (paper §2.3)."""
+    from types import SimpleNamespace
+
+    calls, refined, errors = [], [], iter([1.0, 0.9, 0.8, 0.85])
 
     def refused(model, dataset, *, depth0, tilt0, settings, backend):
         calls.append((depth0, tilt0))
-        return dataclasses.make_dataclass("Refused", ["accepted", "depth", "tilt"])(False, depth0 + 0.01, tilt0)
+        return SimpleNamespace(accepted=False, depth=depth0 + 0.01, tilt=tilt0 + 0.01)
 
-    monkeypatch.setattr(reconstruct_module, "estimate_pose", refused)
+    def refine(model, dataset, depth, tilt, *, settings, backend):
+        refined.append((depth, tilt))
+        return SimpleNamespace(mesh=model.copy())
+
+    def record(iteration, model, dataset, depth, tilt, truth, settings, backend, first):
+        return {"iteration": iteration, "depth_m": depth, "E_I": next(errors)}
+
+    for name, fake in (("estimate_pose", refused), ("refine_shape", refine), ("_record", record),
+                       ("_line", str)):
+        monkeypatch.setattr(reconstruct_module, name, fake)
     result = reconstruct(coral_one, settings=dataclasses.replace(FAST, iterations=5))
-    assert len(calls) == 1 and result.iterations == 0 and result.converged
-    assert result.depth == coral_one.manifest.surface.depth
+    start = coral_one.manifest.surface.depth, coral_one.manifest.surface.tilt
+    assert calls == [start] * 3 and refined == [start] * 4  # 1 before the loop, 3 in it
+    assert [h["E_I"] for h in result.history] == [1.0, 0.9, 0.8] and result.converged
+    assert (result.depth, result.tilt) == start
 
 
 def test_an_iteration_whose_image_error_rises_is_dropped(coral_one, monkeypatch):
