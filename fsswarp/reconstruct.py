@@ -6,8 +6,8 @@ views too: on coral-one, carving from the 10 optimized views alone left E_V at 0
 0.39 from all 16). Each later iteration t:
 
 1. pose step: ``fsswarp.pose.estimate_pose`` searches the (D, β) grid around the current
-   estimate for the current model and keeps the result only if E_mu falls (greedy; otherwise
-   D and β stay);
+   estimate for the current model and proposes the result only if E_mu falls (greedy;
+   otherwise D and β stay);
 2. shape step: the model is refined against the images with the views at the new (D, β)
    (``fsswarp.refine.refine_shape``: contour and mirror-contour motions of frontal
    triangles, an overshoot term that pulls the bloated carved surface in). The model is kept
@@ -23,10 +23,11 @@ too big, and E_mu's minimum for a too-big model lies away from the truth. A refu
 (no grid point with a lower E_mu) keeps (D, β), and the shape step runs all the same: the
 paper's two modes alternate "as long as the objective error function diminishes" (§2.3).
 Stopping at the first refused pose step left the table at its carved model (E_I 1.0), where
-two more shape steps at the measured (D0, β0) bring E_I to 0.85. The loop stops when the
-image error E_I of an iteration does not fall below the previous one (that iteration is
-dropped: the result is the last iteration recorded, so the objective only diminishes, as in
-the paper's Figure 3a), or after ``iterations``. E_I is the objective here because it is
+two more shape steps at the measured (D0, β0) bring E_I to 0.85. A proposed (D, β) is
+adopted only if the iteration's image error E_I falls; if it does not, the shape step is
+tried again from the same model at the previous (D, β). When neither lowers E_I, the loop
+stops and the iteration is dropped: the result is the last iteration recorded, so the
+objective only diminishes, as in the paper's Figure 3a. It also stops after ``iterations``. E_I is the objective here because it is
 measurable and, in the paper, tracks the model error E_V; E_mu alone kept falling on
 coral-two while E_I rose from 0.71 to 0.98 and E_V from 0.28 to 0.30 over three more
 iterations.
@@ -155,20 +156,24 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
                              backend=backend)
         pose_steps.append(pose)
         if pose.accepted:
-            step_depth, step_tilt = pose.depth, pose.tilt
+            trials = [(pose.depth, pose.tilt), (depth, tilt)]
         else:
-            step_depth, step_tilt = depth, tilt
+            trials = [(depth, tilt)]
             say(f"iteration {iteration}: the pose step found no (D, tilt) with a lower E_mu; D and tilt stay")
-        working = refine_shape(working, dataset, step_depth, step_tilt, settings=settings.refine,
-                               backend=backend).mesh
-        entry = _record(iteration, working, dataset, step_depth, step_tilt, truth, settings, backend, first)
-        if not entry["E_I"] < history[-1]["E_I"]:
+        for step_depth, step_tilt in trials:
+            trial = refine_shape(working, dataset, step_depth, step_tilt, settings=settings.refine,
+                                 backend=backend).mesh
+            entry = _record(iteration, trial, dataset, step_depth, step_tilt, truth, settings, backend, first)
+            if entry["E_I"] < history[-1]["E_I"]:
+                break
             say(f"iteration {iteration}: E_I {entry['E_I']:.3f} at D {step_depth:.4f} m, tilt "
-                f"{math.degrees(step_tilt):.3f} deg did not fall below {history[-1]['E_I']:.3f}; keeping "
-                f"iteration {history[-1]['iteration']} and stopping")
+                f"{math.degrees(step_tilt):.3f} deg did not fall below {history[-1]['E_I']:.3f}")
+        else:
+            say(f"iteration {iteration}: keeping iteration {history[-1]['iteration']} and stopping")
             converged = True
             break
-        kept, depth, tilt = working, step_depth, step_tilt
+        working = kept = trial
+        depth, tilt = step_depth, step_tilt
         history.append(entry)
         say(_line(entry))
     return ReconstructResult(model=kept, carved=carved, depth=depth, tilt=tilt, iterations=len(history) - 1,

@@ -85,18 +85,21 @@ def test_a_refused_pose_step_keeps_the_estimate_and_the_shape_step_runs(coral_on
     assert (result.depth, result.tilt) == start
 
 
-def test_an_iteration_whose_image_error_rises_is_dropped(coral_one, monkeypatch):
-    """The objective only diminishes: an iteration with a higher E_I ends the loop, and the
-    result is the model and (D, β) of the iteration before it."""
+def test_a_pose_that_raises_the_image_error_is_not_adopted(coral_one, monkeypatch):
+    """The objective only diminishes: a proposed (D, β) whose iteration raises E_I is dropped
+    and the shape step is tried again at the previous (D, β); when that does not lower E_I
+    either, the loop ends with the model and (D, β) of the last iteration recorded."""
     from types import SimpleNamespace
 
-    moves, errors, meshes = iter([0.01, 0.02, 0.03]), iter([1.0, 0.8, 0.9, 0.5]), []
+    moves, meshes, depths = iter([0.01, 0.02, 0.03]), [], []
+    errors = iter([1.0, 0.9, 0.95, 0.85, 0.99, 0.99])
 
     def accepted(model, dataset, *, depth0, tilt0, settings, backend):
         return SimpleNamespace(accepted=True, depth=depth0 + next(moves), tilt=tilt0)
 
     def refine(model, dataset, depth, tilt, *, settings, backend):
         meshes.append(model.copy())
+        depths.append(depth)
         return SimpleNamespace(mesh=meshes[-1])
 
     def record(iteration, model, dataset, depth, tilt, truth, settings, backend, first):
@@ -107,9 +110,12 @@ def test_an_iteration_whose_image_error_rises_is_dropped(coral_one, monkeypatch)
         monkeypatch.setattr(reconstruct_module, name, fake)
     result = reconstruct(coral_one, settings=dataclasses.replace(FAST, iterations=5))
     start = coral_one.manifest.surface.depth
-    assert [h["E_I"] for h in result.history] == [1.0, 0.8] and result.iterations == 1
+    # before the loop; it. 1 at the proposal; it. 2 at the proposal, then again at the old
+    # depth (kept); it. 3 at the proposal, then at the old depth (neither kept: stop)
+    assert depths == pytest.approx([start, start + 0.01, start + 0.03, start + 0.01, start + 0.04, start + 0.01])
+    assert [h["E_I"] for h in result.history] == [1.0, 0.9, 0.85] and result.iterations == 2
     assert result.depth == pytest.approx(start + 0.01) and result.converged
-    assert result.model is meshes[1]  # meshes[0]: the refinement before the first pose step
+    assert result.model is meshes[3]
 
 
 def test_settings_are_validated():
