@@ -57,30 +57,42 @@ def test_image_errors_vanish_for_the_truth_and_grow_with_a_bad_model(coral_one):
     assert good["ACE"] < 0.004  # within about one 3.9 mm range bin
 
 
+def _script_the_loop(monkeypatch, pose_step, errors):
+    """Replace the loop's pose step with ``pose_step``, its shape step with a copy of the model,
+    and its record with the next of ``errors`` as E_I; returns the shape steps' (depth, tilt,
+    mesh), in order."""
+    from types import SimpleNamespace
+
+    errors, refined = iter(errors), []
+
+    def refine(model, dataset, depth, tilt, *, settings, backend):
+        refined.append((depth, tilt, model.copy()))
+        return SimpleNamespace(mesh=refined[-1][2])
+
+    def record(iteration, model, dataset, depth, tilt, truth, settings, backend, first):
+        return {"iteration": iteration, "depth_m": depth, "E_I": next(errors)}
+
+    for name, fake in (("estimate_pose", pose_step), ("refine_shape", refine), ("_record", record),
+                       ("_line", str)):
+        monkeypatch.setattr(reconstruct_module, name, fake)
+    return refined
+
+
 def test_a_refused_pose_step_keeps_the_estimate_and_the_shape_step_runs(coral_one, monkeypatch):
     """Greedy acceptance: when E_mu does not fall, D and β stay, the shape is refined at them,
     and the loop goes on while E_I falls (paper §2.3)."""
     from types import SimpleNamespace
 
-    calls, refined, errors = [], [], iter([1.0, 0.9, 0.8, 0.85])
+    calls = []
 
     def refused(model, dataset, *, depth0, tilt0, settings, backend):
         calls.append((depth0, tilt0))
         return SimpleNamespace(accepted=False, depth=depth0 + 0.01, tilt=tilt0 + 0.01)
 
-    def refine(model, dataset, depth, tilt, *, settings, backend):
-        refined.append((depth, tilt))
-        return SimpleNamespace(mesh=model.copy())
-
-    def record(iteration, model, dataset, depth, tilt, truth, settings, backend, first):
-        return {"iteration": iteration, "depth_m": depth, "E_I": next(errors)}
-
-    for name, fake in (("estimate_pose", refused), ("refine_shape", refine), ("_record", record),
-                       ("_line", str)):
-        monkeypatch.setattr(reconstruct_module, name, fake)
+    refined = _script_the_loop(monkeypatch, refused, [1.0, 0.9, 0.8, 0.85])
     result = reconstruct(coral_one, settings=dataclasses.replace(FAST, iterations=5))
     start = coral_one.manifest.surface.depth, coral_one.manifest.surface.tilt
-    assert calls == [start] * 3 and refined == [start] * 4  # 1 before the loop, 3 in it
+    assert calls == [start] * 3 and [r[:2] for r in refined] == [start] * 4  # 1 before the loop, 3 in it
     assert [h["E_I"] for h in result.history] == [1.0, 0.9, 0.8] and result.converged
     assert (result.depth, result.tilt) == start
 
@@ -91,31 +103,21 @@ def test_a_pose_that_raises_the_image_error_is_not_adopted(coral_one, monkeypatc
     either, the loop ends with the model and (D, β) of the last iteration recorded."""
     from types import SimpleNamespace
 
-    moves, meshes, depths = iter([0.01, 0.02, 0.03]), [], []
-    errors = iter([1.0, 0.9, 0.95, 0.85, 0.99, 0.99])
+    moves = iter([0.01, 0.02, 0.03])
 
     def accepted(model, dataset, *, depth0, tilt0, settings, backend):
         return SimpleNamespace(accepted=True, depth=depth0 + next(moves), tilt=tilt0)
 
-    def refine(model, dataset, depth, tilt, *, settings, backend):
-        meshes.append(model.copy())
-        depths.append(depth)
-        return SimpleNamespace(mesh=meshes[-1])
-
-    def record(iteration, model, dataset, depth, tilt, truth, settings, backend, first):
-        return {"iteration": iteration, "depth_m": depth, "E_I": next(errors)}
-
-    for name, fake in (("estimate_pose", accepted), ("refine_shape", refine), ("_record", record),
-                       ("_line", str)):
-        monkeypatch.setattr(reconstruct_module, name, fake)
+    refined = _script_the_loop(monkeypatch, accepted, [1.0, 0.9, 0.95, 0.85, 0.99, 0.99])
     result = reconstruct(coral_one, settings=dataclasses.replace(FAST, iterations=5))
     start = coral_one.manifest.surface.depth
     # before the loop; it. 1 at the proposal; it. 2 at the proposal, then again at the old
     # depth (kept); it. 3 at the proposal, then at the old depth (neither kept: stop)
-    assert depths == pytest.approx([start, start + 0.01, start + 0.03, start + 0.01, start + 0.04, start + 0.01])
+    assert [r[0] for r in refined] == pytest.approx(
+        [start, start + 0.01, start + 0.03, start + 0.01, start + 0.04, start + 0.01])
     assert [h["E_I"] for h in result.history] == [1.0, 0.9, 0.85] and result.iterations == 2
     assert result.depth == pytest.approx(start + 0.01) and result.converged
-    assert result.model is meshes[3]
+    assert result.model is refined[3][2]
 
 
 def test_settings_are_validated():
