@@ -51,5 +51,8 @@ def check_integer(name: str, value: Any, minimum: int) -> None:
 
 
 def _short(value: Any, limit: int = 60) -> str:
+    """repr(value), its middle elided past ``limit`` characters: the end of a long path (the
+    file's name) stays readable."""
     text = repr(value)
-    return text if len(text) <= limit else text[: limit - 3] + "..."
+    head = 20
+    return text if len(text) <= limit else text[:head] + "..." + text[head + 3 - limit:]

@@ -608,3 +608,12 @@ def test_loaders_name_a_missing_manifest(tmp_path):
         load_manifest(tmp_path / "scene.toml")
     with pytest.raises(InputError, match="is a folder"):
         load_scene(tmp_path)
+
+
+def test_a_long_value_keeps_its_end_in_the_message():
+    """A long path is elided in the middle, so the file's name stays in the one line."""
+    path = "/tmp/" + "deep/" * 30 + "none.ply"
+    text = str(InputError("no such mesh file", field="--initial-model", value=path))
+    assert text.startswith("--initial-model = '/tmp/deep/") and "none.ply'" in text
+    assert "..." in text and len(text) < 100
+    assert str(InputError("bad", field="x", value="short")) == "x = 'short': bad"
