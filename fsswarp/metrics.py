@@ -19,6 +19,7 @@
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 
@@ -159,15 +160,20 @@ def compare(estimate, truth, *, samples: int = SAMPLES, seed: int = 0) -> dict:
             "recall": recall, "tau_m": tau, "samples": samples, "seed": seed}
 
 
-def point_mesh_distance(points, mesh, *, chunk: int = 4096) -> np.ndarray:
+def point_mesh_distance(points, mesh, *, chunk: int = 2048) -> np.ndarray:
     """(N,) exact distance (m) from each point to the nearest triangle of ``mesh``.
 
     Candidates come from a k-d tree over sites on the triangles, such that every point of a
     triangle lies within ρ of one of its sites (ρ: the 90th percentile of the triangles' largest
     centroid-to-vertex distance): the centroid where that distance is at most ρ, else a
     barycentric grid with edges under ρ. The triangle of the nearest site bounds the distance
-    from above by U; only triangles with a site within U + ρ can be closer, and those are
-    tested exactly."""
+    from above by U; only triangles with a site within U + ρ can be closer. A site at distance
+    s whose triangle lies within r of it (its centroid spread, else ρ) bounds that triangle's
+    distance from below by s − r, so only triangles with a site where s − r < U are tested
+    exactly, each once per point. Chunks of ``chunk`` points run on a thread pool (NumPy and the
+    k-d tree release the GIL); the result does not depend on the number of threads."""
+    from concurrent.futures import ThreadPoolExecutor
+
     from scipy.spatial import cKDTree
 
     points = np.asarray(points, np.float64)
@@ -176,7 +182,7 @@ def point_mesh_distance(points, mesh, *, chunk: int = 4096) -> np.ndarray:
     spread = np.linalg.norm(tri - centroids[:, None, :], axis=2).max(axis=1)
     rho = max(float(np.percentile(spread, 90)), 1e-12)
     small = spread <= rho
-    sites, owners = [centroids[small]], [np.flatnonzero(small)]
+    sites, owners, reach = [centroids[small]], [np.flatnonzero(small)], [spread[small]]
     edges = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1)
     splits = np.where(small, 0, np.ceil(edges / rho).astype(np.int64))
     for n in np.unique(splits[~small]):
@@ -189,19 +195,27 @@ def point_mesh_distance(points, mesh, *, chunk: int = 4096) -> np.ndarray:
             + v[None, :, None] * (corner[:, None, 2] - corner[:, None, 0])
         sites.append(grid.reshape(-1, 3))
         owners.append(np.repeat(faces, len(u)))
-    sites, owners = np.concatenate(sites), np.concatenate(owners)
+        reach.append(np.full(len(faces) * len(u), rho))
+    sites, owners, reach = np.concatenate(sites), np.concatenate(owners), np.concatenate(reach)
     tree = cKDTree(sites)
     out = np.empty(len(points))
-    for start in range(0, len(points), chunk):
+
+    def nearest(start: int) -> None:
         p = points[start:start + chunk]
-        _, nearest = tree.query(p)
-        bound = _point_triangle_distance(p, tri[owners[nearest]])
+        _, first = tree.query(p)
+        bound = _point_triangle_distance(p, tri[owners[first]])
         lists = tree.query_ball_point(p, bound + rho, return_sorted=False)
         owner = np.repeat(np.arange(len(p)), [len(x) for x in lists])
-        faces = owners[np.concatenate(lists).astype(np.int64)]
+        site = np.concatenate(lists).astype(np.int64)
+        below = np.linalg.norm(sites[site] - p[owner], axis=1) - reach[site] < bound[owner]
+        owner, face = np.divmod(np.unique(owner[below] * len(tri) + owners[site[below]]), len(tri))
         best = bound.copy()
-        np.minimum.at(best, owner, _point_triangle_distance(p[owner], tri[faces]))
+        np.minimum.at(best, owner, _point_triangle_distance(p[owner], tri[face]))
         out[start:start + chunk] = best
+
+    starts = range(0, len(points), chunk)
+    with ThreadPoolExecutor(max(1, min(len(starts), os.cpu_count() or 1))) as pool:
+        list(pool.map(nearest, starts))
     return out
 
 

@@ -102,6 +102,36 @@ def test_point_mesh_distance_is_exact():
     np.testing.assert_allclose(point_mesh_distance(points, mesh), want, atol=1e-9)
 
 
+def test_point_mesh_distance_is_exact_over_many_chunks_and_mixed_triangles():
+    """Fine and coarse triangles together (the coarse ones get a site grid), points inside,
+    near and far, split over many chunks of the thread pool."""
+    rng = np.random.default_rng(5)
+    fine = trimesh.creation.icosphere(subdivisions=4, radius=0.05)
+    coarse = trimesh.creation.box([0.3, 0.02, 0.2])
+    coarse.apply_translation([0.0, 0.12, 0.0])
+    mesh = trimesh.util.concatenate([fine, coarse])
+    points = np.concatenate([rng.uniform(-0.25, 0.25, (600, 3)), rng.normal(0.0, 0.03, (600, 3))])
+    want = np.array([_brute_distance(p, mesh.triangles) for p in points])  # trimesh's is off inside the sphere
+    got = point_mesh_distance(points, mesh, chunk=97)
+    np.testing.assert_allclose(got, want, atol=1e-9)
+    np.testing.assert_array_equal(point_mesh_distance(points, mesh, chunk=len(points)), got)
+
+
+def _brute_distance(p, triangles) -> float:
+    """Distance from p to the nearest of the triangles (T, 3, 3): the nearest of each triangle's
+    three edges and, where p's projection falls inside it, its plane."""
+    a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]
+    squared = np.full(len(triangles), np.inf)
+    for u, v in ((a, b), (b, c), (c, a)):
+        e = v - u
+        t = np.clip(np.sum((p - u) * e, axis=1) / np.sum(e * e, axis=1), 0.0, 1.0)
+        squared = np.minimum(squared, np.sum((p - u - t[:, None] * e) ** 2, axis=1))
+    n = np.cross(b - a, c - a)
+    inside = np.all([np.sum(np.cross(v - u, p - u) * n, axis=1) >= 0 for u, v in ((a, b), (b, c), (c, a))], axis=0)
+    plane = np.sum((p - a) * n, axis=1) ** 2 / np.sum(n * n, axis=1)
+    return float(np.sqrt(np.where(inside, np.minimum(plane, squared), squared).min()))
+
+
 def test_metrics_reject_empty_meshes():
     with pytest.raises(InputError, match="no triangles"):
         chamfer(sphere(), trimesh.Trimesh())
