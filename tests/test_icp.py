@@ -7,7 +7,7 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from fsswarp.icp import contour_error, icp
+from fsswarp.icp import _median, contour_error, icp
 
 finite = dict(allow_nan=False, allow_infinity=False)
 #: Misalignments of the kind contour alignment meets: up to 2.9° about the contour and 2 cm.
@@ -202,3 +202,11 @@ def test_contour_error_closed_form():
 def test_bad_inputs_raise(source, target, kwargs, message):
     with pytest.raises(ValueError, match=message):
         icp(source, target, **kwargs)
+
+
+@settings(deadline=None, max_examples=50)
+@given(st.lists(st.floats(0.0, 1.0, allow_nan=False), min_size=1, max_size=40))
+def test_the_robust_scale_median_is_numpys(values):
+    """ICP's own median (called every iteration) equals np.median, odd and even lengths."""
+    array = np.array(values)
+    assert _median(array) == float(np.median(array))
