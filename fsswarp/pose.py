@@ -81,7 +81,7 @@ from .errors import InputError, check_integer, is_integer
 from .icp import icp
 from .motion import patch_motions, view_errors
 from .render import check_mesh
-from .segment import SegmentSettings, segment
+from .segment import SegmentSettings, memoized, segment
 from .surface import mirror_points, surface_in_reference, surface_in_views
 
 #: Ray-cast ε (m) of the frontal-patch search, as the renderer's leg tests.
@@ -609,9 +609,13 @@ def detection_threshold(image, settings: SegmentSettings = SegmentSettings()) ->
     """(bins,) linear intensity at which the segmentation's hysteresis low threshold lies in
     each row of a (bins, beams) image, less the background: ``(m + low·s − 1)·level(B)``
     (``fsswarp.segment`` steps 1–2: the same background level, median m and spread s)."""
+    array = np.asarray(image, np.float64)
+    return memoized("detection_threshold", array, settings, lambda: _detection_threshold(array, settings))
+
+
+def _detection_threshold(array: np.ndarray, settings: SegmentSettings) -> np.ndarray:
     from scipy import ndimage
 
-    array = np.asarray(image, np.float64)
     peak = float(array.max()) if array.size else 0.0
     level = ndimage.median_filter(np.median(array, axis=1) / math.log(2.0), settings.background_rows,
                                   mode="nearest")

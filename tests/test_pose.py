@@ -12,7 +12,7 @@ from fsswarp.backends import get_backend
 from fsswarp.dataset import Dataset
 from fsswarp.errors import InputError
 from fsswarp.figures import pose_figure
-from fsswarp.pose import PoseProblem, PoseSettings, estimate_pose, pose_objective
+from fsswarp.pose import PoseProblem, PoseSettings, detection_threshold, estimate_pose, pose_objective
 from fsswarp.rig import Rig
 from fsswarp.surface import COMPONENTS
 
@@ -142,3 +142,16 @@ def test_bad_input(coral_one, truth_model, opencl):
         estimate_pose(truth_model, coral_one, tilt0=math.radians(95.0), backend=opencl)
     with pytest.raises(InputError, match="pose.grid"):
         PoseSettings(grid=(2, 9))
+
+
+def test_detection_threshold_is_kept_per_image_content():
+    """The memo of fsswarp.segment: an equal image gets the kept (read-only) threshold, a
+    changed one its own."""
+    rng = np.random.default_rng(4)
+    image = rng.exponential(1.0, (64, 24)).astype(np.float32)
+    image[20:25, 5:9] += 50.0
+    first = detection_threshold(image)
+    assert detection_threshold(image.copy()) is first and not first.flags.writeable
+    brighter = image.copy()
+    brighter[:, 0] += 10.0
+    assert detection_threshold(brighter) is not first

@@ -106,3 +106,37 @@ def test_segment_bad_input(image, text):
 def test_segment_settings_are_checked(field, value):
     with pytest.raises(InputError, match=f"segment.{field}" if field != "low" else "segment.low"):
         SegmentSettings(**{field: value})
+
+
+def test_the_memo_keys_on_content_and_settings_and_keeps_results_read_only(monkeypatch):
+    """A second call on an equal image returns the kept result without segmenting again; a
+    changed pixel, other settings or a full memo segment afresh; kept arrays cannot be changed;
+    an empty result warns on every call."""
+    import fsswarp.segment as seg
+
+    calls = []
+    real = seg._highlight
+    monkeypatch.setattr(seg, "_highlight", lambda image, settings: calls.append(1) or real(image, settings))
+    monkeypatch.setattr(seg, "_memo", type(seg._memo)())
+    rng = np.random.default_rng(3)
+    image = rng.exponential(1.0, (64, 24)).astype(np.float32)
+    image[30:34, 8:14] += 200.0
+    first = segment(image)
+    again = segment(image.copy())
+    assert again is first and len(calls) == 1
+    assert np.array_equal(first.highlight, real(image.astype(np.float64), SegmentSettings()))
+    with pytest.raises(ValueError):
+        first.highlight[0, 0] = True
+    changed = image.copy()
+    changed[10, 3] += 1e-3
+    assert segment(changed) is not first and len(calls) == 2
+    assert segment(image, SegmentSettings(low=3.0)) is not first and len(calls) == 3
+    for k in range(seg.MEMO_SIZE):
+        segment(image + np.float32(k + 1))
+    assert len(seg._memo) == seg.MEMO_SIZE
+    segment(image)
+    assert len(calls) == 3 + seg.MEMO_SIZE + 1  # the first result had been dropped
+    flat = np.ones((64, 24), np.float32)
+    for _ in range(2):
+        with pytest.warns(SegmentWarning, match="no object highlight"):
+            segment(flat, name="flat")
