@@ -57,23 +57,29 @@ def test_image_errors_vanish_for_the_truth_and_grow_with_a_bad_model(coral_one):
     assert good["ACE"] < 0.004  # within about one 3.9 mm range bin
 
 
-def _script_the_loop(monkeypatch, pose_step, errors):
+def _script_the_loop(monkeypatch, pose_step, errors, completed=None):
     """Replace the loop's pose step with ``pose_step``, its shape step with a copy of the model,
-    and its record with the next of ``errors`` as E_I; returns the shape steps' (depth, tilt,
+    and its record with the next of ``errors`` as E_I; the E_I of every entry completed for the
+    history (E_mu, truth metrics) goes to ``completed``. Returns the shape steps' (depth, tilt,
     mesh), in order."""
     from types import SimpleNamespace
 
     errors, refined = iter(errors), []
+    completed = [] if completed is None else completed
 
     def refine(model, dataset, depth, tilt, *, settings, backend):
         refined.append((depth, tilt, model.copy()))
         return SimpleNamespace(mesh=refined[-1][2])
 
-    def record(iteration, model, dataset, depth, tilt, truth, settings, backend, first):
+    def record(iteration, model, dataset, depth, tilt, settings, backend, first):
         return {"iteration": iteration, "depth_m": depth, "E_I": next(errors)}
 
+    def complete(entry, model, dataset, depth, tilt, truth, settings, backend):
+        completed.append(entry["E_I"])
+        return entry
+
     for name, fake in (("estimate_pose", pose_step), ("refine_shape", refine), ("_record", record),
-                       ("_line", str)):
+                       ("_complete", complete), ("_line", str)):
         monkeypatch.setattr(reconstruct_module, name, fake)
     return refined
 
@@ -108,7 +114,8 @@ def test_a_pose_that_raises_the_image_error_is_not_adopted(coral_one, monkeypatc
     def accepted(model, dataset, *, depth0, tilt0, settings, backend):
         return SimpleNamespace(accepted=True, depth=depth0 + next(moves), tilt=tilt0)
 
-    refined = _script_the_loop(monkeypatch, accepted, [1.0, 0.9, 0.95, 0.85, 0.99, 0.99])
+    completed = []
+    refined = _script_the_loop(monkeypatch, accepted, [1.0, 0.9, 0.95, 0.85, 0.99, 0.99], completed)
     result = reconstruct(coral_one, settings=dataclasses.replace(FAST, iterations=5))
     start = coral_one.manifest.surface.depth
     # before the loop; it. 1 at the proposal; it. 2 at the proposal, then again at the old
@@ -118,6 +125,7 @@ def test_a_pose_that_raises_the_image_error_is_not_adopted(coral_one, monkeypatc
     assert [h["E_I"] for h in result.history] == [1.0, 0.9, 0.85] and result.iterations == 2
     assert result.depth == pytest.approx(start + 0.01) and result.converged
     assert result.model is refined[3][2]
+    assert completed == [1.0, 0.9, 0.85]  # E_mu and the truth metrics only for kept trials
 
 
 def test_settings_are_validated():
