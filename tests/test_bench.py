@@ -181,9 +181,7 @@ def test_cli_bad_options_exit_2_with_one_line(args, tmp_path, capsys):
 
 def test_report_regenerates_results_from_records(cli_run, tmp_path):
     _, out = cli_run
-    spec = importlib.util.spec_from_file_location("bench_report", Path(__file__).parents[1] / "bench" / "report.py")
-    report = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(report)
+    report = _bench_module("report")
     records = tmp_path / "records"
     records.mkdir()
     (records / "tiny-cpu.json").write_bytes((out / "bench.json").read_bytes())
@@ -199,12 +197,16 @@ def test_report_regenerates_results_from_records(cli_run, tmp_path):
     assert report.main([str(tmp_path / "missing.json"), "--out", str(tmp_path / "R2.md")]) == 2
 
 
-def _paper_table():
-    spec = importlib.util.spec_from_file_location("bench_paper_table",
-                                                  Path(__file__).parents[1] / "bench" / "paper_table.py")
+def _bench_module(name: str):
+    """bench/NAME.py, loaded by path (bench/ is not a package)."""
+    spec = importlib.util.spec_from_file_location(f"bench_{name}", Path(__file__).parents[1] / "bench" / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def _paper_table():
+    return _bench_module("paper_table")
 
 
 def test_paper_table_runs_both_starts_and_renders_the_table(tmp_path, capsys):
@@ -224,10 +226,7 @@ def test_paper_table_runs_both_starts_and_renders_the_table(tmp_path, capsys):
     text = table.table_markdown(record, "tiny")
     assert "| coral-one (β +2°) | 0.4700, 12.30 | 0.4700, 12.300 | +40.0 | +2.000 | no | 0 (limit) |" in text
     assert "### tiny" in capsys.readouterr().out
-    spec = importlib.util.spec_from_file_location("bench_report", Path(__file__).parents[1] / "bench" / "report.py")
-    report = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(report)
-    rendered = report.report([], None, None, tmp_path, [tmp_path / "tiny.json"])
+    rendered = _bench_module("report").report([], None, None, tmp_path, [tmp_path / "tiny.json"])
     assert "## Reconstruction: the paper's table" in rendered and "### tiny" in rendered
 
 
@@ -249,3 +248,24 @@ def test_paper_table_bad_options_exit_2(args, tmp_path):
     except SystemExit as stop:  # argparse's own errors
         code = stop.code
     assert code == 2 and not list(tmp_path.iterdir())
+
+
+def test_ab_reconstruct_runs_each_tree_from_its_own_package(coral_one, tmp_path):
+    """bench/ab_reconstruct.py times a tree's own code: the run imports fsswarp from that tree,
+    not from the working folder or the installed package."""
+    import shutil
+
+    repo = Path(__file__).parents[1]
+    tree = tmp_path / "tree"
+    for name in ("fsswarp", "kernels"):
+        shutil.copytree(repo / name, tree / name, ignore=shutil.ignore_patterns("__pycache__"))
+    found = _bench_module("ab_reconstruct").run_tree(tree, str(coral_one.root), "auto", "", "0")
+    assert Path(found["package"]) == tree / "fsswarp" and found["E_I"] == 1.0 and found["seconds"] > 0
+
+
+@pytest.mark.parametrize("args", [["nowhere", "."], [".", ".", "--rounds", "0"]])
+def test_ab_reconstruct_bad_options_exit_2_with_one_line(args, capsys, monkeypatch):
+    monkeypatch.chdir(Path(__file__).parents[1])
+    assert _bench_module("ab_reconstruct").main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("bench/ab_reconstruct.py:") and "\n" not in err

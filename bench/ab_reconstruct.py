@@ -1,0 +1,103 @@
+"""Side-by-side wall time of one reconstruction with two code trees, in one run:
+
+    python bench/ab_reconstruct.py BEFORE AFTER [--rounds K] [--scene NAME] [--backend B]
+                                   [--device D]
+
+BEFORE and AFTER are folders that each hold an ``fsswarp`` package (and ``kernels/`` for the
+OpenCL backend), e.g. ``git archive REV fsswarp kernels | tar -x -C DIR``. The scene is
+simulated once (noisy, seed 0) with AFTER; then each tree reconstructs it from the measured
+start once without iterations (to fill the kernel caches) and ``--rounds`` times in
+alternation, each run in its own process with the tree first on ``PYTHONPATH``. Prints one
+Markdown table: per tree the median, min and max seconds of ``fsswarp.reconstruct`` (the
+process start and the dataset load are not timed), the final D, β and E_I (the trees should
+agree), and AFTER's median over BEFORE's. Timings taken one after the other drift with the
+machine's load; alternating rounds put that drift into both columns alike.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+RUN = """
+import json, sys, time
+import fsswarp
+from fsswarp.backends import get_backend
+from fsswarp.dataset import load_dataset
+from fsswarp.reconstruct import ReconstructSettings, reconstruct
+dataset = load_dataset(sys.argv[1])
+backend = get_backend(sys.argv[2], sys.argv[3] or None)
+start = time.perf_counter()
+result = reconstruct(dataset, settings=ReconstructSettings(iterations=int(sys.argv[4])), backend=backend)
+print(json.dumps({"seconds": time.perf_counter() - start, "package": fsswarp.__path__[0], "depth_m": result.depth,
+                  "tilt_deg": result.summary()["tilt_deg"], "E_I": result.history[-1]["E_I"]}))
+"""
+
+
+def tree_first(tree: Path) -> dict:
+    """The environment with ``tree`` first on PYTHONPATH."""
+    return dict(os.environ, PYTHONPATH=os.pathsep.join([str(tree), os.environ.get("PYTHONPATH", "")]))
+
+
+def run_tree(tree: Path, *args: str) -> dict:
+    """One reconstruction in its own process with ``tree`` first on PYTHONPATH, run from the
+    tree (``python -c`` puts the working folder before PYTHONPATH); its JSON line."""
+    done = subprocess.run([sys.executable, "-c", RUN, *args], env=tree_first(tree), cwd=tree, capture_output=True,
+                          text=True, check=True)
+    found = json.loads(done.stdout.strip().splitlines()[-1])
+    if Path(found["package"]).resolve() != (tree / "fsswarp").resolve():
+        raise RuntimeError(f"{tree}: the run imported fsswarp from {found['package']}")
+    return found
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("before", type=Path)
+    parser.add_argument("after", type=Path)
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--scene", default="coral-one")
+    parser.add_argument("--backend", default="auto")
+    parser.add_argument("--device", default="")
+    options = parser.parse_args(argv)
+    trees = {"before": options.before.resolve(), "after": options.after.resolve()}
+    for name, tree in trees.items():
+        if not (tree / "fsswarp" / "__init__.py").is_file():
+            print(f"bench/ab_reconstruct.py: {name} = {str(tree)!r}: holds no fsswarp package", file=sys.stderr)
+            return 2
+    if options.rounds < 1:
+        print(f"bench/ab_reconstruct.py: --rounds = {options.rounds}: must be an integer >= 1", file=sys.stderr)
+        return 2
+    with tempfile.TemporaryDirectory() as scratch:
+        data = Path(scratch) / options.scene
+        subprocess.run([sys.executable, "-m", "fsswarp", "--quiet", "--backend", options.backend,
+                        *(["--device", options.device] if options.device else []), "simulate", options.scene,
+                        "--out", str(data), "--seed", "0"], check=True,
+                       env=tree_first(trees["after"]))
+        common = (str(data), options.backend, options.device)
+        for tree in trees.values():
+            run_tree(tree, *common, "0")
+        runs = {name: [] for name in trees}
+        for _ in range(options.rounds):
+            for name, tree in trees.items():
+                runs[name].append(run_tree(tree, *common, "10"))
+    medians = {name: statistics.median(r["seconds"] for r in found) for name, found in runs.items()}
+    print(f"{options.scene}, measured start, backend {options.backend} {options.device}, {options.rounds} rounds\n")
+    print("| tree | median (s) | min–max (s) | final D (m), β (°), E_I |")
+    print("|---|---|---|---|")
+    for name, found in runs.items():
+        seconds = [r["seconds"] for r in found]
+        last = found[-1]
+        print(f"| {name} `{trees[name]}` | {medians[name]:.1f} | {min(seconds):.1f}–{max(seconds):.1f} | "
+              f"{last['depth_m']:.4f}, {last['tilt_deg']:.3f}, {last['E_I']:.3f} |")
+    print(f"\nafter / before (medians): {medians['after'] / medians['before']:.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
