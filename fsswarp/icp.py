@@ -119,46 +119,55 @@ def icp(source, target, *, max_iterations: int = 200, tol: float = 1e-10, gate: 
     step_tol = tol * max(src_size, floor)
     tree = cKDTree(tgt)
     centre = src.mean(axis=0)
-    best = None
-    for angle in (0.0, START_ANGLE, -START_ANGLE):
-        rot0 = _rotation(angle)
-        run = _irls(src, tree, tgt, rot0, centre - rot0 @ centre, max_iterations, step_tol, max_distance,
-                    floor, tuning)
-        if best is None or run[-1] < best[-1]:
-            best = run
-    rot, trans, moved, iterations, converged, _ = best
-    dist, nearest, usable, sigma = _match(tree, moved, max_distance, floor)
+    runs = [_Run(src, rot, centre - rot @ centre) for rot in map(_rotation, (0.0, START_ANGLE, -START_ANGLE))]
+    _irls(runs, src, tree, tgt, max_iterations, step_tol, max_distance, floor, tuning)
+    best = min(runs, key=lambda run: run.match[3])  # the first of equal scales
+    dist, nearest, usable, sigma = best.match
+    moved = best.moved
     weights = np.where(usable, 1.0 / (1.0 + (dist / (tuning * sigma)) ** 2), 0.0)
     inlier = usable & (dist <= gate * sigma)
     index = np.flatnonzero(inlier)
     pairs = np.stack([index, nearest[index]], axis=1).astype(np.int64)
     error = contour_error(tgt[nearest[index]], moved[index])
-    return ICPResult(rotation=rot, angle=float(math.atan2(rot[1, 0], rot[0, 0])), translation=trans,
+    rot = best.rot
+    return ICPResult(rotation=rot, angle=float(math.atan2(rot[1, 0], rot[0, 0])), translation=best.trans,
                      pairs=pairs, motions=moved - src, error=error, scale=sigma, weights=weights,
-                     iterations=iterations, converged=converged)
+                     iterations=best.iterations, converged=best.converged)
 
 
-def _irls(src: np.ndarray, tree: cKDTree, tgt: np.ndarray, rot: np.ndarray, trans: np.ndarray,
-          max_iterations: int, step_tol: float, max_distance: float | None, floor: float, tuning: float):
-    """One IRLS-ICP run from the transform (rot, trans): (rotation, translation, moved source,
-    iterations, converged, final robust scale σ)."""
-    moved = src @ rot.T + trans
-    converged = False
-    iterations = 0
-    for iterations in range(1, max_iterations + 1):
-        dist, nearest, usable, sigma = _match(tree, moved, max_distance, floor)
-        weights = np.where(usable, 1.0 / (1.0 + (dist / (tuning * sigma)) ** 2), 0.0)
-        if weights.sum() <= 0.0:
+class _Run:
+    """One IRLS-ICP run from the transform (rot, trans): its transform, moved source,
+    iterations, whether it converged, whether it stopped, and the final match."""
+
+    def __init__(self, src: np.ndarray, rot: np.ndarray, trans: np.ndarray):
+        self.rot, self.trans, self.moved = rot, trans, src @ rot.T + trans
+        self.iterations, self.converged, self.done, self.match = 0, False, False, None
+
+
+def _irls(runs: list[_Run], src: np.ndarray, tree: cKDTree, tgt: np.ndarray, max_iterations: int,
+          step_tol: float, max_distance: float | None, floor: float, tuning: float) -> None:
+    """Iterate the runs in lockstep, one k-d tree query per iteration for all of them (each
+    run's arithmetic is its own; the query's per-point results do not depend on the batch),
+    then give each its final match (distances, nearest, usable, σ)."""
+    for iteration in range(1, max_iterations + 1):
+        active = [run for run in runs if not run.done]
+        if not active:
             break
-        rot, trans = _weighted_procrustes(src, tgt[nearest], weights)
-        new = src @ rot.T + trans
-        step = float(np.max(np.linalg.norm(new - moved, axis=1)))
-        moved = new
-        if step <= step_tol:
-            converged = True
-            break
-    sigma = _match(tree, moved, max_distance, floor)[3]
-    return rot, trans, moved, iterations, converged, sigma
+        for run, (dist, nearest, usable, sigma) in zip(active, _match(tree, [r.moved for r in active],
+                                                                      max_distance, floor)):
+            run.iterations = iteration
+            weights = np.where(usable, 1.0 / (1.0 + (dist / (tuning * sigma)) ** 2), 0.0)
+            if weights.sum() <= 0.0:
+                run.done = True
+                continue
+            run.rot, run.trans = _weighted_procrustes(src, tgt[nearest], weights)
+            new = src @ run.rot.T + run.trans
+            step = float(np.max(np.linalg.norm(new - run.moved, axis=1)))
+            run.moved = new
+            if step <= step_tol:
+                run.converged = run.done = True
+    for run, match in zip(runs, _match(tree, [run.moved for run in runs], max_distance, floor)):
+        run.match = match
 
 
 def _rotation(angle: float) -> np.ndarray:
@@ -166,13 +175,19 @@ def _rotation(angle: float) -> np.ndarray:
     return np.array([[c, -s], [s, c]])
 
 
-def _match(tree: cKDTree, moved: np.ndarray, max_distance: float | None, floor: float):
-    """Nearest target of every moved source point, which pairs count, and the robust scale."""
-    dist, nearest = tree.query(moved, k=1)
-    usable = np.ones(len(moved), dtype=bool) if max_distance is None else dist <= max_distance
-    kept = dist if max_distance is None else dist[usable]
-    sigma = _median(kept) / RAYLEIGH_MEDIAN if len(kept) else floor
-    return dist, nearest, usable, max(sigma, floor)
+def _match(tree: cKDTree, moved: list[np.ndarray], max_distance: float | None, floor: float) -> list[tuple]:
+    """Per set of moved source points (one query for all): the nearest target of every point,
+    which pairs count, and the robust scale."""
+    dist_all, nearest_all = tree.query(np.concatenate(moved), k=1)
+    out, start = [], 0
+    for points in moved:
+        dist, nearest = dist_all[start:start + len(points)], nearest_all[start:start + len(points)]
+        start += len(points)
+        usable = np.ones(len(points), dtype=bool) if max_distance is None else dist <= max_distance
+        kept = dist if max_distance is None else dist[usable]
+        sigma = _median(kept) / RAYLEIGH_MEDIAN if len(kept) else floor
+        out.append((dist, nearest, usable, max(sigma, floor)))
+    return out
 
 
 def _median(values: np.ndarray) -> float:
