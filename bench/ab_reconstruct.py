@@ -65,13 +65,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--backend", default="auto")
     parser.add_argument("--device", default="")
     options = parser.parse_args(argv)
+    from fsswarp.errors import InputError, check_integer
+
     trees = {"before": options.before.resolve(), "after": options.after.resolve()}
-    for name, tree in trees.items():
-        if not (tree / "fsswarp" / "__init__.py").is_file():
-            print(f"bench/ab_reconstruct.py: {name} = {str(tree)!r}: holds no fsswarp package", file=sys.stderr)
-            return 2
-    if options.rounds < 1:
-        print(f"bench/ab_reconstruct.py: --rounds = {options.rounds}: must be an integer >= 1", file=sys.stderr)
+    try:
+        for name, tree in trees.items():
+            if not (tree / "fsswarp" / "__init__.py").is_file():
+                raise InputError("holds no fsswarp package", field=name, value=str(tree))
+        check_integer("--rounds", options.rounds, 1)
+    except InputError as err:
+        print(f"bench/ab_reconstruct.py: error: {err}", file=sys.stderr)
         return 2
     with tempfile.TemporaryDirectory() as scratch:
         data = Path(scratch) / options.scene

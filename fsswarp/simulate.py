@@ -9,7 +9,7 @@ import numpy as np
 import trimesh
 
 from .dataset import Dataset, Manifest, Truth, load_dataset, load_scene, save_dataset
-from .errors import InputError, is_integer
+from .errors import InputError, check_integer
 from .render import LAYERS, RenderSettings, add_noise, render
 from .rig import world_to_reference
 from .scenes import builtin_scene, target_world_mesh
@@ -32,8 +32,7 @@ def simulate(scene: str | Path | Manifest, out: str | Path, *, seed: int = 0,
     """Synthesize the dataset of ``scene`` (a built-in name, a scene file or a scene Manifest)
     into the folder ``out``: noisy images, the noise-free layers and the truth model (in the
     reference frame of the true depth and tilt). Returns the saved Dataset."""
-    if not is_integer(seed) or seed < 0:
-        raise InputError("must be an integer >= 0", field="--seed", value=seed)
+    check_integer("--seed", seed, 0)
     manifest, base = (scene, None) if isinstance(scene, Manifest) else resolve_scene(scene)
     if manifest.target is None or manifest.truth is None:
         raise InputError("a scene needs [target] and [truth]", field="scene", value=str(scene))

@@ -14,7 +14,7 @@ import manifold3d
 import numpy as np
 import trimesh
 
-from .errors import InputError, is_integer
+from .errors import InputError, check_integer, is_integer
 
 
 class CoralSpec(NamedTuple):
@@ -55,8 +55,7 @@ def coral_mesh(seed: int, *, size_m=(0.22, 0.18, 0.16), subdivisions: int = 4) -
     ``numpy.random.default_rng(seed)`` alone and does not depend on ``subdivisions``: the
     same seed gives a bit-identical mesh, and a finer mesh of the same rock.
     """
-    if not (is_integer(seed) and seed >= 0):
-        raise InputError("must be an integer >= 0", field="seed", value=seed)
+    check_integer("seed", seed, 0)
     size = _size3("size_m", size_m)
     if not (is_integer(subdivisions) and 1 <= subdivisions <= 6):
         raise InputError("must be an integer from 1 to 6", field="subdivisions", value=subdivisions)
