@@ -28,10 +28,10 @@ adopted only if the iteration's image error E_I falls; if it does not, the shape
 tried again from the same model at the previous (D, β). When neither lowers E_I, the loop
 stops and the iteration is dropped: the result is the last iteration recorded, so the
 objective only diminishes, as in the paper's Figure 3a. A trial is judged by E_I alone; E_mu
-and the truth metrics are computed only for the trials kept. It also stops after ``iterations``. E_I is the objective here because it is
-measurable and, in the paper, tracks the model error E_V; E_mu alone kept falling on
-coral-two while E_I rose from 0.71 to 0.98 and E_V from 0.28 to 0.30 over three more
-iterations.
+and the truth metrics are computed only for the trials kept. It also stops after
+``iterations``. E_I is the objective here because it is measurable and, in the paper, tracks
+the model error E_V; E_mu alone kept falling on coral-two while E_I rose from 0.71 to 0.98
+and E_V from 0.28 to 0.30 over three more iterations.
 
 Image metrics (paper eq. 8–11), over the views marked ``optimize``, with the synthetic views
 of the model at the iteration's (D, β):

@@ -109,4 +109,3 @@ def test_a_degenerate_triangle_does_not_block_every_step():
     moved, factor = _apply(mesh, 0.01 * mesh.vertices, RefineSettings(step=1.0))  # uniform 1% growth
     assert factor == 1.0
     np.testing.assert_allclose(moved.vertices, 1.01 * mesh.vertices, atol=1e-15)
-
