@@ -42,6 +42,12 @@ of the model at the iteration's (D, β):
   unknown), then IE = mean |Ĩ − I| over Ω_m; AIE is the mean over views.
 - CE: IRLS-ICP (``fsswarp.icp``) of the synthetic frontal contour (per beam, the first row of
   Ω_m's object) to the data's (``fsswarp.segment``'s), in the fan plane (m); ACE their mean.
+  ICP's robust scale σ is floored at half a range bin (``CONTOUR_SCALE_FLOOR``): both contours
+  are whole range bins, and where more than half of the pairs coincided exactly the median
+  scale fell to zero, only the exact pairs were inliers and CE read 0 however many beams were
+  a bin off (8 of coral-two's 10 views after two refinement updates, at random, so ACE jumped
+  between 0.33 and 1.1 mm from one update to the next). With the floor, pairs one bin apart
+  stay inliers (gate 3σ = 1.5 bins) and CE counts them.
 - E_I = (AIE/AIE⁰ + ACE/ACE⁰)/2, 1 at iteration 0.
 
 Truth metrics compare the model with ``truth/model.ply`` in the reference frame: both are the
@@ -67,6 +73,9 @@ from .refine import RefineSettings, refine_shape
 from .render import RenderSettings, render
 from .segment import SegmentSettings, segment
 from .sonar import fan_xy
+
+#: Floor of the robust scale σ of E_I's contour ICP, in range bins (module docstring, CE).
+CONTOUR_SCALE_FLOOR = 0.5
 
 
 @dataclass(frozen=True)
@@ -206,16 +215,17 @@ def image_errors(model, dataset, depth: float, tilt: float, *, settings: Reconst
             regions.append(region)
         seg = segment(image, settings.segment, name=f"images/{name}")
         rows = np.where(region.any(axis=0), region.argmax(axis=0), -1)
-        ce = _contour_error(rows, seg.contour, theta, ranges)
+        ce = _contour_error(rows, seg.contour, theta, ranges, CONTOUR_SCALE_FLOOR * sonar.range_step)
         errors.append(ce)
         per_view[name] = {"CE": ce}
     aie = average_intensity_error(np.stack(synthetic), np.stack(data), np.stack(regions)) if regions else math.nan
     return {"AIE": aie, "ACE": average_contour_error(np.asarray(errors)), "views": per_view}
 
 
-def _contour_error(synthetic_rows, data_rows, theta, ranges) -> float:
-    """CE (m) of ICP from the synthetic to the data frontal contour (rows per beam, -1: none);
-    NaN when either has fewer than two points or no inlier pair."""
+def _contour_error(synthetic_rows, data_rows, theta, ranges, min_scale: float) -> float:
+    """CE (m) of ICP from the synthetic to the data frontal contour (rows per beam, -1: none),
+    with ICP's robust scale floored at ``min_scale`` (m); NaN when either has fewer than two
+    points or no inlier pair."""
     points = []
     for rows in (synthetic_rows, data_rows):
         beams = np.flatnonzero(rows >= 0)
@@ -223,7 +233,7 @@ def _contour_error(synthetic_rows, data_rows, theta, ranges) -> float:
         points.append(np.column_stack([x, y]))
     if min(len(p) for p in points) < 2:
         return math.nan
-    return float(icp(points[0], points[1]).error)
+    return float(icp(points[0], points[1], min_scale=min_scale).error)
 
 
 def _record(iteration: int, model, dataset, depth: float, tilt: float, settings: ReconstructSettings,

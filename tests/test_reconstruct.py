@@ -57,6 +57,29 @@ def test_image_errors_vanish_for_the_truth_and_grow_with_a_bad_model(coral_one):
     assert good["ACE"] < 0.004  # within about one 3.9 mm range bin
 
 
+
+def test_contour_error_counts_beams_a_bin_off_when_most_coincide():
+    """E_I's CE: contours are whole range bins. When two thirds of the beams coincide exactly,
+    the median residual is 0, and without the scale floor only the exact pairs were inliers
+    (CE 0); with it, the third a bin off counts (about a third of a bin, a little more as the
+    alignment splits the difference), while a delay common to all beams is aligned away."""
+    step = 0.0039
+    theta, ranges = np.radians(np.linspace(-14.0, 14.0, 96)), 0.7 + step * np.arange(1024)
+    beams = np.arange(20, 80)
+    data = np.full(96, -1)
+    data[beams] = 400 + np.rint(5.0 * np.sin(beams / 9.0)).astype(int)
+    third = data.copy()
+    third[beams[::3]] += 1
+    delayed = np.where(data >= 0, data + 1, -1)
+    floor = reconstruct_module.CONTOUR_SCALE_FLOOR * step
+
+    def ce(synthetic):
+        return reconstruct_module._contour_error(synthetic, data, theta, ranges, floor) / step
+
+    assert ce(data) < 1e-9
+    assert 0.3 < ce(third) < 0.5
+    assert ce(delayed) < 0.1
+
 def _script_the_loop(monkeypatch, pose_step, errors, completed=None):
     """Replace the loop's pose step with ``pose_step``, its shape step with a copy of the model,
     and its record with the next of ``errors`` as E_I; the E_I of every entry completed for the
