@@ -36,7 +36,7 @@ backend = get_backend(sys.argv[2], sys.argv[3] or None)
 start = time.perf_counter()
 result = reconstruct(dataset, settings=ReconstructSettings(iterations=int(sys.argv[4])), backend=backend)
 print(json.dumps({"seconds": time.perf_counter() - start, "package": fsswarp.__path__[0], "depth_m": result.depth,
-                  "tilt_deg": result.summary()["tilt_deg"], "E_I": result.history[-1]["E_I"]}))
+                  "tilt_deg": result.summary()["tilt_deg"], "E_I": result.history[result.best_iteration]["E_I"]}))
 """
 
 

@@ -399,13 +399,16 @@ def carve(state: State, dataset_dir: Path, out: Path, depth, tilt, resolution: i
               help="Folder for model.ply, carved.ply, result.json and figures/.")
 @click.option("--iterations", default=10, show_default=True, type=click.IntRange(min=0),
               help="Most pose + shape iterations after the carving.")
+@click.option("--patience", default=2, show_default=True, type=click.IntRange(min=1),
+              help="Stop after this many iterations in a row without a new lowest image error E_I.")
 @click.option("--resolution", default=128, show_default=True, type=click.IntRange(min=16),
               help="Voxels along the longest side of the carving box.")
 @click.option("--depth", type=float, default=None,
               help="Initial sonar depth D0 (m); default: the dataset's measured depth.")
 @click.option("--tilt", type=float, default=None, help="Initial sonar tilt (deg); default: the dataset's measured tilt.")
 @click.pass_obj
-def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, resolution: int, depth, tilt) -> None:
+def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, patience: int, resolution: int, depth,
+                tilt) -> None:
     """Reconstruct the object and estimate the sonar's depth and tilt from the dataset DIR
     (carve, then alternate pose and shape steps): OUT/model.ply, OUT/carved.ply,
     OUT/result.json and OUT/figures/."""
@@ -413,8 +416,8 @@ def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, res
     from .reconstruct import ReconstructSettings
 
     dataset = load_dataset(dataset_dir)
-    run_reconstruction(state, dataset, out, ReconstructSettings(iterations=iterations, resolution=resolution),
-                       depth0=depth, tilt0=None if tilt is None else math.radians(tilt))
+    run_reconstruction(state, dataset, out,
+                       ReconstructSettings(iterations=iterations, patience=patience, resolution=resolution), depth0=depth, tilt0=None if tilt is None else math.radians(tilt))
 
 
 @app.command()
@@ -475,19 +478,19 @@ def run_reconstruction(state: State, dataset, out: Path, settings, *, depth0: fl
         history_figure(result.history, tmp / "figures" / "history.png",
                        truth_depth=None if truth is None else truth.depth,
                        truth_tilt_deg=None if truth is None else math.degrees(truth.tilt),
-                       title=f"{dataset.root.name}: depth and tilt, and errors, per iteration")
+                       best_iteration=result.best_iteration, title=f"{dataset.root.name}: depth and tilt, and errors, per iteration")
         carve_figure(result.carved, tmp / "figures" / "carved.png", truth=truth_mesh, title="carved model (iteration 0)")
         carve_figure(result.model, tmp / "figures" / "model.png", truth=truth_mesh, label="final",
-                     title=f"final model (iteration {result.iterations})")
+                     title=f"final model (iteration {result.best_iteration}, the lowest E_I)")
         if result.pose_steps:
             pose_figure(result.pose_steps[0], tmp / "figures" / "pose.png",
                         truth=None if truth is None else (truth.depth, truth.tilt),
                         title="first pose step: the (D, tilt) grid search around the measured values")
         (tmp / "result.json").write_text(json.dumps(result.summary(), indent=2))
-    last = result.history[-1]
-    state.echo(f"wrote {shown or out}: D {result.depth:.4f} m, tilt {math.degrees(result.tilt):.3f} deg after "
-               f"{result.iterations} iterations ({'converged' if result.converged else 'iteration limit'}), "
-               f"E_I {last['E_I']:.3f}, {result.seconds:.1f} s")
+    best = result.history[result.best_iteration]
+    state.echo(f"wrote {shown or out}: D {result.depth:.4f} m, tilt {math.degrees(result.tilt):.3f} deg, E_I "
+               f"{best['E_I']:.3f} (iteration {result.best_iteration} of {result.iterations}, "
+               f"{'converged' if result.converged else 'iteration limit'}), {result.seconds:.1f} s")
     return result
 
 

@@ -195,10 +195,10 @@ def pose_figure(result, path: str | Path, *, truth: tuple[float, float] | None =
 
 
 def history_figure(history: list[dict], path: str | Path, *, truth_depth: float | None = None,
-                   truth_tilt_deg: float | None = None, title: str = "") -> Path:
+                   truth_tilt_deg: float | None = None, best_iteration: int | None = None, title: str = "") -> Path:
     """Save a PNG like the paper's Figures 7–8: depth and tilt against iteration (truth dashed),
-    and E_I, E_mu and (with a truth model) E_V against iteration. ``history``: the entries of
-    ``result.json``."""
+    and E_I, E_mu and (with a truth model) E_V against iteration, the kept (best) iteration
+    marked by a dotted line. ``history``: the entries of ``result.json``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -221,10 +221,12 @@ def history_figure(history: list[dict], path: str | Path, *, truth_depth: float 
         ax.plot(it, [h["E_V"] for h in history], "^-", label="E_V")
     ax.set_xlabel("iteration")
     ax.set_ylabel("error")
-    ax.legend(fontsize=7)
     for a in axes:
+        if best_iteration is not None:
+            a.axvline(best_iteration, color="grey", linestyle=":", label="kept" if a is axes[2] else None)
         a.set_xticks(it)
         a.tick_params(labelsize=7)
+    ax.legend(fontsize=7)
     return _save(fig, path, title)
 
 

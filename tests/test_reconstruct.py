@@ -14,7 +14,7 @@ import fsswarp.reconstruct as reconstruct_module
 from fsswarp.reconstruct import ReconstructSettings, image_errors, reconstruct
 
 HISTORY_KEYS = {"iteration", "depth_m", "tilt_deg", "E_mu", "AIE", "ACE", "E_I", "E_V", "chamfer_m", "fscore"}
-RESULT_KEYS = {"depth_m", "tilt_deg", "iterations", "converged", "backend", "device", "seconds", "history"}
+RESULT_KEYS = {"depth_m", "tilt_deg", "best_iteration", "iterations", "converged", "backend", "device", "seconds", "history"}
 FAST = ReconstructSettings(iterations=1, resolution=64)
 
 
@@ -109,7 +109,8 @@ def _script_the_loop(monkeypatch, pose_step, errors, completed=None):
 
 def test_a_refused_pose_step_keeps_the_estimate_and_the_shape_step_runs(coral_one, monkeypatch):
     """Greedy acceptance: when E_mu does not fall, D and β stay, the shape is refined at them,
-    and the loop goes on while E_I falls (paper §2.3)."""
+    and the loop goes on until E_I has not reached a new lowest for ``patience`` iterations
+    (paper §2.3)."""
     from types import SimpleNamespace
 
     calls = []
@@ -118,37 +119,58 @@ def test_a_refused_pose_step_keeps_the_estimate_and_the_shape_step_runs(coral_on
         calls.append((depth0, tilt0))
         return SimpleNamespace(accepted=False, depth=depth0 + 0.01, tilt=tilt0 + 0.01)
 
-    refined = _script_the_loop(monkeypatch, refused, [1.0, 0.9, 0.8, 0.85])
-    result = reconstruct(coral_one, settings=dataclasses.replace(FAST, iterations=5))
+    refined = _script_the_loop(monkeypatch, refused, [1.0, 0.9, 0.8, 0.85, 0.82])
+    result = reconstruct(coral_one, settings=dataclasses.replace(FAST, iterations=6))
     start = coral_one.manifest.surface.depth, coral_one.manifest.surface.tilt
-    assert calls == [start] * 3 and [r[:2] for r in refined] == [start] * 4  # 1 before the loop, 3 in it
-    assert [h["E_I"] for h in result.history] == [1.0, 0.9, 0.8] and result.converged
-    assert (result.depth, result.tilt) == start
+    assert calls == [start] * 4 and [r[:2] for r in refined] == [start] * 5  # 1 before the loop, 4 in it
+    assert [h["E_I"] for h in result.history] == [1.0, 0.9, 0.8, 0.85, 0.82] and result.converged
+    assert (result.depth, result.tilt) == start and result.best_iteration == 2
+    assert result.model is refined[2][2]
 
 
 def test_a_pose_that_raises_the_image_error_is_not_adopted(coral_one, monkeypatch):
-    """The objective only diminishes: a proposed (D, β) whose iteration raises E_I is dropped
-    and the shape step is tried again at the previous (D, β); when that does not lower E_I
-    either, the loop ends with the model and (D, β) of the last iteration recorded."""
+    """The objective only diminishes: a proposed (D, β) whose shape step does not lower E_I
+    below its lowest is dropped and the shape step is tried again at the previous (D, β).
+    When that does not lower E_I either, the iteration is recorded and the next goes on from
+    its model; after ``patience`` such iterations in a row the loop stops, and the result is
+    the iteration with the lowest E_I."""
     from types import SimpleNamespace
 
-    moves = iter([0.01, 0.02, 0.03])
+    moves, starts = iter([0.01, 0.02, 0.03, 0.04, 0.05, 0.06]), []
 
     def accepted(model, dataset, *, depth0, tilt0, settings, backend):
+        starts.append((depth0, model))
         return SimpleNamespace(accepted=True, depth=depth0 + next(moves), tilt=tilt0)
 
     completed = []
-    refined = _script_the_loop(monkeypatch, accepted, [1.0, 0.9, 0.95, 0.85, 0.99, 0.99], completed)
-    result = reconstruct(coral_one, settings=dataclasses.replace(FAST, iterations=5))
-    start = coral_one.manifest.surface.depth
-    # before the loop; it. 1 at the proposal; it. 2 at the proposal, then again at the old
-    # depth (kept); it. 3 at the proposal, then at the old depth (neither kept: stop)
+    errors = [1.0, 0.9, 0.95, 0.85, 0.99, 0.99, 0.8, 0.9, 0.88, 0.9, 0.9]
+    refined = _script_the_loop(monkeypatch, accepted, errors, completed)
+    result = reconstruct(coral_one, settings=dataclasses.replace(FAST, iterations=10))
+    s = coral_one.manifest.surface.depth
+    # before the loop; it. 1 at the proposal (kept); it. 2 at the proposal, then at the old
+    # depth (kept); it. 3 neither (a miss); it. 4 at the proposal (kept); it. 5 and 6 neither
+    # (two misses in a row: stop)
     assert [r[0] for r in refined] == pytest.approx(
-        [start, start + 0.01, start + 0.03, start + 0.01, start + 0.04, start + 0.01])
-    assert [h["E_I"] for h in result.history] == [1.0, 0.9, 0.85] and result.iterations == 2
-    assert result.depth == pytest.approx(start + 0.01) and result.converged
-    assert result.model is refined[3][2]
-    assert completed == [1.0, 0.9, 0.85]  # E_mu and the truth metrics only for kept trials
+        [s, s + 0.01, s + 0.03, s + 0.01, s + 0.04, s + 0.01, s + 0.05, s + 0.10, s + 0.05, s + 0.11, s + 0.05])
+    assert [d for d, _ in starts] == pytest.approx([s, s + 0.01, s + 0.01, s + 0.01, s + 0.05, s + 0.05])
+    assert starts[3][1] is refined[5][2]  # it. 4 goes on from the model of the missed it. 3
+    assert [h["E_I"] for h in result.history] == [1.0, 0.9, 0.85, 0.99, 0.8, 0.88, 0.9]
+    assert [h["depth_m"] for h in result.history] == pytest.approx([s, s + 0.01, s + 0.01, s + 0.01, s + 0.05,
+                                                                     s + 0.05, s + 0.05])
+    assert result.iterations == 6 and result.best_iteration == 4 and result.converged
+    assert result.depth == pytest.approx(s + 0.05) and result.model is refined[6][2]
+    assert completed == [1.0, 0.9, 0.85, 0.99, 0.8, 0.88, 0.9]  # E_mu and truth metrics: recorded trials only
+
+
+def test_patience_one_stops_at_the_first_iteration_that_does_not_lower_the_image_error(coral_one, monkeypatch):
+    from types import SimpleNamespace
+
+    def refused(model, dataset, *, depth0, tilt0, settings, backend):
+        return SimpleNamespace(accepted=False, depth=depth0, tilt=tilt0)
+
+    _script_the_loop(monkeypatch, refused, [1.0, 0.9, 0.95, 0.5])
+    result = reconstruct(coral_one, settings=dataclasses.replace(FAST, iterations=6, patience=1))
+    assert [h["E_I"] for h in result.history] == [1.0, 0.9, 0.95] and result.best_iteration == 1
 
 
 def test_settings_are_validated():
@@ -158,6 +180,8 @@ def test_settings_are_validated():
         ReconstructSettings(iterations=-1)
     with pytest.raises(InputError, match="resolution"):
         ReconstructSettings(resolution=4)
+    with pytest.raises(InputError, match="patience"):
+        ReconstructSettings(patience=0)
 
 
 def test_reconstruct_command_writes_model_result_and_figures(coral_one, tmp_path):
@@ -186,6 +210,7 @@ def test_reconstruct_starts_from_a_given_depth_and_tilt(coral_one, tmp_path):
     (["reconstruct", "nowhere", "--out", "OUT"], "nowhere"),
     (["reconstruct", "DATA", "--out", "OUT", "--depth", "-0.2"], "depth"),
     (["reconstruct", "DATA", "--out", "OUT", "--tilt", "nan"], "tilt"),
+    (["reconstruct", "DATA", "--out", "OUT", "--patience", "0"], "patience"),
     (["demo", "no-such-scene", "--out", "OUT"], "no-such-scene"),
 ])
 def test_bad_input_exits_2_and_writes_nothing(coral_one, tmp_path, args, field):
