@@ -27,7 +27,9 @@ two more shape steps at the measured (D0, β0) bring E_I to 0.85. A proposed (D,
 adopted only if it lowers the image error E_I below the lowest so far; if it does not, the
 shape step is tried again from the same model at the previous (D, β). When neither lowers
 E_I, the iteration still counts (it is recorded, and the next one goes on from its model at
-the previous (D, β)), but the loop stops after ``patience`` such iterations in a row. The
+the previous (D, β)), but the loop stops after ``patience`` such iterations in a row, or at
+once when the shape step left the model unchanged at the same (D, β) (every update refused:
+the pose and shape steps are deterministic, so the next iterations would repeat it). The
 result is the iteration with the lowest E_I (``best_iteration``), so the objective only
 diminishes, as in the paper's Figure 3a. The patience is there because E_I is noisy from one
 shape step to the next (its contours are whole range bins) while the shape goes on
@@ -191,6 +193,12 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
             say(f"iteration {iteration}: E_I {entry['E_I']:.3f} at D {depth_tried:.4f} m, tilt "
                 f"{math.degrees(tilt_tried):.3f} deg is not below iteration {best['iteration']}'s "
                 f"{best['E_I']:.3f}")
+        if (entry["E_I"] >= best["E_I"] and (depth_tried, tilt_tried) == (depth, tilt)
+                and np.array_equal(trial.vertices, working.vertices)):
+            say(f"iteration {iteration}: the shape step left the model as it was (every update refused), so "
+                f"the next iterations would repeat this one; keeping iteration {best['iteration']} and stopping")
+            converged = True
+            break
         working, depth, tilt = trial, depth_tried, tilt_tried
         history.append(_complete(entry, trial, dataset, depth, tilt, truth, settings, backend))
         say(_line(history[-1]))

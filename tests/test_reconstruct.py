@@ -91,8 +91,10 @@ def _script_the_loop(monkeypatch, pose_step, errors, completed=None):
     completed = [] if completed is None else completed
 
     def refine(model, dataset, depth, tilt, *, settings, backend):
-        refined.append((depth, tilt, model.copy()))
-        return SimpleNamespace(mesh=refined[-1][2])
+        moved = model.copy()
+        moved.apply_translation((1e-6, 0.0, 0.0))  # a shape step that moves the model
+        refined.append((depth, tilt, moved))
+        return SimpleNamespace(mesh=moved)
 
     def record(iteration, model, dataset, depth, tilt, settings, backend, first):
         return {"iteration": iteration, "depth_m": depth, "E_I": next(errors)}
@@ -171,6 +173,28 @@ def test_patience_one_stops_at_the_first_iteration_that_does_not_lower_the_image
     _script_the_loop(monkeypatch, refused, [1.0, 0.9, 0.95, 0.5])
     result = reconstruct(coral_one, settings=dataclasses.replace(FAST, iterations=6, patience=1))
     assert [h["E_I"] for h in result.history] == [1.0, 0.9, 0.95] and result.best_iteration == 1
+
+
+def test_a_shape_step_that_leaves_the_model_unchanged_stops_the_loop(coral_one, monkeypatch):
+    """Every update refused at the same (D, β): the next iterations would repeat this one, so
+    the loop stops at once without recording it, keeping the best iteration."""
+    from types import SimpleNamespace
+
+    def refused(model, dataset, *, depth0, tilt0, settings, backend):
+        return SimpleNamespace(accepted=False, depth=depth0, tilt=tilt0)
+
+    refined = _script_the_loop(monkeypatch, refused, [1.0, 0.9, 0.95, 0.95])
+    unchanged = iter([False, False, True])
+    real = reconstruct_module.refine_shape
+
+    def refine(model, dataset, depth, tilt, *, settings, backend):
+        result = real(model, dataset, depth, tilt, settings=settings, backend=backend)
+        return SimpleNamespace(mesh=model) if next(unchanged) else result
+
+    monkeypatch.setattr(reconstruct_module, "refine_shape", refine)
+    result = reconstruct(coral_one, settings=dataclasses.replace(FAST, iterations=6, patience=3))
+    assert len(refined) == 3  # none after the third, which returned its input
+    assert [h["E_I"] for h in result.history] == [1.0, 0.9] and result.converged and result.best_iteration == 1
 
 
 def test_settings_are_validated():
