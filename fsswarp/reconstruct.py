@@ -141,8 +141,8 @@ class ReconstructResult:
     def summary(self) -> dict:
         """``result.json`` (DESIGN §12)."""
         return {"depth_m": self.depth, "tilt_deg": math.degrees(self.tilt), "best_iteration": self.best_iteration,
-                "iterations": self.iterations, "converged": self.converged, "backend": self.backend, "device": self.device,
-                "seconds": self.seconds, "history": self.history}
+                "iterations": self.iterations, "converged": self.converged, "backend": self.backend,
+                "device": self.device, "seconds": self.seconds, "history": self.history}
 
 
 def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = None,
@@ -188,13 +188,14 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
             trial = refine_shape(working, dataset, depth_tried, tilt_tried, settings=settings.refine,
                                  backend=backend).mesh
             entry = _record(iteration, trial, dataset, depth_tried, tilt_tried, settings, backend, first)
-            if entry["E_I"] < best["E_I"]:
+            improved = entry["E_I"] < best["E_I"]
+            if improved:
                 break
             say(f"iteration {iteration}: E_I {entry['E_I']:.3f} at D {depth_tried:.4f} m, tilt "
                 f"{math.degrees(tilt_tried):.3f} deg is not below iteration {best['iteration']}'s "
                 f"{best['E_I']:.3f}")
-        if (entry["E_I"] >= best["E_I"] and (depth_tried, tilt_tried) == (depth, tilt)
-                and np.array_equal(trial.vertices, working.vertices)):
+        # without improvement the last trial was at the current (D, β)
+        if not improved and np.array_equal(trial.vertices, working.vertices):
             say(f"iteration {iteration}: the shape step left the model as it was (every update refused), so "
                 f"the next iterations would repeat this one; keeping iteration {best['iteration']} and stopping")
             converged = True
@@ -202,7 +203,7 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
         working, depth, tilt = trial, depth_tried, tilt_tried
         history.append(_complete(entry, trial, dataset, depth, tilt, truth, settings, backend))
         say(_line(history[-1]))
-        if entry["E_I"] < best["E_I"]:
+        if improved:
             best, best_pose, kept, misses = history[-1], (depth, tilt), trial, 0
             continue
         misses += 1
