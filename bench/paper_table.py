@@ -66,7 +66,8 @@ def summary(run: dict) -> dict:
     kept iteration (the lowest E_I) relative to the carved model (iteration 0), and whether
     each meets the issue's aim."""
     first, last = run["history"][0], run["history"][run["best_iteration"]]
-    out = {"depth_error_m": run["depth_m"] - run["truth_depth_m"], "tilt_error_deg": run["tilt_deg"] - run["truth_tilt_deg"],
+    out = {"depth_error_m": run["depth_m"] - run["truth_depth_m"],
+           "tilt_error_deg": run["tilt_deg"] - run["truth_tilt_deg"],
            "E_I_change": last["E_I"] / first["E_I"] - 1.0}
     out["pose_ok"] = abs(out["depth_error_m"]) <= AIM_DEPTH_M and abs(out["tilt_error_deg"]) <= AIM_TILT_DEG
     out["E_I_ok"] = out["E_I_change"] <= -AIM_EI_DROP
@@ -102,8 +103,8 @@ def table_markdown(record: dict, name: str) -> str:
         lines.append(
             f"| {run['scene']} ({run['start']}) | {run['depth0_m']:.4f}, {run['tilt0_deg']:.2f} | "
             f"{run['depth_m']:.4f}, {run['tilt_deg']:.3f} | {s['depth_error_m'] * 1e3:+.1f} | "
-            f"{s['tilt_error_deg']:+.3f} | {mark[s['pose_ok']]} | {run['best_iteration']} of {run['iterations']} ({stop}) | "
-            f"{ev} | "
+            f"{s['tilt_error_deg']:+.3f} | {mark[s['pose_ok']]} | "
+            f"{run['best_iteration']} of {run['iterations']} ({stop}) | {ev} | "
             f"{last['E_I']:.3f} ({s['E_I_change']:+.1%}, {mark[s['E_I_ok']]}) | {chamfer} | {fscore} | "
             f"{run['seconds']:.1f} |")
     total = sum(r["seconds"] for r in record["runs"])

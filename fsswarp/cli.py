@@ -405,7 +405,8 @@ def carve(state: State, dataset_dir: Path, out: Path, depth, tilt, resolution: i
               help="Voxels along the longest side of the carving box.")
 @click.option("--depth", type=float, default=None,
               help="Initial sonar depth D0 (m); default: the dataset's measured depth.")
-@click.option("--tilt", type=float, default=None, help="Initial sonar tilt (deg); default: the dataset's measured tilt.")
+@click.option("--tilt", type=float, default=None,
+              help="Initial sonar tilt (deg); default: the dataset's measured tilt.")
 @click.pass_obj
 def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, patience: int, resolution: int, depth,
                 tilt) -> None:
@@ -417,7 +418,8 @@ def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, pat
 
     dataset = load_dataset(dataset_dir)
     run_reconstruction(state, dataset, out,
-                       ReconstructSettings(iterations=iterations, patience=patience, resolution=resolution), depth0=depth, tilt0=None if tilt is None else math.radians(tilt))
+                       ReconstructSettings(iterations=iterations, patience=patience, resolution=resolution),
+                       depth0=depth, tilt0=None if tilt is None else math.radians(tilt))
 
 
 @app.command()
@@ -478,7 +480,8 @@ def run_reconstruction(state: State, dataset, out: Path, settings, *, depth0: fl
         history_figure(result.history, tmp / "figures" / "history.png",
                        truth_depth=None if truth is None else truth.depth,
                        truth_tilt_deg=None if truth is None else math.degrees(truth.tilt),
-                       best_iteration=result.best_iteration, title=f"{dataset.root.name}: depth and tilt, and errors, per iteration")
+                       best_iteration=result.best_iteration,
+                       title=f"{dataset.root.name}: depth and tilt, and errors, per iteration")
         carve_figure(result.carved, tmp / "figures" / "carved.png", truth=truth_mesh, title="carved model (iteration 0)")
         carve_figure(result.model, tmp / "figures" / "model.png", truth=truth_mesh, label="final",
                      title=f"final model (iteration {result.best_iteration}, the lowest E_I)")

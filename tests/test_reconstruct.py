@@ -14,7 +14,8 @@ import fsswarp.reconstruct as reconstruct_module
 from fsswarp.reconstruct import ReconstructSettings, image_errors, reconstruct
 
 HISTORY_KEYS = {"iteration", "depth_m", "tilt_deg", "E_mu", "AIE", "ACE", "E_I", "E_V", "chamfer_m", "fscore"}
-RESULT_KEYS = {"depth_m", "tilt_deg", "best_iteration", "iterations", "converged", "backend", "device", "seconds", "history"}
+RESULT_KEYS = {"depth_m", "tilt_deg", "best_iteration", "iterations", "converged", "backend", "device", "seconds",
+               "history"}
 FAST = ReconstructSettings(iterations=1, resolution=64)
 
 
