@@ -78,7 +78,7 @@ import nlopt
 import numpy as np
 
 from .errors import InputError, check_integer, is_integer
-from .icp import icp
+from .icp import CONTOUR_TOL, icp
 from .motion import patch_motions, view_errors
 from .render import check_mesh
 from .segment import SegmentSettings, memoized, segment
@@ -86,9 +86,6 @@ from .surface import mirror_points, surface_in_reference, surface_in_views
 
 #: Ray-cast ε (m) of the frontal-patch search, as the renderer's leg tests.
 EPSILON = 1e-4
-#: ICP stops when no contour point moves more than this × the contour's RMS radius (~5 cm):
-#: well below a micrometre, and 3–4× fewer iterations than fsswarp.icp's default.
-ICP_TOL = 1e-6
 #: Half-width of the polish box in cells of the finest grid level.
 POLISH_CELLS = 2
 #: Default grid half-widths in units of the manifest's depth and tilt uncertainties.
@@ -449,7 +446,8 @@ class PoseProblem:
                 if len(beams) < 2 or len(target) < 2:
                     continue
                 source = fan_points(theta[beams], sonar.bin_range(contour[k, c, beams] + shift))
-                result = icp(source, fan_points(theta[target], sonar.bin_range(data.rows[k, c, target])), tol=ICP_TOL)
+                goal = fan_points(theta[target], sonar.bin_range(data.rows[k, c, target]))
+                result = icp(source, goal, tol=CONTOUR_TOL)
                 faces = self.frontal_faces(rot[k], t[k], n_view[k], float(d_view[k]), theta[beams], mirror=c == 1)
                 for face, vector in zip(faces, result.motions):
                     if face >= 0:

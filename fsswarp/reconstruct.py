@@ -74,7 +74,7 @@ import numpy as np
 
 from .carve import CarveSettings, carve
 from .errors import InputError, check_integer
-from .icp import icp
+from .icp import CONTOUR_TOL, icp
 from .motion import average_contour_error, average_intensity_error
 from .pose import PoseSettings, check_pose, estimate_pose, pose_objective
 from .refine import RefineSettings, refine_shape
@@ -259,7 +259,7 @@ def _contour_error(synthetic_rows, data_rows, theta, ranges, min_scale: float) -
         points.append(np.column_stack([x, y]))
     if min(len(p) for p in points) < 2:
         return math.nan
-    return float(icp(points[0], points[1], min_scale=min_scale).error)
+    return float(icp(points[0], points[1], tol=CONTOUR_TOL, min_scale=min_scale).error)
 
 
 def _record(iteration: int, model, dataset, depth: float, tilt: float, settings: ReconstructSettings,

@@ -55,7 +55,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import InputError, check_integer, is_integer
-from .icp import icp
+from .icp import CONTOUR_TOL, icp
 from .motion import image_jacobian
 from .pose import PoseProblem, PoseSettings, PoseWarning, fan_points
 from .render import check_mesh
@@ -208,7 +208,7 @@ class _Update:
                     continue
                 source = fan_points(theta[beams], sonar.bin_range(contours[0, k, c, beams] + shift))
                 goal = fan_points(theta[target], sonar.bin_range(data.rows[k, c, target]))
-                result = icp(source, goal)
+                result = icp(source, goal, tol=CONTOUR_TOL)
                 if c == 0:
                     self.errors[k] = result.error
                 if motions:
