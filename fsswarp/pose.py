@@ -439,17 +439,21 @@ class PoseProblem:
         theta = sonar.beam_centres
         n_views = len(data.views)
         motion = {0: {}, 1: {}}  # component -> {(view, face): [2-D motions]}
-        for k in range(n_views):
-            for c in (0, 1):
+        for c in (0, 1):
+            aligned = {}  # view -> (beams, 2-D motions)
+            for k in range(n_views):
                 beams = np.flatnonzero((contour[k, c] >= 0) & data.masks[k, c])
                 target = np.flatnonzero(data.rows[k, c] >= 0)
                 if len(beams) < 2 or len(target) < 2:
                     continue
                 source = fan_points(theta[beams], sonar.bin_range(contour[k, c, beams] + shift))
                 goal = fan_points(theta[target], sonar.bin_range(data.rows[k, c, target]))
-                result = icp(source, goal, tol=CONTOUR_TOL)
-                faces = self.frontal_faces(rot[k], t[k], n_view[k], float(d_view[k]), theta[beams], mirror=c == 1)
-                for face, vector in zip(faces, result.motions):
+                aligned[k] = beams, icp(source, goal, tol=CONTOUR_TOL).motions
+            v = list(aligned)
+            found = self.frontal_faces(rot[v], t[v], n_view[v], d_view[v], [theta[b] for b, _ in aligned.values()],
+                                       mirror=c == 1)
+            for k, faces, (_, motions) in zip(v, found, aligned.values()):
+                for face, vector in zip(faces, motions):
                     if face >= 0:
                         motion[c].setdefault((k, int(face)), []).append(vector)
         faces = sorted({f for c in (0, 1) for (_, f) in motion[c]})
@@ -484,18 +488,29 @@ class PoseProblem:
         return ExactError(float(finite.mean()) if finite.size else math.nan, per_view, shift,
                           int(object_seen.sum()), int(mirror_seen.any(axis=1).sum()))
 
-    def frontal_faces(self, rot, t, n, d, theta, *, mirror: bool) -> np.ndarray:
-        """(len(theta),) face of the frontal patch of each beam azimuth in one view, -1 where none:
-        the hit at the shortest range (object), or at the shortest mirror range (|P| + |P'|)/2
-        over the beam's elevation rays that meet the surface first (mirror, DESIGN §3)."""
+    def frontal_faces(self, rot, t, n, d, thetas, *, mirror: bool) -> list[np.ndarray]:
+        """Per view k: (len(thetas[k]),) face of the frontal patch of each beam azimuth, -1 where
+        none: the hit at the shortest range (object), or at the shortest mirror range
+        (|P| + |P'|)/2 over the beam's elevation rays that meet the surface first (mirror,
+        DESIGN §3). The views' rays go to the backend together, one launch per leg.
+
+        rot (V, 3, 3), t (V, 3) : the views' poses; n (V, 3), d (V,) : their surface planes;
+        thetas : V arrays of beam azimuths (rad)."""
+        if not len(thetas):
+            return []
         sonar = self.sonar
         k = self.settings.patch_rays
         phi = -sonar.half_elevation + (np.arange(k) + 0.5) / k * sonar.elevation_fov
-        th, ph = np.meshgrid(theta, phi, indexing="ij")
-        u = np.stack([np.cos(ph) * np.sin(th), np.cos(ph) * np.cos(th), np.sin(ph)], axis=-1).reshape(-1, 3)
-        up = u @ n
+        sizes = [len(theta) for theta in thetas]
+        th = np.repeat(np.concatenate([np.asarray(theta, np.float64) for theta in thetas]), k)
+        ph = np.tile(phi, sum(sizes))
+        owner = np.repeat(np.arange(len(thetas)), np.asarray(sizes) * k)
+        rot, t, n = np.asarray(rot)[owner], np.asarray(t)[owner], np.asarray(n)[owner]
+        d = np.asarray(d, np.float64)[owner]
+        u = np.stack([np.cos(ph) * np.sin(th), np.cos(ph) * np.cos(th), np.sin(ph)], axis=-1)
+        up = np.einsum("ij,ij->i", u, n)
         surface = np.where(up > 0, d / np.where(up > 0, up, 1.0), np.inf)
-        dist, face = self.backend.cast_rays(self.mesh, np.broadcast_to(t, u.shape), u @ rot.T)
+        dist, face = self.backend.cast_rays(self.mesh, t, _turn(rot, u))
         dist = dist.astype(np.float64)
         if not mirror:
             rng = np.where(dist < surface, dist, np.inf)
@@ -504,22 +519,24 @@ class PoseProblem:
             face = np.full(len(u), -1)
             bounce = np.flatnonzero(np.isfinite(surface) & (surface < dist))
             q = u[bounce] * surface[bounce, None]
-            w = u[bounce] - 2.0 * up[bounce, None] * n
-            r2, hit = self.backend.cast_rays(self.mesh, (q + EPSILON * w) @ rot.T + t, w @ rot.T)
+            w = u[bounce] - 2.0 * up[bounce, None] * n[bounce]
+            r2, hit = self.backend.cast_rays(self.mesh, _turn(rot[bounce], q + EPSILON * w) + t[bounce],
+                                             _turn(rot[bounce], w))
             keep = np.isfinite(r2)
             bounce, q, w, r2, hit = bounce[keep], q[keep], w[keep], r2[keep].astype(np.float64) + EPSILON, hit[keep]
             p = q + r2[:, None] * w
             length = np.linalg.norm(p, axis=1)
-            back, _ = self.backend.cast_rays(self.mesh, np.broadcast_to(t, p.shape), (p / length[:, None]) @ rot.T)
+            back, _ = self.backend.cast_rays(self.mesh, t[bounce], _turn(rot[bounce], p / length[:, None]))
             inside = (np.abs(np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1]))) <= sonar.half_elevation) \
                 & (np.abs(np.arctan2(p[:, 0], p[:, 1])) <= sonar.half_azimuth)
             ok = inside & (back >= length - VISIBLE)
             rng[bounce[ok]] = 0.5 * (length[ok] + surface[bounce[ok]] + r2[ok])
             face[bounce[ok]] = hit[ok]
-        rng = rng.reshape(len(theta), k)
+        rng = rng.reshape(-1, k)
         best = np.argmin(rng, axis=1)
-        hit = np.isfinite(rng[np.arange(len(theta)), best])
-        return np.where(hit, face.reshape(len(theta), k)[np.arange(len(theta)), best], -1)
+        rows = np.arange(len(rng))
+        found = np.where(np.isfinite(rng[rows, best]), face.reshape(-1, k)[rows, best], -1)
+        return np.split(found, np.cumsum(sizes)[:-1])
 
 
 # --- public functions --------------------------------------------------------------------------
@@ -633,6 +650,11 @@ def _gaussian(sigma: float) -> np.ndarray:
     x = np.arange(-radius, radius + 1)
     w = np.exp(-0.5 * (x / sigma) ** 2)
     return w / w.sum()
+
+
+def _turn(rot: np.ndarray, vectors: np.ndarray) -> np.ndarray:
+    """(N, 3) vectors (N, 3) turned by their own rotations (N, 3, 3)."""
+    return np.einsum("nij,nj->ni", rot, vectors)
 
 
 def _parabola_minimum(x: np.ndarray, y: np.ndarray) -> float:

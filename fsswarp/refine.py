@@ -229,12 +229,15 @@ class _Update:
         problem, sonar = self.problem, self.problem.sonar
         theta = sonar.beam_centres
         rows = {}  # face -> list of (component, view, 2-D motion)
-        for (c, k), (beams, vectors) in self.contour.items():
-            found = problem.frontal_faces(self.rot[k], self.t[k], self.n_view[k], float(self.d_view[k]),
-                                           theta[beams], mirror=c == 1)
-            for face, vector in zip(found, vectors):
-                if face >= 0:
-                    rows.setdefault(int(face), []).append((c, k, vector))
+        for c in (0, 1):
+            keys = [key for key in self.contour if key[0] == c]
+            v = [k for _, k in keys]
+            found = problem.frontal_faces(self.rot[v], self.t[v], self.n_view[v], self.d_view[v],
+                                          [theta[self.contour[key][0]] for key in keys], mirror=c == 1)
+            for (_, k), faces in zip(keys, found):
+                for face, vector in zip(faces, self.contour[(c, k)][1]):
+                    if face >= 0:
+                        rows.setdefault(int(face), []).append((c, k, vector))
         if not rows:
             return np.zeros(0, int)
         chosen = np.array(sorted(rows))

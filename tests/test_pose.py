@@ -115,6 +115,69 @@ def test_pose_objective_is_e_mu(coral_one, truth_model, opencl):
     assert detail.object_patches >= 50 and detail.mirror_patches >= 50
 
 
+def _oracle_frontal_faces(mesh, sonar, rot, t, n, d, theta, rays: int, mirror: bool) -> np.ndarray:
+    """PoseProblem.frontal_faces of one view by float64 trimesh ray casts: per beam the face
+    hit at the shortest range (object) or mirror range (|P| + |Q| + |P - Q|)/2 over the beam's
+    elevation rays (mirror: the ray meets the surface at Q first, is reflected to P, and P is in
+    the fan and visible from the sonar)."""
+    from oracle_render import first_hits, make_intersector
+
+    from fsswarp.pose import EPSILON, VISIBLE
+
+    hits = make_intersector(mesh)
+    phi = -sonar.half_elevation + (np.arange(rays) + 0.5) / rays * sonar.elevation_fov
+    th, ph = np.meshgrid(theta, phi, indexing="ij")
+    u = np.stack([np.cos(ph) * np.sin(th), np.cos(ph) * np.cos(th), np.sin(ph)], axis=-1).reshape(-1, 3)
+    up = u @ n
+    surface = np.where(up > 0, d / np.where(up > 0, up, 1.0), np.inf)
+    dist, face = first_hits(hits, np.tile(t, (len(u), 1)), u @ rot.T)
+    rng = np.where(dist < surface, dist, np.inf)
+    if mirror:
+        rng, face = np.full(len(u), np.inf), np.full(len(u), -1)
+        i = np.flatnonzero(np.isfinite(surface) & (surface < dist))
+        q = u[i] * surface[i, None]
+        w = u[i] - 2.0 * up[i, None] * n
+        r2, hit = first_hits(hits, (q + EPSILON * w) @ rot.T + t, w @ rot.T)
+        ok = np.isfinite(r2)
+        i, q, w, r2, hit = i[ok], q[ok], w[ok], r2[ok] + EPSILON, hit[ok]
+        p = q + r2[:, None] * w
+        length = np.linalg.norm(p, axis=1)
+        back, _ = first_hits(hits, np.tile(t, (len(p), 1)), (p / length[:, None]) @ rot.T)
+        seen = (np.abs(np.arcsin(p[:, 2] / length)) <= sonar.half_elevation) \
+            & (np.abs(np.arctan2(p[:, 0], p[:, 1])) <= sonar.half_azimuth) & (back >= length - VISIBLE)
+        rng[i[seen]] = 0.5 * (length[seen] + surface[i[seen]] + r2[seen])
+        face[i[seen]] = hit[seen]
+    rng, face = rng.reshape(len(theta), rays), face.reshape(len(theta), rays)
+    best = np.argmin(rng, axis=1)
+    rows = np.arange(len(theta))
+    return np.where(np.isfinite(rng[rows, best]), face[rows, best], -1)
+
+
+@pytest.mark.parametrize("mirror", [False, True], ids=["object", "mirror"])
+def test_frontal_faces_match_a_ray_casting_oracle_and_do_not_depend_on_the_batch(coral_one, truth_model, backend,
+                                                                                mirror):
+    """Every optimized view in one call (some with a subset of the beams): per beam the same
+    face as the float64 trimesh oracle, bar near-ties between neighbouring rays, and exactly
+    what each view gives alone."""
+    truth = coral_one.manifest.truth
+    problem = PoseProblem(truth_model, coral_one, truth.depth, truth.tilt, settings=PoseSettings(patch_rays=16),
+                          backend=backend)
+    rot, t, n, d = (a[0] for a in problem.view_poses(problem.data.views, [truth.depth], [truth.tilt]))
+    sonar = coral_one.sonar
+    thetas = [sonar.beam_centres] * len(rot)
+    thetas[1], thetas[2] = sonar.beam_centres[::2], sonar.beam_centres[30:70]
+    together = problem.frontal_faces(rot, t, n, d, thetas, mirror=mirror)
+    for k in (0, 1, 2, len(rot) - 1):
+        alone = problem.frontal_faces(rot[k:k + 1], t[k:k + 1], n[k:k + 1], d[k:k + 1], [thetas[k]], mirror=mirror)
+        np.testing.assert_array_equal(together[k], alone[0])
+    found = np.concatenate(together)
+    want = np.concatenate([_oracle_frontal_faces(truth_model, sonar, rot[k], t[k], n[k], float(d[k]), theta, 16,
+                                                 mirror) for k, theta in enumerate(thetas)])
+    assert (want >= 0).sum() >= 100
+    assert np.mean(found == want) >= 0.98
+    assert problem.frontal_faces(rot[:0], t[:0], n[:0], d[:0], [], mirror=mirror) == []
+
+
 def test_figure(tmp_path, coral_one, estimate):
     truth = coral_one.manifest.truth
     path = pose_figure(estimate[0], tmp_path / "pose.png", truth=(truth.depth, truth.tilt), title="coral-one")
