@@ -28,11 +28,12 @@ def run_cli(*args):
 def one_iteration(coral_one):
     from fsswarp.backends import get_backend
 
-    return reconstruct(coral_one, settings=FAST, backend=get_backend("opencl"))
+    lines = []
+    return reconstruct(coral_one, settings=FAST, backend=get_backend("opencl"), progress=lines.append), lines
 
 
 def test_history_follows_the_contract(one_iteration, coral_one):
-    result = one_iteration
+    result, _ = one_iteration
     assert set(result.summary()) == RESULT_KEYS
     assert [h["iteration"] for h in result.history] == list(range(result.iterations + 1))
     first = result.history[0]
@@ -44,6 +45,20 @@ def test_history_follows_the_contract(one_iteration, coral_one):
     assert result.model.is_watertight and result.carved.is_watertight
     assert len(result.pose_steps) == 1 and result.pose_steps[0].levels  # the figure's grid
     json.dumps(result.summary())  # JSON-ready
+
+
+def test_truth_metrics_of_every_recorded_iteration_are_reported(one_iteration, coral_one):
+    """The truth metrics come from a worker thread: each recorded iteration gets them, with one
+    progress line each, in order, and they are compare()'s values for that iteration's model."""
+    from fsswarp.metrics import compare
+
+    result, lines = one_iteration
+    reported = [line for line in lines if "against the truth" in line]
+    assert [line.split()[1] for line in reported] == [str(h["iteration"]) for h in result.history]
+    want = compare(result.model, trimesh.load_mesh(coral_one.truth_model_path, process=True))
+    kept = result.history[result.best_iteration]
+    assert (kept["E_V"], kept["chamfer_m"], kept["fscore"]) == (want["E_V"], want["chamfer_m"], want["fscore"])
+    assert f"E_V {kept['E_V']:.3f}" in reported[result.best_iteration]
 
 
 def test_image_errors_vanish_for_the_truth_and_grow_with_a_bad_model(coral_one):
