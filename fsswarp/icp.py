@@ -23,6 +23,11 @@ the identity and rotations by ``±START_ANGLE`` (0.05 rad) about the source's ce
 the run with the smallest final robust scale σ (the median residual: outliers and unmatched
 stretches do not move it); ties go to the earlier start, so exact matches return the identity.
 
+Batches: ``icp_many`` runs many pairs in lockstep over padded arrays, one vectorised
+reweighting and Procrustes step per iteration for all of their runs (one k-d tree query per
+pair); each pair gets ``icp``'s result for it alone up to rounding, and ``icp`` is the batch of
+one.
+
 Inliers: after the last iteration a pair (i, k(i)) is an inlier when ``r ≤ gate · σ``
 (default 3σ) and, if given, ``r ≤ max_distance``. CE (eq. 5) is the mean distance of the
 inlier pairs after alignment.
@@ -107,8 +112,18 @@ def icp(source, target, *, max_iterations: int = 200, tol: float = 1e-10, gate: 
         of the two sets, so that exact matches keep finite weights).
     Deterministic: no randomness; the result depends only on the inputs.
     """
-    src = _points("source", source, minimum=2)
-    tgt = _points("target", target, minimum=2)
+    return icp_many([(source, target)], max_iterations=max_iterations, tol=tol, gate=gate,
+                    max_distance=max_distance, tuning=tuning, min_scale=min_scale)[0]
+
+
+def icp_many(problems, *, max_iterations: int = 200, tol: float = 1e-10, gate: float = 3.0,
+             max_distance: float | None = None, tuning: float = CAUCHY_C,
+             min_scale: float | None = None) -> list[ICPResult]:
+    """:func:`icp` of every (source, target) pair of ``problems``, with the same options, run
+    in lockstep: one vectorised reweighting and Procrustes step per iteration for all of them
+    (a view's contours cost one Python-level step, not one per pair). Each pair's result is
+    :func:`icp`'s for that pair alone, up to rounding (sums over padded arrays)."""
+    pairs = [(_points("source", s, minimum=2), _points("target", t, minimum=2)) for s, t in problems]
     if not (is_integer(max_iterations) and max_iterations >= 1):
         raise ValueError(f"max_iterations must be an integer >= 1, got {max_iterations!r}")
     for name, value in (("tol", tol), ("gate", gate), ("tuning", tuning)):
@@ -117,99 +132,114 @@ def icp(source, target, *, max_iterations: int = 200, tol: float = 1e-10, gate: 
     for name, value in (("max_distance", max_distance), ("min_scale", min_scale)):
         if value is not None and not (math.isfinite(value) and value > 0):
             raise ValueError(f"{name} must be None or a finite number > 0, got {value!r}")
-    src_size = _rms_radius(src)
-    floor = min_scale if min_scale is not None else 1e-9 * max(_rms_radius(tgt), src_size, 1e-300)
-    step_tol = tol * max(src_size, floor)
-    tree = cKDTree(tgt)
-    centre = src.mean(axis=0)
-    runs = [_Run(src, rot, centre - rot @ centre) for rot in map(_rotation, (0.0, START_ANGLE, -START_ANGLE))]
-    _irls(runs, src, tree, tgt, max_iterations, step_tol, max_distance, floor, tuning)
-    best = min(runs, key=lambda run: run.match[3])  # the first of equal scales
-    dist, nearest, usable, sigma = best.match
-    moved = best.moved
-    weights = np.where(usable, 1.0 / (1.0 + (dist / (tuning * sigma)) ** 2), 0.0)
-    inlier = usable & (dist <= gate * sigma)
-    index = np.flatnonzero(inlier)
-    pairs = np.stack([index, nearest[index]], axis=1).astype(np.int64)
-    error = contour_error(tgt[nearest[index]], moved[index])
-    rot = best.rot
-    return ICPResult(rotation=rot, angle=float(math.atan2(rot[1, 0], rot[0, 0])), translation=best.trans,
-                     pairs=pairs, motions=moved - src, error=error, scale=sigma, weights=weights,
-                     iterations=best.iterations, converged=best.converged)
+    if not pairs:
+        return []
+    runs = _Runs(pairs, min_scale, tol)
+    runs.iterate(max_iterations, max_distance, tuning)
+    dist, nearest, usable, sigma = runs.match(max_distance)
+    results = []
+    for p, (src, tgt) in enumerate(pairs):
+        r = 3 * p + int(np.argmin(sigma[3 * p:3 * p + 3]))  # the first of equal scales
+        n = len(src)
+        d, k, ok = dist[r, :n], nearest[r, :n], usable[r, :n]
+        weights = np.where(ok, 1.0 / (1.0 + (d / (tuning * sigma[r])) ** 2), 0.0)
+        index = np.flatnonzero(ok & (d <= gate * sigma[r]))
+        moved = runs.moved[r, :n]
+        rot = _rotation(runs.angle[r])
+        results.append(ICPResult(rotation=rot, angle=float(math.atan2(rot[1, 0], rot[0, 0])),
+                                 translation=runs.trans[r].copy(),
+                                 pairs=np.stack([index, k[index]], axis=1).astype(np.int64), motions=moved - src,
+                                 error=contour_error(tgt[k[index]], moved[index]), scale=float(sigma[r]),
+                                 weights=weights, iterations=int(runs.iterations[r]),
+                                 converged=bool(runs.converged[r])))
+    return results
 
 
-class _Run:
-    """One IRLS-ICP run from the transform (rot, trans): its transform, moved source,
-    iterations, whether it converged, whether it stopped, and the final match."""
+class _Runs:
+    """Three IRLS-ICP runs per pair (the identity and ±START_ANGLE about the source's centroid),
+    as padded arrays: (R = 3P, N) source points, their valid mask, transforms (angle, trans),
+    moved points, iterations run and whether each converged or stopped."""
 
-    def __init__(self, src: np.ndarray, rot: np.ndarray, trans: np.ndarray):
-        self.rot, self.trans, self.moved = rot, trans, src @ rot.T + trans
-        self.iterations, self.converged, self.done, self.match = 0, False, False, None
+    def __init__(self, pairs, min_scale: float | None, tol: float):
+        size = max(len(src) for src, _ in pairs)
+        count = 3 * len(pairs)
+        self.trees = [cKDTree(tgt) for _, tgt in pairs]
+        self.targets = np.concatenate([tgt for _, tgt in pairs])  # all pairs' targets, one after another
+        self.first = np.repeat(np.cumsum([0] + [len(tgt) for _, tgt in pairs[:-1]]), 3)  # run -> its first
+        self.lengths = np.repeat([len(src) for src, _ in pairs], 3)
+        self.valid = np.arange(size)[None, :] < self.lengths[:, None]
+        self.src = np.zeros((count, size, 2))
+        self.floor, self.step_tol = np.empty(count), np.empty(count)
+        self.angle, self.trans = np.zeros(count), np.zeros((count, 2))
+        for p, (src, tgt) in enumerate(pairs):
+            src_size = _rms_radius(src)
+            floor = min_scale if min_scale is not None else 1e-9 * max(_rms_radius(tgt), src_size, 1e-300)
+            centre = src.mean(axis=0)
+            for i, angle in enumerate((0.0, START_ANGLE, -START_ANGLE)):
+                r = 3 * p + i
+                self.src[r, :len(src)] = src
+                self.floor[r], self.step_tol[r] = floor, tol * max(src_size, floor)
+                self.angle[r], self.trans[r] = angle, centre - _rotation(angle) @ centre
+        self.moved = self._apply(np.arange(count))
+        self.iterations = np.zeros(count, np.int64)
+        self.converged, self.done = np.zeros(count, bool), np.zeros(count, bool)
 
+    def _apply(self, rows: np.ndarray) -> np.ndarray:
+        """(len(rows), N, 2) source points of the runs ``rows`` moved by their transforms."""
+        c, s = np.cos(self.angle[rows]), np.sin(self.angle[rows])
+        x, y = self.src[rows, :, 0], self.src[rows, :, 1]
+        return np.stack([c[:, None] * x - s[:, None] * y, s[:, None] * x + c[:, None] * y], axis=-1) \
+            + self.trans[rows, None, :]
 
-def _irls(runs: list[_Run], src: np.ndarray, tree: cKDTree, tgt: np.ndarray, max_iterations: int,
-          step_tol: float, max_distance: float | None, floor: float, tuning: float) -> None:
-    """Iterate the runs in lockstep, one k-d tree query per iteration for all of them (each
-    run's arithmetic is its own; the query's per-point results do not depend on the batch),
-    then give each its final match (distances, nearest, usable, σ)."""
-    for iteration in range(1, max_iterations + 1):
-        active = [run for run in runs if not run.done]
-        if not active:
-            break
-        for run, (dist, nearest, usable, sigma) in zip(active, _match(tree, [r.moved for r in active],
-                                                                      max_distance, floor)):
-            run.iterations = iteration
-            weights = np.where(usable, 1.0 / (1.0 + (dist / (tuning * sigma)) ** 2), 0.0)
-            if weights.sum() <= 0.0:
-                run.done = True
-                continue
-            run.rot, run.trans = _weighted_procrustes(src, tgt[nearest], weights)
-            new = src @ run.rot.T + run.trans
-            step = float(np.max(np.linalg.norm(new - run.moved, axis=1)))
-            run.moved = new
-            if step <= step_tol:
-                run.converged = run.done = True
-    for run, match in zip(runs, _match(tree, [run.moved for run in runs], max_distance, floor)):
-        run.match = match
+    def match(self, max_distance: float | None, rows: np.ndarray | None = None):
+        """For the runs ``rows`` (default all), (rows, N) distances and nearest targets of the
+        moved points (one k-d tree query per pair), which pairs count, and the robust scale σ."""
+        rows = np.arange(len(self.src)) if rows is None else rows
+        dist = np.full((len(rows), self.src.shape[1]), np.inf)
+        nearest = np.zeros(dist.shape, np.int64)
+        pair = rows // 3
+        for p in np.unique(pair):
+            mine = np.flatnonzero(pair == p)
+            n = self.lengths[rows[mine[0]]]
+            d, k = self.trees[p].query(self.moved[rows[mine], :n].reshape(-1, 2), k=1)
+            dist[mine, :n], nearest[mine, :n] = d.reshape(len(mine), n), k.reshape(len(mine), n)
+        usable = self.valid[rows] & (True if max_distance is None else dist <= max_distance)
+        sigma = np.where(usable.any(axis=1), _medians(dist, usable) / RAYLEIGH_MEDIAN, self.floor[rows])
+        return dist, nearest, usable, np.maximum(sigma, self.floor[rows])
+
+    def iterate(self, max_iterations: int, max_distance: float | None, tuning: float) -> None:
+        """Reweight and solve the weighted Procrustes problem for every run not yet done, until
+        each converges, loses all its weight, or ``max_iterations`` have run."""
+        for iteration in range(1, max_iterations + 1):
+            rows = np.flatnonzero(~self.done)
+            if not len(rows):
+                break
+            dist, nearest, usable, sigma = self.match(max_distance, rows)
+            self.iterations[rows] = iteration
+            weights = np.where(usable, 1.0 / (1.0 + (dist / (tuning * sigma[:, None])) ** 2), 0.0)
+            total = weights.sum(axis=1)
+            dead = total <= 0.0
+            self.done[rows[dead]] = True
+            rows, weights, nearest, total = rows[~dead], weights[~dead], nearest[~dead], total[~dead]
+            w = weights / total[:, None]
+            src = self.src[rows]
+            dst = self.targets[nearest + self.first[rows, None]]
+            cs, cd = np.einsum("rn,rnd->rd", w, src), np.einsum("rn,rnd->rd", w, dst)
+            h = np.einsum("rni,rnj->rij", src - cs[:, None, :], (dst - cd[:, None, :]) * w[:, :, None])
+            self.angle[rows] = np.arctan2(h[:, 0, 1] - h[:, 1, 0], h[:, 0, 0] + h[:, 1, 1])
+            c, s = np.cos(self.angle[rows]), np.sin(self.angle[rows])
+            self.trans[rows] = cd - np.stack([c * cs[:, 0] - s * cs[:, 1], s * cs[:, 0] + c * cs[:, 1]], axis=1)
+            new = self._apply(rows)
+            step = np.max(np.where(self.valid[rows], np.linalg.norm(new - self.moved[rows], axis=2), 0.0), axis=1)
+            self.moved[rows] = new
+            still = step <= self.step_tol[rows]
+            self.converged[rows[still]] = self.done[rows[still]] = True
+
 
 
 def _rotation(angle: float) -> np.ndarray:
     c, s = math.cos(angle), math.sin(angle)
     return np.array([[c, -s], [s, c]])
-
-
-def _match(tree: cKDTree, moved: list[np.ndarray], max_distance: float | None, floor: float) -> list[tuple]:
-    """Per set of moved source points (one query for all): the nearest target of every point,
-    which pairs count, and the robust scale."""
-    dist_all, nearest_all = tree.query(np.concatenate(moved), k=1)
-    out, start = [], 0
-    for points in moved:
-        dist, nearest = dist_all[start:start + len(points)], nearest_all[start:start + len(points)]
-        start += len(points)
-        usable = np.ones(len(points), dtype=bool) if max_distance is None else dist <= max_distance
-        kept = dist if max_distance is None else dist[usable]
-        sigma = _median(kept) / RAYLEIGH_MEDIAN if len(kept) else floor
-        out.append((dist, nearest, usable, max(sigma, floor)))
-    return out
-
-
-def _median(values: np.ndarray) -> float:
-    """np.median of a non-empty 1-D array without NaN, at a fraction of its call overhead
-    (ICP calls it every iteration): the middle element, or the mean of the middle two."""
-    half = len(values) // 2
-    if len(values) % 2:
-        return float(np.partition(values, half)[half])
-    low, high = np.partition(values, (half - 1, half))[half - 1:half + 1]
-    return float((low + high) / 2.0)
-
-
-def _weighted_procrustes(src: np.ndarray, dst: np.ndarray, weights: np.ndarray):
-    """Rotation (2, 2) and translation (2,) minimising ``Σ w_i |R s_i + t - d_i|²`` (closed form)."""
-    w = weights / weights.sum()
-    cs, cd = w @ src, w @ dst
-    h = (src - cs).T @ ((dst - cd) * w[:, None])  # Σ w s̄ d̄ᵀ
-    rot = _rotation(math.atan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1]))
-    return rot, cd - rot @ cs
 
 
 def _rms_radius(points: np.ndarray) -> float:
@@ -225,3 +255,15 @@ def _points(name: str, value, *, minimum: int) -> np.ndarray:
     if not np.all(np.isfinite(array)):
         raise ValueError(f"{name} holds non-finite values")
     return array
+
+
+def _medians(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(R,) np.median of each row's values (R, N) where ``mask`` (R, N) holds (NaN-free): the
+    middle one, or the mean of the middle two; NaN for an empty row."""
+    count = mask.sum(axis=1)
+    kept = np.sort(np.where(mask, values, np.inf), axis=1)
+    rows = np.arange(len(values))
+    low = kept[rows, np.maximum(count - 1, 0) // 2]
+    high = kept[rows, np.minimum(count // 2, values.shape[1] - 1)]
+    with np.errstate(invalid="ignore"):
+        return np.where(count > 0, (low + high) / 2.0, np.nan)

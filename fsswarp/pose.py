@@ -78,7 +78,7 @@ import nlopt
 import numpy as np
 
 from .errors import InputError, check_integer, is_integer
-from .icp import CONTOUR_TOL, icp
+from .icp import CONTOUR_TOL, icp_many
 from .motion import patch_motions, view_errors
 from .render import check_mesh
 from .segment import SegmentSettings, memoized, segment
@@ -438,9 +438,8 @@ class PoseProblem:
         normal, offset = surface_in_reference(self.rig, depth, tilt)
         theta = sonar.beam_centres
         n_views = len(data.views)
-        motion = {0: {}, 1: {}}  # component -> {(view, face): [2-D motions]}
+        requests = []  # (component, view, beams, source, goal): one ICP each, all in lockstep
         for c in (0, 1):
-            aligned = {}  # view -> (beams, 2-D motions)
             for k in range(n_views):
                 beams = np.flatnonzero((contour[k, c] >= 0) & data.masks[k, c])
                 target = np.flatnonzero(data.rows[k, c] >= 0)
@@ -448,14 +447,18 @@ class PoseProblem:
                     continue
                 source = fan_points(theta[beams], sonar.bin_range(contour[k, c, beams] + shift))
                 goal = fan_points(theta[target], sonar.bin_range(data.rows[k, c, target]))
-                aligned[k] = beams, icp(source, goal, tol=CONTOUR_TOL).motions
-            v = list(aligned)
-            found = self.frontal_faces(rot[v], t[v], n_view[v], d_view[v], [theta[b] for b, _ in aligned.values()],
+                requests.append((c, k, beams, source, goal))
+        aligned = icp_many([(source, goal) for *_, source, goal in requests], tol=CONTOUR_TOL)
+        motion = {0: {}, 1: {}}  # component -> {(view, face): [2-D motions]}
+        for c in (0, 1):
+            mine = [i for i, request in enumerate(requests) if request[0] == c]
+            v = [requests[i][1] for i in mine]
+            found = self.frontal_faces(rot[v], t[v], n_view[v], d_view[v], [theta[requests[i][2]] for i in mine],
                                        mirror=c == 1)
-            for k, faces, (_, motions) in zip(v, found, aligned.values()):
-                for face, vector in zip(faces, motions):
+            for i, faces in zip(mine, found):
+                for face, vector in zip(faces, aligned[i].motions):
                     if face >= 0:
-                        motion[c].setdefault((k, int(face)), []).append(vector)
+                        motion[c].setdefault((requests[i][1], int(face)), []).append(vector)
         faces = sorted({f for c in (0, 1) for (_, f) in motion[c]})
         if not motion[0]:
             return ExactError(math.nan, np.full(n_views, np.nan), shift, 0, 0)

@@ -55,7 +55,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import InputError, check_integer, is_integer
-from .icp import CONTOUR_TOL, icp
+from .icp import CONTOUR_TOL, icp_many
 from .motion import image_jacobian
 from .pose import PoseProblem, PoseSettings, PoseWarning, fan_points
 from .render import check_mesh
@@ -200,6 +200,7 @@ class _Update:
         n_views = len(data.views)
         self.errors = np.full(n_views, math.nan)
         self.contour = {}  # (component, view) -> (beams, 2-D motions (beams, 2))
+        requests = []  # (component, view, beams, source, goal): one ICP each, all in lockstep
         for k in range(n_views):
             for c in (0, 1) if settings.mirror else (0,):
                 beams = np.flatnonzero((contours[0, k, c] >= 0) & data.masks[k, c])
@@ -208,14 +209,16 @@ class _Update:
                     continue
                 source = fan_points(theta[beams], sonar.bin_range(contours[0, k, c, beams] + shift))
                 goal = fan_points(theta[target], sonar.bin_range(data.rows[k, c, target]))
-                result = icp(source, goal, tol=CONTOUR_TOL)
-                if c == 0:
-                    self.errors[k] = result.error
-                if motions:
-                    vectors = result.motions.copy()
-                    i, j = result.pairs[:, 0], result.pairs[:, 1]
-                    vectors[i] = goal[j] - source[i]
-                    self.contour[(c, k)] = (beams, vectors)
+                requests.append((c, k, beams, source, goal))
+        aligned = icp_many([(source, goal) for *_, source, goal in requests], tol=CONTOUR_TOL)
+        for (c, k, beams, source, goal), result in zip(requests, aligned):
+            if c == 0:
+                self.errors[k] = result.error
+            if motions:
+                vectors = result.motions.copy()
+                i, j = result.pairs[:, 0], result.pairs[:, 1]
+                vectors[i] = goal[j] - source[i]
+                self.contour[(c, k)] = (beams, vectors)
         if motions:
             self.motion = np.zeros((len(mesh.faces), 3))
             contour_faces = self._contour_motions()

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from fsswarp.icp import _median, contour_error, icp
+from fsswarp.icp import _medians, contour_error, icp, icp_many
 
 finite = dict(allow_nan=False, allow_infinity=False)
 #: Misalignments of the kind contour alignment meets: up to 2.9° about the contour and 2 cm.
@@ -205,8 +205,38 @@ def test_bad_inputs_raise(source, target, kwargs, message):
 
 
 @settings(deadline=None, max_examples=50)
-@given(st.lists(st.floats(0.0, 1.0, allow_nan=False), min_size=1, max_size=40))
-def test_the_robust_scale_median_is_numpys(values):
-    """ICP's own median (called every iteration) equals np.median, odd and even lengths."""
-    array = np.array(values)
-    assert _median(array) == float(np.median(array))
+@given(st.lists(st.lists(st.floats(0.0, 1.0, allow_nan=False), max_size=40), min_size=1, max_size=5))
+def test_the_robust_scale_medians_are_numpys(rows):
+    """ICP's row-wise median of the masked entries (called every iteration) equals np.median
+    of each row, odd and even lengths, NaN for an empty row."""
+    values = np.full((len(rows), max(1, max(map(len, rows)))), 7.0)  # 7: outside the data, masked off
+    mask = np.zeros(values.shape, bool)
+    for i, row in enumerate(rows):
+        values[i, :len(row)], mask[i, :len(row)] = row, True
+    for row, median in zip(rows, _medians(values, mask)):
+        assert median == float(np.median(row)) if row else math.isnan(median)
+
+
+def test_many_pairs_at_once_give_each_pair_its_own_result():
+    """icp_many runs the pairs in lockstep over padded arrays: every pair gets what icp gives it
+    alone (up to rounding), whatever the other pairs' sizes, iterations or gating."""
+    rng = np.random.default_rng(11)
+    problems = []
+    for n, angle, shift in ((60, 0.03, (0.01, -0.005)), (123, -0.04, (0.0, 0.02)), (7, 0.0, (0.0, 0.0)),
+                            (200, 0.045, (-0.015, 0.01))):
+        target = curve(300) + rng.normal(0, 0.002, (300, 2))
+        rot, trans = rigid(angle, shift)
+        problems.append((misplace(curve(n, -0.8, 0.9), rot, trans), target))
+    problems.append((problems[0][0] + 10.0, problems[0][1]))  # every pair gated off: no iteration moves it
+    together = icp_many(problems, max_distance=0.1)
+    assert len(together) == len(problems) and icp_many([]) == []
+    for (source, target), many in zip(problems, together):
+        one = icp(source, target, max_distance=0.1)
+        np.testing.assert_allclose(many.rotation, one.rotation, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(many.translation, one.translation, rtol=0, atol=1e-11)
+        np.testing.assert_allclose(many.motions, one.motions, rtol=0, atol=1e-11)
+        np.testing.assert_array_equal(many.pairs, one.pairs)
+        assert (many.iterations, many.converged) == (one.iterations, one.converged)
+        assert many.error == pytest.approx(one.error, rel=1e-9, abs=0, nan_ok=True)
+    assert [r.iterations for r in together[:4]] != [together[0].iterations] * 4  # the runs stop at different times
+    assert len(together[-1].pairs) == 0 and not together[-1].converged
