@@ -438,27 +438,17 @@ class PoseProblem:
         normal, offset = surface_in_reference(self.rig, depth, tilt)
         theta = sonar.beam_centres
         n_views = len(data.views)
-        requests = []  # (component, view, beams, source, goal): one ICP each, all in lockstep
-        for c in (0, 1):
-            for k in range(n_views):
-                beams = np.flatnonzero((contour[k, c] >= 0) & data.masks[k, c])
-                target = np.flatnonzero(data.rows[k, c] >= 0)
-                if len(beams) < 2 or len(target) < 2:
-                    continue
-                source = fan_points(theta[beams], sonar.bin_range(contour[k, c, beams] + shift))
-                goal = fan_points(theta[target], sonar.bin_range(data.rows[k, c, target]))
-                requests.append((c, k, beams, source, goal))
-        aligned = icp_many([(source, goal) for *_, source, goal in requests], tol=CONTOUR_TOL)
+        aligned = self.align(contour, shift)
         motion = {0: {}, 1: {}}  # component -> {(view, face): [2-D motions]}
         for c in (0, 1):
-            mine = [i for i, request in enumerate(requests) if request[0] == c]
-            v = [requests[i][1] for i in mine]
-            found = self.frontal_faces(rot[v], t[v], n_view[v], d_view[v], [theta[requests[i][2]] for i in mine],
+            mine = [pair for pair in aligned if pair[0] == c]
+            v = [pair[1] for pair in mine]
+            found = self.frontal_faces(rot[v], t[v], n_view[v], d_view[v], [theta[pair[2]] for pair in mine],
                                        mirror=c == 1)
-            for i, faces in zip(mine, found):
-                for face, vector in zip(faces, aligned[i].motions):
+            for (_, k, _, _, _, result), faces in zip(mine, found):
+                for face, vector in zip(faces, result.motions):
                     if face >= 0:
-                        motion[c].setdefault((requests[i][1], int(face)), []).append(vector)
+                        motion[c].setdefault((k, int(face)), []).append(vector)
         faces = sorted({f for c in (0, 1) for (_, f) in motion[c]})
         if not motion[0]:
             return ExactError(math.nan, np.full(n_views, np.nan), shift, 0, 0)
@@ -490,6 +480,26 @@ class PoseProblem:
         finite = per_view[np.isfinite(per_view)]
         return ExactError(float(finite.mean()) if finite.size else math.nan, per_view, shift,
                           int(object_seen.sum()), int(mirror_seen.any(axis=1).sum()))
+
+    def align(self, contours: np.ndarray, shift: float, components=(0, 1)) -> list[tuple]:
+        """ICP of the synthetic contours (V, 2, beams) (rows, -1: none; the detection ``shift``
+        added) to the data's, in the fan plane, for every view and component with two points or
+        more in both, all in lockstep: (component, view, beams, source (N, 2), goal (M, 2),
+        ICPResult) each."""
+        data, sonar = self.data, self.sonar
+        theta = sonar.beam_centres
+        requests = []
+        for c in components:
+            for k in range(len(data.views)):
+                beams = np.flatnonzero((contours[k, c] >= 0) & data.masks[k, c])
+                target = np.flatnonzero(data.rows[k, c] >= 0)
+                if len(beams) < 2 or len(target) < 2:
+                    continue
+                source = fan_points(theta[beams], sonar.bin_range(contours[k, c, beams] + shift))
+                goal = fan_points(theta[target], sonar.bin_range(data.rows[k, c, target]))
+                requests.append((c, k, beams, source, goal))
+        results = icp_many([(source, goal) for *_, source, goal in requests], tol=CONTOUR_TOL)
+        return [request + (result,) for request, result in zip(requests, results)]
 
     def frontal_faces(self, rot, t, n, d, thetas, *, mirror: bool) -> list[np.ndarray]:
         """Per view k: (len(thetas[k]),) face of the frontal patch of each beam azimuth, -1 where

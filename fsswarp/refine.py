@@ -55,9 +55,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import InputError, check_integer, is_integer
-from .icp import CONTOUR_TOL, icp_many
 from .motion import image_jacobian
-from .pose import PoseProblem, PoseSettings, PoseWarning, fan_points
+from .pose import PoseProblem, PoseSettings, PoseWarning
 from .render import check_mesh
 from .segment import segment
 from .surface import surface_in_reference
@@ -190,28 +189,16 @@ class _Update:
             self.problem = problem = PoseProblem(mesh, dataset, depth, tilt, settings=settings.pose,
                                                  backend=backend)
         self.mesh, self.settings, self.depth, self.tilt = mesh, settings, depth, tilt
-        data, sonar = problem.data, problem.sonar
+        data = problem.data
         _, contours = problem.view_costs(np.array([depth]), np.array([tilt]), settings.pose.exact_samples,
                                           settings.pose.min_cap)  # at the problem's detection shift
         shift = float(problem.shift)
         self.rot, self.t, self.n_view, self.d_view = (a[0] for a in problem.view_poses(data.views, np.array([depth]),
                                                                                    np.array([tilt])))
-        theta = sonar.beam_centres
-        n_views = len(data.views)
-        self.errors = np.full(n_views, math.nan)
+        self.errors = np.full(len(data.views), math.nan)
         self.contour = {}  # (component, view) -> (beams, 2-D motions (beams, 2))
-        requests = []  # (component, view, beams, source, goal): one ICP each, all in lockstep
-        for k in range(n_views):
-            for c in (0, 1) if settings.mirror else (0,):
-                beams = np.flatnonzero((contours[0, k, c] >= 0) & data.masks[k, c])
-                target = np.flatnonzero(data.rows[k, c] >= 0)
-                if len(beams) < 2 or len(target) < 2:
-                    continue
-                source = fan_points(theta[beams], sonar.bin_range(contours[0, k, c, beams] + shift))
-                goal = fan_points(theta[target], sonar.bin_range(data.rows[k, c, target]))
-                requests.append((c, k, beams, source, goal))
-        aligned = icp_many([(source, goal) for *_, source, goal in requests], tol=CONTOUR_TOL)
-        for (c, k, beams, source, goal), result in zip(requests, aligned):
+        components = (0, 1) if settings.mirror else (0,)
+        for c, k, beams, source, goal, result in problem.align(contours[0], shift, components):
             if c == 0:
                 self.errors[k] = result.error
             if motions:
