@@ -61,6 +61,30 @@ def test_truth_metrics_of_every_recorded_iteration_are_reported(one_iteration, c
     assert f"E_V {kept['E_V']:.3f}" in reported[result.best_iteration]
 
 
+@pytest.mark.parametrize("background", [False, True], ids=["at-once", "worker"])
+def test_truth_metrics_reach_their_entries_in_order(background):
+    """Concentric icospheres, one mesh scaled: the smaller lies inside the larger, so E_V is
+    1 − (r_small / r_large)³ (closed form); each entry gets its own model's values, with one
+    line each, in order, on the worker thread (GPU backends) or at once (CPU backends)."""
+    truth = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
+    radii = (0.11, 0.095)
+    entries = [{"iteration": i} for i in range(len(radii))]
+    lines = []
+    with reconstruct_module._TruthMetrics(truth, lines.append, background=background) as metrics:
+        for entry, radius in zip(entries, radii):
+            metrics.submit(entry, trimesh.creation.icosphere(subdivisions=3, radius=radius))
+        metrics.collect(wait=True)
+    assert entries[0]["E_V"] == pytest.approx(1 - (0.1 / 0.11) ** 3, rel=1e-3)
+    assert entries[1]["E_V"] == pytest.approx(1 - (0.095 / 0.1) ** 3, rel=1e-3)
+    assert entries[0]["chamfer_m"] == pytest.approx(0.01, rel=0.05)
+    assert [line.split()[1] for line in lines] == ["0", "1"] and not metrics.pending
+    alone = {"iteration": 0}
+    with reconstruct_module._TruthMetrics(None, lines.append, background=background) as metrics:
+        metrics.submit(alone, truth)
+        metrics.collect(wait=True)
+    assert alone == {"iteration": 0} and len(lines) == 2  # no truth model: nothing to add
+
+
 def test_image_errors_vanish_for_the_truth_and_grow_with_a_bad_model(coral_one):
     """The true model at the true (D, β) explains the images better than a sphere there."""
     truth = trimesh.load_mesh(coral_one.truth_model_path)
