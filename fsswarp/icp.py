@@ -236,7 +236,6 @@ class _Runs:
             self.converged[rows[still]] = self.done[rows[still]] = True
 
 
-
 def _rotation(angle: float) -> np.ndarray:
     c, s = math.cos(angle), math.sin(angle)
     return np.array([[c, -s], [s, c]])
