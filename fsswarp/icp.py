@@ -24,9 +24,9 @@ the run with the smallest final robust scale σ (the median residual: outliers a
 stretches do not move it); ties go to the earlier start, so exact matches return the identity.
 
 Batches: ``icp_many`` runs many pairs in lockstep over padded arrays, one vectorised
-reweighting and Procrustes step per iteration for all of their runs (one k-d tree query per
-pair); each pair gets ``icp``'s result for it alone up to rounding, and ``icp`` is the batch of
-one.
+reweighting and Procrustes step per iteration for all of their runs, and one k-d tree query
+for all of them (each pair's targets in a plane of their own, far from the others'); each
+pair gets ``icp``'s result for it alone up to rounding, and ``icp`` is the batch of one.
 
 Inliers: after the last iteration a pair (i, k(i)) is an inlier when ``r ≤ gate · σ``
 (default 3σ) and, if given, ``r ≤ max_distance``. CE (eq. 5) is the mean distance of the
@@ -163,10 +163,15 @@ class _Runs:
     def __init__(self, pairs, min_scale: float | None, tol: float):
         size = max(len(src) for src, _ in pairs)
         count = 3 * len(pairs)
-        self.trees = [cKDTree(tgt) for _, tgt in pairs]
         self.targets = np.concatenate([tgt for _, tgt in pairs])  # all pairs' targets, one after another
         self.first = np.repeat(np.cumsum([0] + [len(tgt) for _, tgt in pairs[:-1]]), 3)  # run -> its first
         self.lengths = np.repeat([len(src) for src, _ in pairs], 3)
+        # one k-d tree for every pair: pair p's targets and queries lie in the plane z = lift·p,
+        # so a query's nearest target is its own pair's, at its in-plane distance (dz = 0)
+        reach = max(float(np.abs(points).max()) for pair in pairs for points in pair)
+        self.lift = 1e3 * (1.0 + reach)
+        owner = np.repeat(np.arange(len(pairs)), [len(tgt) for _, tgt in pairs])
+        self.tree = cKDTree(np.column_stack([self.targets, self.lift * owner]))
         self.valid = np.arange(size)[None, :] < self.lengths[:, None]
         self.src = np.zeros((count, size, 2))
         self.floor, self.step_tol = np.empty(count), np.empty(count)
@@ -193,17 +198,15 @@ class _Runs:
 
     def match(self, max_distance: float | None, rows: np.ndarray | None = None):
         """For the runs ``rows`` (default all), (rows, N) distances and nearest targets of the
-        moved points (one k-d tree query per pair), which pairs count, and the robust scale σ."""
+        moved points (one k-d tree query for all), which pairs count, and the robust scale σ."""
         rows = np.arange(len(self.src)) if rows is None else rows
-        dist = np.full((len(rows), self.src.shape[1]), np.inf)
-        nearest = np.zeros(dist.shape, np.int64)
-        pair = rows // 3
-        for p in np.unique(pair):
-            mine = np.flatnonzero(pair == p)
-            n = self.lengths[rows[mine[0]]]
-            d, k = self.trees[p].query(self.moved[rows[mine], :n].reshape(-1, 2), k=1)
-            dist[mine, :n], nearest[mine, :n] = d.reshape(len(mine), n), k.reshape(len(mine), n)
-        usable = self.valid[rows] & (True if max_distance is None else dist <= max_distance)
+        valid = self.valid[rows]
+        dist = np.full(valid.shape, np.inf)
+        nearest = np.zeros(valid.shape, np.int64)
+        lift = np.broadcast_to((self.lift * (rows // 3))[:, None], valid.shape)
+        dist[valid], found = self.tree.query(np.column_stack([self.moved[rows][valid], lift[valid]]), k=1)
+        nearest[valid] = found - np.broadcast_to(self.first[rows, None], valid.shape)[valid]
+        usable = valid & (True if max_distance is None else dist <= max_distance)
         sigma = np.where(usable.any(axis=1), _medians(dist, usable) / RAYLEIGH_MEDIAN, self.floor[rows])
         return dist, nearest, usable, np.maximum(sigma, self.floor[rows])
 
