@@ -429,26 +429,18 @@ class PoseProblem:
         """E_mu (eq. 6) at (depth m, tilt rad), with its per-view μ_m."""
         check_pose(depth, tilt)
         self.counters["exact"] += 1
-        data, sonar = self.data, self.sonar
+        data = self.data
         costs, contours = self.view_costs(np.array([depth]), np.array([tilt]), self.settings.exact_samples,
                                            self.settings.min_cap)
         shift = self.shift if self.shift is not None else _parabola_minimum(self.shifts, costs[0].mean(axis=0))
         contour = contours[0]  # (V, 2, beams)
         rot, t, n_view, d_view = (a[0] for a in self.view_poses(data.views, np.array([depth]), np.array([tilt])))
         normal, offset = surface_in_reference(self.rig, depth, tilt)
-        theta = sonar.beam_centres
         n_views = len(data.views)
-        aligned = self.align(contour, shift)
+        aligned = [(c, k, beams, result.motions) for c, k, beams, _, _, result in self.align(contour, shift)]
         motion = {0: {}, 1: {}}  # component -> {(view, face): [2-D motions]}
-        for c in (0, 1):
-            mine = [pair for pair in aligned if pair[0] == c]
-            v = [pair[1] for pair in mine]
-            found = self.frontal_faces(rot[v], t[v], n_view[v], d_view[v], [theta[pair[2]] for pair in mine],
-                                       mirror=c == 1)
-            for (_, k, _, _, _, result), faces in zip(mine, found):
-                for face, vector in zip(faces, result.motions):
-                    if face >= 0:
-                        motion[c].setdefault((k, int(face)), []).append(vector)
+        for c, k, face, vector in self.frontal_motions(rot, t, n_view, d_view, aligned):
+            motion[c].setdefault((k, face), []).append(vector)
         faces = sorted({f for c in (0, 1) for (_, f) in motion[c]})
         if not motion[0]:
             return ExactError(math.nan, np.full(n_views, np.nan), shift, 0, 0)
@@ -500,6 +492,22 @@ class PoseProblem:
                 requests.append((c, k, beams, source, goal))
         results = icp_many([(source, goal) for *_, source, goal in requests], tol=CONTOUR_TOL)
         return [request + (result,) for request, result in zip(requests, results)]
+
+    def frontal_motions(self, rot, t, n, d, motions):
+        """(component, view, face, 2-D motion) of every beam whose frontal patch is found, for
+        ``motions``: (component, view k, beams, (beams, 2) 2-D motions) per contour; one
+        ``frontal_faces`` call per component. rot (V, 3, 3), t (V, 3), n (V, 3), d (V,) : every
+        view's pose and surface plane, indexed by k."""
+        theta = self.sonar.beam_centres
+        for c in (0, 1):
+            mine = [m for m in motions if m[0] == c]
+            v = [k for _, k, _, _ in mine]
+            found = self.frontal_faces(rot[v], t[v], n[v], d[v], [theta[beams] for _, _, beams, _ in mine],
+                                       mirror=c == 1)
+            for (_, k, _, vectors), faces in zip(mine, found):
+                for face, vector in zip(faces, vectors):
+                    if face >= 0:
+                        yield c, k, int(face), vector
 
     def frontal_faces(self, rot, t, n, d, thetas, *, mirror: bool) -> list[np.ndarray]:
         """Per view k: (len(thetas[k]),) face of the frontal patch of each beam azimuth, -1 where

@@ -216,18 +216,11 @@ class _Update:
     def _contour_motions(self) -> np.ndarray:
         """Least-squares 3-D motions of the frontal patches (object and mirror rows jointly);
         fills ``self.motion`` and returns the faces that got one."""
-        problem, sonar = self.problem, self.problem.sonar
-        theta = sonar.beam_centres
+        problem = self.problem
         rows = {}  # face -> list of (component, view, 2-D motion)
-        for c in (0, 1):
-            keys = [key for key in self.contour if key[0] == c]
-            v = [k for _, k in keys]
-            found = problem.frontal_faces(self.rot[v], self.t[v], self.n_view[v], self.d_view[v],
-                                          [theta[self.contour[key][0]] for key in keys], mirror=c == 1)
-            for (_, k), faces in zip(keys, found):
-                for face, vector in zip(faces, self.contour[(c, k)][1]):
-                    if face >= 0:
-                        rows.setdefault(int(face), []).append((c, k, vector))
+        contours = [(c, k, beams, vectors) for (c, k), (beams, vectors) in self.contour.items()]
+        for c, k, face, vector in problem.frontal_motions(self.rot, self.t, self.n_view, self.d_view, contours):
+            rows.setdefault(face, []).append((c, k, vector))
         if not rows:
             return np.zeros(0, int)
         chosen = np.array(sorted(rows))
