@@ -68,16 +68,34 @@ def test_settings_checked():
         RefineSettings(step=0.0)
     with pytest.raises(InputError, match="refine.rays"):
         RefineSettings(rays=(0, 4))
+    with pytest.raises(InputError, match="refine.holds"):
+        RefineSettings(holds=-1)
 
 
-def test_a_step_that_folds_triangles_holds_only_their_vertices():
+def _ring_distance(mesh, sources: np.ndarray) -> np.ndarray:
+    """Edge hops from the nearest vertex of ``sources`` (bool mask), by scipy's graph search."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import shortest_path
+
+    edges = mesh.edges_unique
+    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(len(mesh.vertices),) * 2)
+    return shortest_path(graph, directed=False, unweighted=True, indices=np.flatnonzero(sources)).min(axis=0)
+
+
+def _taper_oracle(distance: np.ndarray) -> np.ndarray:
+    """Share of the step at each hop distance from a held vertex: 0, 1/2, 3/4, 7/8, then 1."""
+    return np.where(distance <= 3, 1.0 - 0.5 ** distance, 1.0)
+
+
+def test_a_step_that_folds_triangles_holds_their_vertices_and_tapers_the_next_rings():
     """One vertex pushed through the mesh would fold its triangles: it and its neighbours in
-    those triangles stay, every other vertex takes the full step."""
+    those triangles stay, the next three rings take 1/2, 3/4 and 7/8 of the step, every other
+    vertex the full step."""
     import trimesh
 
     from fsswarp.refine import _apply
 
-    sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
     outward = 0.001 * sphere.vertex_normals
     displacement = outward.copy()
     displacement[0] = -0.25 * sphere.vertex_normals[0]  # 2.5 radii inward: folds its fan
@@ -86,11 +104,39 @@ def test_a_step_that_folds_triangles_holds_only_their_vertices():
     held = np.all(moved.vertices == sphere.vertices, axis=1)
     assert held[0]
     assert 0 < held.sum() < 20
-    free = ~held
-    np.testing.assert_allclose(moved.vertices[free], sphere.vertices[free] + outward[free], atol=1e-12)
-    assert factor == pytest.approx(free.mean())
+    weight = _taper_oracle(_ring_distance(sphere, held))
+    assert 0 < np.sum(weight == 1.0) < len(weight)
+    np.testing.assert_allclose(moved.vertices, sphere.vertices + weight[:, None] * displacement, atol=1e-12)
+    assert factor == pytest.approx(weight.mean())
     turn = np.einsum("ij,ij->i", moved.face_normals, sphere.face_normals)
     assert turn.min() > np.cos(settings.max_turn)
+
+
+def test_the_taper_keeps_holds_from_cascading():
+    """A field that slides the whole surface by one edge length, with one vertex pushed through
+    it: a held vertex beside neighbours that slide a full edge inverts their triangles, so
+    holding without a taper would have to go on ring after ring (checked here with trimesh).
+    With the taper one round of holds ends it and the step is not halved."""
+    import trimesh
+
+    from fsswarp.refine import _apply
+
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
+    edge = sphere.edges_unique_length.mean()
+    displacement = np.tile([edge, 0.0, 0.0], (len(sphere.vertices), 1))
+    displacement[0] = -0.25 * sphere.vertex_normals[0]
+    settings = RefineSettings(step=1.0)
+    moved, factor = _apply(sphere, displacement, settings)
+    held = np.all(moved.vertices == sphere.vertices, axis=1)
+    fan = np.zeros(len(sphere.vertices), bool)
+    fan[sphere.faces[np.any(sphere.faces == 0, axis=1)].ravel()] = True
+    np.testing.assert_array_equal(held, fan)  # one round: vertex 0's fan, nothing more
+    weight = _taper_oracle(_ring_distance(sphere, held))
+    np.testing.assert_allclose(moved.vertices, sphere.vertices + weight[:, None] * displacement, atol=1e-12)
+    assert factor == pytest.approx(weight.mean())
+    untapered = trimesh.Trimesh(sphere.vertices + displacement * ~fan[:, None], sphere.faces, process=False)
+    turn = np.einsum("ij,ij->i", untapered.face_normals, sphere.face_normals)
+    assert np.sum(turn <= np.cos(settings.max_turn)) > 0  # holding the fan alone still folds
 
 
 def test_a_degenerate_triangle_does_not_block_every_step():
