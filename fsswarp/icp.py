@@ -191,10 +191,7 @@ class _Runs:
 
     def _apply(self, rows: np.ndarray) -> np.ndarray:
         """(len(rows), N, 2) source points of the runs ``rows`` moved by their transforms."""
-        c, s = np.cos(self.angle[rows]), np.sin(self.angle[rows])
-        x, y = self.src[rows, :, 0], self.src[rows, :, 1]
-        return np.stack([c[:, None] * x - s[:, None] * y, s[:, None] * x + c[:, None] * y], axis=-1) \
-            + self.trans[rows, None, :]
+        return _turn(self.angle[rows], self.src[rows]) + self.trans[rows, None, :]
 
     def match(self, max_distance: float | None, rows: np.ndarray | None = None):
         """For the runs ``rows`` (default all), (rows, N) distances and nearest targets of the
@@ -230,8 +227,7 @@ class _Runs:
             cs, cd = np.einsum("rn,rnd->rd", w, src), np.einsum("rn,rnd->rd", w, dst)
             h = np.einsum("rni,rnj->rij", src - cs[:, None, :], (dst - cd[:, None, :]) * w[:, :, None])
             self.angle[rows] = np.arctan2(h[:, 0, 1] - h[:, 1, 0], h[:, 0, 0] + h[:, 1, 1])
-            c, s = np.cos(self.angle[rows]), np.sin(self.angle[rows])
-            self.trans[rows] = cd - np.stack([c * cs[:, 0] - s * cs[:, 1], s * cs[:, 0] + c * cs[:, 1]], axis=1)
+            self.trans[rows] = cd - _turn(self.angle[rows], cs)
             new = self._apply(rows)
             step = np.max(np.where(self.valid[rows], np.linalg.norm(new - self.moved[rows], axis=2), 0.0), axis=1)
             self.moved[rows] = new
@@ -242,6 +238,14 @@ class _Runs:
 def _rotation(angle: float) -> np.ndarray:
     c, s = math.cos(angle), math.sin(angle)
     return np.array([[c, -s], [s, c]])
+
+
+def _turn(angle: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Points (R, ..., 2) turned counter-clockwise by their row's angle (R,) (rad)."""
+    shape = angle.shape + (1,) * (points.ndim - 2)
+    c, s = np.cos(angle).reshape(shape), np.sin(angle).reshape(shape)
+    x, y = points[..., 0], points[..., 1]
+    return np.stack([c * x - s * y, s * x + c * y], axis=-1)
 
 
 def _rms_radius(points: np.ndarray) -> float:
