@@ -26,8 +26,15 @@ One step at a given (D, β), over the views marked ``optimize``:
    synthetic ghost nor mirror reaches (those pixels are masked out as corrupted), votes to move
    its triangle inward along its normal by that distance. Carving is conservative (the truth
    lies inside the carved model), so an echo where the data has none means surface where the
-   object is not. A triangle with a contour motion keeps that one; the others that got votes
-   move by the mean vote.
+   object is not. Except beyond the data: a hit whose row lies past the last highlight row of
+   its beam does not vote. The data sees surface nearer along that beam, so the model's
+   surface there is too far (a dent), and moving it inward deepens it, the next echo lands
+   farther still, and the dent runs away. Without this rule, on coral-one at the true (D, β),
+   E_V turned back up after 11 updates (0.245, then 0.260 at 16) while the share of the true
+   volume outside the model grew from 0.02 to 0.11; with it E_V fell to 0.236 at 16 with 0.03
+   outside, and at the measured (D0, β0) to 0.289 at 16 against a turn at 10 (0.320, then
+   0.357). A triangle with a contour motion keeps that one; the others that got votes move by
+   the mean vote.
 5. Vertex displacements. Each vertex takes the area-weighted average of the motions of its
    moving triangles, with a confidence equal to their share of its adjacent area; a membrane
    solve spreads and smooths the field: ``(C + λ L) U = C Û`` (C the confidences, L the
@@ -306,7 +313,8 @@ class _Update:
             inside = (row >= 0) & (row < sonar.bins)
             row, col, face = row[inside], col[inside], face[inside]
             gap = dark[row, col]
-            vote = bright[row, col] & ~corrupt[row, col] & (gap > st.tolerance)
+            within = row <= _last_echo_rows(highlight)[col]  # not beyond the data (step 4)
+            vote = bright[row, col] & ~corrupt[row, col] & (gap > st.tolerance) & within
             np.add.at(total, face[vote], gap[vote])
             np.add.at(votes, face[vote], 1.0)
         votes[skip] = 0.0
@@ -384,6 +392,14 @@ def _hold_weights(held: np.ndarray, edges: np.ndarray) -> np.ndarray:
         ring = touched & (weight == 1.0)
         weight[ring] = share
     return weight
+
+
+def _last_echo_rows(highlight: np.ndarray) -> np.ndarray:
+    """(beams,) per beam of a (bins, beams) highlight mask its last highlight row, or the
+    image's last row where the beam has none (then every echo in it is unexplained)."""
+    bins = highlight.shape[0]
+    last = bins - 1 - np.argmax(highlight[::-1], axis=0)
+    return np.where(highlight.any(axis=0), last, bins - 1)
 
 
 def _nanmean(values) -> float:
