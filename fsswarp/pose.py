@@ -430,10 +430,7 @@ class PoseProblem:
         check_pose(depth, tilt)
         self.counters["exact"] += 1
         data = self.data
-        costs, contours = self.view_costs(np.array([depth]), np.array([tilt]), self.settings.exact_samples,
-                                           self.settings.min_cap)
-        shift = self.shift if self.shift is not None else _parabola_minimum(self.shifts, costs[0].mean(axis=0))
-        contour = contours[0]  # (V, 2, beams)
+        contour, shift = self.synthetic_contours(depth, tilt)
         rot, t, n_view, d_view = (a[0] for a in self.view_poses(data.views, np.array([depth]), np.array([tilt])))
         normal, offset = surface_in_reference(self.rig, depth, tilt)
         n_views = len(data.views)
@@ -472,6 +469,25 @@ class PoseProblem:
         finite = per_view[np.isfinite(per_view)]
         return ExactError(float(finite.mean()) if finite.size else math.nan, per_view, shift,
                           int(object_seen.sum()), int(mirror_seen.any(axis=1).sum()))
+
+    def synthetic_contours(self, depth: float, tilt: float) -> tuple[np.ndarray, float]:
+        """The synthetic contours (V, 2, beams) (rows, -1: none) at (depth m, tilt rad) with the
+        exact samples, and the detection shift (rows) that aligns them with the data's: the
+        anchor views' or, without anchors, the candidate shift of least cost."""
+        costs, contours = self.view_costs(np.array([depth]), np.array([tilt]), self.settings.exact_samples,
+                                           self.settings.min_cap)
+        shift = self.shift if self.shift is not None else _parabola_minimum(self.shifts, costs[0].mean(axis=0))
+        return contours[0], float(shift)
+
+    def contour_errors(self, depth: float, tilt: float) -> np.ndarray:
+        """(V,) CE (m) of the views ``data.views``: the error of the ICP of the synthetic object
+        contour at (depth m, tilt rad) to the data's (paper eq. 9); NaN where a view has fewer
+        than two points in either."""
+        contour, shift = self.synthetic_contours(depth, tilt)
+        errors = np.full(len(self.data.views), math.nan)
+        for _, k, _, _, _, result in self.align(contour, shift, (0,)):
+            errors[k] = result.error
+        return errors
 
     def align(self, contours: np.ndarray, shift: float, components=(0, 1)) -> list[tuple]:
         """ICP of the synthetic contours (V, 2, beams) (rows, -1: none; the detection ``shift``

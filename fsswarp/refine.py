@@ -209,15 +209,13 @@ class _Update:
                                                  backend=backend)
         self.mesh, self.settings, self.depth, self.tilt = mesh, settings, depth, tilt
         data = problem.data
-        _, contours = problem.view_costs(np.array([depth]), np.array([tilt]), settings.pose.exact_samples,
-                                          settings.pose.min_cap)  # at the problem's detection shift
-        shift = float(problem.shift)
+        contours, shift = problem.synthetic_contours(depth, tilt)
         self.rot, self.t, self.n_view, self.d_view = (a[0] for a in problem.view_poses(data.views, np.array([depth]),
                                                                                    np.array([tilt])))
         self.errors = np.full(len(data.views), math.nan)
         self.contour = {}  # (component, view) -> (beams, 2-D motions (beams, 2))
         components = (0, 1) if settings.mirror else (0,)
-        for c, k, beams, source, goal, result in problem.align(contours[0], shift, components):
+        for c, k, beams, source, goal, result in problem.align(contours, shift, components):
             if c == 0:
                 self.errors[k] = result.error
             if motions:
