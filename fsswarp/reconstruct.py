@@ -83,7 +83,7 @@ import numpy as np
 from .carve import CarveSettings, carve
 from .errors import InputError, check_integer
 from .motion import average_contour_error, average_intensity_error
-from .pose import PoseProblem, PoseSettings, PoseWarning, check_pose, estimate_pose, pose_objective
+from .pose import PoseProblem, PoseSettings, PoseWarning, check_pose, estimate_pose
 from .refine import RefineSettings, refine_shape
 from .render import RenderSettings, render
 
@@ -168,8 +168,7 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
         carved = carve(dataset, depth, tilt, resolution=settings.resolution, settings=settings.carve,
                        backend=backend).mesh
         kept = carved  # the model of the best iteration
-        first = _complete(_record(0, kept, dataset, depth, tilt, settings, backend, None), kept, dataset, depth, tilt,
-                          truth, settings, backend)
+        first = _complete(*_record(0, kept, dataset, depth, tilt, settings, backend, None), kept, depth, tilt, truth)
         working = refine_shape(carved, dataset, depth, tilt, settings=settings.refine,
                                backend=backend).mesh if settings.iterations else carved
         history = [first]
@@ -188,7 +187,7 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
             for depth_tried, tilt_tried in trials:
                 trial = refine_shape(working, dataset, depth_tried, tilt_tried, settings=settings.refine,
                                      backend=backend).mesh
-                entry = _record(iteration, trial, dataset, depth_tried, tilt_tried, settings, backend, first)
+                entry, problem = _record(iteration, trial, dataset, depth_tried, tilt_tried, settings, backend, first)
                 improved = entry["E_I"] < best["E_I"]
                 if improved:
                     break
@@ -202,7 +201,7 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
                 converged = True
                 break
             working, depth, tilt = trial, depth_tried, tilt_tried
-            history.append(_complete(entry, trial, dataset, depth, tilt, truth, settings, backend))
+            history.append(_complete(entry, problem, trial, depth, tilt, truth))
             say(_line(history[-1]))
             truth.collect(wait=False)
             if improved:
@@ -225,6 +224,12 @@ def image_errors(model, dataset, depth: float, tilt: float, *, settings: Reconst
                  backend=None) -> dict:
     """AIE and ACE (paper eq. 8–9, as the module docstring defines them) of ``model`` at
     (depth, tilt) over the dataset's optimized views: {"AIE", "ACE", "views": {name: {"CE"}}}."""
+    return _image_errors(model, dataset, depth, tilt, settings, backend)[0]
+
+
+def _image_errors(model, dataset, depth: float, tilt: float, settings: ReconstructSettings, backend):
+    """(:func:`image_errors`' dict, the PoseProblem of ``model`` at (depth, tilt) that found
+    the contours of CE; E_mu reuses it)."""
     names = [v.name for v in dataset.rig.views if v.optimize]
     if not names:
         raise InputError("no view is marked optimize", file=dataset.root, field="views.optimize", value=False)
@@ -246,27 +251,28 @@ def image_errors(model, dataset, depth: float, tilt: float, *, settings: Reconst
     seen = dict(zip(problem.data.names, problem.contour_errors(depth, tilt)))
     errors = np.array([seen.get(name, math.nan) for name in names])
     return {"AIE": aie, "ACE": average_contour_error(errors),
-            "views": {name: {"CE": float(ce)} for name, ce in zip(names, errors)}}
+            "views": {name: {"CE": float(ce)} for name, ce in zip(names, errors)}}, problem
 
 
 def _record(iteration: int, model, dataset, depth: float, tilt: float, settings: ReconstructSettings,
-            backend, first: dict | None) -> dict:
-    """What decides whether a trial is kept: AIE, ACE and E_I (relative to ``first``)."""
-    images = image_errors(model, dataset, depth, tilt, settings=settings, backend=backend)
+            backend, first: dict | None):
+    """(What decides whether a trial is kept: AIE, ACE and E_I (relative to ``first``), the
+    trial's PoseProblem for its E_mu)."""
+    images, problem = _image_errors(model, dataset, depth, tilt, settings, backend)
     entry = {"iteration": iteration, "depth_m": depth, "tilt_deg": math.degrees(tilt),
              "AIE": images["AIE"], "ACE": images["ACE"]}
     base = first or entry
     entry["E_I"] = 0.5 * (entry["AIE"] / base["AIE"] + entry["ACE"] / base["ACE"])
-    return entry
+    return entry, problem
 
 
-def _complete(entry: dict, model, dataset, depth: float, tilt: float, truth, settings: ReconstructSettings,
-              backend) -> dict:
+def _complete(entry: dict, problem, model, depth: float, tilt: float, truth) -> dict:
     """The history entry (DESIGN §12's keys) of a kept trial at (depth m, tilt rad): ``entry``
-    with E_mu; ``truth`` (_TruthMetrics) adds E_V, Chamfer and F-score later. Only kept
-    trials pay for these (a rejected trial's cost 1–2 s on a 2-core CPU)."""
+    with E_mu (from ``problem``, the PoseProblem of ``model`` there that _record made);
+    ``truth`` (_TruthMetrics) adds E_V, Chamfer and F-score later. Only kept trials pay for
+    these (a rejected trial's cost 1–2 s on a 2-core CPU)."""
     done = {key: entry[key] for key in ("iteration", "depth_m", "tilt_deg")}
-    done["E_mu"] = pose_objective(model, dataset, depth, tilt, settings=settings.pose, backend=backend)
+    done["E_mu"] = problem.exact(depth, tilt).value
     done.update((key, entry[key]) for key in ("AIE", "ACE", "E_I"))
     truth.submit(done, model)
     return done

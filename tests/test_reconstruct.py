@@ -135,9 +135,9 @@ def _script_the_loop(monkeypatch, pose_step, errors, completed=None):
         return SimpleNamespace(mesh=moved)
 
     def record(iteration, model, dataset, depth, tilt, settings, backend, first):
-        return {"iteration": iteration, "depth_m": depth, "E_I": next(errors)}
+        return {"iteration": iteration, "depth_m": depth, "E_I": next(errors)}, None  # no PoseProblem
 
-    def complete(entry, model, dataset, depth, tilt, truth, settings, backend):
+    def complete(entry, problem, model, depth, tilt, truth):
         completed.append(entry["E_I"])
         return entry
 
