@@ -57,7 +57,8 @@ Search (:func:`estimate_pose`, eq. 7): a ``grid[0]`` × ``grid[1]`` grid over
 [D0 ± e_D] × [β0 ± e_β], then ``levels − 1`` finer grids, each centred on the previous
 level's best cell and spanning ± two of its cells (the spacing halves), every cell and view
 of a level in one launch; the cap halves per level from ``cap`` to ``min_cap`` (a coarse
-cell far from the truth still sees the mirror; a fine one weighs the valley's floor). After
+cell far from the truth still sees the mirror; a fine one weighs the valley's floor), and
+the levels before the finest render fewer sub-rays (``coarse_samples``). After
 each level the data contours and the detection shift are found again from the new
 estimate. Then nlopt's BOBYQA polishes on E_mu, in a frame fitted to the finest level (a
 quadratic through its 5 × 5 best cells: ± two cells along its valley, ± one across), since
@@ -103,10 +104,14 @@ class PoseWarning(UserWarning):
 class PoseSettings:
     """Options of the (D, β) estimation (the module docstring explains each).
 
-    samples : (K_θ, K_φ) sub-rays of the grid's synthetic views; exact_samples : those of
-        E_mu and of the prediction that places windows and mirror beams. Both default to the
-        renderer's (2, 64): on a CPU the grid's time goes to the images' memory, not the rays
-        ((1, 16) saved 25 % on PoCL), and fewer sub-rays roughen the contours
+    samples : (K_θ, K_φ) sub-rays of the finest grid level's synthetic views; exact_samples :
+        those of E_mu and of the prediction that places windows and mirror beams. Both default
+        to the renderer's (2, 64): fewer sub-rays roughen the contours where the finest cells
+        differ by tenths of a mm
+    coarse_samples : those of the grid levels before the finest. Their cells are 2–4 times
+        wider and differ by mm; at (1, 32) their best cell was that of (2, 64) on all three
+        built-in scenes' carved models, and a level takes 0.43 of the time on PoCL
+        (bench/notes.md)
     grid : (cells along D, cells along β) per level
     cap, min_cap : distance (m) at which the surrogate's contour distances saturate: ``cap``
         on the first grid level, halved per level down to ``min_cap`` (used by the detection
@@ -123,6 +128,7 @@ class PoseSettings:
     """
 
     samples: tuple[int, int] = (2, 64)
+    coarse_samples: tuple[int, int] = (1, 32)
     exact_samples: tuple[int, int] = (2, 64)
     grid: tuple[int, int] = (9, 9)
     cap: float = 0.05
@@ -137,7 +143,7 @@ class PoseSettings:
     segment: SegmentSettings = field(default_factory=SegmentSettings)
 
     def __post_init__(self) -> None:
-        for name in ("samples", "exact_samples", "grid"):
+        for name in ("samples", "coarse_samples", "exact_samples", "grid"):
             pair = getattr(self, name)
             if len(pair) != 2 or not all(is_integer(k) and k >= 1 for k in pair):
                 raise InputError("must be two integers >= 1", field=f"pose.{name}", value=pair)
@@ -627,7 +633,8 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
         axes = [np.linspace(low[i], low[i] + 2 * half[i], grid[i]) for i in (0, 1)]
         dd, tt = np.meshgrid(*axes, indexing="ij")
         cap = max(settings.cap / 2 ** level, settings.min_cap)
-        costs = problem.surrogate(dd, tt, cap=cap)
+        samples = settings.samples if level == levels - 1 else settings.coarse_samples
+        costs = problem.surrogate(dd, tt, cap=cap, samples=samples)
         problem.counters["grid_cells"] += costs.size
         i, j = np.unravel_index(int(np.argmin(costs)), costs.shape)
         best = np.array([dd[i, j], tt[i, j]])

@@ -205,6 +205,8 @@ def test_bad_input(coral_one, truth_model, opencl):
         estimate_pose(truth_model, coral_one, tilt0=math.radians(95.0), backend=opencl)
     with pytest.raises(InputError, match="pose.grid"):
         PoseSettings(grid=(2, 9))
+    with pytest.raises(InputError, match="pose.coarse_samples"):
+        PoseSettings(coarse_samples=(0, 16))
 
 
 def test_detection_threshold_is_kept_per_image_content():
@@ -218,3 +220,30 @@ def test_detection_threshold_is_kept_per_image_content():
     brighter = image.copy()
     brighter[:, 0] += 10.0
     assert detection_threshold(brighter) is not first
+
+
+class _SamplesSpy:
+    """A backend that records the sub-ray samples and view count of every render launch."""
+
+    def __init__(self, backend):
+        self.backend, self.launches = backend, []
+
+    def __getattr__(self, name):
+        return getattr(self.backend, name)
+
+    def render_device(self, mesh, sonar, rotations, *args, **kwargs):
+        self.launches.append((tuple(args[3]), len(rotations)))
+        return self.backend.render_device(mesh, sonar, rotations, *args, **kwargs)
+
+
+def test_grid_levels_before_the_finest_use_the_coarse_samples(coral_one, truth_model, opencl):
+    truth = coral_one.manifest.truth
+    spy = _SamplesSpy(opencl)
+    settings = PoseSettings(grid=(3, 3), coarse_samples=(1, 8), samples=(2, 16), exact_samples=(2, 32), polish=0)
+    result = estimate_pose(truth_model, coral_one, depth0=truth.depth, tilt0=truth.tilt, levels=3,
+                           settings=settings, backend=spy)
+    views = len(result.views)
+    grid_launches = [samples for samples, n in spy.launches if n == 9 * views]
+    assert grid_launches == [(1, 8), (1, 8), (2, 16)]
+    assert {samples for samples, n in spy.launches if n != 9 * views} == {(2, 32)}  # windows, E_mu
+
