@@ -170,7 +170,8 @@ class DataContours:
     threshold : (V, bins) detection threshold per row; windows : (V, 2) rows [lo, hi)
     masks : (V, 2, beams) bool beams of the object (0) and mirror (1) contours
     rows : (V, 2, beams) int first highlight row of each contour, -1 where none
-    distances : (V, 2, bins, beams) float32 distance (m) to the contour, inf without one
+    distances : (V, 2, bins, beams) float32 distance (m) to the contour, saturating at the
+        problem's ``reach``, max(cap, min_cap) (everywhere without a contour)
     """
 
     views: tuple[int, ...]
@@ -272,6 +273,7 @@ class PoseProblem:
         self.vertices, self.faces = vertices, faces
         self.smoothing = (_gaussian(settings.segment.sigma_bins), _gaussian(settings.segment.sigma_beams))
         self.shifts = np.asarray(settings.shifts, np.float64)
+        self.reach = max(settings.cap, settings.min_cap)
         self.counters = {"grid_cells": 0, "surrogate_cells": 0, "exact": 0}
         self.views = [i for i, v in enumerate(self.rig.views) if v.optimize]
         if not self.views:
@@ -367,18 +369,14 @@ class PoseProblem:
         return tuple(data.names[k] for k in fixed), _parabola_minimum(self.shifts, cost)
 
     def _distance(self, rows: np.ndarray) -> np.ndarray:
-        """(bins, beams) distance (m) of every pixel to the contour pixels (row per beam): the
-        range axis in δR, the beam axis in arc length at the contour's median range."""
-        from scipy.ndimage import distance_transform_edt
-
+        """(bins, beams) distance (m) of every pixel to the contour pixels (row per beam), at
+        most ``reach``: the range axis in δR, the beam axis in arc length at the contour's
+        median range."""
         sonar = self.sonar
         beams = np.flatnonzero(rows >= 0)
-        if beams.size == 0:
-            return np.full((sonar.bins, sonar.beams), np.inf)
-        pixels = np.ones((sonar.bins, sonar.beams), bool)
-        pixels[rows[beams], beams] = False
-        arc = float(np.median(sonar.bin_range(rows[beams]))) * float(np.mean(np.diff(sonar.beam_centres)))
-        return distance_transform_edt(pixels, sampling=(sonar.range_step, arc))
+        arc = float(np.median(sonar.bin_range(rows[beams]))) * float(np.mean(np.diff(sonar.beam_centres))) \
+            if beams.size else 1.0
+        return contour_distance(rows, sonar.bins, sonar.range_step, arc, self.reach)
 
     # --- synthesis and the surrogate -------------------------------------------------------
     def view_poses(self, views, depths: np.ndarray, tilts: np.ndarray):
@@ -424,7 +422,11 @@ class PoseProblem:
         """Surrogate cost (m) of cells: depths (m), tilts (rad) of one shape -> that shape, the
         mean over the views of the object + mirror contour terms at the detection shift (or,
         without anchor views, at the cell's best shift).
-        cap : saturation distance (default ``settings.cap``); samples : default ``settings.samples``."""
+        cap : saturation distance (default ``settings.cap``), at most ``reach``, max(cap,
+            min_cap), up to which the data's distances are kept; samples : default
+            ``settings.samples``."""
+        if cap is not None and not (isinstance(cap, (int, float)) and 0 < cap <= self.reach):
+            raise InputError(f"must be a distance in (0, {self.reach}] m", field="cap", value=cap)
         depths, tilts = np.broadcast_arrays(np.asarray(depths, np.float64), np.asarray(tilts, np.float64))
         costs, _ = self.view_costs(depths.reshape(-1), tilts.reshape(-1), samples or self.settings.samples,
                                     self.settings.cap if cap is None else cap)
@@ -684,6 +686,29 @@ def _detection_threshold(array: np.ndarray, settings: SegmentSettings) -> np.nda
     centre = float(np.median(smooth))
     spread = max(1.4826 * float(np.median(np.abs(smooth - centre))), 0.01 * (float(smooth.max()) - centre))
     return np.maximum(centre + settings.low * spread - 1.0, 0.0) * level
+
+
+def contour_distance(rows: np.ndarray, bins: int, range_step: float, arc: float, reach: float) -> np.ndarray:
+    """(bins, beams) float32 distance (m) of every pixel to the contour pixels (row, beam) of
+    ``rows`` (beams,) (first row per beam, -1: none), saturating at ``reach`` (m): the range
+    axis in ``range_step``, the beam axis in ``arc`` (m). Exact below ``reach``, as scipy's
+    ``distance_transform_edt`` with that sampling, but only the contour pixels within
+    ``reach`` are visited (±reach/arc beams, ±reach/range_step rows)."""
+    n_beams = len(rows)
+    out = np.full((bins, n_beams), reach * reach)
+    beams = np.flatnonzero(rows >= 0)
+    if beams.size:
+        lo = max(int(rows[beams].min() - reach / range_step) - 1, 0)
+        hi = min(int(rows[beams].max() + reach / range_step) + 2, bins)
+        band = out[lo:hi]
+        dr = (np.arange(lo, hi)[:, None] - rows[beams][None, :]) * range_step  # (rows, contour points)
+        dr2 = dr * dr
+        for offset in range(-int(reach / arc), int(reach / arc) + 1):
+            target = beams + offset
+            inside = (target >= 0) & (target < n_beams)
+            cols = target[inside]
+            band[:, cols] = np.minimum(band[:, cols], dr2[:, inside] + (offset * arc) ** 2)
+    return np.sqrt(np.minimum(out, reach * reach)).astype(np.float32)
 
 
 def _gaussian(sigma: float) -> np.ndarray:

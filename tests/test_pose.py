@@ -7,12 +7,16 @@ import math
 import numpy as np
 import pytest
 import trimesh
+from hypothesis import given
+from hypothesis import strategies as st
+from scipy.ndimage import distance_transform_edt
 
 from fsswarp.backends import get_backend
 from fsswarp.dataset import Dataset
 from fsswarp.errors import InputError
 from fsswarp.figures import pose_figure
-from fsswarp.pose import PoseProblem, PoseSettings, detection_threshold, estimate_pose, pose_objective
+from fsswarp.pose import (PoseProblem, PoseSettings, contour_distance, detection_threshold, estimate_pose,
+                          pose_objective)
 from fsswarp.rig import Rig
 from fsswarp.surface import COMPONENTS
 
@@ -207,6 +211,9 @@ def test_bad_input(coral_one, truth_model, opencl):
         PoseSettings(grid=(2, 9))
     with pytest.raises(InputError, match="pose.coarse_samples"):
         PoseSettings(coarse_samples=(0, 16))
+    problem = PoseProblem(truth_model, coral_one, truth.depth, truth.tilt, backend=opencl)
+    with pytest.raises(InputError, match="cap = 0.06: must be a distance in"):
+        problem.surrogate(truth.depth, truth.tilt, cap=0.06)  # beyond the distances kept (5 cm)
 
 
 def test_detection_threshold_is_kept_per_image_content():
@@ -247,3 +254,16 @@ def test_grid_levels_before_the_finest_use_the_coarse_samples(coral_one, truth_m
     assert grid_launches == [(1, 8), (1, 8), (2, 16)]
     assert {samples for samples, n in spy.launches if n != 9 * views} == {(2, 32)}  # windows, E_mu
 
+
+@given(st.lists(st.integers(-1, 40), min_size=1, max_size=12), st.integers(41, 48),
+       st.floats(0.002, 0.02), st.floats(0.001, 0.01), st.floats(0.005, 0.08))
+def test_contour_distance_is_the_euclidean_distance_transform_saturated(rows, bins, range_step, arc, reach):
+    rows = np.array(rows)
+    pixels = np.ones((bins, len(rows)), bool)
+    beams = np.flatnonzero(rows >= 0)
+    pixels[rows[beams], beams] = False
+    expected = distance_transform_edt(pixels, sampling=(range_step, arc)) if beams.size \
+        else np.full(pixels.shape, np.inf)
+    got = contour_distance(rows, bins, range_step, arc, reach)
+    assert got.dtype == np.float32 and got.shape == (bins, len(rows))
+    np.testing.assert_allclose(got, np.minimum(expected, reach), rtol=1e-6, atol=0)
