@@ -259,3 +259,30 @@ def _check_mesh(name: str, mesh) -> None:
     faces = getattr(mesh, "faces", None)
     if faces is None or len(faces) == 0:
         raise InputError("holds no triangles", field=name, value=0)
+
+
+def serve_compare() -> None:
+    """The loop of a ``compare`` worker process (fsswarp.reconstruct's truth metrics on a GPU
+    backend): from stdin, pickled meshes, the truth first; to stdout, one pickled ``compare``
+    dict (or the exception it raised) per later mesh, in order; returns at end of input.
+    Anything the code prints goes to stderr, so that stdout carries the replies alone."""
+    import os
+    import pickle
+    import sys
+
+    replies = os.fdopen(os.dup(1), "wb")
+    os.dup2(2, 1)
+    sys.stdout = sys.stderr
+    requests = sys.stdin.buffer
+    truth = pickle.load(requests)
+    while True:
+        try:
+            model = pickle.load(requests)
+        except EOFError:
+            return
+        try:
+            reply = compare(model, truth)
+        except Exception as error:  # handed to the parent, which raises it
+            reply = error
+        pickle.dump(reply, replies)
+        replies.flush()

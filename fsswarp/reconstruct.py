@@ -281,18 +281,23 @@ def _complete(entry: dict, problem, model, depth: float, tilt: float, truth) -> 
 class _TruthMetrics:
     """E_V, Chamfer and F-score of recorded models against the truth mesh (None: no truth, and
     nothing to do). With ``background`` (a GPU backend, whose kernels leave the host's cores
-    free) they are computed on one worker thread while the loop goes on (NumPy, SciPy and
-    trimesh release the GIL in their heavy parts), else at once: on a CPU backend the kernels
-    already use every core, and on 2 cores the worker made coral-two 3–5% slower (85.0 and
-    84.1 s against 82.5 and 79.9 s). The values do not depend on the thread. ``collect``
-    writes them into the history entries, in order, and reports each with ``say``. A context
-    manager: leaving it stops the worker."""
+    free) they are computed in a child Python process (``fsswarp.metrics.serve_compare``),
+    fed by one worker thread that waits on its pipe, while the loop goes on; else at once: on
+    a CPU backend the kernels already use every core, and on 2 cores a worker thread made
+    coral-two 3–5% slower (85.0 and 84.1 s against 82.5 and 79.9 s). A worker thread alone
+    held the GIL against the loop: coral-one took 34.4 and 35.2 s on an H100 with it, 24.2 and
+    24.7 s with the child process and 23.4 and 24.9 s with no truth metrics at all. The values
+    do not depend on where they are computed. ``collect`` writes them into the history
+    entries, in order, and reports each with ``say``. A context manager: leaving it stops the
+    worker and its process."""
 
     def __init__(self, mesh, say: Callable[[str], None], *, background: bool):
         from concurrent.futures import ThreadPoolExecutor
 
         self.mesh, self.say = mesh, say
-        self.pool = ThreadPoolExecutor(1, thread_name_prefix="fsswarp-truth") if background else None
+        work = background and mesh is not None
+        self.pool = ThreadPoolExecutor(1, thread_name_prefix="fsswarp-truth") if work else None
+        self.child = None  # the compare process, started by the first submit
         self.pending = []  # (history entry, future), oldest first
 
     def __enter__(self):
@@ -301,6 +306,10 @@ class _TruthMetrics:
     def __exit__(self, *exc) -> None:
         if self.pool is not None:
             self.pool.shutdown(wait=True, cancel_futures=True)
+        if self.child is not None:
+            self.child.stdin.close()
+            self.child.wait()
+            self.child.stdout.close()
 
     def submit(self, entry: dict, model) -> None:
         from concurrent.futures import Future
@@ -310,11 +319,36 @@ class _TruthMetrics:
         if self.mesh is None:
             return
         if self.pool is not None:
-            self.pending.append((entry, self.pool.submit(compare, model, self.mesh)))
+            self.pending.append((entry, self.pool.submit(self._compare_in_child, model)))
         else:
             done = Future()
             done.set_result(compare(model, self.mesh))
             self.pending.append((entry, done))
+
+    def _compare_in_child(self, model) -> dict:
+        """``compare(model, truth)`` in the child process (on the worker thread)."""
+        import os
+        import pickle
+        import subprocess
+        import sys
+        from pathlib import Path
+
+        if self.child is None:
+            path = [str(Path(__file__).resolve().parent.parent), os.environ.get("PYTHONPATH", "")]
+            self.child = subprocess.Popen(
+                [sys.executable, "-c", "from fsswarp.metrics import serve_compare; serve_compare()"],
+                stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                env=dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in path if p)))
+            pickle.dump(self.mesh, self.child.stdin)
+        pickle.dump(model, self.child.stdin)
+        self.child.stdin.flush()
+        try:
+            reply = pickle.load(self.child.stdout)
+        except EOFError:
+            raise RuntimeError(f"the truth-metrics process ended (exit status {self.child.wait()})") from None
+        if isinstance(reply, Exception):
+            raise reply
+        return reply
 
     def collect(self, *, wait: bool) -> None:
         """Fill in the finished entries (all of them, waiting, with ``wait``)."""

@@ -12,6 +12,7 @@ import trimesh
 
 import fsswarp.reconstruct as reconstruct_module
 from fsswarp.carve import carve
+from fsswarp.errors import InputError
 from fsswarp.metrics import compare
 from fsswarp.reconstruct import ReconstructSettings, image_errors, reconstruct
 from fsswarp.refine import RefineSettings, refine_shape
@@ -86,6 +87,26 @@ def test_truth_metrics_reach_their_entries_in_order(background):
         metrics.submit(alone, truth)
         metrics.collect(wait=True)
     assert alone == {"iteration": 0} and len(lines) == 2  # no truth model: nothing to add
+
+
+def test_truth_metrics_in_the_child_process_are_compares_and_raise_its_errors():
+    """On a GPU backend the metrics come from a child process: the same values as ``compare``
+    here, bit for bit; its errors reach ``collect``; the process ends with the context."""
+    truth = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
+    model = trimesh.creation.icosphere(subdivisions=2, radius=0.105)
+    entry = {"iteration": 0}
+    with reconstruct_module._TruthMetrics(truth, [].append, background=True) as metrics:
+        metrics.submit(entry, model)
+        metrics.collect(wait=True)
+        child = metrics.child
+    want = compare(model, truth)
+    assert (entry["E_V"], entry["chamfer_m"], entry["fscore"]) == (want["E_V"], want["chamfer_m"], want["fscore"])
+    assert child.returncode == 0
+    with pytest.raises(InputError, match="holds no triangles"):
+        with reconstruct_module._TruthMetrics(truth, [].append, background=True) as metrics:
+            metrics.submit({"iteration": 1}, trimesh.Trimesh())
+            metrics.collect(wait=True)
+    assert metrics.child.returncode == 0
 
 
 def test_image_errors_vanish_for_the_truth_and_grow_with_a_bad_model(coral_one):
