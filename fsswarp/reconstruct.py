@@ -37,7 +37,7 @@ row above 1% of the peak as the synthetic contour (below), which jittered: at co
 measured (D0, β0), ten updates took E_V steadily from 0.386 to 0.323, while E_I went 0.78,
 0.81, 0.79, 0.79, 0.77, 0.79, 0.80, 0.80, 0.75, and stopping at the first rise kept the
 model of the first update. A trial is judged by E_I alone; E_mu and the truth metrics
-are computed only for the trials recorded, the truth metrics on a worker thread while the
+are computed only for the trials recorded, the truth metrics in a child process while the
 loop goes on when the kernels run on a GPU (their lines come when they are ready). It also
 stops after ``iterations``. E_I is the objective here because it is measurable and, in the
 paper, tracks the model error E_V; E_mu alone kept falling on coral-two while E_I rose from 0.71 to 0.98
