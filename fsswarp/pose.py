@@ -708,7 +708,7 @@ def contour_distance(rows: np.ndarray, bins: int, range_step: float, arc: float,
             inside = (target >= 0) & (target < n_beams)
             cols = target[inside]
             band[:, cols] = np.minimum(band[:, cols], dr2[:, inside] + (offset * arc) ** 2)
-    return np.sqrt(np.minimum(out, reach * reach)).astype(np.float32)
+    return np.sqrt(out).astype(np.float32)  # out starts at reach² and only falls
 
 
 def _gaussian(sigma: float) -> np.ndarray:
