@@ -25,7 +25,7 @@ from __future__ import annotations
 import io
 import math
 import tomllib
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path, PurePosixPath
 from typing import Any
 
@@ -169,13 +169,27 @@ def image_file(view: View) -> str:
 class Dataset:
     """A manifest and its images.
 
-    images : view name -> (bins, beams) float32 image, in rig order
+    images : view name -> (bins, beams) float32 image, in rig order; made read-only, since
+        results derived from them are kept (:meth:`derived`)
     root : the folder it was loaded from (truth layers and the truth model are read from it)
     """
 
     manifest: Manifest
     images: dict[str, np.ndarray]
     root: Path | None = None
+    _derived: dict = field(default_factory=dict, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        for image in self.images.values():
+            image.setflags(write=False)
+
+    def derived(self, key, compute):
+        """``compute()``, computed once per ``key`` (hashable) for this dataset and then kept:
+        for results that depend only on the images and ``key`` (the reconstruction loop
+        segments the same images for every pose and shape step)."""
+        if key not in self._derived:
+            self._derived[key] = compute()
+        return self._derived[key]
 
     @property
     def sonar(self) -> SonarSpec:

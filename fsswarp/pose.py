@@ -279,12 +279,9 @@ class PoseProblem:
         if not self.views:
             raise InputError("no view takes part in the optimization: every view has optimize = false",
                              file=dataset.root, field="views.optimize", value=False)
-        names = [self.rig.views[i].name for i in self.views]
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # views without a highlight get no contour
-            self.highlight = [segment(dataset.images[n], settings.segment, name=f"images/{n}").highlight
-                              for n in names]
-        self.threshold = np.stack([detection_threshold(dataset.images[n], settings.segment) for n in names])
+        self.highlight, self.threshold = dataset.derived(
+            ("pose views", tuple(self.views), settings.segment),
+            lambda: _view_highlights(dataset, self.views, settings.segment))
         self._unseen: set[str] = set()
         self.locate(depth, tilt)
 
@@ -582,6 +579,18 @@ class PoseProblem:
         rows = np.arange(len(rng))
         found = np.where(np.isfinite(rng[rows, best]), face.reshape(-1, k)[rows, best], -1)
         return np.split(found, np.cumsum(sizes)[:-1])
+
+
+def _view_highlights(dataset, views, settings: SegmentSettings):
+    """(read-only highlight masks (bins, beams) per view, read-only (V, bins) detection
+    thresholds) of the data images of the rig views ``views`` (indices)."""
+    names = [dataset.rig.views[i].name for i in views]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # views without a highlight get no contour
+        highlight = [segment(dataset.images[n], settings, name=f"images/{n}").highlight for n in names]
+    threshold = np.stack([detection_threshold(dataset.images[n], settings) for n in names])
+    threshold.setflags(write=False)
+    return highlight, threshold
 
 
 # --- public functions --------------------------------------------------------------------------

@@ -72,7 +72,6 @@ from .errors import InputError, check_integer, is_integer
 from .motion import image_jacobian
 from .pose import PoseProblem, PoseSettings, PoseWarning
 from .render import check_mesh
-from .segment import segment
 from .surface import surface_in_reference
 
 #: Share of the step that the first rings of neighbours of a held vertex take (module
@@ -272,7 +271,8 @@ class _Update:
     # --- overshoot term -------------------------------------------------------------------
     def _overshoot(self, dataset, skip: np.ndarray) -> np.ndarray:
         """Inward motions of triangles whose echo lands where the data is dark (module
-        docstring, step 4); fills ``self.motion`` except on ``skip``; returns the faces moved."""
+        docstring, step 4); fills ``self.motion`` except on ``skip``; returns the faces moved.
+        The views' rays go to the backend in one launch."""
         from scipy import ndimage
 
         problem, sonar, st = self.problem, self.problem.sonar, self.settings
@@ -287,31 +287,30 @@ class _Update:
         th, ph = np.meshgrid(theta, phi, indexing="ij")
         u = np.stack([np.cos(ph) * np.sin(th), np.cos(ph) * np.cos(th), np.sin(ph)], axis=-1).reshape(-1, 3)
         beam_of_ray = np.repeat(np.arange(sonar.beams), k_theta * k_phi)
+        n_views = len(data.views)
+        dist, faces = problem.backend.cast_rays(problem.mesh, np.repeat(self.t, len(u), axis=0),
+                                                np.concatenate([u @ rot.T for rot in self.rot]))
+        dist, faces = dist.astype(np.float64).reshape(n_views, -1), faces.reshape(n_views, -1)
         total = np.zeros(len(self.mesh.faces))
         votes = np.zeros(len(self.mesh.faces))
-        for k, name in enumerate(data.names):
+        for k in range(n_views):
+            highlight = problem.highlight[problem.views.index(data.views[k])]
+            if not highlight.any():
+                continue
+            dark, last_rows = dataset.derived(("overshoot", data.views[k], st.pose.segment),
+                                              lambda: _dark_distance(highlight, sonar))
             threshold = data.threshold[k][:, None]
             bright = ndimage.gaussian_filter(layers[k, 0] + layers[k, 1], sigma) > threshold
             corrupt = ndimage.gaussian_filter(layers[k, 1:].sum(axis=0), sigma) > st.corrupt * threshold
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")  # a view without highlight gives no vote
-                highlight = segment(dataset.images[name], st.pose.segment, name=f"images/{name}").highlight
-            if not highlight.any():
-                continue
-            rng = float(np.median(sonar.bin_ranges[np.flatnonzero(highlight.any(axis=1))]))
-            dark = ndimage.distance_transform_edt(~highlight, sampling=(sonar.range_step, rng * width))
             up = u @ self.n_view[k]
             surface = np.where(up > 0, self.d_view[k] / np.where(up > 0, up, 1.0), np.inf)
-            dist, face = problem.backend.cast_rays(problem.mesh, np.broadcast_to(self.t[k], u.shape),
-                                                   u @ self.rot[k].T)
-            dist = dist.astype(np.float64)
-            hit = np.isfinite(dist) & (dist < surface)
-            row = np.rint(sonar.bin_coordinate(dist[hit])).astype(int)
-            col, face = beam_of_ray[hit], face[hit]
+            hit = np.isfinite(dist[k]) & (dist[k] < surface)
+            row = np.rint(sonar.bin_coordinate(dist[k, hit])).astype(int)
+            col, face = beam_of_ray[hit], faces[k, hit]
             inside = (row >= 0) & (row < sonar.bins)
             row, col, face = row[inside], col[inside], face[inside]
             gap = dark[row, col]
-            within = row <= _last_echo_rows(highlight)[col]  # not beyond the data (step 4)
+            within = row <= last_rows[col]  # not beyond the data (step 4)
             vote = bright[row, col] & ~corrupt[row, col] & (gap > st.tolerance) & within
             np.add.at(total, face[vote], gap[vote])
             np.add.at(votes, face[vote], 1.0)
@@ -390,6 +389,21 @@ def _hold_weights(held: np.ndarray, edges: np.ndarray) -> np.ndarray:
         ring = touched & (weight == 1.0)
         weight[ring] = share
     return weight
+
+
+def _dark_distance(highlight: np.ndarray, sonar) -> tuple[np.ndarray, np.ndarray]:
+    """Of a data view's (bins, beams) highlight mask: every pixel's distance (m) to the nearest
+    highlight pixel (range axis in δR, beam axis in arc length at the highlight's median
+    range), and :func:`_last_echo_rows`; both read-only."""
+    from scipy import ndimage
+
+    width = float(np.mean(np.diff(sonar.beam_centres)))
+    rng = float(np.median(sonar.bin_ranges[np.flatnonzero(highlight.any(axis=1))]))
+    dark = ndimage.distance_transform_edt(~highlight, sampling=(sonar.range_step, rng * width))
+    last_rows = _last_echo_rows(highlight)
+    dark.setflags(write=False)
+    last_rows.setflags(write=False)
+    return dark, last_rows
 
 
 def _last_echo_rows(highlight: np.ndarray) -> np.ndarray:

@@ -171,6 +171,29 @@ def test_truth_layer_refuses_unknown_names(tmp_path):
         Dataset(manifest, make_images(manifest)).truth_layer("a", "object")
 
 
+def test_derived_results_are_computed_once_per_dataset_and_images_are_read_only():
+    """The reconstruction loop keeps results derived from the images on the dataset: a key is
+    computed once; another dataset (even of the same images) computes its own; the images
+    can no longer change under a kept result."""
+    manifest = make_manifest()
+    images = make_images(manifest)
+    dataset = Dataset(manifest, images)
+    calls = []
+
+    def compute(name):
+        calls.append(name)
+        return float(dataset.images[name].sum())
+
+    first = dataset.derived(("sum", "a"), lambda: compute("a"))
+    assert dataset.derived(("sum", "a"), lambda: compute("a")) == first == float(images["a"].sum())
+    dataset.derived(("sum", "b"), lambda: compute("b"))
+    assert calls == ["a", "b"]
+    replace(dataset, root=None).derived(("sum", "a"), lambda: compute("a"))
+    assert calls == ["a", "b", "a"]
+    with pytest.raises(ValueError, match="read-only"):
+        dataset.images["a"][0, 0] = 1.0
+
+
 def test_scene_round_trip(tmp_path):
     target = Target(position=(0.1, 2.0, -0.3), mesh="meshes/rock.ply", scale=0.01,
                     rotation=(math.radians(90.0), 0.0, math.radians(-12.5)))
