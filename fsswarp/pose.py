@@ -314,9 +314,7 @@ class PoseProblem:
         unseen = {n for n, s in zip(names, seen) if not s} - self._unseen
         if unseen:
             self._unseen |= unseen
-            warnings.warn(f"views {', '.join(sorted(unseen))}: the model is not seen in them at depth {depth:.3f} m, "
-                          f"tilt {math.degrees(tilt):.2f} deg; the pose estimation leaves them out", PoseWarning,
-                          stacklevel=4)
+            self.warn_unseen(unseen, depth, tilt, stacklevel=5)
         keep = np.flatnonzero(seen)
         beams = np.arange(sonar.beams)
         pad = int(math.ceil(st.window / sonar.range_step))
@@ -342,6 +340,12 @@ class PoseProblem:
                             np.asarray(windows, np.int64), np.asarray(masks), np.asarray(rows),
                             np.asarray(distances, np.float32))
         return data, layers.numpy()[keep]
+
+    def warn_unseen(self, names, depth: float, tilt: float, *, stacklevel: int = 2) -> None:
+        """PoseWarning that the model is not seen in the views ``names`` at (depth m, tilt rad)."""
+        warnings.warn(f"views {', '.join(sorted(names))}: the model is not seen in them at depth {depth:.3f} m, "
+                      f"tilt {math.degrees(tilt):.2f} deg; the pose estimation leaves them out", PoseWarning,
+                      stacklevel=stacklevel)
 
     def _detection_shift(self, predicted: np.ndarray, depth: float, tilt: float):
         """(anchor view names, shift in rows or None): the views whose pose relative to the
@@ -605,7 +609,7 @@ def pose_objective(model, dataset, depth: float, tilt: float, *, settings: PoseS
 def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float | None = None,
                   bounds: tuple[float, float] | None = None, levels: int = 3,
                   settings: PoseSettings = PoseSettings(), backend=None,
-                  progress: Callable[[str], None] | None = None) -> PoseResult:
+                  progress: Callable[[str], None] | None = None, problem: PoseProblem | None = None) -> PoseResult:
     """Estimate the sonar depth D and tilt β (paper §2.4, eq. 7) for ``model`` (reference frame).
 
     depth0 (m), tilt0 (rad) : the start, default the dataset's measured values
@@ -615,6 +619,9 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
         edge of the stated uncertainty keeps the truth inside the grid, not on its edge
     levels : grid levels (>= 1), each in one launch; the polish follows (``settings.polish``)
     progress : called with one line per step
+    problem : a PoseProblem of ``model`` and ``dataset`` located at (depth0, tilt0) with
+        ``settings`` and this backend, to go on with instead of building it (fsswarp.reconstruct
+        hands over the one of its last record); its counters restart, and it is relocated
     Returns a PoseResult; the estimate moves from (depth0, tilt0) only where E_mu falls.
     """
     start = time.perf_counter()
@@ -630,7 +637,13 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
                          field="bounds", value=bounds)
     check_integer("levels", levels, 1)
     say = progress or (lambda line: None)
-    problem = PoseProblem(model, dataset, depth0, tilt0, settings=settings, backend=backend)
+    if problem is None:
+        problem = PoseProblem(model, dataset, depth0, tilt0, settings=settings, backend=backend)
+    else:
+        _check_handed_over(problem, model, dataset, depth0, tilt0, settings, backend)
+        problem.counters = dict.fromkeys(problem.counters, 0)
+        if problem._unseen:
+            problem.warn_unseen(problem._unseen, depth0, tilt0, stacklevel=3)
     say(f"start: D {depth0:.4f} m, beta {math.degrees(tilt0):.3f} deg; {len(problem.data.views)} views, "
         f"mirror term in {len(problem.data.mirror_views)}")
 
@@ -674,6 +687,18 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
 
 
 # --- helpers -------------------------------------------------------------------------------
+
+def _check_handed_over(problem: PoseProblem, model, dataset, depth: float, tilt: float, settings: PoseSettings,
+                       backend) -> None:
+    """ValueError unless ``problem`` is the PoseProblem that ``estimate_pose`` would build."""
+    vertices, faces = check_mesh(model, name="model")
+    same = (problem.dataset is dataset and problem.settings == settings and problem.estimate == (depth, tilt)
+            and (backend is None or problem.backend is backend) and np.array_equal(problem.vertices, vertices)
+            and np.array_equal(problem.faces, faces))
+    if not same:
+        raise ValueError("problem must be a PoseProblem of this model, dataset, settings and backend located "
+                         f"at depth0 {depth} m, tilt0 {tilt} rad")
+
 
 def detection_threshold(image, settings: SegmentSettings = SegmentSettings()) -> np.ndarray:
     """(bins,) linear intensity at which the segmentation's hysteresis low threshold lies in

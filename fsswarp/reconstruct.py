@@ -169,15 +169,17 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
                        backend=backend).mesh
         kept = carved  # the model of the best iteration
         first = _complete(*_record(0, kept, dataset, depth, tilt, settings, backend, None), kept, depth, tilt, truth)
-        working = refine_shape(carved, dataset, depth, tilt, settings=settings.refine,
-                               backend=backend).mesh if settings.iterations else carved
+        working, problem = carved, None  # the model gone on with, and its PoseProblem (if it has one)
+        if settings.iterations:
+            refined = refine_shape(carved, dataset, depth, tilt, settings=settings.refine, backend=backend)
+            working, problem = refined.mesh, _shared(refined, settings)
         history = [first]
         say(_line(first))
         best, best_pose, misses, converged = first, (depth, tilt), 0, False
         pose_steps = []
         for iteration in range(1, settings.iterations + 1):
             pose = estimate_pose(working, dataset, depth0=depth, tilt0=tilt, settings=settings.pose,
-                                 backend=backend)
+                                 backend=backend, problem=problem)
             pose_steps.append(pose)
             if pose.accepted:
                 trials = [(pose.depth, pose.tilt), (depth, tilt)]
@@ -185,9 +187,11 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
                 trials = [(depth, tilt)]
                 say(f"iteration {iteration}: the pose step found no (D, tilt) with a lower E_mu; D and tilt stay")
             for depth_tried, tilt_tried in trials:
-                trial = refine_shape(working, dataset, depth_tried, tilt_tried, settings=settings.refine,
-                                     backend=backend).mesh
-                entry, problem = _record(iteration, trial, dataset, depth_tried, tilt_tried, settings, backend, first)
+                refined = refine_shape(working, dataset, depth_tried, tilt_tried, settings=settings.refine,
+                                       backend=backend)
+                trial = refined.mesh
+                entry, problem = _record(iteration, trial, dataset, depth_tried, tilt_tried, settings, backend, first,
+                                         _shared(refined, settings))
                 improved = entry["E_I"] < best["E_I"]
                 if improved:
                     break
@@ -227,9 +231,11 @@ def image_errors(model, dataset, depth: float, tilt: float, *, settings: Reconst
     return _image_errors(model, dataset, depth, tilt, settings, backend)[0]
 
 
-def _image_errors(model, dataset, depth: float, tilt: float, settings: ReconstructSettings, backend):
+def _image_errors(model, dataset, depth: float, tilt: float, settings: ReconstructSettings, backend,
+                  problem: PoseProblem | None = None):
     """(:func:`image_errors`' dict, the PoseProblem of ``model`` at (depth, tilt) that found
-    the contours of CE; E_mu reuses it)."""
+    the contours of CE; E_mu and the next pose step reuse it). ``problem`` : that PoseProblem,
+    if the caller has it already."""
     names = [v.name for v in dataset.rig.views if v.optimize]
     if not names:
         raise InputError("no view is marked optimize", file=dataset.root, field="views.optimize", value=False)
@@ -245,9 +251,10 @@ def _image_errors(model, dataset, depth: float, tilt: float, settings: Reconstru
             data.append(image / max(image[region].mean(), 1e-30))
             regions.append(region)
     aie = average_intensity_error(np.stack(synthetic), np.stack(data), np.stack(regions)) if regions else math.nan
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", PoseWarning)  # a view without the model gets no CE
-        problem = PoseProblem(model, dataset, depth, tilt, settings=settings.pose, backend=backend)
+    if problem is None:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", PoseWarning)  # a view without the model gets no CE
+            problem = PoseProblem(model, dataset, depth, tilt, settings=settings.pose, backend=backend)
     seen = dict(zip(problem.data.names, problem.contour_errors(depth, tilt)))
     errors = np.array([seen.get(name, math.nan) for name in names])
     return {"AIE": aie, "ACE": average_contour_error(errors),
@@ -255,15 +262,22 @@ def _image_errors(model, dataset, depth: float, tilt: float, settings: Reconstru
 
 
 def _record(iteration: int, model, dataset, depth: float, tilt: float, settings: ReconstructSettings,
-            backend, first: dict | None):
+            backend, first: dict | None, problem: PoseProblem | None = None):
     """(What decides whether a trial is kept: AIE, ACE and E_I (relative to ``first``), the
-    trial's PoseProblem for its E_mu)."""
-    images, problem = _image_errors(model, dataset, depth, tilt, settings, backend)
+    trial's PoseProblem for its E_mu: ``problem`` if given)."""
+    images, problem = _image_errors(model, dataset, depth, tilt, settings, backend, problem)
     entry = {"iteration": iteration, "depth_m": depth, "tilt_deg": math.degrees(tilt),
              "AIE": images["AIE"], "ACE": images["ACE"]}
     base = first or entry
     entry["E_I"] = 0.5 * (entry["AIE"] / base["AIE"] + entry["ACE"] / base["ACE"])
     return entry, problem
+
+
+def _shared(refined, settings: ReconstructSettings):
+    """The refinement's PoseProblem of its mesh (RefineResult.problem) when the loop's pose
+    settings are the refinement's, so that E_I, E_mu and the next pose step can go on with it;
+    else None."""
+    return refined.problem if settings.refine.pose == settings.pose else None
 
 
 def _complete(entry: dict, problem, model, depth: float, tilt: float, truth) -> dict:

@@ -145,6 +145,8 @@ class RefineResult:
     ce_before, ce_after : (V,) per-view CE (eq. 5, m; NaN: no contour) of the object contours
     ace_before, ace_after : their means (ACE, eq. 9); steps : one RefineStep per update
     mean_displacement : mean vertex displacement (m) over all updates; seconds : wall time
+    problem : the PoseProblem of ``mesh`` at (depth, tilt) with ``settings.pose`` that found
+        ce_after (fsswarp.reconstruct goes on with it instead of building it again)
     """
 
     mesh: object
@@ -156,6 +158,7 @@ class RefineResult:
     steps: tuple[RefineStep, ...]
     mean_displacement: float
     seconds: float
+    problem: PoseProblem = field(repr=False, compare=False)
 
     @property
     def patches_moved(self) -> int:
@@ -195,7 +198,8 @@ def refine_shape(model, dataset, depth: float, tilt: float, *, settings: RefineS
                          if n in after.problem.data.names else math.nan for n in views])
     return RefineResult(mesh=mesh, views=views, ce_before=ce_before, ce_after=ce_after,
                         ace_before=_nanmean(ce_before), ace_after=_nanmean(ce_after), steps=tuple(steps),
-                        mean_displacement=float(np.mean(moved)), seconds=time.perf_counter() - start)
+                        mean_displacement=float(np.mean(moved)), seconds=time.perf_counter() - start,
+                        problem=after.problem)
 
 
 class _Update:

@@ -3,6 +3,7 @@
 
 import dataclasses
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -15,8 +16,8 @@ from fsswarp.backends import get_backend
 from fsswarp.dataset import Dataset
 from fsswarp.errors import InputError
 from fsswarp.figures import pose_figure
-from fsswarp.pose import (PoseProblem, PoseSettings, contour_distance, detection_threshold, estimate_pose,
-                          pose_objective)
+from fsswarp.pose import (PoseProblem, PoseSettings, PoseWarning, contour_distance, detection_threshold,
+                          estimate_pose, pose_objective)
 from fsswarp.rig import Rig
 from fsswarp.surface import COMPONENTS
 
@@ -267,3 +268,37 @@ def test_contour_distance_is_the_euclidean_distance_transform_saturated(rows, bi
     got = contour_distance(rows, bins, range_step, arc, reach)
     assert got.dtype == np.float32 and got.shape == (bins, len(rows))
     np.testing.assert_allclose(got, np.minimum(expected, reach), rtol=1e-6, atol=0)
+
+
+def test_a_handed_over_problem_gives_the_same_estimate_and_warnings(coral_one, truth_model, opencl):
+    """estimate_pose going on with a PoseProblem already used for CE and E_mu (as the
+    reconstruction loop hands over its record's) gives the estimate it gets alone, and warns
+    about the same unseen views; a problem of another start is refused."""
+    truth = coral_one.manifest.truth
+    aside = truth_model.copy()
+    aside.vertices += (0.4, 0.0, 0.0)  # out of the elevation aperture of the views rolled 67.5-90 deg
+    settings = PoseSettings(grid=(3, 3), coarse_samples=(1, 8), samples=(1, 8), exact_samples=(1, 16), polish=4)
+    start = dict(depth0=truth.depth + 0.01, tilt0=truth.tilt, bounds=(0.01, math.radians(0.4)))
+
+    def estimate(problem=None):
+        with pytest.warns(PoseWarning) as caught:
+            result = estimate_pose(aside, coral_one, **start, levels=2, settings=settings, backend=opencl,
+                                   problem=problem)
+        return result, sorted(str(w.message).split(":")[0] for w in caught)
+
+    alone, warned = estimate()
+    assert "views Nm67p5, Nm90, Np67p5, Sm67p5, Sm90, Sp67p5" in warned
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PoseWarning)
+        used = PoseProblem(aside, coral_one, start["depth0"], start["tilt0"], settings=settings, backend=opencl)
+    assert used.data.names == ("Sm45", "Sp45", "Nm45", "Np45")
+    used.contour_errors(start["depth0"], start["tilt0"])
+    used.exact(start["depth0"], start["tilt0"])
+    handed, warned_handed = estimate(used)
+    assert warned_handed == warned
+    assert (handed.depth, handed.tilt, handed.candidate) == (alone.depth, alone.tilt, alone.candidate)
+    assert [level.costs.tolist() for level in handed.levels] == [level.costs.tolist() for level in alone.levels]
+    assert handed.evaluations == alone.evaluations
+    with pytest.raises(ValueError, match="problem must be a PoseProblem of this model"):
+        estimate_pose(aside, coral_one, depth0=truth.depth, tilt0=truth.tilt, settings=settings, backend=opencl,
+                      problem=used)

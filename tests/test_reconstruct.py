@@ -153,10 +153,10 @@ def _script_the_loop(monkeypatch, pose_step, errors, completed=None):
         moved = model.copy()
         moved.apply_translation((1e-6, 0.0, 0.0))  # a shape step that moves the model
         refined.append((depth, tilt, moved))
-        return SimpleNamespace(mesh=moved)
+        return SimpleNamespace(mesh=moved, problem=moved)  # the mesh stands for its PoseProblem
 
-    def record(iteration, model, dataset, depth, tilt, settings, backend, first):
-        return {"iteration": iteration, "depth_m": depth, "E_I": next(errors)}, None  # no PoseProblem
+    def record(iteration, model, dataset, depth, tilt, settings, backend, first, problem=None):
+        return {"iteration": iteration, "depth_m": depth, "E_I": next(errors)}, problem
 
     def complete(entry, problem, model, depth, tilt, truth):
         completed.append(entry["E_I"])
@@ -176,7 +176,7 @@ def test_a_refused_pose_step_keeps_the_estimate_and_the_shape_step_runs(coral_on
 
     calls = []
 
-    def refused(model, dataset, *, depth0, tilt0, settings, backend):
+    def refused(model, dataset, *, depth0, tilt0, settings, backend, problem):
         calls.append((depth0, tilt0))
         return SimpleNamespace(accepted=False, depth=depth0 + 0.01, tilt=tilt0 + 0.01)
 
@@ -199,7 +199,8 @@ def test_a_pose_that_raises_the_image_error_is_not_adopted(coral_one, monkeypatc
 
     moves, starts = iter([0.01, 0.02, 0.03, 0.04, 0.05, 0.06]), []
 
-    def accepted(model, dataset, *, depth0, tilt0, settings, backend):
+    def accepted(model, dataset, *, depth0, tilt0, settings, backend, problem):
+        assert problem is model  # the pose step goes on with the PoseProblem of the model it is given
         starts.append((depth0, model))
         return SimpleNamespace(accepted=True, depth=depth0 + next(moves), tilt=tilt0)
 
@@ -226,7 +227,7 @@ def test_a_pose_that_raises_the_image_error_is_not_adopted(coral_one, monkeypatc
 def test_patience_one_stops_at_the_first_iteration_that_does_not_lower_the_image_error(coral_one, monkeypatch):
     from types import SimpleNamespace
 
-    def refused(model, dataset, *, depth0, tilt0, settings, backend):
+    def refused(model, dataset, *, depth0, tilt0, settings, backend, problem):
         return SimpleNamespace(accepted=False, depth=depth0, tilt=tilt0)
 
     _script_the_loop(monkeypatch, refused, [1.0, 0.9, 0.95, 0.5])
@@ -239,7 +240,7 @@ def test_a_shape_step_that_leaves_the_model_unchanged_stops_the_loop(coral_one, 
     the loop stops at once without recording it, keeping the best iteration."""
     from types import SimpleNamespace
 
-    def refused(model, dataset, *, depth0, tilt0, settings, backend):
+    def refused(model, dataset, *, depth0, tilt0, settings, backend, problem):
         return SimpleNamespace(accepted=False, depth=depth0, tilt=tilt0)
 
     refined = _script_the_loop(monkeypatch, refused, [1.0, 0.9, 0.95, 0.95])
@@ -248,7 +249,7 @@ def test_a_shape_step_that_leaves_the_model_unchanged_stops_the_loop(coral_one, 
 
     def refine(model, dataset, depth, tilt, *, settings, backend):
         result = real(model, dataset, depth, tilt, settings=settings, backend=backend)
-        return SimpleNamespace(mesh=model) if next(unchanged) else result
+        return SimpleNamespace(mesh=model, problem=None) if next(unchanged) else result
 
     monkeypatch.setattr(reconstruct_module, "refine_shape", refine)
     result = reconstruct(coral_one, settings=dataclasses.replace(FAST, iterations=6, patience=3))

@@ -41,6 +41,11 @@ def test_carved_model_improves(scene):
     assert after["chamfer_m"] < before["chamfer_m"] - 5e-4
     assert after["E_V"] < before["E_V"] - 0.01
     assert all(s.step > 0 for s in result.steps) and result.patches_moved > 0
+    # the PoseProblem handed on is the refined mesh's at (depth, tilt), and it gives ce_after
+    problem = result.problem
+    assert np.array_equal(problem.vertices, result.mesh.vertices) and problem.estimate == (depth, tilt)
+    errors = dict(zip(problem.data.names, problem.contour_errors(depth, tilt)))
+    np.testing.assert_allclose([errors[name] for name in result.views], result.ce_after, rtol=1e-12)
 
 
 def test_refinement_does_not_eat_into_the_object(scene):
