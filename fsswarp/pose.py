@@ -444,22 +444,20 @@ class PoseProblem:
         normal, offset = surface_in_reference(self.rig, depth, tilt)
         n_views = len(data.views)
         aligned = [(c, k, beams, result.motions) for c, k, beams, _, _, result in self.align(contour, shift)]
-        motion = {0: {}, 1: {}}  # component -> {(view, face): [2-D motions]}
-        for c, k, face, vector in self.frontal_motions(rot, t, n_view, d_view, aligned):
-            motion[c].setdefault((k, face), []).append(vector)
-        faces = sorted({f for c in (0, 1) for (_, f) in motion[c]})
-        if not motion[0]:
+        component, view, face, vectors = self.frontal_motions(rot, t, n_view, d_view, aligned)
+        if not np.any(component == 0):
             return ExactError(math.nan, np.full(n_views, np.nan), shift, 0, 0)
-        column = {f: i for i, f in enumerate(faces)}
+        faces = np.unique(face)
+        column = np.searchsorted(faces, face)
         centres = self.vertices[self.faces[faces]].mean(axis=1)
         fields = []
-        for c in (0, 1):
-            moves = np.full((len(faces), n_views, 2), np.nan)
-            seen = np.zeros((len(faces), n_views), bool)
-            for (k, f), vectors in motion[c].items():
-                moves[column[f], k] = np.mean(vectors, axis=0)
-                seen[column[f], k] = True
-            fields.append((moves, seen))
+        for c in (0, 1):  # the mean 2-D motion of each (face, view)
+            mine = component == c
+            sums, counts = np.zeros((len(faces), n_views, 2)), np.zeros((len(faces), n_views))
+            np.add.at(sums, (column[mine], view[mine]), vectors[mine])
+            np.add.at(counts, (column[mine], view[mine]), 1.0)
+            seen = counts > 0
+            fields.append((np.where(seen[..., None], sums / np.maximum(counts, 1.0)[..., None], np.nan), seen))
         obj = patch_motions(centres, *fields[0], rot, t).motion
         object_seen = fields[0][1].any(axis=1)
         if not object_seen.all():  # mirror-only patches: the nearest object patch's motion
@@ -519,20 +517,24 @@ class PoseProblem:
         return [request + (result,) for request, result in zip(requests, results)]
 
     def frontal_motions(self, rot, t, n, d, motions):
-        """(component, view, face, 2-D motion) of every beam whose frontal patch is found, for
-        ``motions``: (component, view k, beams, (beams, 2) 2-D motions) per contour; one
-        ``frontal_faces`` call per component. rot (V, 3, 3), t (V, 3), n (V, 3), d (V,) : every
+        """Every beam whose frontal patch is found, for ``motions``: (component k, view k, beams,
+        (beams, 2) 2-D motions) per contour; one ``frontal_faces`` call per component. Returns
+        (component (M,), view (M,), face (M,), 2-D motion (M, 2)), components in order, then
+        the contours' and beams' order. rot (V, 3, 3), t (V, 3), n (V, 3), d (V,) : every
         view's pose and surface plane, indexed by k."""
         theta = self.sonar.beam_centres
+        parts = [(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)))]
         for c in (0, 1):
             mine = [m for m in motions if m[0] == c]
             v = [k for _, k, _, _ in mine]
             found = self.frontal_faces(rot[v], t[v], n[v], d[v], [theta[beams] for _, _, beams, _ in mine],
                                        mirror=c == 1)
             for (_, k, _, vectors), faces in zip(mine, found):
-                for face, vector in zip(faces, vectors):
-                    if face >= 0:
-                        yield c, k, int(face), vector
+                ok = faces >= 0
+                size = int(ok.sum())
+                parts.append((np.full(size, c), np.full(size, k), faces[ok].astype(np.int64),
+                              np.asarray(vectors, np.float64)[ok]))
+        return tuple(np.concatenate(columns) for columns in zip(*parts))
 
     def frontal_faces(self, rot, t, n, d, thetas, *, mirror: bool) -> list[np.ndarray]:
         """Per view k: (len(thetas[k]),) face of the frontal patch of each beam azimuth, -1 where

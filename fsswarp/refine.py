@@ -237,22 +237,19 @@ class _Update:
         """Least-squares 3-D motions of the frontal patches (object and mirror rows jointly);
         fills ``self.motion`` and returns the faces that got one."""
         problem = self.problem
-        rows = {}  # face -> list of (component, view, 2-D motion)
         contours = [(c, k, beams, vectors) for (c, k), (beams, vectors) in self.contour.items()]
-        for c, k, face, vector in problem.frontal_motions(self.rot, self.t, self.n_view, self.d_view, contours):
-            rows.setdefault(face, []).append((c, k, vector))
-        if not rows:
+        component, view, face, vectors = problem.frontal_motions(self.rot, self.t, self.n_view, self.d_view,
+                                                                 contours)
+        if not face.size:
             return np.zeros(0, int)
-        chosen = np.array(sorted(rows))
+        chosen = np.unique(face)
+        row = np.searchsorted(chosen, face)
         n_views = len(problem.data.views)
         moves = np.zeros((len(chosen), 2, n_views, 2))
-        seen = np.zeros((len(chosen), 2, n_views), bool)
         counts = np.zeros((len(chosen), 2, n_views))
-        for i, f in enumerate(chosen):
-            for c, k, vector in rows[f]:
-                moves[i, c, k] += vector
-                counts[i, c, k] += 1
-                seen[i, c, k] = True
+        np.add.at(moves, (row, component, view), vectors)
+        np.add.at(counts, (row, component, view), 1.0)
+        seen = counts > 0
         moves = np.divide(moves, counts[..., None], out=np.zeros_like(moves), where=counts[..., None] > 0)
         centres = self.mesh.triangles_center[chosen]
         normal, offset = surface_in_reference(problem.rig, self.depth, self.tilt)
