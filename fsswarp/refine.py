@@ -358,19 +358,21 @@ def _apply(mesh, displacement: np.ndarray, settings: RefineSettings):
     while any still turns too far or the volume reverses, the step is halved (up to
     ``halvings`` times). A triangle that is degenerate before the step is not judged (its
     normal is undefined; one zero-area triangle of a carved table mesh used to refuse every
-    step). Returns (mesh, factor used), the factor scaled by the mean vertex weight, 0 when
-    refused."""
+    step). A mesh that is not watertight refuses every step (moving vertices keeps the faces,
+    so watertightness is judged once). Returns (mesh, factor used), the factor scaled by the
+    mean vertex weight, 0 when refused."""
     import trimesh
 
     before = mesh.face_normals
     judged = np.linalg.norm(before, axis=1) > 0.5  # a degenerate triangle has no normal to turn
+    watertight = mesh.is_watertight
     factor = settings.step
     held = np.zeros(len(mesh.vertices), bool)
     weight = np.ones(len(mesh.vertices))
     for attempt in range(settings.holds + settings.halvings + 1):
         moved = trimesh.Trimesh(mesh.vertices + factor * displacement * weight[:, None], mesh.faces, process=False)
         bad = judged & (np.einsum("ij,ij->i", moved.face_normals, before) <= math.cos(settings.max_turn))
-        if not bad.any() and moved.volume > 0 and moved.is_watertight:
+        if not bad.any() and watertight and _signed_volume(moved.triangles) > 0:
             return moved, factor * float(weight.mean())
         if attempt < settings.holds:
             held[mesh.faces[bad].ravel()] = True
@@ -378,6 +380,13 @@ def _apply(mesh, displacement: np.ndarray, settings: RefineSettings):
         else:
             factor *= 0.5
     return mesh, 0.0
+
+
+def _signed_volume(triangles: np.ndarray) -> float:
+    """Signed volume (m³) enclosed by (F, 3, 3) triangles, positive for outward normals (the
+    divergence theorem; trimesh's ``volume`` integrates more than this sign test needs)."""
+    a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]
+    return float(np.einsum("ij,ij->", a, np.cross(b, c))) / 6.0
 
 
 def _hold_weights(held: np.ndarray, edges: np.ndarray) -> np.ndarray:

@@ -187,3 +187,28 @@ def test_a_degenerate_triangle_does_not_block_every_step():
     moved, factor = _apply(mesh, 0.01 * mesh.vertices, RefineSettings(step=1.0))  # uniform 1% growth
     assert factor == 1.0
     np.testing.assert_allclose(moved.vertices, 1.01 * mesh.vertices, atol=1e-15)
+
+
+def test_a_step_that_turns_the_mesh_inside_out_or_an_open_mesh_is_refused():
+    """The volume test of a step (signed volume, checked against trimesh's) refuses a step
+    that reverses the mesh; a mesh with a hole refuses every step."""
+    import trimesh
+
+    from fsswarp.refine import _apply, _signed_volume
+
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
+    box = trimesh.creation.box(extents=(0.3, 0.2, 0.1))
+    for mesh in (sphere, box):
+        assert _signed_volume(mesh.triangles) == pytest.approx(mesh.volume, rel=1e-12)
+        inverted = mesh.copy()
+        inverted.invert()
+        assert _signed_volume(inverted.triangles) == pytest.approx(-mesh.volume, rel=1e-12)
+    settings = RefineSettings(step=1.0, holds=0, halvings=1, max_turn=np.pi)  # judge the volume alone
+    through = -2.0 * sphere.vertices  # every vertex to the far side of the centre: normals kept, volume reversed
+    kept, factor = _apply(sphere, through, settings)
+    assert kept is sphere and factor == 0.0
+    small = 0.001 * sphere.vertex_normals
+    moved, factor = _apply(sphere, small, settings)
+    assert factor == 1.0 and moved.volume > sphere.volume
+    holed = trimesh.Trimesh(sphere.vertices, sphere.faces[1:], process=False)
+    assert _apply(holed, small, settings)[1] == 0.0
