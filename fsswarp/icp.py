@@ -24,9 +24,14 @@ the run with the smallest final robust scale σ (the median residual: outliers a
 stretches do not move it); ties go to the earlier start, so exact matches return the identity.
 
 Batches: ``icp_many`` runs many pairs in lockstep over padded arrays, one vectorised
-reweighting and Procrustes step per iteration for all of their runs, and one k-d tree query
-for all of them (each pair's targets in a plane of their own, far from the others'); each
-pair gets ``icp``'s result for it alone up to rounding, and ``icp`` is the batch of one.
+reweighting and Procrustes step per iteration for all of their runs still iterating, and one
+k-d tree for all of them (each pair's targets in a plane of their own, far from the others').
+A point keeps the nearest target of its last query while it stays within half the gap to the
+second nearest (less 1e-9 of it, far above rounding) of where it queried, so that only the
+points that leave it query the tree again, all at once; the distances are computed as the tree
+computes them, and a tie (to 1e-9) goes to the target that a query for the nearest alone
+gives. Each pair gets ``icp``'s result for it alone up to rounding, and ``icp`` is the batch of
+one.
 
 Inliers: after the last iteration a pair (i, k(i)) is an inlier when ``r ≤ gate · σ``
 (default 3σ) and, if given, ``r ≤ max_distance``. CE (eq. 5) is the mean distance of the
@@ -136,103 +141,202 @@ def icp_many(problems, *, max_iterations: int = 200, tol: float = 1e-10, gate: f
         return []
     runs = _Runs(pairs, min_scale, tol)
     runs.iterate(max_iterations, max_distance, tuning)
-    dist, nearest, usable, sigma = runs.match(max_distance)
+    return _results(pairs, runs, max_distance, tuning, gate)
+
+
+def _results(pairs, runs: _Runs, max_distance: float | None, tuning: float, gate: float) -> list[ICPResult]:
+    """Every pair's result: that of its run with the smallest final robust scale."""
+    near, index, sigma = _Active(runs, np.arange(len(runs.lengths))).match(max_distance)
+    best = 3 * np.arange(len(pairs)) + np.argmin(sigma.reshape(-1, 3), axis=1)  # the first of equal scales
+    dist = near[best]  # (P, N), +inf where not usable
+    weights = 1.0 / (1.0 + (dist / (tuning * sigma[best])[:, None]) ** 2)
+    inliers = dist <= (gate * sigma[best])[:, None]
+    moved = np.column_stack([runs.moved_x, runs.moved_y])
     results = []
-    for p, (src, tgt) in enumerate(pairs):
-        r = 3 * p + int(np.argmin(sigma[3 * p:3 * p + 3]))  # the first of equal scales
+    for p, ((src, _), r) in enumerate(zip(pairs, best)):
         n = len(src)
-        d, k, ok = dist[r, :n], nearest[r, :n], usable[r, :n]
-        weights = np.where(ok, 1.0 / (1.0 + (d / (tuning * sigma[r])) ** 2), 0.0)
-        index = np.flatnonzero(ok & (d <= gate * sigma[r]))
-        moved = runs.moved[r, :n]
+        k, kept = index[:n, r] - runs.first[r], np.flatnonzero(inliers[p, :n])
         rot = _rotation(runs.angle[r])
         results.append(ICPResult(rotation=rot, angle=float(math.atan2(rot[1, 0], rot[0, 0])),
-                                 translation=runs.trans[r].copy(),
-                                 pairs=np.stack([index, k[index]], axis=1).astype(np.int64), motions=moved - src,
-                                 error=contour_error(tgt[k[index]], moved[index]), scale=float(sigma[r]),
-                                 weights=weights, iterations=int(runs.iterations[r]),
+                                 translation=np.array([runs.trans_x[r], runs.trans_y[r]]),
+                                 pairs=np.stack([kept, k[kept]], axis=1).astype(np.int64),
+                                 motions=moved[runs.offsets[r]:runs.offsets[r] + n] - src,
+                                 error=float(np.mean(dist[p, kept])) if len(kept) else math.nan,
+                                 scale=float(sigma[r]), weights=weights[p, :n], iterations=int(runs.iterations[r]),
                                  converged=bool(runs.converged[r])))
     return results
 
 
 class _Runs:
-    """Three IRLS-ICP runs per pair (the identity and ±START_ANGLE about the source's centroid),
-    as padded arrays: (R = 3P, N) source points, their valid mask, transforms (angle, trans),
-    moved points, iterations run and whether each converged or stopped."""
+    """Three IRLS-ICP runs per pair (the identity and ±START_ANGLE about the source's centroid):
+    R = 3P runs, of sources of up to N points.
+
+    Their F source points, run after run: ``x``, ``y`` (F,), run r's ``lengths[r]`` from
+    ``offsets[r]``; the same padded with zeros: ``src`` (N, 2, R). Each run's transform
+    (``angle``, ``trans_x``, ``trans_y``, (R,)), moved points (``moved_x``, ``moved_y``, (F,)),
+    what they know of their nearest targets (``nearest``, ``anchor_x``, ``anchor_y``,
+    ``room2``, (F,): see :class:`_Active`), iterations run, and whether it converged or stopped.
+    Targets: ``target_x``, ``target_y`` (M,), all pairs' one after another, run r's pair's from
+    ``first[r]``, in one k-d tree: pair p's in the plane z = ``lift``·p, far from the others, so
+    that a query in that plane finds its own pair's targets, at their in-plane distances."""
 
     def __init__(self, pairs, min_scale: float | None, tol: float):
-        size = max(len(src) for src, _ in pairs)
-        count = 3 * len(pairs)
-        self.targets = np.concatenate([tgt for _, tgt in pairs])  # all pairs' targets, one after another
-        self.first = np.repeat(np.cumsum([0] + [len(tgt) for _, tgt in pairs[:-1]]), 3)  # run -> its first
-        self.lengths = np.repeat([len(src) for src, _ in pairs], 3)
-        # one k-d tree for every pair: pair p's targets and queries lie in the plane z = lift·p,
-        # so a query's nearest target is its own pair's, at its in-plane distance (dz = 0)
-        reach = max(float(np.abs(points).max()) for pair in pairs for points in pair)
-        self.lift = 1e3 * (1.0 + reach)
-        owner = np.repeat(np.arange(len(pairs)), [len(tgt) for _, tgt in pairs])
-        self.tree = cKDTree(np.column_stack([self.targets, self.lift * owner]))
-        self.valid = np.arange(size)[None, :] < self.lengths[:, None]
-        self.src = np.zeros((count, size, 2))
-        self.floor, self.step_tol = np.empty(count), np.empty(count)
-        self.angle, self.trans = np.zeros(count), np.zeros((count, 2))
-        for p, (src, tgt) in enumerate(pairs):
-            src_size = _rms_radius(src)
-            floor = min_scale if min_scale is not None else 1e-9 * max(_rms_radius(tgt), src_size, 1e-300)
-            centre = src.mean(axis=0)
-            for i, angle in enumerate((0.0, START_ANGLE, -START_ANGLE)):
-                r = 3 * p + i
-                self.src[r, :len(src)] = src
-                self.floor[r], self.step_tol[r] = floor, tol * max(src_size, floor)
-                self.angle[r], self.trans[r] = angle, centre - _rotation(angle) @ centre
-        self.moved = self._apply(np.arange(count))
-        self.iterations = np.zeros(count, np.int64)
-        self.converged, self.done = np.zeros(count, bool), np.zeros(count, bool)
-
-    def _apply(self, rows: np.ndarray) -> np.ndarray:
-        """(len(rows), N, 2) source points of the runs ``rows`` moved by their transforms."""
-        return _turn(self.angle[rows], self.src[rows]) + self.trans[rows, None, :]
-
-    def match(self, max_distance: float | None, rows: np.ndarray | None = None):
-        """For the runs ``rows`` (default all), (rows, N) distances and nearest targets of the
-        moved points (one k-d tree query for all), which pairs count, and the robust scale σ."""
-        rows = np.arange(len(self.src)) if rows is None else rows
-        valid = self.valid[rows]
-        dist = np.full(valid.shape, np.inf)
-        nearest = np.zeros(valid.shape, np.int64)
-        lift = np.broadcast_to((self.lift * (rows // 3))[:, None], valid.shape)
-        dist[valid], found = self.tree.query(np.column_stack([self.moved[rows][valid], lift[valid]]), k=1)
-        nearest[valid] = found - np.broadcast_to(self.first[rows, None], valid.shape)[valid]
-        usable = valid & (True if max_distance is None else dist <= max_distance)
-        sigma = np.where(usable.any(axis=1), _medians(dist, usable) / RAYLEIGH_MEDIAN, self.floor[rows])
-        return dist, nearest, usable, np.maximum(sigma, self.floor[rows])
+        sources, targets = (np.concatenate(points) for points in zip(*pairs))
+        sizes, counts = (np.array([len(points) for points in group]) for group in zip(*pairs))
+        self.lengths = np.repeat(sizes, 3)
+        self.offsets = np.cumsum(self.lengths) - self.lengths
+        self.first = np.repeat(np.cumsum(counts) - counts, 3)
+        self.target_x, self.target_y = targets.T.copy()
+        self.lift = 1e3 * (1.0 + max(float(np.abs(sources).max()), float(np.abs(targets).max())))
+        self.tree = cKDTree(np.column_stack([targets, self.lift * np.repeat(np.arange(len(pairs)), counts)]))
+        centres, floor, step_tol = _scales(sources, sizes, targets, counts, min_scale, tol)
+        self.floor, self.step_tol = np.repeat(floor, 3), np.repeat(step_tol, 3)
+        starts = (0.0, START_ANGLE, -START_ANGLE)
+        self.angle = np.tile(starts, len(pairs))
+        turns = np.array([_rotation(angle) for angle in starts])
+        self.trans_x, self.trans_y = np.concatenate([centre - turns @ centre for centre in centres]).T.copy()
+        run = np.repeat(np.arange(len(self.lengths)), self.lengths)  # of each point
+        self.x, self.y = np.concatenate([src for src, _ in pairs for _ in range(3)]).T
+        self.src = np.zeros((max(sizes), 2, len(self.lengths)))
+        self.src[np.arange(len(run)) - self.offsets[run], :, run] = np.column_stack([self.x, self.y])
+        x, y = _turn(np.cos(self.angle)[run], np.sin(self.angle)[run], self.x, self.y)
+        self.moved_x, self.moved_y = x + self.trans_x[run], y + self.trans_y[run]
+        self.nearest, self.room2 = np.zeros(len(run), np.intp), np.full(len(run), -1.0)
+        self.anchor_x, self.anchor_y = np.zeros(len(run)), np.zeros(len(run))
+        self.iterations = np.zeros(len(self.lengths), np.int64)
+        self.converged, self.done = np.zeros(len(self.lengths), bool), np.zeros(len(self.lengths), bool)
 
     def iterate(self, max_iterations: int, max_distance: float | None, tuning: float) -> None:
         """Reweight and solve the weighted Procrustes problem for every run not yet done, until
         each converges, loses all its weight, or ``max_iterations`` have run."""
+        active = _Active(self, np.arange(len(self.lengths)))
         for iteration in range(1, max_iterations + 1):
-            rows = np.flatnonzero(~self.done)
-            if not len(rows):
+            if not len(active.rows):
                 break
-            dist, nearest, usable, sigma = self.match(max_distance, rows)
-            self.iterations[rows] = iteration
-            weights = np.where(usable, 1.0 / (1.0 + (dist / (tuning * sigma[:, None])) ** 2), 0.0)
+            near, index, sigma = active.match(max_distance)
+            self.iterations[active.rows] = iteration
+            weights = 1.0 / (1.0 + (near / (tuning * sigma[:, None])) ** 2)  # 0 where not usable (inf)
             total = weights.sum(axis=1)
             dead = total <= 0.0
-            self.done[rows[dead]] = True
-            rows, weights, nearest, total = rows[~dead], weights[~dead], nearest[~dead], total[~dead]
-            w = weights / total[:, None]
-            src = self.src[rows]
-            dst = self.targets[nearest + self.first[rows, None]]
-            cs, cd = np.einsum("rn,rnd->rd", w, src), np.einsum("rn,rnd->rd", w, dst)
-            h = np.einsum("rni,rnj->rij", src - cs[:, None, :], (dst - cd[:, None, :]) * w[:, :, None])
-            self.angle[rows] = np.arctan2(h[:, 0, 1] - h[:, 1, 0], h[:, 0, 0] + h[:, 1, 1])
-            self.trans[rows] = cd - _turn(self.angle[rows], cs)
-            new = self._apply(rows)
-            step = np.max(np.where(self.valid[rows], np.linalg.norm(new - self.moved[rows], axis=2), 0.0), axis=1)
-            self.moved[rows] = new
-            still = step <= self.step_tol[rows]
-            self.converged[rows[still]] = self.done[rows[still]] = True
+            if dead.any():
+                self.done[active.rows[dead]] = True
+                active, weights, index, total = active.subset(~dead), weights[~dead], index[:, ~dead], total[~dead]
+            still = active.move(np.divide(weights.T, total, order="C"), index)
+            if still.any():
+                self.converged[active.rows[still]] = self.done[active.rows[still]] = True
+                active = active.subset(~still)
+        active.save()
+
+
+class _Active:
+    """The A runs ``rows`` of ``runs`` still iterating: their state while they do (``save``
+    puts it back in ``runs``), and what their iterations reuse until the set changes.
+
+    Their F' points in run order: ``points`` (F',) into the runs' points, ``rank`` (F',) into
+    ``rows``, ``starts`` (A,) each row's first, and ``spot``, ``spot_t`` (F',), their flat
+    positions in (A, N) and (N, A) padded arrays. ``coords`` (N, 4, A): the padded sources'
+    x, y and their matched targets' x, y. Templates: the (A, N) distances (inf) and (N, A)
+    indices of the matched targets (the pair's first: padding).
+
+    Nearest targets: each point keeps the nearest target ``nearest`` (F',) that its last k-d
+    tree query found, at (``anchor_x``, ``anchor_y``), and ``room2`` (F',), the square of how
+    far it may move from there and keep that nearest target (half the gap to the second
+    nearest, less 1e-9 of it, far above rounding; -1: none). Only the points that leave their
+    room query the tree again; the others' distances are computed as the tree computes them."""
+
+    def __init__(self, runs: _Runs, rows: np.ndarray):
+        self.runs, self.rows = runs, rows
+        lengths, size = runs.lengths[rows], len(runs.src)
+        self.rank = np.repeat(np.arange(len(rows)), lengths)
+        self.starts = np.cumsum(lengths) - lengths
+        column = np.arange(len(self.rank)) - self.starts[self.rank]
+        self.points = runs.offsets[rows][self.rank] + column
+        self.spot, self.spot_t = self.rank * size + column, column * len(rows) + self.rank
+        self.x, self.y = runs.x[self.points], runs.y[self.points]
+        self.angle, self.trans_x, self.trans_y = runs.angle[rows], runs.trans_x[rows], runs.trans_y[rows]
+        self.moved_x, self.moved_y = runs.moved_x[self.points], runs.moved_y[self.points]
+        self.nearest, self.room2 = runs.nearest[self.points], runs.room2[self.points]
+        self.anchor_x, self.anchor_y = runs.anchor_x[self.points], runs.anchor_y[self.points]
+        self.coords = np.empty((size, 4, len(rows)))
+        self.coords[:, :2] = runs.src[:, :, rows]
+        self.blank = np.full((len(rows), size), np.inf)
+        self.base = np.repeat(runs.first[rows][None, :], size, axis=0)
+        self.floor, self.step_tol = runs.floor[rows], runs.step_tol[rows]
+        self.count, self.middles = lengths, _middles(lengths, size)
+
+    def save(self) -> None:
+        """Put the rows' transforms, moved points and nearest targets back in ``runs``."""
+        runs, rows, points = self.runs, self.rows, self.points
+        runs.angle[rows], runs.trans_x[rows], runs.trans_y[rows] = self.angle, self.trans_x, self.trans_y
+        runs.moved_x[points], runs.moved_y[points] = self.moved_x, self.moved_y
+        runs.nearest[points], runs.room2[points] = self.nearest, self.room2
+        runs.anchor_x[points], runs.anchor_y[points] = self.anchor_x, self.anchor_y
+
+    def subset(self, keep: np.ndarray) -> _Active:
+        """The rows ``keep`` (A,) of this set (after saving it)."""
+        self.save()
+        return _Active(self.runs, self.rows[keep])
+
+    def match(self, max_distance: float | None):
+        """(A, N) distances of the moved points to their nearest targets, +inf where a pair
+        does not count (padding, farther than ``max_distance``), the (N, A) indices of those
+        targets, and the (A,) robust scales σ."""
+        dist, index = self.blank.copy(), self.base.copy()
+        dist.reshape(-1)[self.spot], index.reshape(-1)[self.spot_t] = self.distances(), self.nearest
+        if max_distance is None:
+            near, count, middles = dist, self.count, self.middles
+        else:
+            near = np.where(dist <= max_distance, dist, np.inf)
+            count, middles = np.count_nonzero(dist <= max_distance, axis=1), None
+        return near, index, np.fmax(_medians(near, count, middles) / RAYLEIGH_MEDIAN, self.floor)  # floor if none
+
+    def distances(self) -> np.ndarray:
+        """(F',) distances of the moved points to their nearest targets (``nearest``), which
+        the points that left their rooms query again."""
+        x, y = self.moved_x, self.moved_y
+        dx, dy = x - self.anchor_x, y - self.anchor_y
+        out = np.flatnonzero(dx * dx + dy * dy >= self.room2)
+        if len(out):
+            self._query(out)
+        dx, dy = x - self.runs.target_x[self.nearest], y - self.runs.target_y[self.nearest]
+        return np.sqrt(dx * dx + dy * dy)  # as the tree: (dx² + dy²) + dz², dz = 0
+
+    def _query(self, out: np.ndarray) -> None:
+        """Query the k-d tree, at once, for the two nearest targets of the points ``out``
+        (F'',) and set their rooms. Where the two are as near to 1e-9 (ties, rounding), the
+        nearest is the one that a query for the nearest alone finds, and the room is none."""
+        runs = self.runs
+        queries = np.column_stack([self.moved_x[out], self.moved_y[out], runs.lift * (self.rows // 3)[self.rank[out]]])
+        dist, found = runs.tree.query(queries, k=2)
+        room = (dist[:, 1] * (1.0 - 1e-9) - dist[:, 0]) / 2.0
+        close = room <= 0.0
+        if close.any():
+            found[close, 0] = runs.tree.query(queries[close], k=1)[1]
+        self.nearest[out], self.anchor_x[out], self.anchor_y[out] = found[:, 0], queries[:, 0], queries[:, 1]
+        self.room2[out] = np.where(close, -1.0, room * room)
+
+    def move(self, w: np.ndarray, index: np.ndarray) -> np.ndarray:
+        """Solve the weighted Procrustes problem of the weights (N, A) (each row's summing to 1)
+        and matched targets ``index`` (N, A), move the rows' points, and say which rows (A,)
+        moved no point more than their tolerance. The weighted sums run over the points one
+        after another from 0 (axis 0, the outermost, of contiguous arrays), as
+        ``np.einsum("rn,rnd->rd", w, src)`` and ``np.einsum("rni,rnj->rij", a, b)`` sum them."""
+        q, rank = self.coords, self.rank
+        q[:, 2], q[:, 3] = self.runs.target_x[index], self.runs.target_y[index]
+        centres = np.add.reduce(q * w[:, None, :], axis=0, initial=0.0)  # (4, A): source's, target's
+        diff = q - centres
+        b = diff[:, 2:] * w[:, None, :]
+        h = np.add.reduce(diff[:, :2, None, :] * b[:, None, :, :], axis=0, initial=0.0)  # (2, 2, A)
+        self.angle = np.arctan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1])
+        cos, sin = np.cos(self.angle), np.sin(self.angle)
+        x, y = _turn(cos, sin, centres[0], centres[1])
+        self.trans_x, self.trans_y = centres[2] - x, centres[3] - y
+        x, y = _turn(cos[rank], sin[rank], self.x, self.y)
+        x, y = x + self.trans_x[rank], y + self.trans_y[rank]
+        dx, dy = x - self.moved_x, y - self.moved_y
+        step = np.sqrt(np.maximum.reduceat(dx * dx + dy * dy, self.starts))  # each row's largest
+        self.moved_x, self.moved_y = x, y
+        return step <= self.step_tol
 
 
 def _rotation(angle: float) -> np.ndarray:
@@ -240,16 +344,43 @@ def _rotation(angle: float) -> np.ndarray:
     return np.array([[c, -s], [s, c]])
 
 
-def _turn(angle: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Points (R, ..., 2) turned counter-clockwise by their row's angle (R,) (rad)."""
-    shape = angle.shape + (1,) * (points.ndim - 2)
-    c, s = np.cos(angle).reshape(shape), np.sin(angle).reshape(shape)
-    x, y = points[..., 0], points[..., 1]
-    return np.stack([c * x - s * y, s * x + c * y], axis=-1)
+def _turn(cos: np.ndarray, sin: np.ndarray, x: np.ndarray, y: np.ndarray):
+    """Points (x, y) turned counter-clockwise by the angles of cosines and sines ``cos``,
+    ``sin``, all of one shape: ``(c x - s y, s x + c y)``."""
+    return cos * x - sin * y, sin * x + cos * y
 
 
-def _rms_radius(points: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=1))))
+def _scales(sources: np.ndarray, sizes: np.ndarray, targets: np.ndarray, counts: np.ndarray,
+            min_scale: float | None, tol: float):
+    """Of P pairs of sources (F, 2) and targets (M, 2), one pair's after another's, of
+    ``sizes``, ``counts`` (P,) points: the (P, 2) centroids of the sources, the (P,) floors of
+    σ (``min_scale``, or 1e-9 × the larger RMS radius of the two sets) and step tolerances
+    (``tol`` × the source's RMS radius, at least the floor)."""
+    centres = _centroids(sources, sizes)
+    src_size = _rms_radii(sources, sizes, centres)
+    if min_scale is not None:
+        floor = np.full(len(sizes), min_scale)
+    else:
+        tgt_size = _rms_radii(targets, counts, _centroids(targets, counts))
+        floor = 1e-9 * np.maximum(np.maximum(tgt_size, src_size), 1e-300)
+    return centres, floor, tol * np.maximum(src_size, floor)
+
+
+def _centroids(points: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """(P, 2) centroids of P point sets, one after another in points (F, 2), of ``lengths`` (P,)
+    points: each set's ``mean(axis=0)`` (its points summed in order, then zeros)."""
+    owner = np.repeat(np.arange(len(lengths)), lengths)
+    padded = np.zeros((max(lengths), len(lengths), 2))
+    padded[np.arange(len(points)) - (np.cumsum(lengths) - lengths)[owner], owner] = points
+    return np.add.reduce(padded, axis=0) / lengths[:, None]
+
+
+def _rms_radii(points: np.ndarray, lengths: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """(P,) RMS distances of P point sets, as in :func:`_centroids`, from their centroids
+    ``centres`` (P, 2)."""
+    d = points - np.repeat(centres, lengths, axis=0)
+    squares = np.sum(d * d, axis=1)
+    return np.array([math.sqrt(part.sum() / len(part)) for part in np.split(squares, np.cumsum(lengths)[:-1])])
 
 
 def _points(name: str, value, *, minimum: int) -> np.ndarray:
@@ -263,13 +394,16 @@ def _points(name: str, value, *, minimum: int) -> np.ndarray:
     return array
 
 
-def _medians(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """(R,) np.median of each row's values (R, N) where ``mask`` (R, N) holds (NaN-free): the
-    middle one, or the mean of the middle two; NaN for an empty row."""
-    count = mask.sum(axis=1)
-    kept = np.sort(np.where(mask, values, np.inf), axis=1)
-    rows = np.arange(len(values))
-    low = kept[rows, np.maximum(count - 1, 0) // 2]
-    high = kept[rows, np.minimum(count // 2, values.shape[1] - 1)]
-    with np.errstate(invalid="ignore"):
-        return np.where(count > 0, (low + high) / 2.0, np.nan)
+def _medians(values: np.ndarray, count: np.ndarray, middles=None) -> np.ndarray:
+    """(R,) np.median of each row of values (R, N) that holds ``count`` (R,) values and +inf
+    elsewhere (NaN-free); NaN for an empty row. ``middles``: ``_middles(count, N)``, if known."""
+    low, high = _middles(count, values.shape[1]) if middles is None else middles
+    kept = np.sort(values, axis=1).reshape(-1)
+    return np.where(count > 0, (kept[low] + kept[high]) / 2.0, np.nan)
+
+
+def _middles(count: np.ndarray, size: int):
+    """Flat indices (R,) into sorted rows (R, size) that hold count (R,) values each, of their
+    lower and upper middle values (the same for an odd count; for none, of some value)."""
+    start = np.arange(len(count)) * size
+    return start + (count - 1) // 2, start + count // 2

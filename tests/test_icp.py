@@ -7,7 +7,7 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from fsswarp.icp import _medians, contour_error, icp, icp_many
+from fsswarp.icp import _Active, _medians, _Runs, contour_error, icp, icp_many
 
 finite = dict(allow_nan=False, allow_infinity=False)
 #: Misalignments of the kind contour alignment meets: up to 2.9° about the contour and 2 cm.
@@ -207,13 +207,12 @@ def test_bad_inputs_raise(source, target, kwargs, message):
 @settings(deadline=None, max_examples=50)
 @given(st.lists(st.lists(st.floats(0.0, 1.0, allow_nan=False), max_size=40), min_size=1, max_size=5))
 def test_the_robust_scale_medians_are_numpys(rows):
-    """ICP's row-wise median of the masked entries (called every iteration) equals np.median
-    of each row, odd and even lengths, NaN for an empty row."""
-    values = np.full((len(rows), max(1, max(map(len, rows)))), 7.0)  # 7: outside the data, masked off
-    mask = np.zeros(values.shape, bool)
+    """ICP's row-wise median of the distances that count (+inf elsewhere; called every
+    iteration) equals np.median of each row, odd and even lengths, NaN for an empty row."""
+    values = np.full((len(rows), max(1, max(map(len, rows)))), np.inf)
     for i, row in enumerate(rows):
-        values[i, :len(row)], mask[i, :len(row)] = row, True
-    for row, median in zip(rows, _medians(values, mask)):
+        values[i, :len(row)] = row
+    for row, median in zip(rows, _medians(values, np.array([len(row) for row in rows]))):
         assert median == float(np.median(row)) if row else math.isnan(median)
 
 
@@ -240,3 +239,29 @@ def test_many_pairs_at_once_give_each_pair_its_own_result():
         assert many.error == pytest.approx(one.error, rel=1e-9, abs=0, nan_ok=True)
     assert [r.iterations for r in together[:4]] != [together[0].iterations] * 4  # the runs stop at different times
     assert len(together[-1].pairs) == 0 and not together[-1].converged
+
+
+def test_the_kept_nearest_targets_are_the_k_d_tree_s():
+    """The matching reuses a point's last k-d tree answer while the point stays within its room:
+    after every move the nearest targets and their distances are a fresh query's, to the bit,
+    ties included (points of a binary grid halfway between two targets)."""
+    rng = np.random.default_rng(3)
+    grid = np.stack(np.meshgrid(np.arange(8), np.arange(5)), axis=-1).reshape(-1, 2) / 64.0
+    pairs = [(grid[rng.choice(40, n, replace=False)] + [0.5 / 64, 0.0], grid[rng.choice(40, m, replace=False)])
+             for n, m in ((30, 25), (12, 40), (40, 2))]
+    runs = _Runs(pairs, None, 1e-10)
+    active, ties = _Active(runs, np.arange(9)), 0
+    for step in range(40):
+        if step % 10 == 0:  # onto the grid, where the ties are
+            active.moved_x, active.moved_y = active.x.copy(), active.y.copy()
+        else:
+            scale = 10.0 ** rng.uniform(-5, -2, len(active.points))
+            active.moved_x = active.moved_x + scale * rng.normal(size=len(active.points))
+            active.moved_y = active.moved_y + scale * rng.normal(size=len(active.points))
+        dist = active.distances()
+        lift = runs.lift * (active.rows // 3)[active.rank]
+        want_dist, want = runs.tree.query(np.column_stack([active.moved_x, active.moved_y, lift]), k=1)
+        np.testing.assert_array_equal(active.nearest, want)
+        np.testing.assert_array_equal(dist, want_dist)
+        ties += np.count_nonzero(active.room2 < 0)
+    assert ties > 0
