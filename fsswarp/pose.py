@@ -387,28 +387,38 @@ class PoseProblem:
         v = list(views)
         return rot[:, v], t[:, v], n[:, v], d[:, v]
 
-    def render_pairs(self, views, depths: np.ndarray, tilts: np.ndarray, samples):
-        """DeviceLayers (G·V, 4, bins, beams) of cells (G,) in the dataset views ``views``."""
+    def render_pairs(self, views, depths: np.ndarray, tilts: np.ndarray, samples, rows=None):
+        """DeviceLayers (G·V, 4, bins, beams) of cells (G,) in the dataset views ``views``, or
+        bands of rows: ``rows`` as ``Backend.render_device`` takes them."""
         rot, t, n, d = self.view_poses(views, depths, tilts)
         if np.any(d <= 0):
             raise InputError("the sonar must lie below the surface in every view", field="depth",
                              value=float(np.min(depths)))
         return self.backend.render_device(self.mesh, self.sonar, rot.reshape(-1, 3, 3), t.reshape(-1, 3),
                                           n.reshape(-1, 3), d.reshape(-1), samples, gamma=1.0,
-                                          surface_reflection=0.9)
+                                          surface_reflection=0.9, rows=rows)
 
     def view_costs(self, depths: np.ndarray, tilts: np.ndarray, samples, cap: float):
         """(G, V, S) surrogate view costs of cells (G,) at the detection shift (S = 1) or, without
         one, at every candidate shift; and (G, V, 2, beams) synthetic contours. One launch unless
-        the layers would exceed ``settings.launch_bytes``."""
+        the layers would exceed ``settings.launch_bytes``.
+
+        Each pair renders only the band of rows its view's window reads (``render_device``'s
+        ``rows``): the window [lo, hi) ± the range smoothing's radius rB, clipped to the image,
+        R rows for every pair (the widest view's), started lower where it would pass the last
+        row; the contours and costs are those of full layers, bit for bit."""
         data, sonar = self.data, self.sonar
         n_views = len(data.views)
-        per = max(1, self.settings.launch_bytes // (32 * sonar.bins * sonar.beams * n_views))
+        radius = (len(self.smoothing[0]) - 1) // 2
+        need_lo = np.maximum(data.windows[:, 0] - radius, 0)
+        rows = int(np.max(np.minimum(data.windows[:, 1] + radius, sonar.bins) - need_lo))
+        first = np.minimum(need_lo, sonar.bins - rows)
+        per = max(1, self.settings.launch_bytes // (32 * rows * sonar.beams * n_views))
         distances = np.minimum(data.distances, np.float32(cap))
         costs, contours = [], []
         for start in range(0, len(depths), per):
             cell_d, cell_t = depths[start:start + per], tilts[start:start + per]
-            layers = self.render_pairs(data.views, cell_d, cell_t, samples)
+            layers = self.render_pairs(data.views, cell_d, cell_t, samples, rows=(np.tile(first, len(cell_d)), rows))
             contour, sums, counts = self.backend.contour_cost(
                 layers, np.tile(np.arange(n_views), len(cell_d)), data.threshold, data.windows, data.masks,
                 distances, self.shifts if self.shift is None else [self.shift], self.smoothing)

@@ -10,7 +10,8 @@
  *   separable weights (wB: 2 rB + 1 taps along range, wb: 2 rb + 1 taps across beams; indices
  *   clamped to the image, scipy's "nearest" border):
  *     row_i = Σ_j wb[j] · (L[n][2c][B_i][b_j] + L[n][2c+1][B_i][b_j]),  s(B) = Σ_i wB[i] · row_i
- *   with B_i = clamp(B + i − rB), b_j = clamp(b + j − rb), sums in index order. The first row B
+ *   with B_i = clamp(B + i − rB), b_j = clamp(b + j − rb), sums in index order; L[n][l][B] is
+ *   image row B of pair n, stored at row B − first_rows[n] of its band. The first row B
  *   of the window lo <= B < hi (window[v]) where f(B) = s(B) − threshold[v][B] > 0 gives the
  *   crossing: lo when B == lo, else (B − 1) + f(B − 1) / (f(B − 1) − f(B)) (fractional row,
  *   linear interpolation); -1 when no row of the window crosses.
@@ -20,8 +21,14 @@
  *   between rows floor(y) and floor(y) + 1 (clamped): sums[n][c][s] = Σ_b of it, and
  *   counts[n][c] = the number of such beams (written by s == 0).
  *
+ * Bands: the clamping is to the image [0, bins − 1], never to the band; the host guarantees
+ * that every row a pair's window reads, [max(lo − rB, 0), min(hi + rB, bins)), lies in its
+ * band [first_rows[n], first_rows[n] + rows), so results equal those of full layers bit for bit.
+ *
  * Arguments:
- *   layers       (N, 4, bins, beams) float
+ *   layers       (N, 4, rows, beams) float: band n holds image rows first_rows[n] ..
+ *                first_rows[n] + rows − 1 (full layers: first_rows 0, rows = bins)
+ *   first_rows   (N,) int;  rows  R, the rows of every band
  *   view_index   (N,) int        data view of each pair
  *   threshold    (V, bins) float  detection threshold of each data view and row
  *   window       (V, 2) int       rows lo, hi scanned (0 <= lo < hi <= bins)
@@ -48,6 +55,8 @@ __kernel void frontal_contour(__global const float *layers,
                               const int rb,
                               const int bins,
                               const int beams,
+                              __global const int *first_rows,
+                              const int rows,
                               __global float *contour)
 {
     const int b = get_global_id(0);
@@ -61,7 +70,8 @@ __kernel void frontal_contour(__global const float *layers,
         *out = -1.0f;
         return;
     }
-    const size_t plane = (size_t)bins * beams;
+    const size_t plane = (size_t)rows * beams;
+    const int first = first_rows[n];
     __global const float *l0 = layers + ((size_t)n * 4 + 2 * c) * plane;
     __global const float *l1 = l0 + plane;
     __global const float *thr = threshold + (size_t)v * bins;
@@ -71,7 +81,7 @@ __kernel void frontal_contour(__global const float *layers,
     for (int B = lo; B < hi; ++B) {
         float s = 0.0f;
         for (int i = 0; i <= 2 * rB; ++i) {
-            const int Bi = clamp(B + i - rB, 0, bins - 1);
+            const int Bi = clamp(B + i - rB, 0, bins - 1) - first; /* row of the band */
             float row = 0.0f;
             for (int j = 0; j <= 2 * rb; ++j) {
                 const size_t k = (size_t)Bi * beams + clamp(b + j - rb, 0, beams - 1);

@@ -12,11 +12,17 @@
  *   beam_centres  (beams,) float   θ_b (rad)
  *   beam_widths   (beams,) float   Δθ_b (rad)
  *   beam_table, use_table, half_azimuth, beam_scale: the beam coordinate (sonar.h)
- *   beams, bins, range_min, inv_range_step, half_elevation: the image (sonar.h)
+ *   beams, range_min, inv_range_step, half_elevation: the image (sonar.h)
  *   k_theta, k_phi   sub-rays per beam; weight = 1 / (k_theta k_phi) (float32)
  *   gamma, surface_reflection   γ and r_s
  *   epsilon       ε (m) of the leg tests, max_distance: the longest ray
- *   acc           (N, 4, bins, beams) int  fixed-point accumulator (2^24 = 1), zeroed by the host
+ *   first_rows    (N,) int        first image row of each view's band (0 for full layers)
+ *   rows          R, rows per band (bins for full layers); 0 <= first_rows[v],
+ *                 first_rows[v] + R <= bins (the host validates)
+ *   acc           (N, 4, R, beams) int  fixed-point accumulator (2^24 = 1), zeroed by the host:
+ *                 a return of view v at image row B lands in acc[v][layer][B − first_rows[v]]
+ *                 when that lies in [0, R) (and its beam in the image), else it is dropped.
+ *                 Integer atomics: a pixel's value does not depend on which pixels are kept.
  *
  * Work size: 3-D global (k_theta k_phi rounded up, beams, N); work-item (s, b, v), sub-ray
  * s = i k_phi + j. Items with s >= k_theta k_phi return at once.
@@ -32,15 +38,16 @@ typedef struct {
     float half_azimuth, beam_scale, range_min, inv_range_step;
 } fss_image;
 
+/* Add the return at (range, beam) to view v's band: first image row `first`, R = rows. */
 void fss_deposit(__global int *acc, int v, int layer, int beam, float range, float amplitude,
-                 float weight, int beams, int bins, float range_min, float inv_range_step)
+                 float weight, int beams, int first, int rows, float range_min, float inv_range_step)
 {
-    const int bin = fss_nearest_index(fss_bin_coordinate(range, range_min, inv_range_step));
-    if (beam < 0 || beam >= beams || bin < 0 || bin >= bins)
+    const int bin = fss_nearest_index(fss_bin_coordinate(range, range_min, inv_range_step)) - first;
+    if (beam < 0 || beam >= beams || bin < 0 || bin >= rows)
         return;
     const int value = (int)(amplitude * weight * FSS_FIXED + 0.5f);
     if (value != 0)
-        atomic_add(acc + ((v * 4 + layer) * bins + bin) * beams + beam, value);
+        atomic_add(acc + ((v * 4 + layer) * rows + bin) * beams + beam, value);
 }
 
 /* R q (view-frame direction to reference frame). */
@@ -80,7 +87,6 @@ __kernel void render_views(__global const float4 *nodes,
                            __global const float *beam_table,
                            const int use_table,
                            const int beams,
-                           const int bins,
                            const float half_azimuth,
                            const float beam_scale,
                            const float range_min,
@@ -93,6 +99,8 @@ __kernel void render_views(__global const float4 *nodes,
                            const float surface_reflection,
                            const float epsilon,
                            const float max_distance,
+                           __global const int *first_rows,
+                           const int rows,
                            __global int *acc)
 {
     const int s = (int)get_global_id(0);
@@ -106,6 +114,7 @@ __kernel void render_views(__global const float4 *nodes,
     const float3 t = vload3(v, translations);
     const float3 n = vload3(v, plane_normals);
     const float d = plane_offsets[v];
+    const int first = first_rows[v];
 
     /* 1. sub-ray */
     const float theta = beam_centres[b] + (((float)i + 0.5f) / (float)k_theta - 0.5f) * beam_widths[b];
@@ -129,7 +138,7 @@ __kernel void render_views(__global const float4 *nodes,
             un = -un;
         }
         const float c = -un;
-        fss_deposit(acc, v, 0, b, r, pow(c, gamma), weight, beams, bins, range_min, inv_range_step);
+        fss_deposit(acc, v, 0, b, r, pow(c, gamma), weight, beams, first, rows, range_min, inv_range_step);
 
         const float3 P = r * u;
         const float3 O2 = (2.0f * d) * n;
@@ -167,12 +176,12 @@ __kernel void render_views(__global const float4 *nodes,
             return;
         const float a_s = surface_reflection * pow(c * c_in, 0.5f * gamma);
         const float R_s = (r + q) * 0.5f;
-        fss_deposit(acc, v, 1, b, R_s, a_s, weight, beams, bins, range_min, inv_range_step);
+        fss_deposit(acc, v, 1, b, R_s, a_s, weight, beams, first, rows, range_min, inv_range_step);
         const float3 Pm = P - (2.0f * (nP - d)) * n;
         const int bm = fss_nearest_index(fss_beam_coordinate(fss_azimuth(Pm), use_table,
                                                              beam_table, beams, half_azimuth,
                                                              beam_scale));
-        fss_deposit(acc, v, 2, bm, R_s, a_s, weight, beams, bins, range_min, inv_range_step);
+        fss_deposit(acc, v, 2, bm, R_s, a_s, weight, beams, first, rows, range_min, inv_range_step);
     } else if (s_surf < r && s_surf < INFINITY) {
         /* 4. surface first: mirror2 */
         const float3 Q = s_surf * u;
@@ -186,7 +195,7 @@ __kernel void render_views(__global const float4 *nodes,
             return;
         const float c2 = fabs(fss_dot(u2_ref, fss_tri_normal(tris, tri2)));
         fss_deposit(acc, v, 3, b, s_surf + r2, surface_reflection * surface_reflection * pow(c2, gamma),
-                    weight, beams, bins, range_min, inv_range_step);
+                    weight, beams, first, rows, range_min, inv_range_step);
     }
 }
 

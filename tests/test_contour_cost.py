@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from fsswarp.backends import HostLayers
 from fsswarp.pose import _gaussian
 from fsswarp.rig import Rig, View
 from fsswarp.sonar import SonarSpec
@@ -100,22 +101,75 @@ def test_warp_and_opencl_agree_on_rendered_views(backend_for_label):
     rot, t = rig.relative_poses(depths, tilts)
     n, d = surface_in_views(rig, depths, tilts)
     thresholds = np.full((5, sonar.bins), 2e-3, np.float32)
-    windows = np.tile([20, 150], (5, 1))
+    windows = np.array([[20, 150], [0, 140], [30, 160], [20, 150], [10, 155]])  # at the borders too
     masks = np.ones((5, 2, sonar.beams), bool)
     distances = np.random.default_rng(0).uniform(0, 0.05, (5, 2, sonar.bins, sonar.beams))
+    view_index = np.tile(np.arange(5), 3)
+    first, count = tight_bands(view_index, windows, (len(_gaussian(1.0)) - 1) // 2, sonar.bins)
     out = {}
     for b in (warp, opencl):
         handle = b.load_mesh(mesh.vertices, mesh.faces)
-        layers = b.render_device(handle, sonar, rot.reshape(-1, 3, 3), t.reshape(-1, 3), n.reshape(-1, 3),
-                                 d.reshape(-1), (1, 32), gamma=1.0, surface_reflection=0.9)
-        out[b.name] = b.contour_cost(layers, np.tile(np.arange(5), 3), thresholds, windows, masks, distances,
-                                     [0.0, 0.5], (_gaussian(1.0), _gaussian(0.7)))
-    (c_w, s_w, n_w), (c_o, s_o, n_o) = out["warp"], out["opencl"]
-    assert (c_w[:, 0] >= 0).sum() >= 60 and (c_w[:, 1] >= 0).sum() >= 60  # object and mirror contours
-    np.testing.assert_array_equal(c_w >= 0, c_o >= 0)
-    np.testing.assert_allclose(c_w, c_o, rtol=0, atol=1e-4)  # fractional rows
-    np.testing.assert_array_equal(n_w, n_o)
-    np.testing.assert_allclose(s_w, s_o, rtol=1e-5, atol=1e-6)  # metres
+        for rows in (None, (first, count)):
+            layers = b.render_device(handle, sonar, rot.reshape(-1, 3, 3), t.reshape(-1, 3), n.reshape(-1, 3),
+                                     d.reshape(-1), (1, 32), gamma=1.0, surface_reflection=0.9, rows=rows)
+            out[b.name, rows is None] = b.contour_cost(layers, view_index, thresholds, windows, masks, distances,
+                                                       [0.0, 0.5], (_gaussian(1.0), _gaussian(0.7)))
+        for a, f in zip(out[b.name, False], out[b.name, True]):  # banded layers: bit for bit the full ones'
+            np.testing.assert_array_equal(a, f)
+    for full in (True, False):
+        (c_w, s_w, n_w), (c_o, s_o, n_o) = out["warp", full], out["opencl", full]
+        assert (c_w[:, 0] >= 0).sum() >= 60 and (c_w[:, 1] >= 0).sum() >= 60  # object and mirror contours
+        np.testing.assert_array_equal(c_w >= 0, c_o >= 0)
+        np.testing.assert_allclose(c_w, c_o, rtol=0, atol=1e-4)  # fractional rows
+        np.testing.assert_array_equal(n_w, n_o)
+        np.testing.assert_allclose(s_w, s_o, rtol=1e-5, atol=1e-6)  # metres
+
+
+def tight_bands(view_index, windows, radius, bins):
+    """(first (N,), R): the rows each pair's window reads, [max(lo − r, 0), min(hi + r, bins)),
+    R the widest, bands started lower where they would pass the last row (as PoseProblem.view_costs)."""
+    need_lo = np.maximum(windows[:, 0] - radius, 0)
+    count = int(np.max(np.minimum(windows[:, 1] + radius, bins) - need_lo))
+    return np.minimum(need_lo, bins - count)[view_index], count
+
+
+def banded(layers, first, count):
+    return HostLayers(np.stack([layers[n, :, f:f + count] for n, f in enumerate(first)]), first)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_banded_layers_match_full(backend, seed):
+    """contour_cost on each pair's band of rows (image row B at row B − first[n]) gives the full
+    layers' contours, sums and counts bit for bit, with windows at both image borders (the
+    smoothing clamps to the image, not to the band)."""
+    layers, view_index, thresholds, _, masks, distances, shifts, smoothing = random_case(seed, n_pairs=9, n_views=4)
+    bins, radius = layers.shape[2], (len(smoothing[0]) - 1) // 2
+    windows = np.array([[0, 9], [bins - 7, bins], [20, 31], [12, 36]])  # at the top and bottom rows, inside
+    view_index = np.array([0, 1, 2, 3, 0, 1, 2, 2, 1])
+    full = backend.contour_cost(layers, view_index, thresholds, windows, masks, distances, shifts, smoothing)
+    assert (full[0] >= 0).sum() > 20 and (full[0] == -1).sum() > 5
+    tight = tight_bands(view_index, windows, radius, bins)
+    for first, count in (tight, (tight[0] * 0, bins), (np.clip(tight[0] - 3, 0, bins - tight[1] - 3), tight[1] + 3)):
+        got = backend.contour_cost(banded(layers, first, count), view_index, thresholds, windows, masks, distances,
+                                   shifts, smoothing)
+        for a, b in zip(got, full):
+            np.testing.assert_array_equal(a, b)
+    # a band one row short at either end of what the window reads: refused
+    first, count = tight
+    short_top = np.array(first)
+    short_top[0] += 1  # pair 0 (window [0, 9)) no longer holds row 0
+    short_bottom = np.array(first)
+    short_bottom[1] = bins - count + 1  # pair 1 (window [bins - 7, bins)) would need rows past the image
+    for bad_first, bad_count in ((short_top, count), (first, count - 1)):
+        with pytest.raises(ValueError, match="band"):
+            backend.contour_cost(banded(layers, bad_first, bad_count), view_index, thresholds, windows, masks,
+                                 distances, shifts, smoothing)
+    with pytest.raises(ValueError, match="rows"):
+        backend.contour_cost(HostLayers(np.zeros((9, 4, count, layers.shape[3]), np.float32), short_bottom),
+                             view_index, thresholds, windows, masks, distances, shifts, smoothing)
+    with pytest.raises(ValueError, match="banded layers"):  # a band for another number of beams
+        backend.contour_cost(HostLayers(np.zeros((9, 4, count, 3), np.float32), first), view_index, thresholds,
+                             windows, masks, distances, shifts, smoothing)
 
 
 @pytest.mark.parametrize("change, message", [

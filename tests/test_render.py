@@ -335,6 +335,65 @@ def test_render_device_keeps_layers_on_the_device(backend):
     assert empty.numpy().shape == (0, 4, sonar.bins, sonar.beams)
 
 
+@pytest.mark.parametrize("count, first", [
+    (260, [0, 252, 100, 245]),  # bands touching row 0 and row bins - 1, each cutting the echoes (rows 242-283)
+    (1, [250, 0, 511, 260]),
+    (512, [0, 0, 0, 0]),  # the whole image
+])
+def test_render_device_bands_equal_full_rows(backend, count, first):
+    """render_device(rows=(first, R)): each view's band is, bit for bit, its rows of the full
+    layers; returns outside the band are dropped (not clamped into it)."""
+    sonar, mesh, rot, trans, normals, offsets = coral_inputs()
+    handle = backend.load_mesh(mesh.vertices, mesh.faces)
+    args = (handle, sonar, rot, trans, normals, offsets, SAMPLES)
+    full = backend.render(*args, gamma=GAMMA, surface_reflection=RS)
+    banded = backend.render_device(*args, gamma=GAMMA, surface_reflection=RS, rows=(np.array(first), count))
+    assert banded.shape == (4, 4, count, sonar.beams)
+    np.testing.assert_array_equal(banded.first_rows, first)
+    host = banded.numpy()
+    assert host.shape == (4, 4, count, sonar.beams) and host.dtype == np.float32
+    for n, f in enumerate(first):
+        np.testing.assert_array_equal(host[n], full[n, :, f:f + count])
+    if count == 260:
+        assert all(host[n].sum() > 0.05 * full[n].sum() for n in range(4))  # bands hold echoes
+    assert backend.render_device(*args, gamma=GAMMA, surface_reflection=RS).first_rows is None
+
+
+@pytest.mark.parametrize("rows", [
+    (np.array([0, 0]), 0),  # no rows
+    (np.array([0, 1]), 512),  # past the last row
+    (np.array([-1, 0]), 10),
+    (np.array([0, 503]), 10),
+    (np.array([0]), 10),  # one first row for two views
+    (np.array([0.0, 1.0]), 10),
+    (np.array([0, 1]), 2.5),
+    (np.array([0, 1]),),
+])
+def test_render_device_rejects_bad_rows(backend, rows):
+    sonar, mesh, rot, trans, normals, offsets = coral_inputs()
+    handle = backend.load_mesh(mesh.vertices, mesh.faces)
+    with pytest.raises(ValueError, match="rows"):
+        backend.render_device(handle, sonar, rot[:2], trans[:2], normals[:2], offsets[:2], SAMPLES, gamma=GAMMA,
+                              surface_reflection=RS, rows=rows)
+
+
+def test_backends_agree_on_bands(backend_for_label):
+    """Warp and OpenCL agree on banded layers as on full ones (test_backends_agree_on_coral)."""
+    first, count = np.array([200, 230, 0, 252]), 260
+    layers = []
+    for label in ("warp-cpu", "opencl-cpu"):
+        backend = backend_for_label(label)
+        sonar, mesh, rot, trans, normals, offsets = coral_inputs()
+        handle = backend.load_mesh(mesh.vertices, mesh.faces)
+        layers.append(backend.render_device(handle, sonar, rot, trans, normals, offsets, SAMPLES, gamma=GAMMA,
+                                            surface_reflection=RS, rows=(first, count)).numpy())
+    for v in range(4):
+        for layer, name in enumerate(COMPONENTS):
+            assert layers[1][v, layer].sum() > 0
+            l1 = relative_l1(layers[0][v, layer], layers[1][v, layer])
+            assert l1 < 0.005, f"{CORAL_VIEWS[v]} {name}: relative L1 {l1:.5f}"
+
+
 def test_render_is_deterministic(backend):
     """Fixed-point integer atomics: the same launch twice gives bit-identical layers."""
     sonar, mesh, rot, trans, normals, offsets = coral_inputs()

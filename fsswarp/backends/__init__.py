@@ -259,10 +259,23 @@ class Backend(abc.ABC):
 
     def render_device(self, mesh, sonar: SonarSpec, rotations, translations, plane_normals,
                       plane_offsets, samples: tuple[int, int], *, gamma: float,
-                      surface_reflection: float) -> "DeviceLayers":
+                      surface_reflection: float, rows=None) -> "DeviceLayers":
         """``render`` with the layers left on the device (for kernels that consume them there,
         and for timing the synthesis without the read-back). Returns once the layers are
-        complete; ``.numpy()`` copies them to the host."""
+        complete; ``.numpy()`` copies them to the host.
+
+        rows : None (default), the full (N, 4, bins, beams) layers; or ``(first, count)``, a
+            band of rows per view: first (N,) integers, count an integer R >= 1, with
+            0 <= first[n] and first[n] + R <= bins. View n then renders only the bins
+            first[n] <= B < first[n] + R, into layers of shape (N, 4, R, beams) whose row k
+            is the image's row first[n] + k; returns landing outside the band are dropped.
+            Every pixel of the band equals, bit for bit, the same pixel of the full layers
+            (fixed-point integer accumulation: a pixel's value does not depend on which other
+            pixels are rendered), and less memory is filled, converted and allocated.
+            ``contour_cost`` consumes banded layers. The result's ``first_rows`` is the (N,)
+            int array first (None for full layers); ``.numpy()`` copies the band as it is,
+            (N, 4, R, beams).
+        """
         rot = _float32_array("rotations", rotations, ("N", 3, 3))
         trans = _float32_array("translations", translations, ("N", 3))
         normals = _float32_array("plane_normals", plane_normals, ("N", 3))
@@ -274,14 +287,19 @@ class Backend(abc.ABC):
         k_theta, k_phi = (int(k) for k in samples)
         if k_theta < 1 or k_phi < 1:
             raise ValueError(f"samples must be two positive counts, got {tuple(samples)}")
-        if rot.shape[0] * 4 * sonar.bins * sonar.beams >= 2**31:
-            raise ValueError(f"{rot.shape[0]} views of {sonar.bins} x {sonar.beams} exceed one launch's "
+        n_views = rot.shape[0]
+        first, count = _row_bands(rows, n_views, sonar.bins)
+        if n_views * 4 * count * sonar.beams >= 2**31:
+            raise ValueError(f"{n_views} views of {count} x {sonar.beams} exceed one launch's "
                              f"2^31 pixels; split the batch")
-        if rot.shape[0] == 0:
-            return HostLayers(np.zeros((0, 4, sonar.bins, sonar.beams), np.float32))
-        return self._render(mesh, SonarConstants.of(sonar), _beam_widths(sonar), rot, trans, normals,
-                            np.ascontiguousarray(offsets[:, 0]), k_theta, k_phi, float(gamma),
-                            float(surface_reflection))
+        if n_views == 0:
+            return HostLayers(np.zeros((0, 4, count, sonar.beams), np.float32),
+                              None if rows is None else first)
+        layers = self._render(mesh, SonarConstants.of(sonar), _beam_widths(sonar), rot, trans, normals,
+                              np.ascontiguousarray(offsets[:, 0]), k_theta, k_phi, float(gamma),
+                              float(surface_reflection), first, count)
+        layers.first_rows = None if rows is None else first.copy()
+        return layers
 
     @abc.abstractmethod
     def _load_mesh(self, vertices: np.ndarray, faces: np.ndarray) -> Any:
@@ -294,10 +312,13 @@ class Backend(abc.ABC):
     @abc.abstractmethod
     def _render(self, mesh, sonar: SonarConstants, beam_widths: np.ndarray, rotations: np.ndarray,
                 translations: np.ndarray, plane_normals: np.ndarray, plane_offsets: np.ndarray,
-                k_theta: int, k_phi: int, gamma: float, surface_reflection: float) -> "DeviceLayers":
+                k_theta: int, k_phi: int, gamma: float, surface_reflection: float,
+                first_rows: np.ndarray, rows: int) -> "DeviceLayers":
         """Kernel launch of ``render_device`` (the algorithm: fsswarp/render.py's docstring);
-        beam_widths: (beams,) float32 Δθ_b. Returns the (N, 4, bins, beams) float32 layers,
-        complete, on the device."""
+        beam_widths: (beams,) float32 Δθ_b; first_rows (N,) int32 and rows R: view n keeps
+        the bins first_rows[n] <= B < first_rows[n] + R (zeros and bins for full layers),
+        valid. Returns the (N, 4, R, beams) float32 layers, complete, on the device (the
+        caller sets ``first_rows``)."""
 
     # --- frontal contours and their distance to the data's (the (D, β) grid search) ----------
     def contour_cost(self, layers, view_index, thresholds, windows, masks, distances, shifts,
@@ -306,7 +327,13 @@ class Backend(abc.ABC):
         (the grid surrogate of fsswarp/pose.py; kernels/pose.cl states the rule exactly).
 
         layers : (N, 4, bins, beams) float32, a ``DeviceLayers`` of this backend's
-            ``render_device`` (read where it lies) or a host array
+            ``render_device`` (read where it lies) or a host array (full layers); or banded
+            layers, a ``DeviceLayers`` of shape (N, 4, R, beams) whose ``first_rows`` (N,)
+            places row k of pair n at image row first_rows[n] + k (``render_device(...,
+            rows=...)``; ``HostLayers(array, first_rows)`` on the host). The band of pair n
+            must hold every row its window reads, [max(lo − rB, 0), min(hi + rB, bins)) of
+            its view's window [lo, hi), else ValueError; the results are then bit for bit
+            those of the full layers (the smoothing clamps rows to the image, not the band)
         view_index : (N,) int, the data view 0 <= v < V that pair n is compared with
         thresholds : (V, bins) float, the data view's detection threshold of every row
         windows : (V, 2) int, rows [lo, hi) scanned, 0 <= lo < hi <= bins
@@ -350,46 +377,95 @@ class Backend(abc.ABC):
             raise ValueError("smoothing must be two 1-D weight arrays of odd lengths")
         if not isinstance(layers, DeviceLayers):
             layers = HostLayers(_float32_array("layers", layers, ("N", 4, bins, beams)))
-        if tuple(layers.shape) != (index.shape[0], 4, bins, beams):
-            raise ValueError(f"layers must have shape (N, 4, bins, beams) = ({index.shape[0]}, 4, {bins}, "
-                             f"{beams}), got {tuple(layers.shape)}")
+        first = getattr(layers, "first_rows", None)
+        shape = tuple(layers.shape)
+        if first is None:
+            if shape != (index.shape[0], 4, bins, beams):
+                raise ValueError(f"layers must have shape (N, 4, bins, beams) = ({index.shape[0]}, 4, {bins}, "
+                                 f"{beams}), got {shape}")
+            first = np.zeros(index.shape[0], np.int32)
+        else:
+            if len(shape) != 4 or shape[0] != index.shape[0] or shape[1] != 4 or shape[3] != beams:
+                raise ValueError(f"banded layers must have shape (N, 4, R, beams) = ({index.shape[0]}, 4, R, "
+                                 f"{beams}), got {shape}")
+            first, _ = _row_bands((first, shape[2]), index.shape[0], bins)
+            radius = (weights[0].shape[0] - 1) // 2
+            rows = win.astype(np.int64)[index]
+            need_lo = np.maximum(rows[:, 0] - radius, 0)
+            need_hi = np.minimum(rows[:, 1] + radius, bins)
+            bad = np.flatnonzero((first > need_lo) | (first + shape[2] < need_hi))
+            if bad.size:
+                n = int(bad[0])
+                raise ValueError(f"the band of pair {n}, rows [{first[n]}, {first[n] + shape[2]}), misses rows "
+                                 f"its window needs, [{need_lo[n]}, {need_hi[n]}) (window {tuple(win[index[n]])} "
+                                 f"of view {index[n]}, ± {radius} rows of smoothing)")
         n_pairs, n_shifts = index.shape[0], steps.shape[0]
         if n_pairs == 0:
             return (np.zeros((0, 2, beams), np.float32), np.zeros((0, 2, n_shifts), np.float32),
                     np.zeros((0, 2), np.int32))
-        return self._contour_cost(layers, np.ascontiguousarray(index, np.int32), thr,
+        return self._contour_cost(layers, first, np.ascontiguousarray(index, np.int32), thr,
                                   np.ascontiguousarray(win, np.int32), np.ascontiguousarray(mask, np.uint8),
                                   weights[0], weights[1], dist, steps)
 
     @abc.abstractmethod
-    def _contour_cost(self, layers: "DeviceLayers", view_index: np.ndarray, thresholds: np.ndarray,
-                      windows: np.ndarray, masks: np.ndarray, range_weights: np.ndarray,
-                      beam_weights: np.ndarray, distances: np.ndarray,
+    def _contour_cost(self, layers: "DeviceLayers", first_rows: np.ndarray, view_index: np.ndarray,
+                      thresholds: np.ndarray, windows: np.ndarray, masks: np.ndarray,
+                      range_weights: np.ndarray, beam_weights: np.ndarray, distances: np.ndarray,
                       shifts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Kernel launches of ``contour_cost``: layers a DeviceLayers of this backend or
-        HostLayers, clean C-contiguous int32 / float32 / uint8 arrays, N >= 1. Returns (N, 2,
-        beams) float32 contours, (N, 2, S) float32 sums, (N, 2) int32 counts."""
+        """Kernel launches of ``contour_cost``: layers a DeviceLayers of this backend or any
+        other (read back with ``.numpy()``), (N, 4, R, beams), with first_rows (N,) int32 the
+        image row of each pair's row 0 (zeros and R = bins for full layers; every band holds
+        the rows its window reads), clean C-contiguous int32 / float32 / uint8 arrays, N >= 1.
+        Returns (N, 2, beams) float32 contours, (N, 2, S) float32 sums, (N, 2) int32 counts."""
 
 
 class DeviceLayers(abc.ABC):
-    """Rendered layers in a backend's device memory; ``shape`` = (N, 4, bins, beams) float32."""
+    """Rendered layers in a backend's device memory; ``shape`` = (N, 4, bins, beams) float32,
+    or (N, 4, R, beams) for a band of rows per view (``render_device(..., rows=...)``).
+
+    first_rows : None for full layers; for banded ones the (N,) int array of the image row
+        that each view's row 0 holds (row k of view n is image row first_rows[n] + k).
+    """
 
     shape: tuple[int, int, int, int]
+    first_rows: np.ndarray | None = None
 
     @abc.abstractmethod
     def numpy(self) -> np.ndarray:
-        """A host copy, (N, 4, bins, beams) float32."""
+        """A host copy of ``shape`` float32 (for banded layers the band as it is)."""
 
 
 class HostLayers(DeviceLayers):
-    """Layers already on the host (an empty batch)."""
+    """Layers already on the host (an empty batch; or host layers given to ``contour_cost``,
+    with ``first_rows`` for banded ones)."""
 
-    def __init__(self, array: np.ndarray):
+    def __init__(self, array: np.ndarray, first_rows: np.ndarray | None = None):
         self.array = array
         self.shape = array.shape
+        self.first_rows = None if first_rows is None else np.asarray(first_rows)
 
     def numpy(self) -> np.ndarray:
         return self.array
+
+
+def _row_bands(rows, n_views: int, bins: int) -> tuple[np.ndarray, int]:
+    """(first (N,) int32, count) of ``render_device``'s ``rows`` (None: zeros and bins), or raise."""
+    if rows is None:
+        return np.zeros(n_views, np.int32), int(bins)
+    try:
+        first, count = rows
+    except (TypeError, ValueError):
+        raise ValueError(f"rows must be None or (first (N,) ints, count), got {rows!r}") from None
+    first = np.asarray(first)
+    if first.dtype.kind not in "iu" or first.shape != (n_views,):
+        raise ValueError(f"rows: first must be a ({n_views},) integer array, got {first.dtype} {first.shape}")
+    if not is_integer(count) or not 1 <= count <= bins:
+        raise ValueError(f"rows: count must be an integer in [1, {bins}], got {count!r}")
+    count = int(count)
+    if first.size and (first.min() < 0 or first.max() > bins - count):
+        raise ValueError(f"rows: every band [first, first + {count}) must lie in [0, {bins}), got first "
+                         f"{first.min()}..{first.max()}")
+    return np.ascontiguousarray(first, np.int32), count
 
 
 def _beam_widths(sonar: SonarSpec) -> np.ndarray:

@@ -205,7 +205,7 @@ class OpenCLBackend(Backend):
         return distance, face
 
     def _render(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations,
-                plane_normals, plane_offsets, k_theta, k_phi, gamma, surface_reflection):
+                plane_normals, plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, rows):
         _check_mesh(mesh)
         n_views = rotations.shape[0]
         if sonar.use_table:
@@ -215,7 +215,7 @@ class OpenCLBackend(Backend):
                        + np.arange(sonar.beams) / np.float64(sonar.beam_scale)).astype(np.float32)
         sub = k_theta * k_phi
         weight = np.float32(1.0 / sub)
-        shape = (n_views, 4, sonar.bins, sonar.beams)
+        shape = (n_views, 4, rows, sonar.beams)
         size = int(np.prod(shape))
         acc_buf = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=4 * size)
         layers_buf = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=4 * size)
@@ -230,11 +230,11 @@ class OpenCLBackend(Backend):
                 self._input(plane_offsets), self._input(centres),
                 self._input(np.ascontiguousarray(beam_widths, np.float32)),
                 self._input(sonar.beam_table), np.int32(sonar.use_table), np.int32(sonar.beams),
-                np.int32(sonar.bins), np.float32(sonar.half_azimuth), np.float32(sonar.beam_scale),
+                np.float32(sonar.half_azimuth), np.float32(sonar.beam_scale),
                 np.float32(sonar.range_min), np.float32(sonar.inv_range_step),
                 np.float32(sonar.half_elevation), np.int32(k_theta), np.int32(k_phi), weight,
                 np.float32(gamma), np.float32(surface_reflection), np.float32(RENDER_EPSILON),
-                np.float32(RENDER_MAX_DISTANCE), acc_buf)
+                np.float32(RENDER_MAX_DISTANCE), self._input(first_rows), np.int32(rows), acc_buf)
             self._fixed_kernel(self.queue, (-(-size // GROUP) * GROUP,), None, acc_buf, layers_buf,
                                np.int32(size))
             self.queue.finish()
@@ -242,8 +242,8 @@ class OpenCLBackend(Backend):
         return OpenCLLayers(self.queue, layers_buf, shape)
 
     # --- frontal contours and their distance to the data's ------------------------------------
-    def _contour_cost(self, layers, view_index, thresholds, windows, masks, range_weights, beam_weights,
-                      distances, shifts):
+    def _contour_cost(self, layers, first_rows, view_index, thresholds, windows, masks, range_weights,
+                      beam_weights, distances, shifts):
         n_pairs, bins, beams = view_index.shape[0], distances.shape[2], distances.shape[3]
         n_shifts = shifts.shape[0]
         if isinstance(layers, OpenCLLayers) and layers.queue.context == self.context:
@@ -261,7 +261,7 @@ class OpenCLBackend(Backend):
                 stack, index, self._input(thresholds), self._input(windows), self._input(masks),
                 self._input(range_weights), np.int32((range_weights.shape[0] - 1) // 2),
                 self._input(beam_weights), np.int32((beam_weights.shape[0] - 1) // 2), np.int32(bins),
-                np.int32(beams), contour_buf)
+                np.int32(beams), self._input(first_rows), np.int32(layers.shape[2]), contour_buf)
             group = min(GROUP, 1 << (n_shifts - 1).bit_length())
             self._contour_cost_kernel(
                 self.queue, (-(-n_shifts // group) * group, 2, n_pairs), (group, 1, 1),
@@ -275,7 +275,8 @@ class OpenCLBackend(Backend):
 
 
 class OpenCLLayers(DeviceLayers):
-    """Rendered layers in an OpenCL buffer (``.buffer``) of (N, 4, bins, beams) float32."""
+    """Rendered layers in an OpenCL buffer (``.buffer``) of (N, 4, bins, beams) float32, or
+    (N, 4, R, beams) for bands of rows (``first_rows``)."""
 
     def __init__(self, queue: cl.CommandQueue, buffer: cl.Buffer, shape: tuple[int, int, int, int]):
         self.queue = queue

@@ -136,10 +136,12 @@ def facing_normal(points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.in
 
 @wp.func
 def deposit(acc: wp.array4d(dtype=wp.int32), v: int, layer: int, bin_index: int, beam: int,
-            amplitude: float, weight: float, beams: int, bins: int):
-    """Add int(amplitude · weight · 2^24 + 0.5) at (v, layer, bin, beam) if inside the image."""
-    if bin_index >= 0 and bin_index < bins and beam >= 0 and beam < beams:
-        wp.atomic_add(acc, v, layer, bin_index, beam, int(amplitude * weight * _FIXED + 0.5))
+            amplitude: float, weight: float, beams: int, first: int):
+    """Add int(amplitude · weight · 2^24 + 0.5) at (v, layer, bin − first, beam) if inside view
+    v's band of rows (acc.shape[2] rows from image row ``first``) and the image's beams."""
+    row = bin_index - first
+    if row >= 0 and row < acc.shape[2] and beam >= 0 and beam < beams:
+        wp.atomic_add(acc, v, layer, row, beam, int(amplitude * weight * _FIXED + 0.5))
 
 
 # --- watertight ray casting against a Warp BVH over the triangles (kernels/bvh.h) ------------
@@ -266,12 +268,13 @@ def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
                   translations: wp.array(dtype=wp.vec3), plane_normals: wp.array(dtype=wp.vec3),
                   plane_offsets: wp.array(dtype=float), beam_centres: wp.array(dtype=float),
                   beam_widths: wp.array(dtype=float), beam_table: wp.array2d(dtype=float),
-                  use_table: int, beams: int, bins: int, half_azimuth: float, beam_scale: float,
+                  use_table: int, beams: int, half_azimuth: float, beam_scale: float,
                   range_min: float, inv_range_step: float, half_elevation: float,
                   k_theta: int, k_phi: int, weight: float, gamma: float, surface_reflection: float,
-                  acc: wp.array4d(dtype=wp.int32)):
+                  first_rows: wp.array(dtype=wp.int32), acc: wp.array4d(dtype=wp.int32)):
     """Thread (v, b, k): sub-ray (i, j) = divmod(k, K_φ) of beam b in view v; deposits its
-    object, ghost, mirror and mirror2 returns into acc (N, 4, bins, beams)."""
+    object, ghost, mirror and mirror2 returns into acc (N, 4, R, beams), view v's image row B
+    at row B − first_rows[v] when that lies in [0, R), else nowhere (kernels/render.cl)."""
     v, b, k = wp.tid()
     i = k // k_phi
     j = k - i * k_phi
@@ -279,6 +282,7 @@ def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
     org = translations[v]
     n = plane_normals[v]
     d = plane_offsets[v]
+    first = first_rows[v]
 
     # 1. sub-ray direction (view frame)
     theta = beam_centres[b] + ((float(i) + 0.5) / float(k_theta) - 0.5) * beam_widths[b]
@@ -300,7 +304,7 @@ def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
         nrm = facing_normal(points, indices, hit.face, rot, u)
         c = -wp.dot(u, nrm)
         deposit(acc, v, 0, nearest_index(bin_coordinate(r, range_min, inv_range_step)), b,
-                wp.pow(c, gamma), weight, beams, bins)
+                wp.pow(c, gamma), weight, beams, first)
         p = r * u
         o_m = (2.0 * d) * n
         q = wp.length(p - o_m)
@@ -322,11 +326,11 @@ def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
                         if leg2.face < 0:
                             a_s = surface_reflection * wp.pow(c * c_in, 0.5 * gamma)
                             rb = nearest_index(bin_coordinate(0.5 * (r + q), range_min, inv_range_step))
-                            deposit(acc, v, 1, rb, b, a_s, weight, beams, bins)
+                            deposit(acc, v, 1, rb, b, a_s, weight, beams, first)
                             pm = p - (2.0 * (n_p - d)) * n
                             mb = nearest_index(beam_coordinate(azimuth(pm), use_table, beam_table, beams,
                                                                half_azimuth, beam_scale))
-                            deposit(acc, v, 2, rb, mb, a_s, weight, beams, bins)
+                            deposit(acc, v, 2, rb, mb, a_s, weight, beams, first)
     elif has_surface:
         # 4. surface first: mirror2 along the reflected ray
         qs = s * u
@@ -338,7 +342,7 @@ def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
             nrm2 = facing_normal(points, indices, hit2.face, rot, u2)
             c2 = -wp.dot(u2, nrm2)
             deposit(acc, v, 3, nearest_index(bin_coordinate(s + r2, range_min, inv_range_step)), b,
-                    surface_reflection * surface_reflection * wp.pow(c2, gamma), weight, beams, bins)
+                    surface_reflection * surface_reflection * wp.pow(c2, gamma), weight, beams, first)
 
 
 @wp.kernel
@@ -436,7 +440,8 @@ def carve_points(centres: wp.array(dtype=wp.vec3), rotations: wp.array(dtype=wp.
 
 # --- the backend -----------------------------------------------------------------------------
 class WarpLayers(DeviceLayers):
-    """Rendered layers in a (N, 4, bins, beams) float32 ``wp.array`` (``.array``)."""
+    """Rendered layers in a (N, 4, bins, beams) float32 ``wp.array`` (``.array``), or (N, 4,
+    R, beams) for bands of rows (``first_rows``)."""
 
     def __init__(self, array: wp.array):
         self.array = array
@@ -535,7 +540,7 @@ class WarpBackend(Backend):
             return distance.numpy(), face.numpy()
 
     def _render(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations,
-                plane_normals, plane_offsets, k_theta, k_phi, gamma, surface_reflection):
+                plane_normals, plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, rows):
         mesh = self._check_mesh(mesh)
         n_views = rotations.shape[0]
         if sonar.use_table:
@@ -544,7 +549,7 @@ class WarpBackend(Backend):
             half = float(sonar.half_azimuth)
             centres = (-half + np.arange(sonar.beams) * (2.0 * half / max(sonar.beams - 1, 1))).astype(np.float32)
         weight = float(np.float32(1.0 / (k_theta * k_phi)))
-        shape = (n_views, 4, sonar.bins, sonar.beams)
+        shape = (n_views, 4, rows, sonar.beams)
         with wp.ScopedDevice(self._device):
             acc = wp.zeros(shape, dtype=wp.int32)
             wp.launch(render_kernel, dim=(n_views, sonar.beams, k_theta * k_phi),
@@ -553,9 +558,10 @@ class WarpBackend(Backend):
                               self._array(plane_offsets, float), self._array(centres, float),
                               self._array(np.ascontiguousarray(beam_widths, np.float32), float),
                               self._array(sonar.beam_table, float), sonar.use_table, sonar.beams,
-                              sonar.bins, sonar.half_azimuth, sonar.beam_scale, sonar.range_min,
+                              sonar.half_azimuth, sonar.beam_scale, sonar.range_min,
                               sonar.inv_range_step, sonar.half_elevation, int(k_theta), int(k_phi),
-                              weight, float(gamma), float(surface_reflection)],
+                              weight, float(gamma), float(surface_reflection),
+                              self._array(first_rows, wp.int32)],
                       outputs=[acc])
             layers = wp.empty(shape, dtype=float)
             wp.launch(fixed_to_float, dim=acc.size, inputs=[acc.flatten()], outputs=[layers.flatten()])
@@ -584,8 +590,8 @@ class WarpBackend(Backend):
             return seen.numpy(), rejected.numpy()
 
     # --- frontal contours and their distance to the data's (kernels after the class) ---------
-    def _contour_cost(self, layers, view_index, thresholds, windows, masks, range_weights, beam_weights,
-                      distances, shifts):
+    def _contour_cost(self, layers, first_rows, view_index, thresholds, windows, masks, range_weights,
+                      beam_weights, distances, shifts):
         n_pairs, beams = view_index.shape[0], distances.shape[3]
         with wp.ScopedDevice(self._device):
             if isinstance(layers, WarpLayers) and layers.array.device == self._device:
@@ -595,7 +601,8 @@ class WarpBackend(Backend):
             index = self._array(view_index, wp.int32)
             contour = wp.empty((n_pairs, 2, beams), dtype=float)
             wp.launch(frontal_contour, dim=(n_pairs, 2, beams),
-                      inputs=[stack, index, self._array(thresholds, float), self._array(windows, wp.int32),
+                      inputs=[stack, self._array(first_rows, wp.int32), index, self._array(thresholds, float),
+                              self._array(windows, wp.int32),
                               self._array(masks, wp.uint8), self._array(range_weights, float),
                               (range_weights.shape[0] - 1) // 2, self._array(beam_weights, float),
                               (beam_weights.shape[0] - 1) // 2],
@@ -611,15 +618,19 @@ class WarpBackend(Backend):
 
 # --- frontal contours and their distance to the data's (kernels/pose.cl documents the rule) --
 @wp.kernel
-def frontal_contour(layers: wp.array4d(dtype=float), view_index: wp.array(dtype=wp.int32),
+def frontal_contour(layers: wp.array4d(dtype=float), first_rows: wp.array(dtype=wp.int32),
+                    view_index: wp.array(dtype=wp.int32),
                     threshold: wp.array2d(dtype=float), window: wp.array2d(dtype=wp.int32),
                     mask: wp.array3d(dtype=wp.uint8), w_range: wp.array(dtype=float), r_range: int,
                     w_beam: wp.array(dtype=float), r_beam: int, contour: wp.array3d(dtype=float)):
-    """Thread (n, c, b): first threshold crossing of the smoothed component c of pair n in beam b."""
+    """Thread (n, c, b): first threshold crossing of the smoothed component c of pair n in beam b.
+    layers (N, 4, R, beams): image row B of pair n at row B − first_rows[n] (full layers: zeros,
+    R = bins); rows clamp to the image, and the host guarantees the band holds every row read."""
     n, c, b = wp.tid()
     v = view_index[n]
-    bins = layers.shape[2]
+    bins = threshold.shape[1]
     beams = layers.shape[3]
+    first = first_rows[n]
     result = float(-1.0)
     if mask[v, c, b] != wp.uint8(0):
         lo = window[v, 0]
@@ -629,7 +640,7 @@ def frontal_contour(layers: wp.array4d(dtype=float), view_index: wp.array(dtype=
         while row_index < hi:
             s = float(0.0)
             for i in range(2 * r_range + 1):
-                bi = wp.clamp(row_index + i - r_range, 0, bins - 1)
+                bi = wp.clamp(row_index + i - r_range, 0, bins - 1) - first
                 row = float(0.0)
                 for j in range(2 * r_beam + 1):
                     bj = wp.clamp(b + j - r_beam, 0, beams - 1)
