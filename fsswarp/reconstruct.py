@@ -38,7 +38,7 @@ measured (D0, β0), ten updates took E_V steadily from 0.386 to 0.323, while E_I
 0.81, 0.79, 0.79, 0.77, 0.79, 0.80, 0.80, 0.75, and stopping at the first rise kept the
 model of the first update. A trial is judged by E_I alone; E_mu and the truth metrics
 are computed only for the trials recorded, the truth metrics in a child process while the
-loop goes on when the kernels run on a GPU (their lines come when they are ready). It also
+loop goes on (their lines come when they are ready). It also
 stops after ``iterations``. E_I is the objective here because it is measurable and, in the
 paper, tracks the model error E_V; E_mu alone kept falling on coral-two while E_I rose from 0.71 to 0.98
 and E_V from 0.28 to 0.30 over three more iterations.
@@ -162,7 +162,7 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
     backend = backend or get_backend()
     say = progress or (lambda line: None)
     start = time.perf_counter()
-    with _TruthMetrics(_truth_model(dataset), say, background=backend.is_gpu) as truth:
+    with _TruthMetrics(_truth_model(dataset), say) as truth:
         given = "given" if depth0 is not None or tilt0 is not None else "measured"
         say(f"iteration 0: carving at the {given} D0 = {depth:.4f} m, tilt0 = {math.degrees(tilt):.3f} deg")
         carved = carve(dataset, depth, tilt, resolution=settings.resolution, settings=settings.carve,
@@ -294,23 +294,21 @@ def _complete(entry: dict, problem, model, depth: float, tilt: float, truth) -> 
 
 class _TruthMetrics:
     """E_V, Chamfer and F-score of recorded models against the truth mesh (None: no truth, and
-    nothing to do). With ``background`` (a GPU backend, whose kernels leave the host's cores
-    free) they are computed in a child Python process (``fsswarp.metrics.serve_compare``),
-    fed by one worker thread that waits on its pipe, while the loop goes on; else at once: on
-    a CPU backend the kernels already use every core, and on 2 cores a worker thread made
-    coral-two 3–5% slower (85.0 and 84.1 s against 82.5 and 79.9 s). A worker thread alone
-    held the GIL against the loop: coral-one took 34.4 and 35.2 s on an H100 with it, 24.2 and
-    24.7 s with the child process and 23.4 and 24.9 s with no truth metrics at all. The values
-    do not depend on where they are computed. ``collect`` writes them into the history
-    entries, in order, and reports each with ``say``. A context manager: leaving it stops the
-    worker and its process."""
+    nothing to do), computed in a child Python process (``fsswarp.metrics.serve_compare``),
+    fed by one worker thread that waits on its pipe, while the loop goes on. A worker thread
+    alone held the GIL against the loop: coral-one took 34.4 and 35.2 s on an H100 with it,
+    24.2 and 24.7 s with the child process and 23.4 and 24.9 s with no truth metrics at all.
+    On this 2-core CPU, where they were computed at once (the kernels use both cores), the
+    child process uses the core that the loop's host work leaves idle: coral-one 84.9 s → 80.6
+    s (side by side, medians of 2, the same iterates). The values do not depend on where they
+    are computed. ``collect`` writes them into the history entries, in order, and reports each
+    with ``say``. A context manager: leaving it stops the worker and its process."""
 
-    def __init__(self, mesh, say: Callable[[str], None], *, background: bool):
+    def __init__(self, mesh, say: Callable[[str], None]):
         from concurrent.futures import ThreadPoolExecutor
 
         self.mesh, self.say = mesh, say
-        work = background and mesh is not None
-        self.pool = ThreadPoolExecutor(1, thread_name_prefix="fsswarp-truth") if work else None
+        self.pool = ThreadPoolExecutor(1, thread_name_prefix="fsswarp-truth") if mesh is not None else None
         self.child = None  # the compare process, started by the first submit
         self.pending = []  # (history entry, future), oldest first
 
@@ -326,18 +324,8 @@ class _TruthMetrics:
             self.child.stdout.close()
 
     def submit(self, entry: dict, model) -> None:
-        from concurrent.futures import Future
-
-        from .metrics import compare
-
-        if self.mesh is None:
-            return
         if self.pool is not None:
             self.pending.append((entry, self.pool.submit(self._compare_in_child, model)))
-        else:
-            done = Future()
-            done.set_result(compare(model, self.mesh))
-            self.pending.append((entry, done))
 
     def _compare_in_child(self, model) -> dict:
         """``compare(model, truth)`` in the child process (on the worker thread)."""

@@ -65,16 +65,15 @@ def test_truth_metrics_of_every_recorded_iteration_are_reported(one_iteration, c
     assert f"E_V {kept['E_V']:.3f}" in reported[result.best_iteration]
 
 
-@pytest.mark.parametrize("background", [False, True], ids=["at-once", "worker"])
-def test_truth_metrics_reach_their_entries_in_order(background):
+def test_truth_metrics_reach_their_entries_in_order():
     """Concentric icospheres, one mesh scaled: the smaller lies inside the larger, so E_V is
     1 − (r_small / r_large)³ (closed form); each entry gets its own model's values, with one
-    line each, in order, on the worker thread (GPU backends) or at once (CPU backends)."""
+    line each, in order."""
     truth = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
     radii = (0.11, 0.095)
     entries = [{"iteration": i} for i in range(len(radii))]
     lines = []
-    with reconstruct_module._TruthMetrics(truth, lines.append, background=background) as metrics:
+    with reconstruct_module._TruthMetrics(truth, lines.append) as metrics:
         for entry, radius in zip(entries, radii):
             metrics.submit(entry, trimesh.creation.icosphere(subdivisions=3, radius=radius))
         metrics.collect(wait=True)
@@ -83,19 +82,21 @@ def test_truth_metrics_reach_their_entries_in_order(background):
     assert entries[0]["chamfer_m"] == pytest.approx(0.01, rel=0.05)
     assert [line.split()[1] for line in lines] == ["0", "1"] and not metrics.pending
     alone = {"iteration": 0}
-    with reconstruct_module._TruthMetrics(None, lines.append, background=background) as metrics:
+    with reconstruct_module._TruthMetrics(None, lines.append) as metrics:
         metrics.submit(alone, truth)
         metrics.collect(wait=True)
     assert alone == {"iteration": 0} and len(lines) == 2  # no truth model: nothing to add
+    assert metrics.child is None
 
 
 def test_truth_metrics_in_the_child_process_are_compares_and_raise_its_errors():
-    """On a GPU backend the metrics come from a child process: the same values as ``compare``
-    here, bit for bit; its errors reach ``collect``; the process ends with the context."""
+    """The metrics come from a child process: the same values as ``compare`` here, bit for
+    bit; its errors reach ``collect``; the process ends with the context; without a truth
+    model no process starts."""
     truth = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
     model = trimesh.creation.icosphere(subdivisions=2, radius=0.105)
     entry = {"iteration": 0}
-    with reconstruct_module._TruthMetrics(truth, [].append, background=True) as metrics:
+    with reconstruct_module._TruthMetrics(truth, [].append) as metrics:
         metrics.submit(entry, model)
         metrics.collect(wait=True)
         child = metrics.child
@@ -103,7 +104,7 @@ def test_truth_metrics_in_the_child_process_are_compares_and_raise_its_errors():
     assert (entry["E_V"], entry["chamfer_m"], entry["fscore"]) == (want["E_V"], want["chamfer_m"], want["fscore"])
     assert child.returncode == 0
     with pytest.raises(InputError, match="holds no triangles"):
-        with reconstruct_module._TruthMetrics(truth, [].append, background=True) as metrics:
+        with reconstruct_module._TruthMetrics(truth, [].append) as metrics:
             metrics.submit({"iteration": 1}, trimesh.Trimesh())
             metrics.collect(wait=True)
     assert metrics.child.returncode == 0
