@@ -297,13 +297,16 @@ class PoseProblem:
     # --- data contours ---------------------------------------------------------------------
     def _data_contours(self, depth: float, tilt: float):
         """(DataContours, (V, 4, bins, beams) layers synthesized at (depth, tilt)) of the views
-        where the model is seen."""
+        where the model is seen. The predicted contours are scanned from the row before the
+        smoothing can first see a return (every layer of a view is 0 above its first echo row,
+        so no row there crosses the threshold): the same contours as a scan from row 0."""
         sonar, st, views, highlight, threshold = self.sonar, self.settings, self.views, self.highlight, self.threshold
         names = [self.rig.views[i].name for i in views]
-        full = np.stack([np.array([0, sonar.bins])] * len(views))
         every = np.ones((len(views), 2, sonar.beams), bool)
         layers = self.render_pairs(views, np.array([depth]), np.array([tilt]), st.exact_samples)
-        contour, _, _ = self.backend.contour_cost(layers, np.arange(len(views)), threshold, full, every,
+        predicted = layers.numpy()
+        scan = np.stack([scan_start(predicted, len(self.smoothing[0])), np.full(len(views), sonar.bins)], axis=1)
+        contour, _, _ = self.backend.contour_cost(layers, np.arange(len(views)), threshold, scan, every,
                                                   np.zeros((len(views), 2, sonar.bins, sonar.beams), np.float32),
                                                   [0.0], self.smoothing)
         seen = (contour[:, 0] >= 0).any(axis=1)
@@ -339,7 +342,7 @@ class PoseProblem:
         data = DataContours(tuple(views[k] for k in keep), tuple(names[k] for k in keep), threshold[keep],
                             np.asarray(windows, np.int64), np.asarray(masks), np.asarray(rows),
                             np.asarray(distances, np.float32))
-        return data, layers.numpy()[keep]
+        return data, predicted[keep]
 
     def warn_unseen(self, names, depth: float, tilt: float, *, stacklevel: int = 2) -> None:
         """PoseWarning that the model is not seen in the views ``names`` at (depth m, tilt rad)."""
@@ -732,6 +735,17 @@ def _detection_threshold(array: np.ndarray, settings: SegmentSettings) -> np.nda
     centre = float(np.median(smooth))
     spread = max(1.4826 * float(np.median(np.abs(smooth - centre))), 0.01 * (float(smooth.max()) - centre))
     return np.maximum(centre + settings.low * spread - 1.0, 0.0) * level
+
+
+def scan_start(layers: np.ndarray, taps: int) -> np.ndarray:
+    """(N,) the first row from which ``contour_cost`` must scan (N, 4, bins, beams) ``layers``,
+    smoothed along range over ``taps`` rows, to find every threshold crossing: the row before
+    the smoothing first reaches a return of any layer and beam (above it the smoothed image
+    is 0 and cannot exceed a threshold >= 0), at least 0, at most bins − 1."""
+    bins = layers.shape[2]
+    echo = layers.any(axis=(1, 3))  # (N, bins): rows holding a return
+    first = np.where(echo.any(axis=1), echo.argmax(axis=1), bins)
+    return np.clip(first - (taps - 1) // 2 - 1, 0, bins - 1)
 
 
 def contour_distance(rows: np.ndarray, bins: int, range_step: float, arc: float, reach: float) -> np.ndarray:

@@ -189,3 +189,30 @@ def test_bad_inputs_raise(backend_for_label, change, message):
     args.update(change)
     with pytest.raises(ValueError, match=message):
         backend.contour_cost(**args)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_scan_from_scan_start_finds_the_contours_of_a_scan_from_row_0(backend, seed):
+    """The pose step scans its predicted views from ``scan_start`` (the row before the
+    smoothing first reaches a return): the contours equal a scan of the whole image, also for
+    echoes at the top rows and views with none; and ``scan_start`` is that row."""
+    from fsswarp.pose import scan_start
+
+    layers, view_index, thresholds, _, _, distances, shifts, smoothing = random_case(seed)
+    n_pairs, _, bins, beams = layers.shape
+    rng = np.random.default_rng(seed)
+    first = rng.integers(0, bins, n_pairs)
+    first[0], first[1] = 0, bins  # an echo in the first row, a view without any
+    layers *= (np.arange(bins)[None, :] >= first[:, None])[:, None, :, None]  # 0 above the first echo row
+    taps = len(smoothing[0])
+    np.testing.assert_array_equal(scan_start(layers, taps),
+                                  np.clip(first - (taps - 1) // 2 - 1, 0, bins - 1))
+    index = np.arange(n_pairs)
+    views = thresholds[view_index], np.ones((n_pairs, 2, beams), bool), distances[view_index]
+    whole = np.stack([np.zeros(n_pairs, int), np.full(n_pairs, bins)], axis=1)
+    scan = np.stack([scan_start(layers, taps), np.full(n_pairs, bins)], axis=1)
+    full = backend.contour_cost(layers, index, views[0], whole, *views[1:], shifts, smoothing)
+    started = backend.contour_cost(layers, index, views[0], scan, *views[1:], shifts, smoothing)
+    for a, b in zip(full, started):
+        np.testing.assert_array_equal(a, b)
+    assert (full[0] >= 0).any()
