@@ -78,6 +78,7 @@ from typing import Callable
 import nlopt
 import numpy as np
 
+from .backends import rows_read
 from .errors import InputError, check_integer, is_integer
 from .icp import CONTOUR_TOL, icp_many
 from .motion import patch_motions, view_errors
@@ -412,9 +413,8 @@ class PoseProblem:
         row; the contours and costs are those of full layers, bit for bit."""
         data, sonar = self.data, self.sonar
         n_views = len(data.views)
-        radius = (len(self.smoothing[0]) - 1) // 2
-        need_lo = np.maximum(data.windows[:, 0] - radius, 0)
-        rows = int(np.max(np.minimum(data.windows[:, 1] + radius, sonar.bins) - need_lo))
+        need_lo, need_hi = rows_read(data.windows, len(self.smoothing[0]), sonar.bins)
+        rows = int(np.max(need_hi - need_lo))
         first = np.minimum(need_lo, sonar.bins - rows)
         per = max(1, self.settings.launch_bytes // (32 * rows * sonar.beams * n_views))
         distances = np.minimum(data.distances, np.float32(cap))

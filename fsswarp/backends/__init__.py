@@ -37,8 +37,8 @@ import numpy as np
 from ..errors import InputError, is_integer
 from ..sonar import SonarSpec
 
-__all__ = ["Backend", "DeviceLayers", "SonarConstants", "get_backend", "describe_backends", "BACKEND_NAMES",
-           "INSTALL_WARP", "INSTALL_OPENCL"]
+__all__ = ["Backend", "DeviceLayers", "SonarConstants", "get_backend", "describe_backends", "rows_read",
+           "BACKEND_NAMES", "INSTALL_WARP", "INSTALL_OPENCL"]
 
 #: Values of ``--backend``.
 BACKEND_NAMES = ("auto", "warp", "opencl")
@@ -389,16 +389,13 @@ class Backend(abc.ABC):
                 raise ValueError(f"banded layers must have shape (N, 4, R, beams) = ({index.shape[0]}, 4, R, "
                                  f"{beams}), got {shape}")
             first, _ = _row_bands((first, shape[2]), index.shape[0], bins)
-            radius = (weights[0].shape[0] - 1) // 2
-            rows = win.astype(np.int64)[index]
-            need_lo = np.maximum(rows[:, 0] - radius, 0)
-            need_hi = np.minimum(rows[:, 1] + radius, bins)
+            need_lo, need_hi = rows_read(win[index], weights[0].shape[0], bins)
             bad = np.flatnonzero((first > need_lo) | (first + shape[2] < need_hi))
             if bad.size:
                 n = int(bad[0])
                 raise ValueError(f"the band of pair {n}, rows [{first[n]}, {first[n] + shape[2]}), misses rows "
                                  f"its window needs, [{need_lo[n]}, {need_hi[n]}) (window {tuple(win[index[n]])} "
-                                 f"of view {index[n]}, ± {radius} rows of smoothing)")
+                                 f"of view {index[n]}, ± {(weights[0].shape[0] - 1) // 2} rows of smoothing)")
         n_pairs, n_shifts = index.shape[0], steps.shape[0]
         if n_pairs == 0:
             return (np.zeros((0, 2, beams), np.float32), np.zeros((0, 2, n_shifts), np.float32),
@@ -446,6 +443,16 @@ class HostLayers(DeviceLayers):
 
     def numpy(self) -> np.ndarray:
         return self.array
+
+
+def rows_read(windows, range_taps: int, bins: int) -> tuple[np.ndarray, np.ndarray]:
+    """The image rows [lo, hi) that ``contour_cost`` reads for (N, 2) windows [lo, hi) with a
+    range smoothing of ``range_taps`` (odd) taps: each window widened by the smoothing's
+    radius, clipped to the image [0, bins). Returns (N,) lo and (N,) hi, int64; a band of
+    rows that holds them gives the full layers' results (``render_device``'s ``rows``)."""
+    windows = np.asarray(windows, np.int64)
+    radius = (range_taps - 1) // 2
+    return np.maximum(windows[:, 0] - radius, 0), np.minimum(windows[:, 1] + radius, bins)
 
 
 def _row_bands(rows, n_views: int, bins: int) -> tuple[np.ndarray, int]:
