@@ -211,26 +211,26 @@ class _Update:
             self.problem = problem = PoseProblem(mesh, dataset, depth, tilt, settings=settings.pose,
                                                  backend=backend)
         self.mesh, self.settings, self.depth, self.tilt = mesh, settings, depth, tilt
+        if not motions:  # CE alone
+            self.errors = problem.contour_errors(depth, tilt)
+            return
         data = problem.data
         contours, shift = problem.synthetic_contours(depth, tilt)
         self.rot, self.t, self.n_view, self.d_view = (a[0] for a in problem.view_poses(data.views, np.array([depth]),
                                                                                    np.array([tilt])))
         self.errors = np.full(len(data.views), math.nan)
         self.contour = {}  # (component, view) -> (beams, 2-D motions (beams, 2))
-        components = (0, 1) if settings.mirror else (0,)
-        for c, k, beams, source, goal, result in problem.align(contours, shift, components):
+        for c, k, beams, source, goal, result in problem.align(contours, shift, (0, 1) if settings.mirror else (0,)):
             if c == 0:
                 self.errors[k] = result.error
-            if motions:
-                vectors = result.motions.copy()
-                i, j = result.pairs[:, 0], result.pairs[:, 1]
-                vectors[i] = goal[j] - source[i]
-                self.contour[(c, k)] = (beams, vectors)
-        if motions:
-            self.motion = np.zeros((len(mesh.faces), 3))
-            contour_faces = self._contour_motions()
-            shrink_faces = self._overshoot(dataset, contour_faces) if settings.shrink > 0 else np.zeros(0, int)
-            self.contour_patches, self.shrink_patches = len(contour_faces), len(shrink_faces)
+            vectors = result.motions.copy()
+            i, j = result.pairs[:, 0], result.pairs[:, 1]
+            vectors[i] = goal[j] - source[i]
+            self.contour[(c, k)] = (beams, vectors)
+        self.motion = np.zeros((len(mesh.faces), 3))
+        contour_faces = self._contour_motions()
+        shrink_faces = self._overshoot(dataset, contour_faces) if settings.shrink > 0 else np.zeros(0, int)
+        self.contour_patches, self.shrink_patches = len(contour_faces), len(shrink_faces)
 
     # --- contour term ---------------------------------------------------------------------
     def _contour_motions(self) -> np.ndarray:
