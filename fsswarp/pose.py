@@ -86,15 +86,10 @@ from .render import check_mesh
 from .segment import SegmentSettings, memoized, segment
 from .surface import mirror_points, surface_in_reference, surface_in_views
 
-#: Ray-cast ε (m) of the frontal-patch search, as the renderer's leg tests.
-EPSILON = 1e-4
 #: Half-width of the polish box in cells of the finest grid level.
 POLISH_CELLS = 2
 #: Default grid half-widths in units of the manifest's depth and tilt uncertainties.
 BOUNDS_FACTOR = 1.2
-#: A mirror patch counts as seen directly from the sonar when the first hit toward it lies
-#: within this distance (m) of it.
-VISIBLE = 2e-3
 
 
 class PoseWarning(UserWarning):
@@ -553,50 +548,17 @@ class PoseProblem:
         """Per view k: (len(thetas[k]),) face of the frontal patch of each beam azimuth, -1 where
         none: the hit at the shortest range (object), or at the shortest mirror range
         (|P| + |P'|)/2 over the beam's elevation rays that meet the surface first (mirror,
-        DESIGN §3). The views' rays go to the backend together, one launch per leg.
+        DESIGN §3); ``Backend.frontal_faces``, all views' beams in one launch.
 
         rot (V, 3, 3), t (V, 3) : the views' poses; n (V, 3), d (V,) : their surface planes;
         thetas : V arrays of beam azimuths (rad)."""
         if not len(thetas):
             return []
-        sonar = self.sonar
-        k = self.settings.patch_rays
-        phi = -sonar.half_elevation + (np.arange(k) + 0.5) / k * sonar.elevation_fov
         sizes = [len(theta) for theta in thetas]
-        th = np.repeat(np.concatenate([np.asarray(theta, np.float64) for theta in thetas]), k)
-        ph = np.tile(phi, sum(sizes))
-        owner = np.repeat(np.arange(len(thetas)), np.asarray(sizes) * k)
-        rot, t, n = np.asarray(rot)[owner], np.asarray(t)[owner], np.asarray(n)[owner]
-        d = np.asarray(d, np.float64)[owner]
-        u = np.stack([np.cos(ph) * np.sin(th), np.cos(ph) * np.cos(th), np.sin(ph)], axis=-1)
-        up = np.einsum("ij,ij->i", u, n)
-        surface = np.where(up > 0, d / np.where(up > 0, up, 1.0), np.inf)
-        dist, face = self.backend.cast_rays(self.mesh, t, _turn(rot, u))
-        dist = dist.astype(np.float64)
-        if not mirror:
-            rng = np.where(dist < surface, dist, np.inf)
-        else:  # sonar -> surface (Q) -> patch P -> back to the sonar: seen at (|P| + |Q| + |P - Q|)/2
-            rng = np.full(len(u), np.inf)
-            face = np.full(len(u), -1)
-            bounce = np.flatnonzero(np.isfinite(surface) & (surface < dist))
-            q = u[bounce] * surface[bounce, None]
-            w = u[bounce] - 2.0 * up[bounce, None] * n[bounce]
-            r2, hit = self.backend.cast_rays(self.mesh, _turn(rot[bounce], q + EPSILON * w) + t[bounce],
-                                             _turn(rot[bounce], w))
-            keep = np.isfinite(r2)
-            bounce, q, w, r2, hit = bounce[keep], q[keep], w[keep], r2[keep].astype(np.float64) + EPSILON, hit[keep]
-            p = q + r2[:, None] * w
-            length = np.linalg.norm(p, axis=1)
-            back, _ = self.backend.cast_rays(self.mesh, t[bounce], _turn(rot[bounce], p / length[:, None]))
-            inside = (np.abs(np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1]))) <= sonar.half_elevation) \
-                & (np.abs(np.arctan2(p[:, 0], p[:, 1])) <= sonar.half_azimuth)
-            ok = inside & (back >= length - VISIBLE)
-            rng[bounce[ok]] = 0.5 * (length[ok] + surface[bounce[ok]] + r2[ok])
-            face[bounce[ok]] = hit[ok]
-        rng = rng.reshape(-1, k)
-        best = np.argmin(rng, axis=1)
-        rows = np.arange(len(rng))
-        found = np.where(np.isfinite(rng[rows, best]), face.reshape(-1, k)[rows, best], -1)
+        views = np.repeat(np.arange(len(thetas)), sizes)
+        azimuths = np.concatenate([np.asarray(theta, np.float64) for theta in thetas])
+        found = self.backend.frontal_faces(self.mesh, self.sonar, rot, t, n, d, views, azimuths,
+                                           self.settings.patch_rays, mirror=mirror)
         return np.split(found, np.cumsum(sizes)[:-1])
 
 
@@ -779,11 +741,6 @@ def _gaussian(sigma: float) -> np.ndarray:
     x = np.arange(-radius, radius + 1)
     w = np.exp(-0.5 * (x / sigma) ** 2)
     return w / w.sum()
-
-
-def _turn(rot: np.ndarray, vectors: np.ndarray) -> np.ndarray:
-    """(N, 3) vectors (N, 3) turned by their own rotations (N, 3, 3)."""
-    return np.einsum("nij,nj->ni", rot, vectors)
 
 
 def _parabola_minimum(x: np.ndarray, y: np.ndarray) -> float:

@@ -127,7 +127,7 @@ def _oracle_frontal_faces(mesh, sonar, rot, t, n, d, theta, rays: int, mirror: b
     the fan and visible from the sonar)."""
     from oracle_render import first_hits, make_intersector
 
-    from fsswarp.pose import EPSILON, VISIBLE
+    from fsswarp.backends import FRONTAL_EPSILON as EPSILON, FRONTAL_VISIBLE as VISIBLE
 
     hits = make_intersector(mesh)
     phi = -sonar.half_elevation + (np.arange(rays) + 0.5) / rays * sonar.elevation_fov
@@ -181,6 +181,39 @@ def test_frontal_faces_match_a_ray_casting_oracle_and_do_not_depend_on_the_batch
     assert (want >= 0).sum() >= 100
     assert np.mean(found == want) >= 0.98
     assert problem.frontal_faces(rot[:0], t[:0], n[:0], d[:0], [], mirror=mirror) == []
+
+
+def test_frontal_faces_warp_and_opencl_agree(coral_one, truth_model, backend_for_label):
+    """Both backends' kernels, every beam of every view 1 cm and 0.3 deg off the truth: the same
+    faces bar float32 near-ties between a beam's rays."""
+    warp, opencl = backend_for_label("warp-cpu"), backend_for_label("opencl-cpu")
+    truth = coral_one.manifest.truth
+    problem = PoseProblem(truth_model, coral_one, truth.depth, truth.tilt, backend=opencl)
+    poses = problem.view_poses(problem.data.views, [truth.depth + 0.01], [truth.tilt + np.radians(0.3)])
+    rot, t, n, d = (a[0] for a in poses)
+    beams = coral_one.sonar.beam_centres
+    views, azimuths = np.repeat(np.arange(len(rot)), len(beams)), np.tile(beams, len(rot))
+    for mirror in (False, True):
+        found = [b.frontal_faces(b.load_mesh(truth_model.vertices, truth_model.faces), coral_one.sonar, rot, t, n, d,
+                                 views, azimuths, 16, mirror=mirror) for b in (warp, opencl)]
+        assert found[0].dtype == np.int32 and found[0].shape == views.shape
+        assert (found[0] >= 0).sum() >= 100
+        assert np.mean(found[0] == found[1]) >= 0.999
+
+
+def test_frontal_faces_validates(coral_one, truth_model, backend):
+    handle = backend.load_mesh(truth_model.vertices, truth_model.faces)
+    rot, t, n, d = np.eye(3)[None], np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), np.array([0.5])
+    sonar = coral_one.sonar
+    assert backend.frontal_faces(handle, sonar, rot, t, n, d, np.zeros(0, int), np.zeros(0), 4,
+                                 mirror=True).shape == (0,)
+    for views, azimuths, rays, match in (([0, 0], [0.1], 4, "views must be"), ([1], [0.1], 4, "views index"),
+                                         ([0.0], [0.1], 4, "views must be"), ([0], [0.1], 0, "rays"),
+                                         ([0], [np.nan], 4, "azimuths")):
+        with pytest.raises(ValueError, match=match):
+            backend.frontal_faces(handle, sonar, rot, t, n, d, views, azimuths, rays, mirror=False)
+    with pytest.raises(ValueError, match="same views"):
+        backend.frontal_faces(handle, sonar, rot, t, n, np.array([0.5, 0.5]), [0], [0.1], 4, mirror=False)
 
 
 def test_figure(tmp_path, coral_one, estimate):

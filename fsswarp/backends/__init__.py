@@ -40,6 +40,13 @@ from ..sonar import SonarSpec
 __all__ = ["Backend", "DeviceLayers", "SonarConstants", "get_backend", "describe_backends", "rows_read",
            "BACKEND_NAMES", "INSTALL_WARP", "INSTALL_OPENCL"]
 
+#: ε (m) past the surface from which ``frontal_faces`` casts a reflected ray, as render's legs.
+FRONTAL_EPSILON = 1e-4
+#: ``frontal_faces``: a mirror patch counts as seen directly from the sonar when the first hit
+#: toward it lies within this distance (m) of it.
+FRONTAL_VISIBLE = 2e-3
+#: Longest ray of ``frontal_faces`` (m), as ``cast_rays``' default.
+FRONTAL_MAX_DISTANCE = 1e6
 #: Values of ``--backend``.
 BACKEND_NAMES = ("auto", "warp", "opencl")
 #: How to install what is missing.
@@ -246,6 +253,43 @@ class Backend(abc.ABC):
             return np.zeros(0, np.float32), np.zeros(0, np.int32)
         return self._cast_rays(mesh, org, dirs, float(max_distance))
 
+    def frontal_faces(self, mesh, sonar: SonarSpec, rotations, translations, plane_normals, plane_offsets,
+                      views, azimuths, rays: int, *, mirror: bool) -> np.ndarray:
+        """Face of the frontal patch of every beam, -1 where none (the patches that E_mu and
+        shape refinement move, fsswarp/pose.py): over the beam's ``rays`` elevation rays
+        φ_j = −W_φ + (j + ½) · 2W_φ / rays, the face seen at the shortest range.
+
+        mirror False: a ray's first hit before it meets the surface, at its distance.
+        mirror True: a ray that meets the surface at Q (s = d / (n·u), before any hit) is
+        reflected there; its first hit P, cast from ε = FRONTAL_EPSILON past Q, counts when P
+        lies in the fan (|elevation| <= W_φ, |azimuth| <= W_θ) and the first hit from the sonar
+        toward P is not nearer than |P| − FRONTAL_VISIBLE; it is seen at (|P| + s + |P − Q|) / 2.
+
+        rotations (V, 3, 3), translations (V, 3) : view poses (``P_ref = R @ P_view + t``);
+        plane_normals (V, 3), plane_offsets (V,) : the surface ``n·P = d`` in each view frame;
+        views (B,) int in [0, V) and azimuths (B,) float (rad) : the beams; rays >= 1.
+        Returns (B,) int32. One thread per beam, float32: where two rays' ranges tie within
+        rounding, another ray's face may win than in float64."""
+        rot, trans = _view_poses(rotations, translations, sonar)
+        normals = _float32_array("plane_normals", plane_normals, ("V", 3))
+        offsets = _float32_array("plane_offsets", np.asarray(plane_offsets).reshape(-1, 1), ("V", 1))
+        if not rot.shape[0] == normals.shape[0] == offsets.shape[0]:
+            raise ValueError("rotations, plane_normals and plane_offsets must describe the same views, got "
+                             f"{rot.shape[0]}, {normals.shape[0]} and {offsets.shape[0]}")
+        theta = _float32_array("azimuths", np.asarray(azimuths).reshape(-1), ("B",))
+        index = np.asarray(views)
+        if index.shape != theta.shape or (index.size and index.dtype.kind not in "iu"):
+            raise ValueError(f"views must be ({theta.shape[0]},) integers, got {index.shape} {index.dtype}")
+        if index.size and (index.min() < 0 or index.max() >= rot.shape[0]):
+            raise ValueError(f"views index views 0..{rot.shape[0] - 1}, got {index.min()}..{index.max()}")
+        if not is_integer(rays) or rays < 1:
+            raise ValueError(f"rays must be a positive integer, got {rays!r}")
+        if theta.shape[0] == 0:
+            return np.zeros(0, np.int32)
+        return self._frontal_faces(mesh, SonarConstants.of(sonar), rot, trans, normals,
+                                   np.ascontiguousarray(offsets[:, 0]), np.ascontiguousarray(index, np.int32),
+                                   theta, int(rays), bool(mirror))
+
     def render(self, mesh, sonar: SonarSpec, rotations, translations, plane_normals, plane_offsets,
                samples: tuple[int, int], *, gamma: float, surface_reflection: float) -> np.ndarray:
         """Noise-free multipath layers of N views, one launch (the contract of fsswarp.render).
@@ -308,6 +352,13 @@ class Backend(abc.ABC):
     @abc.abstractmethod
     def _cast_rays(self, mesh, origins: np.ndarray, directions: np.ndarray, max_distance: float):
         """Kernel launch of ``cast_rays``; returns (R,) float32 distance (inf: no hit), (R,) int32 face."""
+
+    @abc.abstractmethod
+    def _frontal_faces(self, mesh, sonar: SonarConstants, rotations: np.ndarray, translations: np.ndarray,
+                       plane_normals: np.ndarray, plane_offsets: np.ndarray, views: np.ndarray,
+                       azimuths: np.ndarray, rays: int, mirror: bool) -> np.ndarray:
+        """Kernel launch of ``frontal_faces``: clean float32 (V, 3, 3), (V, 3), (V, 3), (V,)
+        arrays, (B,) int32 views in range and (B,) float32 azimuths, B >= 1. Returns (B,) int32."""
 
     @abc.abstractmethod
     def _render(self, mesh, sonar: SonarConstants, beam_widths: np.ndarray, rotations: np.ndarray,
