@@ -199,86 +199,84 @@ __kernel void render_views(__global const float4 *nodes,
     }
 }
 
-/* frontal_faces -- the frontal patch of each beam (Backend.frontal_faces, fsswarp/backends).
+/* frontal_rays -- the elevation rays of the beams whose frontal patch Backend.frontal_faces
+ * finds (fsswarp/backends): per ray its range and face; the host keeps each beam's nearest.
  *
  * Arguments: nodes, children, tris, face_index: the BVH (bvh.h); rotations, translations,
  * plane_normals, plane_offsets as render_views for V views; views (B,) int and azimuths (B,)
- * float: the beams; rays elevation rays per beam; mirror 0: the first hit before the surface,
- * 1: the first hit of the ray reflected at the surface (cast from epsilon past it) when it lies
- * in the fan and the sonar sees it (the first hit toward it is not nearer than |P| - visible);
- * face_out (B,) int: the original face at the shortest (mirror) range, -1 where none.
- * Work size: 1-D, B rounded up; items with id >= B return at once. */
-__kernel void frontal_faces(__global const float4 *nodes,
-                            __global const int *children,
-                            __global const float *tris,
-                            __global const int *face_index,
-                            __global const float *rotations,
-                            __global const float *translations,
-                            __global const float *plane_normals,
-                            __global const float *plane_offsets,
-                            __global const int *views,
-                            __global const float *azimuths,
-                            const int n_beams,
-                            const int rays,
-                            const int mirror,
-                            const float half_azimuth,
-                            const float half_elevation,
-                            const float epsilon,
-                            const float visible,
-                            const float max_distance,
-                            __global int *face_out)
+ * float: the beams; n_items = B * rays; mirror 0: the first hit before the surface, 1: the
+ * first hit of the ray reflected at the surface (cast from epsilon past it) when it lies in the
+ * fan and the sonar sees it (the first hit toward it is not nearer than |P| - visible), at the
+ * mirror range (|P| + s + |P - Q|) / 2; range_out (B, rays) float (INFINITY: none) and
+ * face_out (B, rays) int (the original face, -1: none).
+ * Work size: 1-D, n_items rounded up; item k is ray k % rays of beam k / rays. */
+__kernel void frontal_rays(__global const float4 *nodes,
+                           __global const int *children,
+                           __global const float *tris,
+                           __global const int *face_index,
+                           __global const float *rotations,
+                           __global const float *translations,
+                           __global const float *plane_normals,
+                           __global const float *plane_offsets,
+                           __global const int *views,
+                           __global const float *azimuths,
+                           const int n_items,
+                           const int rays,
+                           const int mirror,
+                           const float half_azimuth,
+                           const float half_elevation,
+                           const float epsilon,
+                           const float visible,
+                           const float max_distance,
+                           __global float *range_out,
+                           __global int *face_out)
 {
-    const int i = (int)get_global_id(0);
-    if (i >= n_beams)
+    const int k = (int)get_global_id(0);
+    if (k >= n_items)
         return;
+    const int i = k / rays;
+    const int j = k - i * rays;
     const int v = views[i];
     __global const float *rot = rotations + 9 * v;
     const float3 t = vload3(v, translations);
     const float3 n = vload3(v, plane_normals);
     const float d = plane_offsets[v];
     const float theta = azimuths[i];
-    float best = INFINITY;
-    int best_tri = -1;
-    for (int j = 0; j < rays; ++j) {
-        const float phi = -half_elevation + ((float)j + 0.5f) / (float)rays * (2.0f * half_elevation);
-        const float cp = cos(phi);
-        const float3 u = (float3)(cp * sin(theta), cp * cos(theta), sin(phi));
-        const float up = fss_dot(u, n);
-        const float s = up > 0.0f ? d / up : INFINITY;
-        int tri;
-        const float r = fss_bvh_intersect(nodes, children, tris, t, fss_rotate(rot, u), 0.0f, max_distance, &tri);
-        float range = INFINITY;
-        int found = -1;
-        if (!mirror) {
-            if (r < s) {
-                range = r;
-                found = tri;
-            }
-        } else if (s < r) {
-            const float3 q = s * u;
-            const float3 w = u - (2.0f * up) * n;
-            int leg;
-            const float r2 = fss_bvh_intersect(nodes, children, tris, fss_rotate(rot, q + epsilon * w) + t,
-                                               fss_rotate(rot, w), 0.0f, max_distance, &leg) + epsilon;
-            if (leg >= 0) {
-                const float3 p = q + r2 * w;
-                const float length = fss_range(p);
-                int blocker;
-                const float back = fss_bvh_intersect(nodes, children, tris, t, fss_rotate(rot, p / length), 0.0f,
-                                                     max_distance, &blocker);
-                if (fabs(fss_elevation(p)) <= half_elevation && fabs(fss_azimuth(p)) <= half_azimuth
-                    && back >= length - visible) {
-                    range = 0.5f * (length + s + r2);
-                    found = leg;
-                }
-            }
+    const float phi = -half_elevation + ((float)j + 0.5f) / (float)rays * (2.0f * half_elevation);
+    const float cp = cos(phi);
+    const float3 u = (float3)(cp * sin(theta), cp * cos(theta), sin(phi));
+    const float up = fss_dot(u, n);
+    const float s = up > 0.0f ? d / up : INFINITY;
+    int tri;
+    const float r = fss_bvh_intersect(nodes, children, tris, t, fss_rotate(rot, u), 0.0f, max_distance, &tri);
+    float range = INFINITY;
+    int found = -1;
+    if (!mirror) {
+        if (r < s) {
+            range = r;
+            found = tri;
         }
-        if (range < best) {
-            best = range;
-            best_tri = found;
+    } else if (s < r) {
+        const float3 q = s * u;
+        const float3 w = u - (2.0f * up) * n;
+        int leg;
+        const float r2 = fss_bvh_intersect(nodes, children, tris, fss_rotate(rot, q + epsilon * w) + t,
+                                           fss_rotate(rot, w), 0.0f, max_distance, &leg) + epsilon;
+        if (leg >= 0) {
+            const float3 p = q + r2 * w;
+            const float length = fss_range(p);
+            int blocker;
+            const float back = fss_bvh_intersect(nodes, children, tris, t, fss_rotate(rot, p / length), 0.0f,
+                                                 max_distance, &blocker);
+            if (fabs(fss_elevation(p)) <= half_elevation && fabs(fss_azimuth(p)) <= half_azimuth
+                && back >= length - visible) {
+                range = 0.5f * (length + s + r2);
+                found = leg;
+            }
         }
     }
-    face_out[i] = best_tri >= 0 ? face_index[best_tri] : -1;
+    range_out[k] = range;
+    face_out[k] = found >= 0 ? face_index[found] : -1;
 }
 
 /* layers[i] = acc[i] / 2^24: the accumulator's fixed point as float (n items). */

@@ -268,8 +268,9 @@ class Backend(abc.ABC):
         rotations (V, 3, 3), translations (V, 3) : view poses (``P_ref = R @ P_view + t``);
         plane_normals (V, 3), plane_offsets (V,) : the surface ``n·P = d`` in each view frame;
         views (B,) int in [0, V) and azimuths (B,) float (rad) : the beams; rays >= 1.
-        Returns (B,) int32. One thread per beam, float32: where two rays' ranges tie within
-        rounding, another ray's face may win than in float64."""
+        Returns (B,) int32. One thread per ray, float32; the host keeps each beam's nearest (the
+        first of equal ranges): where two rays' ranges tie within rounding, another ray's face
+        may win than in float64."""
         rot, trans = _view_poses(rotations, translations, sonar)
         normals = _float32_array("plane_normals", plane_normals, ("V", 3))
         offsets = _float32_array("plane_offsets", np.asarray(plane_offsets).reshape(-1, 1), ("V", 1))
@@ -286,9 +287,14 @@ class Backend(abc.ABC):
             raise ValueError(f"rays must be a positive integer, got {rays!r}")
         if theta.shape[0] == 0:
             return np.zeros(0, np.int32)
-        return self._frontal_faces(mesh, SonarConstants.of(sonar), rot, trans, normals,
-                                   np.ascontiguousarray(offsets[:, 0]), np.ascontiguousarray(index, np.int32),
-                                   theta, int(rays), bool(mirror))
+        if theta.shape[0] * rays >= 2**31 - 2**10:
+            raise ValueError(f"too many rays for one launch ({theta.shape[0]} beams x {rays}); split them")
+        ranges, faces = self._frontal_rays(mesh, SonarConstants.of(sonar), rot, trans, normals,
+                                           np.ascontiguousarray(offsets[:, 0]), np.ascontiguousarray(index, np.int32),
+                                           theta, int(rays), bool(mirror))
+        nearest = np.argmin(ranges, axis=1)  # the first of equal ranges
+        beams = np.arange(len(nearest))
+        return np.where(np.isfinite(ranges[beams, nearest]), faces[beams, nearest], -1).astype(np.int32)
 
     def render(self, mesh, sonar: SonarSpec, rotations, translations, plane_normals, plane_offsets,
                samples: tuple[int, int], *, gamma: float, surface_reflection: float) -> np.ndarray:
@@ -354,11 +360,12 @@ class Backend(abc.ABC):
         """Kernel launch of ``cast_rays``; returns (R,) float32 distance (inf: no hit), (R,) int32 face."""
 
     @abc.abstractmethod
-    def _frontal_faces(self, mesh, sonar: SonarConstants, rotations: np.ndarray, translations: np.ndarray,
-                       plane_normals: np.ndarray, plane_offsets: np.ndarray, views: np.ndarray,
-                       azimuths: np.ndarray, rays: int, mirror: bool) -> np.ndarray:
-        """Kernel launch of ``frontal_faces``: clean float32 (V, 3, 3), (V, 3), (V, 3), (V,)
-        arrays, (B,) int32 views in range and (B,) float32 azimuths, B >= 1. Returns (B,) int32."""
+    def _frontal_rays(self, mesh, sonar: SonarConstants, rotations: np.ndarray, translations: np.ndarray,
+                      plane_normals: np.ndarray, plane_offsets: np.ndarray, views: np.ndarray,
+                      azimuths: np.ndarray, rays: int, mirror: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Kernel launch of ``frontal_faces``, one thread per ray: clean float32 (V, 3, 3), (V, 3),
+        (V, 3), (V,) arrays, (B,) int32 views in range and (B,) float32 azimuths, B >= 1. Returns
+        every ray's (B, rays) float32 range (inf: none) and int32 face (-1: none)."""
 
     @abc.abstractmethod
     def _render(self, mesh, sonar: SonarConstants, beam_widths: np.ndarray, rotations: np.ndarray,

@@ -129,7 +129,7 @@ class OpenCLBackend(Backend):
         self._cast_kernel = cl.Kernel(program(self.context, "raycast.cl"), "cast_rays")
         self._render_kernel = cl.Kernel(program(self.context, "render.cl"), "render_views")
         self._fixed_kernel = cl.Kernel(program(self.context, "render.cl"), "fixed_to_float")
-        self._frontal_faces_kernel = cl.Kernel(program(self.context, "render.cl"), "frontal_faces")
+        self._frontal_rays_kernel = cl.Kernel(program(self.context, "render.cl"), "frontal_rays")
         self._frontal_kernel = cl.Kernel(program(self.context, "pose.cl"), "frontal_contour")
         self._contour_cost_kernel = cl.Kernel(program(self.context, "pose.cl"), "contour_cost")
         self._lock = threading.Lock()
@@ -206,22 +206,25 @@ class OpenCLBackend(Backend):
             self.queue.finish()
         return distance, face
 
-    def _frontal_faces(self, mesh, sonar: SonarConstants, rotations, translations, plane_normals, plane_offsets,
-                       views, azimuths, rays, mirror):
+    def _frontal_rays(self, mesh, sonar: SonarConstants, rotations, translations, plane_normals, plane_offsets,
+                      views, azimuths, rays, mirror):
         _check_mesh(mesh)
-        n_beams = views.shape[0]
-        face, face_buf = self._output((n_beams,), np.int32)
+        n_items = views.shape[0] * rays
+        rng, rng_buf = self._output((views.shape[0], rays), np.float32)
+        face, face_buf = self._output((views.shape[0], rays), np.int32)
         with self._lock:
-            self._frontal_faces_kernel(
-                self.queue, (-(-n_beams // GROUP) * GROUP,), None,
+            self._frontal_rays_kernel(
+                self.queue, (-(-n_items // GROUP) * GROUP,), None,
                 mesh.nodes, mesh.children, mesh.triangles, mesh.face_index, self._input(rotations),
                 self._input(translations), self._input(plane_normals), self._input(plane_offsets),
-                self._input(views), self._input(azimuths), np.int32(n_beams), np.int32(rays),
+                self._input(views), self._input(azimuths), np.int32(n_items), np.int32(rays),
                 np.int32(mirror), np.float32(sonar.half_azimuth), np.float32(sonar.half_elevation),
                 np.float32(FRONTAL_EPSILON), np.float32(FRONTAL_VISIBLE), np.float32(FRONTAL_MAX_DISTANCE),
-                face_buf)
-            cl.enqueue_copy(self.queue, face, face_buf, is_blocking=True)
-        return face
+                rng_buf, face_buf)
+            cl.enqueue_copy(self.queue, rng, rng_buf, is_blocking=False)
+            cl.enqueue_copy(self.queue, face, face_buf, is_blocking=False)
+            self.queue.finish()
+        return rng, face
 
     def _render(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations,
                 plane_normals, plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, rows):

@@ -263,54 +263,52 @@ def cast_rays_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
 
 
 @wp.kernel
-def frontal_faces_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
-                         rotations: wp.array(dtype=wp.mat33), translations: wp.array(dtype=wp.vec3),
-                         plane_normals: wp.array(dtype=wp.vec3), plane_offsets: wp.array(dtype=float),
-                         views: wp.array(dtype=wp.int32), azimuths: wp.array(dtype=float), rays: int,
-                         mirror: int, half_azimuth: float, half_elevation: float, epsilon: float,
-                         visible: float, max_distance: float, face_out: wp.array(dtype=wp.int32)):
-    """Thread i: the frontal face of beam i (Backend.frontal_faces; kernels/render.cl)."""
-    i = wp.tid()
+def frontal_rays_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
+                        rotations: wp.array(dtype=wp.mat33), translations: wp.array(dtype=wp.vec3),
+                        plane_normals: wp.array(dtype=wp.vec3), plane_offsets: wp.array(dtype=float),
+                        views: wp.array(dtype=wp.int32), azimuths: wp.array(dtype=float), mirror: int,
+                        half_azimuth: float, half_elevation: float, epsilon: float, visible: float,
+                        max_distance: float, range_out: wp.array2d(dtype=float),
+                        face_out: wp.array2d(dtype=wp.int32)):
+    """Thread (i, j): elevation ray j of beam i, its (mirror) range and face (Backend.frontal_faces;
+    kernels/render.cl)."""
+    i, j = wp.tid()
+    rays = range_out.shape[1]
     v = views[i]
     rot = rotations[v]
     org = translations[v]
     n = plane_normals[v]
     d = plane_offsets[v]
     theta = azimuths[i]
-    best = float(wp.inf)
-    best_face = int(-1)
-    for j in range(rays):
-        phi = -half_elevation + (float(j) + 0.5) / float(rays) * (2.0 * half_elevation)
-        cphi = wp.cos(phi)
-        u = wp.vec3(cphi * wp.sin(theta), cphi * wp.cos(theta), wp.sin(phi))
-        up = wp.dot(u, n)
-        s = float(wp.inf)
-        if up > 0.0:
-            s = d / up
-        hit = nearest_hit(mesh, points, indices, org, rot * u, max_distance)
-        rng = float(wp.inf)
-        face = int(-1)
-        if mirror == 0:
-            if hit.t < s:
-                rng = hit.t
-                face = hit.face
-        elif s < hit.t:
-            q = s * u
-            w = u - (2.0 * up) * n
-            leg = nearest_hit(mesh, points, indices, rot * (q + epsilon * w) + org, rot * w, max_distance)
-            if leg.face >= 0:
-                r2 = leg.t + epsilon
-                p = q + r2 * w
-                length = wp.length(p)
-                back = nearest_hit(mesh, points, indices, org, rot * (p / length), max_distance)
-                if (wp.abs(elevation(p)) <= half_elevation and wp.abs(azimuth(p)) <= half_azimuth
-                        and back.t >= length - visible):
-                    rng = 0.5 * (length + s + r2)
-                    face = leg.face
-        if rng < best:
-            best = rng
-            best_face = face
-    face_out[i] = best_face
+    phi = -half_elevation + (float(j) + 0.5) / float(rays) * (2.0 * half_elevation)
+    cphi = wp.cos(phi)
+    u = wp.vec3(cphi * wp.sin(theta), cphi * wp.cos(theta), wp.sin(phi))
+    up = wp.dot(u, n)
+    s = float(wp.inf)
+    if up > 0.0:
+        s = d / up
+    hit = nearest_hit(mesh, points, indices, org, rot * u, max_distance)
+    rng = float(wp.inf)
+    face = int(-1)
+    if mirror == 0:
+        if hit.t < s:
+            rng = hit.t
+            face = hit.face
+    elif s < hit.t:
+        q = s * u
+        w = u - (2.0 * up) * n
+        leg = nearest_hit(mesh, points, indices, rot * (q + epsilon * w) + org, rot * w, max_distance)
+        if leg.face >= 0:
+            r2 = leg.t + epsilon
+            p = q + r2 * w
+            length = wp.length(p)
+            back = nearest_hit(mesh, points, indices, org, rot * (p / length), max_distance)
+            if (wp.abs(elevation(p)) <= half_elevation and wp.abs(azimuth(p)) <= half_azimuth
+                    and back.t >= length - visible):
+                rng = 0.5 * (length + s + r2)
+                face = leg.face
+    range_out[i, j] = rng
+    face_out[i, j] = face
 
 
 @wp.kernel
@@ -590,21 +588,23 @@ class WarpBackend(Backend):
             wp.synchronize_device(self._device)
             return distance.numpy(), face.numpy()
 
-    def _frontal_faces(self, mesh, sonar: SonarConstants, rotations, translations, plane_normals, plane_offsets,
-                       views, azimuths, rays, mirror):
+    def _frontal_rays(self, mesh, sonar: SonarConstants, rotations, translations, plane_normals, plane_offsets,
+                      views, azimuths, rays, mirror):
         mesh = self._check_mesh(mesh)
+        shape = (views.shape[0], rays)
         with wp.ScopedDevice(self._device):
-            face = wp.empty(views.shape[0], dtype=wp.int32)
-            wp.launch(frontal_faces_kernel, dim=views.shape[0],
+            rng = wp.empty(shape, dtype=float)
+            face = wp.empty(shape, dtype=wp.int32)
+            wp.launch(frontal_rays_kernel, dim=shape,
                       inputs=[mesh.id, mesh.points, mesh.indices, self._array(rotations, wp.mat33),
                               self._array(translations, wp.vec3), self._array(plane_normals, wp.vec3),
                               self._array(plane_offsets, float), self._array(views, wp.int32),
-                              self._array(azimuths, float), rays, int(mirror), sonar.half_azimuth,
+                              self._array(azimuths, float), int(mirror), sonar.half_azimuth,
                               sonar.half_elevation, float(np.float32(FRONTAL_EPSILON)),
                               float(np.float32(FRONTAL_VISIBLE)), float(np.float32(FRONTAL_MAX_DISTANCE))],
-                      outputs=[face])
+                      outputs=[rng, face])
             wp.synchronize_device(self._device)
-            return face.numpy()
+            return rng.numpy(), face.numpy()
 
     def _render(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations,
                 plane_normals, plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, rows):
