@@ -284,10 +284,11 @@ class PoseProblem:
     def locate(self, depth: float, tilt: float) -> None:
         """Find the data contours (``data``), the anchor views and the detection shift
         (``anchors``, ``shift``) with the model synthesized at (depth m, tilt rad), the current
-        estimate; ``estimate`` records it."""
+        estimate; ``estimate`` records it and ``predicted`` keeps those (V, 4, bins, beams)
+        layers of the data views (exact samples)."""
         check_pose(depth, tilt)
-        self.data, predicted = self._data_contours(depth, tilt)
-        self.anchors, self.shift = self._detection_shift(predicted, depth, tilt)
+        self.data, self.predicted = self._data_contours(depth, tilt)
+        self.anchors, self.shift = self._detection_shift(depth, tilt)
         self.estimate = (float(depth), float(tilt))
 
     # --- data contours ---------------------------------------------------------------------
@@ -346,13 +347,13 @@ class PoseProblem:
                       f"tilt {math.degrees(tilt):.2f} deg; the pose estimation leaves them out", PoseWarning,
                       stacklevel=stacklevel)
 
-    def _detection_shift(self, predicted: np.ndarray, depth: float, tilt: float):
+    def _detection_shift(self, depth: float, tilt: float):
         """(anchor view names, shift in rows or None): the views whose pose relative to the
         reference depends neither on D nor on β (at the reference position), and the shift of
         ``settings.shifts`` (refined by a parabola through its neighbours) that minimizes their
-        object term; None without anchor views (each cell then takes its own best shift).
-        predicted : (V, 4, bins, beams) layers of the data views at (depth, tilt)."""
-        data = self.data
+        object term; None without anchor views (each cell then takes its own best shift), from
+        the layers ``predicted`` at (depth, tilt)."""
+        data, predicted = self.data, self.predicted
         pose_a = self.rig.relative_poses(depth, tilt)
         pose_b = self.rig.relative_poses(depth + 0.01, tilt + 0.01)
         fixed = [k for k, v in enumerate(data.views)
@@ -405,7 +406,9 @@ class PoseProblem:
         Each pair renders only the band of rows its view's window reads (``render_device``'s
         ``rows``): the window [lo, hi) ± the range smoothing's radius rB, clipped to the image,
         R rows for every pair (the widest view's), started lower where it would pass the last
-        row; the contours and costs are those of full layers, bit for bit."""
+        row; the contours and costs are those of full layers, bit for bit. One cell at the
+        located estimate with the exact samples reads the layers rendered there, ``predicted``
+        (no render: the same pixels)."""
         data, sonar = self.data, self.sonar
         n_views = len(data.views)
         need_lo, need_hi = rows_read(data.windows, len(self.smoothing[0]), sonar.bins)
@@ -416,7 +419,12 @@ class PoseProblem:
         costs, contours = [], []
         for start in range(0, len(depths), per):
             cell_d, cell_t = depths[start:start + per], tilts[start:start + per]
-            layers = self.render_pairs(data.views, cell_d, cell_t, samples, rows=(np.tile(first, len(cell_d)), rows))
+            if len(cell_d) == 1 and (float(cell_d[0]), float(cell_t[0])) == self.estimate \
+                    and tuple(samples) == tuple(self.settings.exact_samples):
+                layers = self.predicted
+            else:
+                layers = self.render_pairs(data.views, cell_d, cell_t, samples,
+                                           rows=(np.tile(first, len(cell_d)), rows))
             contour, sums, counts = self.backend.contour_cost(
                 layers, np.tile(np.arange(n_views), len(cell_d)), data.threshold, data.windows, data.masks,
                 distances, self.shifts if self.shift is None else [self.shift], self.smoothing)

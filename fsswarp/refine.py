@@ -273,13 +273,13 @@ class _Update:
     def _overshoot(self, dataset, skip: np.ndarray) -> np.ndarray:
         """Inward motions of triangles whose echo lands where the data is dark (module
         docstring, step 4); fills ``self.motion`` except on ``skip``; returns the faces moved.
-        The views' rays go to the backend in one launch."""
+        The views' rays go to the backend in one launch; the synthetic views are the layers
+        that the update's problem rendered at its (D, β) (``PoseProblem.predicted``)."""
         from scipy import ndimage
 
         problem, sonar, st = self.problem, self.problem.sonar, self.settings
         data = problem.data
-        layers = problem.render_pairs(data.views, np.array([self.depth]), np.array([self.tilt]),
-                                 st.pose.exact_samples).numpy()
+        layers = problem.predicted
         sigma = (st.pose.segment.sigma_bins, st.pose.segment.sigma_beams)
         k_theta, k_phi = st.rays
         width = float(np.mean(np.diff(sonar.beam_centres)))

@@ -183,6 +183,23 @@ def test_frontal_faces_match_a_ray_casting_oracle_and_do_not_depend_on_the_batch
     assert problem.frontal_faces(rot[:0], t[:0], n[:0], d[:0], [], mirror=mirror) == []
 
 
+def test_costs_at_the_estimate_read_the_located_layers(coral_one, truth_model, backend):
+    """One cell at the located estimate with the exact samples reads ``predicted`` instead of
+    rendering: bit for bit what rendering the cell gives (a batch of two renders), also after
+    ``locate`` moves the estimate."""
+    truth = coral_one.manifest.truth
+    problem = PoseProblem(truth_model, coral_one, truth.depth + 0.01, truth.tilt, backend=backend)
+    exact = problem.settings.exact_samples
+    for depth in (truth.depth + 0.01, truth.depth):
+        problem.locate(depth, truth.tilt)
+        one = problem.view_costs(np.array([depth]), np.array([truth.tilt]), exact, 0.02)
+        two = problem.view_costs(np.array([depth] * 2), np.array([truth.tilt] * 2), exact, 0.02)
+        for alone, rendered in zip(one, two):
+            np.testing.assert_array_equal(alone[0], rendered[0])
+            np.testing.assert_array_equal(rendered[0], rendered[1])
+        assert (one[1] >= 0).sum() > 100
+
+
 def test_frontal_faces_warp_and_opencl_agree(coral_one, truth_model, backend_for_label):
     """Both backends' kernels, every beam of every view 1 cm and 0.3 deg off the truth: the same
     faces bar float32 near-ties between a beam's rays."""
