@@ -657,7 +657,7 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
 
     candidate, polish_error = _polish(problem, *_valley(found[-1], step), lo, hi, settings.polish)
     say(f"polish: D {candidate[0]:.4f} m, beta {math.degrees(candidate[1]):.3f} deg, E_mu {polish_error * 1000:.3f} mm")
-    before, after = problem.exact(depth0, tilt0).value, problem.exact(*candidate).value
+    before, after = problem.exact(depth0, tilt0).value, polish_error  # the polish evaluated the candidate
     accepted = bool(np.isfinite(after) and (not np.isfinite(before) or after < before))
     depth, tilt = (candidate if accepted else (depth0, tilt0))
     say(f"E_mu {before * 1000:.3f} mm at the start, {after * 1000:.3f} mm at the candidate: "
