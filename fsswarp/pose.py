@@ -288,6 +288,7 @@ class PoseProblem:
         layers of the data views (exact samples)."""
         check_pose(depth, tilt)
         self.data, self.predicted = self._data_contours(depth, tilt)
+        self._capped = {}
         self.anchors, self.shift = self._detection_shift(depth, tilt)
         self.estimate = (float(depth), float(tilt))
 
@@ -362,12 +363,19 @@ class PoseProblem:
             return (), None
         _, sums, counts = self.backend.contour_cost(
             predicted[fixed], np.asarray(fixed), data.threshold, data.windows, data.masks,
-            np.minimum(data.distances, np.float32(self.settings.min_cap)), self.shifts, self.smoothing)
+            self._capped_distances(self.settings.min_cap), self.shifts, self.smoothing)
         sums[:, 1], counts[:, 1] = 0.0, 0
         counts_data = data.counts[fixed]
         counts_data[:, 1] = 0
         cost = _view_cost(sums[None], counts[None], counts_data, self.settings.min_cap)[0].mean(axis=0)
         return tuple(data.names[k] for k in fixed), _parabola_minimum(self.shifts, cost)
+
+    def _capped_distances(self, cap: float) -> np.ndarray:
+        """(V, 2, bins, beams) float32 data distances at most ``cap`` (m); one copy per cap until
+        the next ``locate`` (a pose step reads the same cap in every E_mu)."""
+        if cap not in self._capped:
+            self._capped[cap] = np.minimum(self.data.distances, np.float32(cap))
+        return self._capped[cap]
 
     def _distance(self, rows: np.ndarray) -> np.ndarray:
         """(bins, beams) distance (m) of every pixel to the contour pixels (row per beam), at
@@ -415,7 +423,7 @@ class PoseProblem:
         rows = int(np.max(need_hi - need_lo))
         first = np.minimum(need_lo, sonar.bins - rows)
         per = max(1, self.settings.launch_bytes // (32 * rows * sonar.beams * n_views))
-        distances = np.minimum(data.distances, np.float32(cap))
+        distances = self._capped_distances(cap)
         costs, contours = [], []
         for start in range(0, len(depths), per):
             cell_d, cell_t = depths[start:start + per], tilts[start:start + per]

@@ -200,6 +200,23 @@ def test_costs_at_the_estimate_read_the_located_layers(coral_one, truth_model, b
         assert (one[1] >= 0).sum() > 100
 
 
+def test_a_relocated_problem_reads_its_new_data_contours(coral_one, truth_model, opencl):
+    """After ``locate`` moves a used problem, its surrogate and E_mu are a fresh problem's there,
+    bit for bit (nothing of the old data contours, e.g. their capped distances, stays)."""
+    truth = coral_one.manifest.truth
+    depth, tilt = truth.depth, truth.tilt
+    moved = PoseProblem(truth_model, coral_one, depth + 0.05, tilt + math.radians(1.0), backend=opencl)
+    moved.surrogate(depth, tilt)
+    moved.exact(depth, tilt)
+    moved.locate(depth, tilt)
+    fresh = PoseProblem(truth_model, coral_one, depth, tilt, backend=opencl)
+    assert not np.array_equal(PoseProblem(truth_model, coral_one, depth + 0.05, tilt + math.radians(1.0),
+                                          backend=opencl).data.distances, fresh.data.distances)
+    cells = (np.array([depth, depth + 0.01]), np.array([tilt, tilt]))
+    np.testing.assert_array_equal(moved.surrogate(*cells), fresh.surrogate(*cells))
+    np.testing.assert_array_equal(moved.exact(depth, tilt).per_view, fresh.exact(depth, tilt).per_view)
+
+
 def test_frontal_faces_warp_and_opencl_agree(coral_one, truth_model, backend_for_label):
     """Both backends' kernels, every beam of every view 1 cm and 0.3 deg off the truth: the same
     faces bar float32 near-ties between a beam's rays."""
