@@ -241,7 +241,8 @@ def test_frontal_faces_validates(coral_one, truth_model, backend):
     sonar = coral_one.sonar
     assert backend.frontal_faces(handle, sonar, rot, t, n, d, np.zeros(0, int), np.zeros(0), 4,
                                  mirror=True).shape == (0,)
-    for views, azimuths, rays, match in (([0, 0], [0.1], 4, "views must be"), ([1], [0.1], 4, "views index"),
+    for views, azimuths, rays, match in (([0, 0], [0.1], 4, "views must be .* like azimuths"),
+                                         ([1], [0.1], 4, "views must be a 1-D integer array of views 0..0"),
                                          ([0.0], [0.1], 4, "views must be"), ([0], [0.1], 0, "rays"),
                                          ([0], [np.nan], 4, "azimuths")):
         with pytest.raises(ValueError, match=match):

@@ -271,26 +271,19 @@ class Backend(abc.ABC):
         Returns (B,) int32. One thread per ray, float32; the host keeps each beam's nearest (the
         first of equal ranges): where two rays' ranges tie within rounding, another ray's face
         may win than in float64."""
-        rot, trans = _view_poses(rotations, translations, sonar)
-        normals = _float32_array("plane_normals", plane_normals, ("V", 3))
-        offsets = _float32_array("plane_offsets", np.asarray(plane_offsets).reshape(-1, 1), ("V", 1))
-        if not rot.shape[0] == normals.shape[0] == offsets.shape[0]:
-            raise ValueError("rotations, plane_normals and plane_offsets must describe the same views, got "
-                             f"{rot.shape[0]}, {normals.shape[0]} and {offsets.shape[0]}")
+        _check_sonar(sonar)
+        rot, trans, normals, offsets = _view_planes(rotations, translations, plane_normals, plane_offsets)
         theta = _float32_array("azimuths", np.asarray(azimuths).reshape(-1), ("B",))
-        index = np.asarray(views)
-        if index.shape != theta.shape or (index.size and index.dtype.kind not in "iu"):
-            raise ValueError(f"views must be ({theta.shape[0]},) integers, got {index.shape} {index.dtype}")
-        if index.size and (index.min() < 0 or index.max() >= rot.shape[0]):
-            raise ValueError(f"views index views 0..{rot.shape[0] - 1}, got {index.min()}..{index.max()}")
+        index = _view_index("views", views, rot.shape[0])
+        if index.shape != theta.shape:
+            raise ValueError(f"views must be ({theta.shape[0]},) like azimuths, got {index.shape}")
         if not is_integer(rays) or rays < 1:
             raise ValueError(f"rays must be a positive integer, got {rays!r}")
         if theta.shape[0] == 0:
             return np.zeros(0, np.int32)
         if theta.shape[0] * rays >= 2**31 - 2**10:
             raise ValueError(f"too many rays for one launch ({theta.shape[0]} beams x {rays}); split them")
-        ranges, faces = self._frontal_rays(mesh, SonarConstants.of(sonar), rot, trans, normals,
-                                           np.ascontiguousarray(offsets[:, 0]), np.ascontiguousarray(index, np.int32),
+        ranges, faces = self._frontal_rays(mesh, SonarConstants.of(sonar), rot, trans, normals, offsets, index,
                                            theta, int(rays), bool(mirror))
         nearest = np.argmin(ranges, axis=1)  # the first of equal ranges
         beams = np.arange(len(nearest))
@@ -326,14 +319,7 @@ class Backend(abc.ABC):
             int array first (None for full layers); ``.numpy()`` copies the band as it is,
             (N, 4, R, beams).
         """
-        rot = _float32_array("rotations", rotations, ("N", 3, 3))
-        trans = _float32_array("translations", translations, ("N", 3))
-        normals = _float32_array("plane_normals", plane_normals, ("N", 3))
-        offsets = _float32_array("plane_offsets", np.asarray(plane_offsets).reshape(-1, 1), ("N", 1))
-        if not (rot.shape[0] == trans.shape[0] == normals.shape[0] == offsets.shape[0]):
-            raise ValueError("rotations, translations, plane_normals and plane_offsets must describe "
-                             f"the same views, got {rot.shape[0]}, {trans.shape[0]}, {normals.shape[0]}, "
-                             f"{offsets.shape[0]}")
+        rot, trans, normals, offsets = _view_planes(rotations, translations, plane_normals, plane_offsets)
         k_theta, k_phi = (int(k) for k in samples)
         if k_theta < 1 or k_phi < 1:
             raise ValueError(f"samples must be two positive counts, got {tuple(samples)}")
@@ -346,7 +332,7 @@ class Backend(abc.ABC):
             return HostLayers(np.zeros((0, 4, count, sonar.beams), np.float32),
                               None if rows is None else first)
         layers = self._render(mesh, SonarConstants.of(sonar), _beam_widths(sonar), rot, trans, normals,
-                              np.ascontiguousarray(offsets[:, 0]), k_theta, k_phi, float(gamma),
+                              offsets, k_theta, k_phi, float(gamma),
                               float(surface_reflection), first, count)
         layers.first_rows = None if rows is None else first.copy()
         return layers
@@ -422,10 +408,7 @@ class Backend(abc.ABC):
         if win.dtype.kind not in "iu" or win.shape != (n_views, 2) or np.any(win[:, 0] < 0) \
                 or np.any(win[:, 1] > bins) or np.any(win[:, 0] >= win[:, 1]):
             raise ValueError(f"windows must be ({n_views}, 2) integers with 0 <= lo < hi <= {bins}, got {win!r}")
-        index = np.asarray(view_index)
-        if index.dtype.kind not in "iu" or index.ndim != 1 or (index.size and (index.min() < 0
-                                                                             or index.max() >= n_views)):
-            raise ValueError(f"view_index must be a 1-D integer array of views 0..{n_views - 1}")
+        index = _view_index("view_index", view_index, n_views)
         steps = _float32_array("shifts", shifts, ("S",))
         if steps.shape[0] == 0:
             raise ValueError("shifts must hold at least one shift")
@@ -458,7 +441,7 @@ class Backend(abc.ABC):
         if n_pairs == 0:
             return (np.zeros((0, 2, beams), np.float32), np.zeros((0, 2, n_shifts), np.float32),
                     np.zeros((0, 2), np.int32))
-        return self._contour_cost(layers, first, np.ascontiguousarray(index, np.int32), thr,
+        return self._contour_cost(layers, first, index, thr,
                                   np.ascontiguousarray(win, np.int32), np.ascontiguousarray(mask, np.uint8),
                                   weights[0], weights[1], dist, steps)
 
@@ -548,9 +531,36 @@ def _view_poses(rotations, translations, sonar) -> tuple[np.ndarray, np.ndarray]
     if rot.shape[0] != trans.shape[0]:
         raise ValueError(f"rotations and translations must describe the same views, got "
                          f"{rot.shape[0]} rotations and {trans.shape[0]} translations")
+    _check_sonar(sonar)
+    return rot, trans
+
+
+def _check_sonar(sonar) -> None:
     if not isinstance(sonar, SonarSpec):
         raise TypeError(f"sonar must be a fsswarp.sonar.SonarSpec, got {type(sonar).__name__}")
-    return rot, trans
+
+
+def _view_planes(rotations, translations, plane_normals, plane_offsets):
+    """(N, 3, 3), (N, 3), (N, 3) and (N,) float32 poses and surface planes of the same N views
+    (``render_device``, ``frontal_faces``), or raise."""
+    rot = _float32_array("rotations", rotations, ("N", 3, 3))
+    trans = _float32_array("translations", translations, ("N", 3))
+    normals = _float32_array("plane_normals", plane_normals, ("N", 3))
+    offsets = _float32_array("plane_offsets", np.asarray(plane_offsets).reshape(-1, 1), ("N", 1))
+    if not (rot.shape[0] == trans.shape[0] == normals.shape[0] == offsets.shape[0]):
+        raise ValueError("rotations, translations, plane_normals and plane_offsets must describe "
+                         f"the same views, got {rot.shape[0]}, {trans.shape[0]}, {normals.shape[0]}, "
+                         f"{offsets.shape[0]}")
+    return rot, trans, normals, np.ascontiguousarray(offsets[:, 0])
+
+
+def _view_index(name: str, value, n_views: int) -> np.ndarray:
+    """(K,) int32 indices of views 0 <= v < n_views, or raise."""
+    index = np.asarray(value)
+    if index.dtype.kind not in "iu" or index.ndim != 1 or (index.size and (index.min() < 0
+                                                                         or index.max() >= n_views)):
+        raise ValueError(f"{name} must be a 1-D integer array of views 0..{n_views - 1}")
+    return np.ascontiguousarray(index, np.int32)
 
 
 def _float32_array(name: str, value: Any, shape: tuple) -> np.ndarray:
