@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from fsswarp.backends.bvh import LEAF_SIZE, build_bvh, decode_leaf
+from fsswarp.backends.bvh import LEAF_SIZE, build_bvh, decode_leaf, triangle_bounds
 
 from conftest import backend_for
 
@@ -51,6 +51,16 @@ def _check_structure(vertices, faces):
 def test_bvh_structure_icosphere(subdivisions):
     m = trimesh.creation.icosphere(subdivisions=subdivisions)
     _check_structure(m.vertices, m.faces)
+
+
+def test_triangle_bounds_are_the_corners_extremes():
+    rng = np.random.default_rng(3)
+    vertices = rng.normal(size=(50, 3)).astype(np.float32)
+    faces = rng.integers(0, 50, (200, 3))
+    faces[:5] = faces[:5, :1]  # degenerate triangles: a point
+    lo, hi = triangle_bounds(vertices, faces)
+    tri = vertices[faces]
+    assert np.array_equal(lo, tri.min(axis=1)) and np.array_equal(hi, tri.max(axis=1))
 
 
 def test_bvh_structure_small_and_degenerate():

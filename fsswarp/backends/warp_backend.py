@@ -12,6 +12,7 @@ import numpy as np
 import warp as wp
 
 from . import FRONTAL_EPSILON, FRONTAL_MAX_DISTANCE, FRONTAL_VISIBLE, Backend, DeviceLayers, SonarConstants, _warp
+from .bvh import triangle_bounds
 
 # No contraction of a*b + c into fma: the watertight ray-triangle test relies on a shared edge
 # giving the same float expression in both triangles (with fma on CUDA, 6 of 10,248 rays
@@ -557,9 +558,7 @@ class WarpBackend(Backend):
         with wp.ScopedDevice(self._device):
             points = self._array(vertices, wp.vec3)
             indices = self._array(np.ascontiguousarray(faces.reshape(-1), dtype=np.int32), wp.int32)
-            tri = np.asarray(vertices, np.float32)[np.asarray(faces, np.int64).reshape(-1, 3)]
-            lo = tri.min(axis=1)
-            hi = tri.max(axis=1)
+            lo, hi = triangle_bounds(np.asarray(vertices, np.float32), np.asarray(faces, np.int64).reshape(-1, 3))
             # pad so boxes of axis-aligned triangles have volume (and rounding never loses one)
             extent = float(np.max(np.abs(vertices))) if len(vertices) else 1.0
             pad = np.float32(1.0e-6 * max(extent, 1.0e-12)) + 1.0e-6 * (hi - lo).max(axis=1, keepdims=True)
