@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import functools
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -447,3 +448,34 @@ def test_render_rejects_nan_pose(backend):
     with pytest.raises(ValueError):
         backend.render(handle, WIDE_SONAR, rot, bad_t, normals, offsets, SAMPLES, gamma=GAMMA,
                        surface_reflection=RS)
+
+
+class _Counted(trimesh.Trimesh):
+    """A trimesh that counts how often its watertightness is judged."""
+
+    judged = 0
+
+    @property
+    def is_watertight(self):
+        type(self).judged += 1
+        return super().is_watertight
+
+
+def test_check_mesh_judges_each_topology_once():
+    from fsswarp.render import RenderWarning, check_mesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    closed = _Counted(sphere.vertices, sphere.faces, process=False)
+    moved = _Counted(sphere.vertices * 1.5 + 0.1, sphere.faces, process=False)
+    holed = _Counted(sphere.vertices, sphere.faces[1:], process=False)
+    _Counted.judged = 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RenderWarning)
+        check_mesh(closed)
+        check_mesh(moved)  # new vertices, the same faces: remembered
+    assert _Counted.judged <= 1
+    with pytest.warns(RenderWarning, match="not watertight"):
+        check_mesh(holed)
+    with pytest.warns(RenderWarning, match="not watertight"):
+        check_mesh(_Counted(sphere.vertices * 2.0, sphere.faces[1:], process=False))
+    assert _Counted.judged <= 2
