@@ -279,6 +279,7 @@ class PoseProblem:
             ("pose views", tuple(self.views), settings.segment),
             lambda: _view_highlights(dataset, self.views, settings.segment))
         self._unseen: set[str] = set()
+        self._no_distances = None
         self.locate(depth, tilt)
 
     def locate(self, depth: float, tilt: float) -> None:
@@ -304,9 +305,11 @@ class PoseProblem:
         layers = self.render_pairs(views, np.array([depth]), np.array([tilt]), st.exact_samples)
         predicted = layers.numpy()
         scan = np.stack([scan_start(predicted, len(self.smoothing[0])), np.full(len(views), sonar.bins)], axis=1)
+        if self._no_distances is None:  # the contours alone: any distances do
+            self._no_distances = self.backend.device_distances(
+                np.zeros((len(views), 2, sonar.bins, sonar.beams), np.float32))
         contour, _, _ = self.backend.contour_cost(layers, np.arange(len(views)), threshold, scan, every,
-                                                  np.zeros((len(views), 2, sonar.bins, sonar.beams), np.float32),
-                                                  [0.0], self.smoothing)
+                                                  self._no_distances, [0.0], self.smoothing)
         seen = (contour[:, 0] >= 0).any(axis=1)
         if not seen.any():
             raise InputError(f"the model is seen in none of the views to optimize at depth {depth:.3f} m, tilt "
@@ -370,11 +373,12 @@ class PoseProblem:
         cost = _view_cost(sums[None], counts[None], counts_data, self.settings.min_cap)[0].mean(axis=0)
         return tuple(data.names[k] for k in fixed), _parabola_minimum(self.shifts, cost)
 
-    def _capped_distances(self, cap: float) -> np.ndarray:
-        """(V, 2, bins, beams) float32 data distances at most ``cap`` (m); one copy per cap until
-        the next ``locate`` (a pose step reads the same cap in every E_mu)."""
+    def _capped_distances(self, cap: float):
+        """The data distances at most ``cap`` (m), (V, 2, bins, beams) float32 on the device
+        (``Backend.device_distances``); one copy per cap until the next ``locate`` (a pose step
+        reads the same cap in every E_mu)."""
         if cap not in self._capped:
-            self._capped[cap] = np.minimum(self.data.distances, np.float32(cap))
+            self._capped[cap] = self.backend.device_distances(np.minimum(self.data.distances, np.float32(cap)))
         return self._capped[cap]
 
     def _distance(self, rows: np.ndarray) -> np.ndarray:

@@ -172,6 +172,33 @@ def test_banded_layers_match_full(backend, seed):
                              windows, masks, distances, shifts, smoothing)
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_device_distances_give_the_host_arrays_results(backend, seed):
+    """Distances uploaded once (``device_distances``) give contour_cost the results of the
+    host array, bit for bit, in any number of calls."""
+    case = random_case(seed)
+    want = backend.contour_cost(*case)
+    uploaded = backend.device_distances(case[5])
+    assert uploaded.shape == case[5].shape
+    for _ in range(2):
+        got = backend.contour_cost(*case[:5], uploaded, *case[6:])
+        for a, b in zip(got, want):
+            np.testing.assert_array_equal(a, b)
+
+
+def test_device_distances_are_checked_once_and_stay_with_their_backend(backend_for_label):
+    opencl, warp = backend_for_label("opencl-cpu"), backend_for_label("warp-cpu")
+    with pytest.raises(ValueError, match=">= 0"):
+        opencl.device_distances(-np.ones((3, 2, 8, 4)))
+    with pytest.raises(ValueError, match="distances must have shape"):
+        opencl.device_distances(np.zeros((3, 8, 4)))
+    case = random_case(0)
+    with pytest.raises(ValueError, match="uploaded by <WarpBackend"):
+        opencl.contour_cost(*case[:5], warp.device_distances(case[5]), *case[6:])
+    with pytest.raises(ValueError, match="like thresholds"):  # maps of another image size
+        opencl.contour_cost(*case[:5], opencl.device_distances(case[5][:, :, :-1]), *case[6:])
+
+
 @pytest.mark.parametrize("change, message", [
     (dict(view_index=[0, 5]), "view_index"),
     (dict(windows=np.array([[5, 5], [0, 8], [0, 8]])), "windows"),

@@ -138,6 +138,9 @@ class OpenCLBackend(Backend):
         flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
         return cl.Buffer(self.context, flags, hostbuf=array)
 
+    def _upload(self, array: np.ndarray) -> cl.Buffer:
+        return self._input(array)
+
     def _output(self, shape: tuple[int, ...], dtype) -> tuple[np.ndarray, cl.Buffer]:
         host = np.empty(shape, dtype)
         return host, cl.Buffer(self.context, cl.mem_flags.WRITE_ONLY, size=host.nbytes)
@@ -287,7 +290,7 @@ class OpenCLBackend(Backend):
             group = min(GROUP, 1 << (n_shifts - 1).bit_length())
             self._contour_cost_kernel(
                 self.queue, (-(-n_shifts // group) * group, 2, n_pairs), (group, 1, 1),
-                contour_buf, index, self._input(distances), self._input(shifts), np.int32(n_shifts),
+                contour_buf, index, distances.data, self._input(shifts), np.int32(n_shifts),
                 np.int32(bins), np.int32(beams), sums_buf, counts_buf)
             for host, buf in ((contour, contour_buf), (sums, sums_buf), (counts, counts_buf)):
                 cl.enqueue_copy(self.queue, host, buf, is_blocking=False)

@@ -537,6 +537,9 @@ class WarpBackend(Backend):
     def _array(self, data: np.ndarray, dtype) -> wp.array:
         return wp.array(data, dtype=dtype, device=self._device)
 
+    def _upload(self, array: np.ndarray) -> wp.array:
+        return self._array(array, float)
+
     def _project(self, points, rotations, translations, sonar: SonarConstants):
         n_views, n_points = rotations.shape[0], points.shape[0]
         with wp.ScopedDevice(self._device):
@@ -676,7 +679,7 @@ class WarpBackend(Backend):
             sums = wp.empty((n_pairs, 2, shifts.shape[0]), dtype=float)
             counts = wp.empty((n_pairs, 2), dtype=wp.int32)
             wp.launch(contour_cost_kernel, dim=(n_pairs, 2, shifts.shape[0]),
-                      inputs=[contour, index, self._array(distances, float), self._array(shifts, float)],
+                      inputs=[contour, index, distances.data, self._array(shifts, float)],
                       outputs=[sums, counts])
             wp.synchronize_device(self._device)
             return contour.numpy(), sums.numpy(), counts.numpy()
