@@ -181,12 +181,14 @@ def refine_shape(model, dataset, depth: float, tilt: float, *, settings: RefineS
     mesh = trimesh.Trimesh(vertices, faces, process=False)
     steps, moved = [], []
     ce_before, views = None, ()
+    edges = mesh.edges_unique  # the topology never changes (step 6): one Laplacian for every update
+    laplacian = _graph_laplacian(edges, len(mesh.vertices))
     for _ in range(settings.iterations):
         update = _Update(mesh, dataset, depth, tilt, settings, backend)
         if ce_before is None:
             ce_before, views = update.errors, update.problem.data.names
-        displacement = update.displacement()
-        mesh, factor = _apply(mesh, displacement, settings)
+        displacement = update.displacement(laplacian)
+        mesh, factor = _apply(mesh, displacement, settings, edges)
         norm = float(np.linalg.norm(displacement, axis=1).mean()) * factor
         moved.append(norm)
         steps.append(RefineStep(update.contour_patches, update.shrink_patches, norm, factor,
@@ -321,10 +323,11 @@ class _Update:
         return chosen
 
     # --- vertex displacements -------------------------------------------------------------
-    def displacement(self) -> np.ndarray:
+    def displacement(self, laplacian) -> np.ndarray:
         """(Nv, 3) vertex displacements: capped patch motions, area-weighted to the vertices,
-        spread and smoothed by the membrane solve (module docstring, step 5)."""
-        from scipy.sparse import coo_matrix, diags
+        spread and smoothed by the membrane solve (module docstring, step 5) with the mesh's
+        (Nv, Nv) sparse graph ``laplacian`` (:func:`_graph_laplacian`)."""
+        from scipy.sparse import diags
         from scipy.sparse.linalg import splu
 
         mesh, st = self.mesh, self.settings
@@ -341,17 +344,23 @@ class _Update:
                            for i in range(3)], axis=1)
         target = np.divide(target, covered[:, None], out=np.zeros_like(target), where=covered[:, None] > 0)
         confidence = np.divide(covered, adjacent, out=np.zeros(n), where=adjacent > 0)
-        edges = mesh.edges_unique
-        graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
-        graph = (graph + graph.T).tocsr()
-        laplacian = diags(np.asarray(graph.sum(axis=1)).ravel()) - graph
         system = (diags(confidence + 1e-9) + st.smoothing * laplacian).tocsc()
         # symmetric positive definite: a symmetric ordering, no pivoting (1.7x faster than spsolve)
         factor = splu(system, permc_spec="MMD_AT_PLUS_A", options=dict(SymmetricMode=True))
         return factor.solve(confidence[:, None] * target)
 
 
-def _apply(mesh, displacement: np.ndarray, settings: RefineSettings):
+def _graph_laplacian(edges: np.ndarray, n: int):
+    """(n, n) sparse graph Laplacian (degree − adjacency, CSR) of the unique (E, 2) edges of a
+    mesh of n vertices."""
+    from scipy.sparse import coo_matrix, diags
+
+    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    graph = (graph + graph.T).tocsr()
+    return diags(np.asarray(graph.sum(axis=1)).ravel()) - graph
+
+
+def _apply(mesh, displacement: np.ndarray, settings: RefineSettings, edges: np.ndarray | None = None):
     """The mesh moved by ``step`` × displacement. Where a triangle's normal would turn by more
     than ``max_turn`` (or it degenerates), its vertices are held still, their neighbours
     tapered (:func:`_hold_weights`), and the step is tried again, up to ``holds`` times; then,
@@ -360,7 +369,7 @@ def _apply(mesh, displacement: np.ndarray, settings: RefineSettings):
     normal is undefined; one zero-area triangle of a carved table mesh used to refuse every
     step). A mesh that is not watertight refuses every step (moving vertices keeps the faces,
     so watertightness is judged once). Returns (mesh, factor used), the factor scaled by the
-    mean vertex weight, 0 when refused."""
+    mean vertex weight, 0 when refused. ``edges`` : the mesh's unique (E, 2) edges, if known."""
     import trimesh
 
     before = mesh.face_normals
@@ -376,7 +385,7 @@ def _apply(mesh, displacement: np.ndarray, settings: RefineSettings):
             return moved, factor * float(weight.mean())
         if attempt < settings.holds:
             held[mesh.faces[bad].ravel()] = True
-            weight = _hold_weights(held, mesh.edges_unique)
+            weight = _hold_weights(held, mesh.edges_unique if edges is None else edges)
         else:
             factor *= 0.5
     return mesh, 0.0

@@ -12,7 +12,7 @@ from fsswarp.backends import get_backend
 from fsswarp.carve import carve
 from fsswarp.errors import InputError
 from fsswarp.metrics import compare
-from fsswarp.refine import RefineSettings, _last_echo_rows, refine_shape
+from fsswarp.refine import RefineSettings, _graph_laplacian, _last_echo_rows, refine_shape
 
 
 @pytest.fixture(scope="module")
@@ -212,3 +212,14 @@ def test_a_step_that_turns_the_mesh_inside_out_or_an_open_mesh_is_refused():
     assert factor == 1.0 and moved.volume > sphere.volume
     holed = trimesh.Trimesh(sphere.vertices, sphere.faces[1:], process=False)
     assert _apply(holed, small, settings)[1] == 0.0
+
+
+def test_graph_laplacian_is_degree_less_adjacency_of_the_faces():
+    """Dense oracle: every face's three sides made adjacent, the degree on the diagonal."""
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    n = len(mesh.vertices)
+    adjacency = np.zeros((n, n))
+    for a, b in ((0, 1), (1, 2), (2, 0)):
+        adjacency[mesh.faces[:, a], mesh.faces[:, b]] = adjacency[mesh.faces[:, b], mesh.faces[:, a]] = 1.0
+    want = np.diag(adjacency.sum(axis=1)) - adjacency
+    np.testing.assert_array_equal(_graph_laplacian(mesh.edges_unique, n).toarray(), want)
