@@ -87,9 +87,6 @@ from .pose import PoseProblem, PoseSettings, PoseWarning, check_pose, estimate_p
 from .refine import RefineSettings, refine_shape
 from .render import RenderSettings, render
 
-#: Most child processes that compute the truth metrics (``_TruthMetrics``).
-TRUTH_WORKERS = 3
-
 
 @dataclass(frozen=True)
 class ReconstructSettings:
@@ -297,29 +294,22 @@ def _complete(entry: dict, problem, model, depth: float, tilt: float, truth) -> 
 
 class _TruthMetrics:
     """E_V, Chamfer and F-score of recorded models against the truth mesh (None: no truth, and
-    nothing to do), computed in child Python processes (``fsswarp.metrics.serve_compare``),
-    each fed by a worker thread that waits on its pipe, while the loop goes on. A worker thread
+    nothing to do), computed in a child Python process (``fsswarp.metrics.serve_compare``),
+    fed by one worker thread that waits on its pipe, while the loop goes on. A worker thread
     alone held the GIL against the loop: coral-one took 34.4 and 35.2 s on an H100 with it,
     24.2 and 24.7 s with the child process and 23.4 and 24.9 s with no truth metrics at all.
     On this 2-core CPU, where they were computed at once (the kernels use both cores), the
     child process uses the core that the loop's host work leaves idle: coral-one 84.9 s → 80.6
-    s (side by side, medians of 2, the same iterates). ``TRUTH_WORKERS`` children at most, one
-    fewer than the CPU cores: a compare takes 1.4–1.8 s on coral-one's carved model here, and a
-    GPU's loop records the next model sooner, so one child left a queue to wait for at the end.
-    The values do not depend on where they are computed. ``collect`` writes them into the
-    history entries, in order, and reports each with ``say``. A context manager: leaving it
-    stops the workers and their processes."""
+    s (side by side, medians of 2, the same iterates). The values do not depend on where they
+    are computed. ``collect`` writes them into the history entries, in order, and reports each
+    with ``say``. A context manager: leaving it stops the worker and its process."""
 
     def __init__(self, mesh, say: Callable[[str], None]):
-        import os
-        import threading
         from concurrent.futures import ThreadPoolExecutor
 
         self.mesh, self.say = mesh, say
-        self.workers = max(1, min(TRUTH_WORKERS, (os.cpu_count() or 1) - 1))
-        self.pool = ThreadPoolExecutor(self.workers, thread_name_prefix="fsswarp-truth") if mesh is not None else None
-        self.local = threading.local()  # each worker's child
-        self.children = []  # the compare processes, each started by its worker's first compare
+        self.pool = ThreadPoolExecutor(1, thread_name_prefix="fsswarp-truth") if mesh is not None else None
+        self.child = None  # the compare process, started by the first submit
         self.pending = []  # (history entry, future), oldest first
 
     def __enter__(self):
@@ -328,38 +318,36 @@ class _TruthMetrics:
     def __exit__(self, *exc) -> None:
         if self.pool is not None:
             self.pool.shutdown(wait=True, cancel_futures=True)
-        for child in self.children:
-            child.stdin.close()
-            child.wait()
-            child.stdout.close()
+        if self.child is not None:
+            self.child.stdin.close()
+            self.child.wait()
+            self.child.stdout.close()
 
     def submit(self, entry: dict, model) -> None:
         if self.pool is not None:
             self.pending.append((entry, self.pool.submit(self._compare_in_child, model)))
 
     def _compare_in_child(self, model) -> dict:
-        """``compare(model, truth)`` in this worker thread's child process."""
+        """``compare(model, truth)`` in the child process (on the worker thread)."""
         import os
         import pickle
         import subprocess
         import sys
         from pathlib import Path
 
-        child = getattr(self.local, "child", None)
-        if child is None:
+        if self.child is None:
             path = [str(Path(__file__).resolve().parent.parent), os.environ.get("PYTHONPATH", "")]
-            child = self.local.child = subprocess.Popen(
+            self.child = subprocess.Popen(
                 [sys.executable, "-c", "from fsswarp.metrics import serve_compare; serve_compare()"],
                 stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                 env=dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in path if p)))
-            self.children.append(child)
-            pickle.dump(self.mesh, child.stdin)
-        pickle.dump(model, child.stdin)
-        child.stdin.flush()
+            pickle.dump(self.mesh, self.child.stdin)
+        pickle.dump(model, self.child.stdin)
+        self.child.stdin.flush()
         try:
-            reply = pickle.load(child.stdout)
+            reply = pickle.load(self.child.stdout)
         except EOFError:
-            raise RuntimeError(f"the truth-metrics process ended (exit status {child.wait()})") from None
+            raise RuntimeError(f"the truth-metrics process ended (exit status {self.child.wait()})") from None
         if isinstance(reply, Exception):
             raise reply
         return reply

@@ -86,7 +86,7 @@ def test_truth_metrics_reach_their_entries_in_order():
         metrics.submit(alone, truth)
         metrics.collect(wait=True)
     assert alone == {"iteration": 0} and len(lines) == 2  # no truth model: nothing to add
-    assert not metrics.children
+    assert metrics.child is None
 
 
 def test_truth_metrics_in_the_child_process_are_compares_and_raise_its_errors():
@@ -99,35 +99,15 @@ def test_truth_metrics_in_the_child_process_are_compares_and_raise_its_errors():
     with reconstruct_module._TruthMetrics(truth, [].append) as metrics:
         metrics.submit(entry, model)
         metrics.collect(wait=True)
+        child = metrics.child
     want = compare(model, truth)
     assert (entry["E_V"], entry["chamfer_m"], entry["fscore"]) == (want["E_V"], want["chamfer_m"], want["fscore"])
-    assert len(metrics.children) == 1 and metrics.children[0].returncode == 0
+    assert child.returncode == 0
     with pytest.raises(InputError, match="holds no triangles"):
         with reconstruct_module._TruthMetrics(truth, [].append) as metrics:
             metrics.submit({"iteration": 1}, trimesh.Trimesh())
             metrics.collect(wait=True)
-    assert [child.returncode for child in metrics.children] == [0]
-
-
-def test_truth_metrics_of_several_children_keep_their_order(monkeypatch):
-    """With several children, the compares of many models overlap, and each entry still gets
-    its own model's values (closed-form E_V of concentric icospheres), reported in order; every
-    child ends with the context."""
-    monkeypatch.setattr("os.cpu_count", lambda: 8)
-    truth = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
-    radii = (0.12, 0.09, 0.11, 0.095, 0.115, 0.105)
-    entries = [{"iteration": i} for i in range(len(radii))]
-    lines = []
-    with reconstruct_module._TruthMetrics(truth, lines.append) as metrics:
-        assert metrics.workers == reconstruct_module.TRUTH_WORKERS > 1
-        for entry, radius in zip(entries, radii):
-            metrics.submit(entry, trimesh.creation.icosphere(subdivisions=3, radius=radius))
-        metrics.collect(wait=True)
-    for entry, radius in zip(entries, radii):
-        small, large = sorted((radius, 0.1))
-        assert entry["E_V"] == pytest.approx(1 - (small / large) ** 3, rel=1e-3)
-    assert [int(line.split()[1]) for line in lines] == list(range(len(radii)))
-    assert len(metrics.children) > 1 and all(child.returncode == 0 for child in metrics.children)
+    assert metrics.child.returncode == 0
 
 
 def test_image_errors_vanish_for_the_truth_and_grow_with_a_bad_model(coral_one):
