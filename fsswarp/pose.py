@@ -279,7 +279,8 @@ class PoseProblem:
             ("pose views", tuple(self.views), settings.segment),
             lambda: _view_highlights(dataset, self.views, settings.segment))
         self._unseen: set[str] = set()
-        self._no_distances = None
+        self._no_distances = self.backend.device_distances(  # locating reads the contours alone: any distances do
+            np.zeros((len(self.views), 2, self.sonar.bins, self.sonar.beams), np.float32))
         self.locate(depth, tilt)
 
     def locate(self, depth: float, tilt: float) -> None:
@@ -305,9 +306,6 @@ class PoseProblem:
         layers = self.render_pairs(views, np.array([depth]), np.array([tilt]), st.exact_samples)
         predicted = layers.numpy()
         scan = np.stack([scan_start(predicted, len(self.smoothing[0])), np.full(len(views), sonar.bins)], axis=1)
-        if self._no_distances is None:  # the contours alone: any distances do
-            self._no_distances = self.backend.device_distances(
-                np.zeros((len(views), 2, sonar.bins, sonar.beams), np.float32))
         contour, _, _ = self.backend.contour_cost(layers, np.arange(len(views)), threshold, scan, every,
                                                   self._no_distances, [0.0], self.smoothing)
         seen = (contour[:, 0] >= 0).any(axis=1)

@@ -71,7 +71,7 @@ import numpy as np
 from .errors import InputError, check_integer, is_integer
 from .motion import image_jacobian
 from .pose import PoseProblem, PoseSettings, PoseWarning
-from .render import check_mesh
+from .render import check_mesh, is_watertight
 from .surface import surface_in_reference
 
 #: Share of the step that the first rings of neighbours of a held vertex take (module
@@ -374,7 +374,7 @@ def _apply(mesh, displacement: np.ndarray, settings: RefineSettings, edges: np.n
 
     before = mesh.face_normals
     judged = np.linalg.norm(before, axis=1) > 0.5  # a degenerate triangle has no normal to turn
-    watertight = mesh.is_watertight
+    watertight = is_watertight(mesh)
     factor = settings.step
     held = np.zeros(len(mesh.vertices), bool)
     weight = np.ones(len(mesh.vertices))

@@ -52,8 +52,9 @@ from .surface import COMPONENTS, apparent_returns, surface_in_views
 #: Layers of a rendered view, in array order: the four components, then their sum.
 LAYERS = COMPONENTS + ("total",)
 
-#: Watertightness by the digest of the faces it depends on alone (``check_mesh``): shape
-#: refinement makes a new mesh of the same faces at every step (6 ms each for trimesh to
+#: Watertightness by the digest of the faces it depends on alone (``is_watertight``, for
+#: ``check_mesh`` and refinement's ``_apply``): shape refinement makes a new mesh of the same
+#: faces at every step (6 ms each for trimesh to
 #: judge on coral-one's carved model, 0.6 ms to hash). Cleared when it reaches 64 entries.
 _WATERTIGHT: dict[bytes, bool] = {}
 
@@ -96,15 +97,16 @@ def check_mesh(mesh, *, name: str = "mesh"):
         raise InputError("holds no triangles", field=name, value=f"{len(faces)} faces")
     if not np.all(np.isfinite(vertices)):
         raise InputError("has non-finite vertices", field=name, value=int((~np.isfinite(vertices)).sum()))
-    if hasattr(type(mesh), "is_watertight") and not _is_watertight(mesh, faces):
+    if hasattr(type(mesh), "is_watertight") and not is_watertight(mesh):
         warnings.warn(f"{name} is not watertight: ghost and mirror legs may leak through holes; "
                       "close it (e.g. trimesh's fill_holes) or use a closed mesh", RenderWarning, stacklevel=2)
     return vertices, faces
 
 
-def _is_watertight(mesh, faces: np.ndarray) -> bool:
-    """``mesh.is_watertight``, remembered by the digest of its (Nf, 3) int64 ``faces``."""
-    key = hashlib.blake2b(np.ascontiguousarray(faces), digest_size=16).digest()
+def is_watertight(mesh) -> bool:
+    """A trimesh's ``is_watertight``, remembered by the digest of its (Nf, 3) faces (it depends
+    on them alone; ``_WATERTIGHT``)."""
+    key = hashlib.blake2b(np.ascontiguousarray(mesh.faces, np.int64), digest_size=16).digest()
     if key not in _WATERTIGHT:
         if len(_WATERTIGHT) >= 64:
             _WATERTIGHT.clear()

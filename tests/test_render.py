@@ -462,7 +462,7 @@ class _Counted(trimesh.Trimesh):
 
 
 def test_check_mesh_judges_each_topology_once():
-    from fsswarp.render import RenderWarning, check_mesh
+    from fsswarp.render import RenderWarning, check_mesh, is_watertight
 
     sphere = trimesh.creation.icosphere(subdivisions=2)
     closed = _Counted(sphere.vertices, sphere.faces, process=False)
@@ -473,6 +473,7 @@ def test_check_mesh_judges_each_topology_once():
         warnings.simplefilter("error", RenderWarning)
         check_mesh(closed)
         check_mesh(moved)  # new vertices, the same faces: remembered
+    assert is_watertight(_Counted(sphere.vertices * 0.5, sphere.faces, process=False))  # refinement's _apply
     assert _Counted.judged <= 1
     with pytest.warns(RenderWarning, match="not watertight"):
         check_mesh(holed)
