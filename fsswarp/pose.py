@@ -525,7 +525,8 @@ class PoseProblem:
     def align(self, contours: np.ndarray, shift: float, components=(0, 1)) -> list[tuple]:
         """ICP of the synthetic contours (V, 2, beams) (rows, -1: none; the detection ``shift``
         added) to the data's, in the fan plane, for every view and component with two points or
-        more in both, all in lockstep: (component, view, beams, source (N, 2), goal (M, 2),
+        more in both, all in lockstep, on the backend's device when it has float64 (one
+        thread per run; else on the host): (component, view, beams, source (N, 2), goal (M, 2),
         ICPResult) each."""
         data, sonar = self.data, self.sonar
         theta = sonar.beam_centres
@@ -539,7 +540,8 @@ class PoseProblem:
                 source = fan_points(theta[beams], sonar.bin_range(contours[k, c, beams] + shift))
                 goal = fan_points(theta[target], sonar.bin_range(data.rows[k, c, target]))
                 requests.append((c, k, beams, source, goal))
-        results = icp_many([(source, goal) for *_, source, goal in requests], tol=CONTOUR_TOL)
+        results = icp_many([(source, goal) for *_, source, goal in requests], tol=CONTOUR_TOL,
+                           backend=self.backend if self.backend.has_float64 else None)
         return [request + (result,) for request, result in zip(requests, results)]
 
     def frontal_motions(self, rot, t, n, d, motions):

@@ -265,3 +265,117 @@ def test_the_kept_nearest_targets_are_the_k_d_tree_s():
         np.testing.assert_array_equal(dist, want_dist)
         ties += np.count_nonzero(active.room2 < 0)
     assert ties > 0
+
+
+# --- on a backend's device (Backend.icp_runs, one thread per run, float64) ---------------------
+
+def contour_problems(seed):
+    """Pairs of the pose step's kind: misplaced noisy curves of 2–200 points against data with
+    false highlights, and one pair whose every point lies 10 m off (gated off by a hard gate)."""
+    rng = np.random.default_rng(seed)
+    problems = []
+    for n, m, angle, shift in ((60, 300, 0.03, (0.01, -0.005)), (123, 80, -0.04, (0.0, 0.02)),
+                               (2, 2, 0.0, (0.0, 0.0)), (7, 40, 0.01, (0.002, 0.0)),
+                               (200, 150, 0.045, (-0.015, 0.01))):
+        target = curve(m) + rng.normal(0.0, 0.002, (m, 2))
+        source = misplace(curve(n, -0.8, 0.9), *rigid(angle, shift)) + rng.normal(0.0, 0.002, (n, 2))
+        problems.append((source, np.concatenate([target, false_highlights(target[: m // 5], rng)])))
+    problems.append((problems[0][0] + 10.0, problems[0][1]))
+    return problems
+
+
+def assert_same_results(got, want, atol, iterations=0):
+    """Pair by pair: transforms and motions to ``atol``, the same pairs, CE and σ to 1e-9, and
+    iteration counts within ``iterations`` (rounding decides the last step of a slow run)."""
+    for a, b in zip(got, want, strict=True):
+        np.testing.assert_allclose(a.rotation, b.rotation, rtol=0, atol=atol)
+        np.testing.assert_allclose(a.translation, b.translation, rtol=0, atol=atol)
+        np.testing.assert_allclose(a.motions, b.motions, rtol=0, atol=atol)
+        np.testing.assert_allclose(a.weights, b.weights, rtol=0, atol=1e-9)
+        np.testing.assert_array_equal(a.pairs, b.pairs)
+        assert abs(a.iterations - b.iterations) <= iterations and a.converged == b.converged
+        assert a.error == pytest.approx(b.error, rel=1e-9, abs=0, nan_ok=True)
+        assert a.scale == pytest.approx(b.scale, rel=1e-9, abs=0)
+
+
+@pytest.mark.parametrize("max_distance", [None, 0.05])
+def test_device_runs_give_the_host_s_results(backend, max_distance):
+    """The kernel's brute-force matching and selection median give the host's k-d tree and
+    np.median results up to rounding: the same pairs, transforms to 1e-10 m, and the same
+    iterations but where rounding decides a slow run's last step (tol 1e-10)."""
+    problems = contour_problems(5)
+    host = icp_many(problems, max_distance=max_distance)
+    device = icp_many(problems, max_distance=max_distance, backend=backend)
+    assert_same_results(device, host, 1e-10, iterations=1)
+    assert len({r.iterations for r in host}) > 2  # the runs stop at different times
+    if max_distance is not None:
+        assert len(device[-1].pairs) == 0 and not device[-1].converged  # no weight: stops unconverged
+
+
+@given(angle=st.floats(-0.01, 0.01, **finite), sx=st.floats(-5e-4, 5e-4, **finite),
+       sy=st.floats(-5e-4, 5e-4, **finite))
+@settings(derandomize=True, max_examples=10, deadline=None)
+def test_device_runs_solve_a_small_motion_of_matched_points_exactly(backend, angle, sx, sy):
+    """Closed form, as on the host: matched points moved by a sub-mm rigid motion come back
+    exactly, with every point paired with its own target."""
+    target = curve(60)
+    rot, trans = rigid(angle, (sx, sy))
+    res = icp_many([(misplace(target, rot, trans), target)], backend=backend)[0]
+    assert res.converged
+    np.testing.assert_allclose(res.rotation, rot, atol=1e-12)
+    np.testing.assert_allclose(res.translation, trans, atol=1e-11)
+    assert res.error == pytest.approx(0.0, abs=1e-11)
+    np.testing.assert_array_equal(res.pairs[:, 0], res.pairs[:, 1])
+
+
+def test_device_runs_take_medians_of_equal_distances(backend):
+    """Sources a few fixed offsets off the targets' binary grid: the first match's distances
+    take four values, many times each, which the selection median must order like np.median
+    (odd and even counts; a gate that drops the largest), and σ then weighs the pairs."""
+    grid = np.stack(np.meshgrid(np.arange(9), np.arange(6)), axis=-1).reshape(-1, 2) / 64.0
+    offsets = np.array([[0.125, 0.0], [0.25, 0.0], [0.375, 0.125], [0.125, 0.125]]) / 64.0
+    pick = np.random.default_rng(4).integers(0, 4, 54)
+    problems = [(grid[:n] + offsets[pick[:n]], grid) for n in (5, 6, 17, 54)]
+    for max_distance in (None, 0.3 / 64.0):
+        for iterations in (1, 3):
+            host = icp_many(problems, max_distance=max_distance, max_iterations=iterations)
+            device = icp_many(problems, max_distance=max_distance, max_iterations=iterations, backend=backend)
+            assert_same_results(device, host, 1e-14)
+
+
+def test_warp_and_opencl_icp_runs_agree(backend_for_label):
+    """The two kernels, line by line the same: the same pairs, transforms to 1e-13 (their
+    sin, cos and atan2 may round differently, and so a slow run's last step)."""
+    warp, opencl = backend_for_label("warp-cpu"), backend_for_label("opencl-cpu")
+    problems = contour_problems(9)
+    assert_same_results(icp_many(problems, backend=warp), icp_many(problems, backend=opencl), 1e-13, iterations=1)
+
+
+@pytest.mark.parametrize("change, message", [
+    (dict(runs=np.zeros((2, 2), int)), "runs must be an"),
+    (dict(runs=[[0, 3, 4], [0, 3, 0]]), "count >= 1"),
+    (dict(runs=[[0, 9, 4], [0, 3, 4]]), "within 0..3"),
+    (dict(runs=[[0, 3, 4], [0, 3, 3]]), "sum to 7"),
+    (dict(floors=[1e-9, 0.0]), "floors must be > 0"),
+    (dict(angles=[0.0, math.nan]), "angles must be finite"),
+    (dict(translations=np.zeros(2)), "translations must have shape"),
+    (dict(max_iterations=0), "max_iterations"),
+    (dict(max_distance=-1.0), "max_distance and tuning"),
+])
+def test_icp_runs_rejects_bad_input(backend, change, message):
+    args = dict(source_x=np.arange(8.0), source_y=np.zeros(8), target_x=np.arange(3.0), target_y=np.zeros(3),
+                runs=[[0, 3, 4], [0, 3, 4]], angles=[0.0, 0.0], translations=np.zeros((2, 2)),
+                floors=[1e-9, 1e-9], step_tols=[1e-9, 1e-9], max_iterations=5, max_distance=math.inf,
+                tuning=2.0)
+    args.update(change)
+    positional = [args.pop(k) for k in ("source_x", "source_y", "target_x", "target_y", "runs", "angles",
+                                        "translations", "floors", "step_tols")]
+    with pytest.raises(ValueError, match=message):
+        backend.icp_runs(*positional, **args)
+
+
+def test_the_opencl_kernel_s_constant_is_python_s():
+    from fsswarp.backends.opencl_backend import kernel_source
+    from fsswarp.icp import RAYLEIGH_MEDIAN
+
+    assert f"#define RAYLEIGH_MEDIAN {RAYLEIGH_MEDIAN!r} " in kernel_source("icp.cl")

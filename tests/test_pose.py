@@ -16,6 +16,7 @@ from fsswarp.backends import get_backend
 from fsswarp.dataset import Dataset
 from fsswarp.errors import InputError
 from fsswarp.figures import pose_figure
+from fsswarp.icp import icp_many
 from fsswarp.pose import (PoseProblem, PoseSettings, PoseWarning, contour_distance, detection_threshold,
                           estimate_pose, pose_objective)
 from fsswarp.rig import Rig
@@ -118,6 +119,27 @@ def test_pose_objective_is_e_mu(coral_one, truth_model, opencl):
     assert detail.per_view.shape == (10,) and np.all(np.isfinite(detail.per_view))
     assert detail.value == pytest.approx(np.mean(detail.per_view))
     assert detail.object_patches >= 50 and detail.mirror_patches >= 50
+
+
+def test_e_mu_aligns_on_the_device_where_it_has_float64(coral_one, truth_problem, opencl, monkeypatch):
+    """PoseProblem.align runs ICP on the backend's device when it has float64 (one thread per
+    run), else on the host (k-d tree); E_mu is the same either way, up to rounding."""
+    import fsswarp.pose
+
+    used = []
+
+    def spy(*args, **kwargs):
+        used.append(kwargs["backend"])
+        return icp_many(*args, **kwargs)
+
+    monkeypatch.setattr(fsswarp.pose, "icp_many", spy)
+    truth = coral_one.manifest.truth
+    on_device = truth_problem.exact(truth.depth, truth.tilt)
+    monkeypatch.setattr(opencl, "has_float64", False)
+    on_host = truth_problem.exact(truth.depth, truth.tilt)
+    assert used == [opencl, None]
+    assert on_device.value == pytest.approx(on_host.value, rel=1e-9)
+    np.testing.assert_allclose(on_device.per_view, on_host.per_view, rtol=1e-9)
 
 
 def _oracle_frontal_faces(mesh, sonar, rot, t, n, d, theta, rays: int, mirror: bool) -> np.ndarray:

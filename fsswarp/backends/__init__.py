@@ -9,7 +9,7 @@ implement it. Pick one with :func:`get_backend`; list what this machine offers w
 The public methods of ``Backend`` validate their inputs (``ValueError`` / ``TypeError``
 quoting the bad value) and convert them to contiguous float32 arrays; the private ``_name``
 methods that subclasses implement receive clean arrays and never validate. All kernels compute
-in float32 on the device.
+in float32 on the device, except the ICP runs (``icp_runs``), in float64.
 
 Importing this package imports neither ``warp`` nor ``pyopencl``; a backend imports its
 package when it is first asked for.
@@ -24,13 +24,14 @@ from __future__ import annotations
 
 import abc
 import contextlib
+import math
 import os
 import re
 import sys
 import tempfile
 import threading
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -104,11 +105,13 @@ class Backend(abc.ABC):
     name : "warp" or "opencl"
     device : the device, e.g. "cpu" or "cuda:0" (Warp), "<platform>: <device name>" (OpenCL)
     is_gpu : whether the device is a GPU
+    has_float64 : whether its kernels can compute in float64 (``icp_runs`` needs it)
     """
 
     name: str
     device: str
     is_gpu: bool
+    has_float64: bool
 
     def __repr__(self) -> str:
         return f"<{type(self).__name__} {self.name} on {self.device!r}>"
@@ -475,6 +478,83 @@ class Backend(abc.ABC):
         """A device copy of a C-contiguous float32 array (Warp: ``wp.array``; OpenCL: a
         read-only buffer)."""
 
+    # --- IRLS-ICP of 2-D contours (fsswarp/icp.py), float64 ------------------------------------
+    def icp_runs(self, source_x, source_y, target_x, target_y, runs, angles, translations, floors, step_tols,
+                 *, max_iterations: int, max_distance: float, tuning: float) -> "ICPRuns":
+        """R IRLS-ICP runs of fsswarp/icp.py, one thread each, in float64: every iteration
+        matches each moved source point to its nearest target (brute force; the first of
+        equal distances), weighs the pairs with Cauchy weights at the robust scale
+        σ = max(median distance / √(2 ln 2), floor), solves the weighted Procrustes problem
+        from the original points, and stops when no point moves more than the run's step
+        tolerance, when the weights sum to 0, or after ``max_iterations``.
+
+        source_x, source_y (F,) : every run's source points, run after run (a run's own copy);
+        target_x, target_y (M,) : the targets; runs (R, 3) int : each run's first target, its
+            number of targets (>= 1) and of source points (>= 1), the sources' first point
+            being the sum of the earlier runs' counts
+        angles (R,), translations (R, 2) : each run's start transform ``p -> rot(angle) p + t``
+        floors (R,) > 0 : the floors of σ; step_tols (R,) >= 0 : the tolerances (plane units)
+        max_distance : pairs farther than this (> 0; inf: none) get weight 0 and distance inf
+        tuning : the Cauchy constant c > 0
+        Returns an ICPRuns. Needs a device with float64 (``has_float64``)."""
+        columns = [_float64_array(name, value, ("F",)) for name, value in
+                   (("source_x", source_x), ("source_y", source_y), ("target_x", target_x), ("target_y", target_y))]
+        sx, sy, tx, ty = columns
+        table = np.asarray(runs)
+        if table.dtype.kind not in "iu" or table.ndim != 2 or table.shape[1] != 3:
+            raise ValueError(f"runs must be an (R, 3) integer array, got {table.dtype} {table.shape}")
+        n_runs = table.shape[0]
+        if sx.shape != sy.shape or tx.shape != ty.shape:
+            raise ValueError("source_x/source_y and target_x/target_y must have equal lengths")
+        if n_runs and (table[:, 1:].min() < 1 or table[:, 0].min() < 0
+                       or (table[:, 0] + table[:, 1]).max() > tx.shape[0]):
+            raise ValueError(f"runs must name targets within 0..{tx.shape[0]} and count >= 1 targets and sources")
+        if int(table[:, 2].sum()) != sx.shape[0]:
+            raise ValueError(f"the runs' source counts sum to {int(table[:, 2].sum())}, not to the "
+                             f"{sx.shape[0]} source points")
+        angle = _float64_array("angles", angles, (n_runs,))
+        move = _float64_array("translations", translations, (n_runs, 2))
+        floor = _float64_array("floors", floors, (n_runs,))
+        tol = _float64_array("step_tols", step_tols, (n_runs,))
+        if np.any(floor <= 0) or np.any(tol < 0):
+            raise ValueError("floors must be > 0 and step_tols >= 0")
+        if not (is_integer(max_iterations) and max_iterations >= 1):
+            raise ValueError(f"max_iterations must be an integer >= 1, got {max_iterations!r}")
+        if not (max_distance > 0 and math.isfinite(tuning) and tuning > 0):
+            raise ValueError(f"max_distance and tuning must be > 0, got {max_distance!r}, {tuning!r}")
+        if not self.has_float64:
+            raise RuntimeError(f"{self!r} has no float64 (cl_khr_fp64): run the ICP on the host")
+        if n_runs == 0:
+            return ICPRuns(np.zeros(0), np.zeros((0, 2)), np.zeros(0, np.int32), np.zeros(0, bool),
+                           np.zeros((0, 2)), np.zeros(0, np.int32), np.zeros(0))
+        first = np.ascontiguousarray(np.cumsum(table[:, 2]) - table[:, 2], np.int32)
+        info = np.ascontiguousarray(np.column_stack([first, table]), np.int32)  # (R, 4)
+        return self._icp_runs(sx, sy, tx, ty, info, angle, move, floor, tol, int(max_iterations),
+                              float(max_distance), float(tuning))
+
+    @abc.abstractmethod
+    def _icp_runs(self, source_x: np.ndarray, source_y: np.ndarray, target_x: np.ndarray, target_y: np.ndarray,
+                  runs: np.ndarray, angles: np.ndarray, translations: np.ndarray, floors: np.ndarray,
+                  step_tols: np.ndarray, max_iterations: int, max_distance: float, tuning: float) -> "ICPRuns":
+        """Kernel launch of ``icp_runs``: clean C-contiguous float64 arrays, runs (R, 4) int32
+        (first source point, first target, targets, source points), R >= 1."""
+
+
+class ICPRuns(NamedTuple):
+    """What ``Backend.icp_runs`` leaves: per run, the final ``angles`` (R,) and
+    ``translations`` (R, 2), ``iterations`` (R,) run and whether it ``converged`` (R,); per
+    source point (run after run), its ``moved`` position (F, 2), its ``nearest`` target (F,)
+    (an index into the targets) and ``distances`` (F,) to it after the last move (inf beyond
+    ``max_distance``)."""
+
+    angles: np.ndarray
+    translations: np.ndarray
+    iterations: np.ndarray
+    converged: np.ndarray
+    moved: np.ndarray
+    nearest: np.ndarray
+    distances: np.ndarray
+
 
 class DeviceLayers(abc.ABC):
     """Rendered layers in a backend's device memory; ``shape`` = (N, 4, bins, beams) float32,
@@ -609,6 +689,19 @@ def _float32_array(name: str, value: Any, shape: tuple) -> np.ndarray:
         bad = np.argwhere(~finite)[0]
         raise ValueError(f"{name} must be finite in float32, got {array[tuple(bad)]} at index "
                          f"{tuple(int(i) for i in bad)}")
+    return array
+
+
+def _float64_array(name: str, value: Any, shape: tuple) -> np.ndarray:
+    """``value`` as a C-contiguous finite float64 array of ``shape`` (a letter = any length)."""
+    array = np.asarray(value)
+    if array.dtype.kind not in "fiu":
+        raise TypeError(f"{name} must hold real numbers, got dtype {array.dtype}")
+    if array.ndim != len(shape) or any(isinstance(s, int) and s != n for s, n in zip(shape, array.shape)):
+        raise ValueError(f"{name} must have shape {_shape_text(shape)}, got {array.shape}")
+    array = np.ascontiguousarray(array, dtype=np.float64)
+    if not np.isfinite(array).all():
+        raise ValueError(f"{name} must be finite")
     return array
 
 

@@ -21,8 +21,8 @@ import numpy as np
 import pyopencl as cl
 from pyopencl.tools import first_arg_dependent_memoize
 
-from . import (FRONTAL_EPSILON, FRONTAL_MAX_DISTANCE, FRONTAL_VISIBLE, Backend, DeviceLayers, SonarConstants,
-               _OpenCLDevice)
+from . import (FRONTAL_EPSILON, FRONTAL_MAX_DISTANCE, FRONTAL_VISIBLE, Backend, DeviceLayers, ICPRuns,
+               SonarConstants, _OpenCLDevice)
 from .bvh import FlatBVH, build_bvh
 
 #: ε (m) of the leg tests of render (fsswarp/render.py).
@@ -132,6 +132,8 @@ class OpenCLBackend(Backend):
         self._frontal_rays_kernel = cl.Kernel(program(self.context, "render.cl"), "frontal_rays")
         self._frontal_kernel = cl.Kernel(program(self.context, "pose.cl"), "frontal_contour")
         self._contour_cost_kernel = cl.Kernel(program(self.context, "pose.cl"), "contour_cost")
+        self.has_float64 = "cl_khr_fp64" in found.device.extensions.split()
+        self._icp_kernel = cl.Kernel(program(self.context, "icp.cl"), "icp_runs") if self.has_float64 else None
         self._lock = threading.Lock()
 
     def _input(self, array: np.ndarray) -> cl.Buffer:
@@ -297,6 +299,35 @@ class OpenCLBackend(Backend):
             self.queue.finish()
         contour_buf.release()
         return contour, sums, counts
+
+
+    # --- IRLS-ICP runs ----------------------------------------------------------------------
+    def _icp_runs(self, source_x, source_y, target_x, target_y, runs, angles, translations, floors, step_tols,
+                  max_iterations, max_distance, tuning):
+        n_runs, n_points = runs.shape[0], source_x.shape[0]
+        flags = cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR
+        angle, trans = angles.copy(), translations.copy()
+        iterations, converged = np.zeros(n_runs, np.int32), np.zeros(n_runs, np.int32)
+        moved_x, moved_y, dist, nearest = np.empty(n_points), np.empty(n_points), np.empty(n_points), \
+            np.empty(n_points, np.int32)
+        results = (angle, trans, iterations, converged, moved_x, moved_y, nearest, dist)
+        buffers = [cl.Buffer(self.context, flags, hostbuf=a) for a in results[:4]]
+        buffers += [cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=a.nbytes) for a in results[4:]]
+        work = [cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=moved_x.nbytes)
+                for _ in range(4)]  # anchor_x, anchor_y, room2, scratch
+        with self._lock:
+            self._icp_kernel(
+                self.queue, (-(-n_runs // GROUP) * GROUP,), (GROUP,),
+                *(self._input(a) for a in (source_x, source_y, target_x, target_y, runs, floors, step_tols)),
+                np.int32(max_iterations), np.float64(max_distance), np.float64(tuning), np.int32(n_runs),
+                *buffers, *work)
+            for host, buf in zip(results, buffers):
+                cl.enqueue_copy(self.queue, host, buf, is_blocking=False)
+            self.queue.finish()
+        for buf in buffers + work:
+            buf.release()
+        return ICPRuns(angle, trans, iterations, converged.astype(bool), np.column_stack([moved_x, moved_y]),
+                       nearest, np.where(dist >= 0.0, dist, np.inf))
 
 
 class OpenCLLayers(DeviceLayers):
