@@ -276,9 +276,8 @@ class _Update:
         """Inward motions of triangles whose echo lands where the data is dark (module
         docstring, step 4); fills ``self.motion`` except on ``skip``; returns the faces moved.
         The views' rays go to the backend in one launch; the synthetic views are the layers
-        that the update's problem rendered at its (D, β) (``PoseProblem.predicted``)."""
-        from scipy import ndimage
-
+        that the update's problem rendered at its (D, β) (``PoseProblem.predicted``); each is
+        smoothed only in the rows that its votes read (:func:`smoothed_rows`)."""
         problem, sonar, st = self.problem, self.problem.sonar, self.settings
         data = problem.data
         layers = problem.predicted
@@ -302,9 +301,6 @@ class _Update:
                 continue
             dark, last_rows = dataset.derived(("overshoot", data.views[k], st.pose.segment),
                                               lambda: _dark_distance(highlight, sonar))
-            threshold = data.threshold[k][:, None]
-            bright = ndimage.gaussian_filter(layers[k, 0] + layers[k, 1], sigma) > threshold
-            corrupt = ndimage.gaussian_filter(layers[k, 1:].sum(axis=0), sigma) > st.corrupt * threshold
             up = u @ self.n_view[k]
             surface = np.where(up > 0, self.d_view[k] / np.where(up > 0, up, 1.0), np.inf)
             hit = np.isfinite(dist[k]) & (dist[k] < surface)
@@ -312,9 +308,16 @@ class _Update:
             col, face = beam_of_ray[hit], faces[k, hit]
             inside = (row >= 0) & (row < sonar.bins)
             row, col, face = row[inside], col[inside], face[inside]
+            if not row.size:
+                continue
+            lo, hi = int(row.min()), int(row.max()) + 1  # the rows the votes read
+            threshold = data.threshold[k][lo:hi, None]
+            band = row - lo
+            bright = smoothed_rows(layers[k, 0] + layers[k, 1], sigma, lo, hi) > threshold
+            corrupt = smoothed_rows(layers[k, 1:].sum(axis=0), sigma, lo, hi) > st.corrupt * threshold
             gap = dark[row, col]
             within = row <= last_rows[col]  # not beyond the data (step 4)
-            vote = bright[row, col] & ~corrupt[row, col] & (gap > st.tolerance) & within
+            vote = bright[band, col] & ~corrupt[band, col] & (gap > st.tolerance) & within
             np.add.at(total, face[vote], gap[vote])
             np.add.at(votes, face[vote], 1.0)
         votes[skip] = 0.0
@@ -348,6 +351,19 @@ class _Update:
         # symmetric positive definite: a symmetric ordering, no pivoting (1.7x faster than spsolve)
         factor = splu(system, permc_spec="MMD_AT_PLUS_A", options=dict(SymmetricMode=True))
         return factor.solve(confidence[:, None] * target)
+
+
+def smoothed_rows(image: np.ndarray, sigma: tuple[float, float], lo: int, hi: int) -> np.ndarray:
+    """Rows [lo, hi) of ``scipy.ndimage.gaussian_filter(image, sigma)`` (default truncate and
+    reflecting border), bit for bit, from the rows the range smoothing reaches: the filter runs
+    along range, then across beams, and a row of the first pass reads only the rows within its
+    radius, int(4 σ_range + 0.5) (the border is the image's, never the band's).
+    image : (bins, beams); returns (hi − lo, beams)."""
+    from scipy import ndimage
+
+    radius = int(4.0 * float(sigma[0]) + 0.5)
+    start, stop = max(lo - radius, 0), min(hi + radius, image.shape[0])
+    return ndimage.gaussian_filter(image[start:stop], sigma)[lo - start:hi - start]
 
 
 def _graph_laplacian(edges: np.ndarray, n: int):

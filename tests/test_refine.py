@@ -12,7 +12,7 @@ from fsswarp.backends import get_backend
 from fsswarp.carve import carve
 from fsswarp.errors import InputError
 from fsswarp.metrics import compare
-from fsswarp.refine import RefineSettings, _graph_laplacian, _last_echo_rows, refine_shape
+from fsswarp.refine import RefineSettings, _graph_laplacian, _last_echo_rows, refine_shape, smoothed_rows
 
 
 @pytest.fixture(scope="module")
@@ -223,3 +223,16 @@ def test_graph_laplacian_is_degree_less_adjacency_of_the_faces():
         adjacency[mesh.faces[:, a], mesh.faces[:, b]] = adjacency[mesh.faces[:, b], mesh.faces[:, a]] = 1.0
     want = np.diag(adjacency.sum(axis=1)) - adjacency
     np.testing.assert_array_equal(_graph_laplacian(mesh.edges_unique, n).toarray(), want)
+
+
+@pytest.mark.parametrize("lo, hi", [(0, 1), (0, 40), (3, 9), (100, 180), (250, 256), (255, 256), (0, 256)])
+def test_smoothed_rows_are_the_whole_image_s_rows_bit_for_bit(lo, hi):
+    """The overshoot term smooths only the rows its votes read: those rows of the whole
+    image's gaussian_filter, to the bit, at the image's borders (reflected) and inside."""
+    from scipy import ndimage
+
+    image = np.random.default_rng(2).gamma(0.3, 1.0, (256, 96)).astype(np.float32)
+    sigma = (1.5, 0.8)
+    got = smoothed_rows(image, sigma, lo, hi)
+    assert got.dtype == np.float32 and got.shape == (hi - lo, 96)
+    np.testing.assert_array_equal(got, ndimage.gaussian_filter(image, sigma)[lo:hi])
