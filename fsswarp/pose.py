@@ -69,6 +69,7 @@ acceptance), both E_mu computed with the final data contours.
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 import warnings
@@ -387,7 +388,8 @@ class PoseProblem:
         beams = np.flatnonzero(rows >= 0)
         arc = float(np.median(sonar.bin_range(rows[beams]))) * float(np.mean(np.diff(sonar.beam_centres))) \
             if beams.size else 1.0
-        return contour_distance(rows, sonar.bins, sonar.range_step, arc, self.reach)
+        return _remembered_distance(np.ascontiguousarray(rows, np.int64).tobytes(), sonar.bins, sonar.range_step,
+                                    arc, self.reach)
 
     # --- synthesis and the surrogate -------------------------------------------------------
     def view_poses(self, views, depths: np.ndarray, tilts: np.ndarray):
@@ -751,6 +753,16 @@ def contour_distance(rows: np.ndarray, bins: int, range_step: float, arc: float,
             cols = target[inside]
             band[:, cols] = np.minimum(band[:, cols], dr2[:, inside] + (offset * arc) ** 2)
     return np.sqrt(out).astype(np.float32)  # out starts at reach² and only falls
+
+
+@functools.lru_cache(maxsize=128)
+def _remembered_distance(rows: bytes, bins: int, range_step: float, arc: float, reach: float) -> np.ndarray:
+    """:func:`contour_distance` of the int64 ``rows`` bytes, read-only, for the 128 latest
+    arguments (25 MB of 512 × 96 maps): the loop locates its problems again and again on
+    data contours that rarely change (coral-one, 4 iterations: 660 maps, 50 of them distinct)."""
+    out = contour_distance(np.frombuffer(rows, np.int64), bins, range_step, arc, reach)
+    out.setflags(write=False)
+    return out
 
 
 def _gaussian(sigma: float) -> np.ndarray:

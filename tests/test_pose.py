@@ -360,6 +360,21 @@ def test_contour_distance_is_the_euclidean_distance_transform_saturated(rows, bi
     np.testing.assert_allclose(got, np.minimum(expected, reach), rtol=1e-6, atol=0)
 
 
+def test_located_problems_share_their_data_distance_maps(coral_one, truth_problem):
+    """A located problem's data distances are contour_distance's maps of its data contours;
+    a problem located on the same contours reuses them (read-only, one copy per map)."""
+    from fsswarp.pose import _remembered_distance
+
+    sonar, data = coral_one.sonar, truth_problem.data
+    rows = data.rows[0, 0]
+    arc = float(np.median(sonar.bin_range(rows[rows >= 0]))) * float(np.mean(np.diff(sonar.beam_centres)))
+    np.testing.assert_array_equal(data.distances[0, 0],
+                                  contour_distance(rows, sonar.bins, sonar.range_step, arc, truth_problem.reach))
+    first = truth_problem._distance(rows)
+    assert truth_problem._distance(rows.copy()) is first and not first.flags.writeable
+    assert _remembered_distance.cache_info().hits >= 1
+
+
 def test_a_handed_over_problem_gives_the_same_estimate_and_warnings(coral_one, truth_model, opencl):
     """estimate_pose going on with a PoseProblem already used for CE and E_mu (as the
     reconstruction loop hands over its record's) gives the estimate it gets alone, and warns
