@@ -497,9 +497,8 @@ class Backend(abc.ABC):
         max_distance : pairs farther than this (> 0; inf: none) get weight 0 and distance inf
         tuning : the Cauchy constant c > 0
         Returns an ICPRuns. Needs a device with float64 (``has_float64``)."""
-        columns = [_float64_array(name, value, ("F",)) for name, value in
-                   (("source_x", source_x), ("source_y", source_y), ("target_x", target_x), ("target_y", target_y))]
-        sx, sy, tx, ty = columns
+        sx, sy, tx, ty = (_float64_array(name, value, ("F",)) for name, value in (
+            ("source_x", source_x), ("source_y", source_y), ("target_x", target_x), ("target_y", target_y)))
         table = np.asarray(runs)
         if table.dtype.kind not in "iu" or table.ndim != 2 or table.shape[1] != 3:
             raise ValueError(f"runs must be an (R, 3) integer array, got {table.dtype} {table.shape}")
