@@ -83,7 +83,7 @@ from .backends import rows_read
 from .errors import InputError, check_integer, is_integer
 from .icp import CONTOUR_TOL, icp_many
 from .motion import patch_motions, view_errors
-from .render import check_mesh
+from .render import RenderSettings, check_mesh
 from .segment import SegmentSettings, memoized, segment
 from .surface import mirror_points, surface_in_reference, surface_in_views
 
@@ -399,6 +399,12 @@ class PoseProblem:
         v = list(views)
         return rot[:, v], t[:, v], n[:, v], d[:, v]
 
+    @property
+    def prediction_settings(self) -> RenderSettings:
+        """The render settings of ``predicted``: the exact samples, and the renderer's default
+        γ and surface reflection, which every synthetic view of the problem uses."""
+        return RenderSettings(samples=tuple(self.settings.exact_samples))
+
     def render_pairs(self, views, depths: np.ndarray, tilts: np.ndarray, samples, rows=None):
         """DeviceLayers (G·V, 4, bins, beams) of cells (G,) in the dataset views ``views``, or
         bands of rows: ``rows`` as ``Backend.render_device`` takes them."""
@@ -406,9 +412,10 @@ class PoseProblem:
         if np.any(d <= 0):
             raise InputError("the sonar must lie below the surface in every view", field="depth",
                              value=float(np.min(depths)))
+        echo = RenderSettings()
         return self.backend.render_device(self.mesh, self.sonar, rot.reshape(-1, 3, 3), t.reshape(-1, 3),
-                                          n.reshape(-1, 3), d.reshape(-1), samples, gamma=1.0,
-                                          surface_reflection=0.9, rows=rows)
+                                          n.reshape(-1, 3), d.reshape(-1), samples, gamma=echo.gamma,
+                                          surface_reflection=echo.surface_reflection, rows=rows)
 
     def view_costs(self, depths: np.ndarray, tilts: np.ndarray, samples, cap: float):
         """(G, V, S) surrogate view costs of cells (G,) at the detection shift (S = 1) or, without

@@ -239,8 +239,11 @@ def _image_errors(model, dataset, depth: float, tilt: float, settings: Reconstru
     names = [v.name for v in dataset.rig.views if v.optimize]
     if not names:
         raise InputError("no view is marked optimize", file=dataset.root, field="views.optimize", value=False)
-    views = render(model, dataset.sonar, dataset.rig, depth, tilt, views=names, settings=settings.render,
-                   backend=backend)
+    if problem is None:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", PoseWarning)  # a view without the model gets no CE
+            problem = PoseProblem(model, dataset, depth, tilt, settings=settings.pose, backend=backend)
+    views = _synthetic_views(model, dataset, depth, tilt, names, settings, backend, problem)
     synthetic, data, regions = [], [], []
     for name in names:
         obj, ghost, mirror, mirror2, total = views[name]
@@ -251,14 +254,27 @@ def _image_errors(model, dataset, depth: float, tilt: float, settings: Reconstru
             data.append(image / max(image[region].mean(), 1e-30))
             regions.append(region)
     aie = average_intensity_error(np.stack(synthetic), np.stack(data), np.stack(regions)) if regions else math.nan
-    if problem is None:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", PoseWarning)  # a view without the model gets no CE
-            problem = PoseProblem(model, dataset, depth, tilt, settings=settings.pose, backend=backend)
     seen = dict(zip(problem.data.names, problem.contour_errors(depth, tilt)))
     errors = np.array([seen.get(name, math.nan) for name in names])
     return {"AIE": aie, "ACE": average_contour_error(errors),
             "views": {name: {"CE": float(ce)} for name, ce in zip(names, errors)}}, problem
+
+
+def _synthetic_views(model, dataset, depth: float, tilt: float, names, settings: ReconstructSettings, backend,
+                     problem: PoseProblem) -> dict[str, np.ndarray]:
+    """{view name: (5, bins, beams) float32} of ``render`` at ``settings.render`` for the views
+    ``names``: the layers ``problem`` rendered when it was located at (depth, tilt) with the
+    same samples, γ and surface reflection (the same launch, so the same pixels; their sum as
+    ``render`` sums them), and a render of the other views (those where it saw no model)."""
+    views = {}
+    if problem.estimate == (float(depth), float(tilt)) and settings.render == problem.prediction_settings:
+        for name, layers in zip(problem.data.names, problem.predicted):
+            views[name] = np.concatenate([layers, layers.sum(axis=0, keepdims=True, dtype=np.float32)])
+    rest = [name for name in names if name not in views]
+    if rest:
+        views.update(render(model, dataset.sonar, dataset.rig, depth, tilt, views=rest, settings=settings.render,
+                            backend=backend))
+    return views
 
 
 def _record(iteration: int, model, dataset, depth: float, tilt: float, settings: ReconstructSettings,

@@ -320,3 +320,38 @@ def test_demo_simulates_and_reconstructs(tmp_path):
     assert json.loads((out / "enhance" / "enhance.json").read_text())["dataset"] == str(out / "dataset")
     again = run_cli("--quiet", "demo", "coral-one", "--out", str(out), "--iterations", "0")
     assert again.returncode == 0 and again.stdout == ""  # replaces its own earlier output, silently
+
+
+def test_the_image_errors_read_the_located_problem_s_layers(coral_one, monkeypatch):
+    """AIE's synthetic views are the layers that the pose problem located at that (D, β)
+    rendered, to the bit those of ``render``; only the views it does not hold are rendered, and
+    everything is when the render settings differ from the problem's or it is located elsewhere."""
+    from fsswarp.backends import get_backend
+    from fsswarp.pose import PoseProblem
+    from fsswarp.render import RenderSettings, render
+
+    truth = coral_one.manifest.truth
+    model = trimesh.load(coral_one.truth_model_path, process=False)
+    backend = get_backend("opencl")
+    problem = PoseProblem(model, coral_one, truth.depth, truth.tilt, backend=backend)
+    held_out = next(v.name for v in coral_one.rig.views if not v.optimize)
+    names = list(problem.data.names) + [held_out]
+    want = render(model, coral_one.sonar, coral_one.rig, truth.depth, truth.tilt, views=names, backend=backend)
+    rendered = []
+
+    def spy(*args, **kwargs):
+        rendered.append(list(kwargs["views"]))
+        return render(*args, **kwargs)
+
+    monkeypatch.setattr(reconstruct_module, "render", spy)
+    settings = ReconstructSettings()
+    got = reconstruct_module._synthetic_views(model, coral_one, truth.depth, truth.tilt, names, settings, backend,
+                                              problem)
+    assert rendered == [[held_out]]
+    for name in names:
+        np.testing.assert_array_equal(got[name], want[name])
+    coarse = dataclasses.replace(settings, render=RenderSettings(samples=(1, 32)))
+    reconstruct_module._synthetic_views(model, coral_one, truth.depth, truth.tilt, names, coarse, backend, problem)
+    reconstruct_module._synthetic_views(model, coral_one, truth.depth + 0.01, truth.tilt, names, settings, backend,
+                                        problem)
+    assert rendered[1:] == [names, names]
