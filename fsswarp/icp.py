@@ -245,15 +245,7 @@ class _Runs:
         self.angle, (self.trans_x, self.trans_y) = out.angles, out.translations.T.copy()
         self.iterations, self.converged = out.iterations.astype(np.int64), out.converged
         self.moved_x, self.moved_y = out.moved.T.copy()
-        runs, size = len(self.lengths), len(self.src)
-        rank = np.repeat(np.arange(runs), self.lengths)
-        column = np.arange(len(rank)) - self.offsets[rank]
-        near = np.full((runs, size), np.inf)
-        near[rank, column] = out.distances
-        index = np.repeat(self.first[None, :], size, axis=0)
-        index[column, rank] = out.nearest
-        count = np.count_nonzero(np.isfinite(near), axis=1)
-        return near, index, np.fmax(_medians(near, count) / RAYLEIGH_MEDIAN, self.floor)
+        return _Active(self, np.arange(len(self.lengths))).scaled(out.distances, out.nearest, max_distance)
 
     def iterate(self, max_iterations: int, max_distance: float | None, tuning: float) -> None:
         """Reweight and solve the weighted Procrustes problem for every run not yet done, until
@@ -330,8 +322,14 @@ class _Active:
         """(A, N) distances of the moved points to their nearest targets, +inf where a pair
         does not count (padding, farther than ``max_distance``), the (N, A) indices of those
         targets, and the (A,) robust scales σ."""
+        distances = self.distances()
+        return self.scaled(distances, self.nearest, max_distance)
+
+    def scaled(self, distances: np.ndarray, nearest: np.ndarray, max_distance: float | None):
+        """``match``'s result from the points' (F',) ``distances`` to their ``nearest`` (F',)
+        targets (the host's matching, or the device's after its last iteration)."""
         dist, index = self.blank.copy(), self.base.copy()
-        dist.reshape(-1)[self.spot], index.reshape(-1)[self.spot_t] = self.distances(), self.nearest
+        dist.reshape(-1)[self.spot], index.reshape(-1)[self.spot_t] = distances, nearest
         if max_distance is None:
             near, count, middles = dist, self.count, self.middles
         else:

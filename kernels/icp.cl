@@ -34,7 +34,8 @@
  *   angles       (R,) double, trans (R, 2) double   in: start, out: result
  *   iterations, converged (R,) int   out (zeroed by the host)
  *   moved_x, moved_y, dist (F,) double, nearest (F,) int   out
- *   anchor_x, anchor_y, room2, scratch (F,) double   work space
+ *   anchor_x, anchor_y, room2, scratch (F,) double   work space (scratch: the distances whose
+ *                median is taken, then the weights)
  *
  * Work size: 1-D, R rounded up to the work-group size; items past R return at once.
  * The host validates everything; no checks here.
@@ -178,15 +179,19 @@ __kernel void icp_runs(__global const double *sx, __global const double *sy,
             sigma = fmax((a + b) / 2.0 / RAYLEIGH_MEDIAN, floors[r]);
         }
         double total = 0.0;
-        for (int p = first; p < end; ++p)
-            total += icp_weight(dist[p], tuning, sigma);
+        for (int p = first; p < end; ++p) { /* the weights, in scratch (the median is taken) */
+            scratch[p] = icp_weight(dist[p], tuning, sigma);
+            total += scratch[p];
+        }
         if (total <= 0.0) {
             done = 1; /* no weight left */
             continue;
         }
+        /* weighted Procrustes from the original points, with the weights divided by their total */
         double cx = 0.0, cy = 0.0, gx = 0.0, gy = 0.0;
         for (int p = first; p < end; ++p) {
-            const double w = icp_weight(dist[p], tuning, sigma) / total;
+            const double w = scratch[p] / total;
+            scratch[p] = w;
             const int k = nearest[p];
             cx += sx[p] * w;
             cy += sy[p] * w;
@@ -195,7 +200,7 @@ __kernel void icp_runs(__global const double *sx, __global const double *sy,
         }
         double h00 = 0.0, h01 = 0.0, h10 = 0.0, h11 = 0.0;
         for (int p = first; p < end; ++p) {
-            const double w = icp_weight(dist[p], tuning, sigma) / total;
+            const double w = scratch[p];
             const int k = nearest[p];
             const double bx = (tx[k] - gx) * w;
             const double by = (ty[k] - gy) * w;

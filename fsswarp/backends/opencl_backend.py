@@ -21,8 +21,8 @@ import numpy as np
 import pyopencl as cl
 from pyopencl.tools import first_arg_dependent_memoize
 
-from . import (FRONTAL_EPSILON, FRONTAL_MAX_DISTANCE, FRONTAL_VISIBLE, Backend, DeviceLayers, ICPRuns,
-               SonarConstants, _OpenCLDevice)
+from . import (FRONTAL_EPSILON, FRONTAL_MAX_DISTANCE, FRONTAL_VISIBLE, Backend, DeviceLayers, SonarConstants,
+               _OpenCLDevice)
 from .bvh import FlatBVH, build_bvh
 
 #: ε (m) of the leg tests of render (fsswarp/render.py).
@@ -300,7 +300,6 @@ class OpenCLBackend(Backend):
         contour_buf.release()
         return contour, sums, counts
 
-
     # --- IRLS-ICP runs ----------------------------------------------------------------------
     def _icp_runs(self, source_x, source_y, target_x, target_y, runs, angles, translations, floors, step_tols,
                   max_iterations, max_distance, tuning):
@@ -326,8 +325,7 @@ class OpenCLBackend(Backend):
             self.queue.finish()
         for buf in buffers + work:
             buf.release()
-        return ICPRuns(angle, trans, iterations, converged.astype(bool), np.column_stack([moved_x, moved_y]),
-                       nearest, np.where(dist >= 0.0, dist, np.inf))
+        return results
 
 
 class OpenCLLayers(DeviceLayers):

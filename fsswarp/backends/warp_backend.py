@@ -13,8 +13,7 @@ import math
 import numpy as np
 import warp as wp
 
-from . import (FRONTAL_EPSILON, FRONTAL_MAX_DISTANCE, FRONTAL_VISIBLE, Backend, DeviceLayers, ICPRuns, SonarConstants,
-               _warp)
+from . import FRONTAL_EPSILON, FRONTAL_MAX_DISTANCE, FRONTAL_VISIBLE, Backend, DeviceLayers, SonarConstants, _warp
 from .bvh import triangle_bounds
 
 # No contraction of a*b + c into fma: the watertight ray-triangle test relies on a shared edge
@@ -708,10 +707,7 @@ class WarpBackend(Backend):
                       outputs=[angle, trans, iterations, converged, moved_x, moved_y, nearest, dist, anchor_x,
                                anchor_y, room2, scratch])
             wp.synchronize_device(self._device)
-            distances = dist.numpy()
-            return ICPRuns(angle.numpy(), trans.numpy(), iterations.numpy(), converged.numpy().astype(bool),
-                           np.column_stack([moved_x.numpy(), moved_y.numpy()]), nearest.numpy(),
-                           np.where(distances >= 0.0, distances, np.inf))
+            return tuple(a.numpy() for a in (angle, trans, iterations, converged, moved_x, moved_y, nearest, dist))
 
 
 # --- frontal contours and their distance to the data's (kernels/pose.cl documents the rule) --
@@ -923,18 +919,20 @@ def icp_runs_kernel(sx: wp.array(dtype=wp.float64), sy: wp.array(dtype=wp.float6
                     b = wp.min(b, scratch[q])
             sigma = wp.max((a + b) / wp.float64(2.0) / _RAYLEIGH_MEDIAN, floors[r])
         total = wp.float64(0.0)
-        for p in range(first, end):
-            total += icp_weight(dist[p], tuning, sigma)
+        for p in range(first, end):  # the weights, in scratch (the median is taken)
+            scratch[p] = icp_weight(dist[p], tuning, sigma)
+            total += scratch[p]
         if total <= wp.float64(0.0):
             done = 1  # no weight left
         else:
-            # weighted Procrustes from the original points
+            # weighted Procrustes from the original points, with the weights divided by their total
             cx = wp.float64(0.0)
             cy = wp.float64(0.0)
             gx = wp.float64(0.0)
             gy = wp.float64(0.0)
             for p in range(first, end):
-                w = icp_weight(dist[p], tuning, sigma) / total
+                w = scratch[p] / total
+                scratch[p] = w
                 k = nearest[p]
                 cx += sx[p] * w
                 cy += sy[p] * w
@@ -945,7 +943,7 @@ def icp_runs_kernel(sx: wp.array(dtype=wp.float64), sy: wp.array(dtype=wp.float6
             h10 = wp.float64(0.0)
             h11 = wp.float64(0.0)
             for p in range(first, end):
-                w = icp_weight(dist[p], tuning, sigma) / total
+                w = scratch[p]
                 k = nearest[p]
                 bx = (tx[k] - gx) * w
                 by = (ty[k] - gy) * w
