@@ -73,7 +73,7 @@ import functools
 import math
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import nlopt
@@ -91,6 +91,10 @@ from .surface import mirror_points, surface_in_reference, surface_in_views
 POLISH_CELLS = 2
 #: Default grid half-widths in units of the manifest's depth and tilt uncertainties.
 BOUNDS_FACTOR = 1.2
+
+
+#: γ and surface reflection of every synthetic view of a pose problem: the renderer's defaults.
+ECHO = RenderSettings()
 
 
 class PoseWarning(UserWarning):
@@ -401,9 +405,9 @@ class PoseProblem:
 
     @property
     def prediction_settings(self) -> RenderSettings:
-        """The render settings of ``predicted``: the exact samples, and the renderer's default
-        γ and surface reflection, which every synthetic view of the problem uses."""
-        return RenderSettings(samples=tuple(self.settings.exact_samples))
+        """The render settings of ``predicted``: the exact samples, with ``ECHO``'s γ and
+        surface reflection."""
+        return replace(ECHO, samples=tuple(self.settings.exact_samples))
 
     def render_pairs(self, views, depths: np.ndarray, tilts: np.ndarray, samples, rows=None):
         """DeviceLayers (G·V, 4, bins, beams) of cells (G,) in the dataset views ``views``, or
@@ -412,10 +416,9 @@ class PoseProblem:
         if np.any(d <= 0):
             raise InputError("the sonar must lie below the surface in every view", field="depth",
                              value=float(np.min(depths)))
-        echo = RenderSettings()
         return self.backend.render_device(self.mesh, self.sonar, rot.reshape(-1, 3, 3), t.reshape(-1, 3),
-                                          n.reshape(-1, 3), d.reshape(-1), samples, gamma=echo.gamma,
-                                          surface_reflection=echo.surface_reflection, rows=rows)
+                                          n.reshape(-1, 3), d.reshape(-1), samples, gamma=ECHO.gamma,
+                                          surface_reflection=ECHO.surface_reflection, rows=rows)
 
     def view_costs(self, depths: np.ndarray, tilts: np.ndarray, samples, cap: float):
         """(G, V, S) surrogate view costs of cells (G,) at the detection shift (S = 1) or, without

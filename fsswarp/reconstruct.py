@@ -85,7 +85,7 @@ from .errors import InputError, check_integer
 from .motion import average_contour_error, average_intensity_error
 from .pose import PoseProblem, PoseSettings, PoseWarning, check_pose, estimate_pose
 from .refine import RefineSettings, refine_shape
-from .render import RenderSettings, render
+from .render import RenderSettings, render, with_total
 
 
 @dataclass(frozen=True)
@@ -264,12 +264,12 @@ def _synthetic_views(model, dataset, depth: float, tilt: float, names, settings:
                      problem: PoseProblem) -> dict[str, np.ndarray]:
     """{view name: (5, bins, beams) float32} of ``render`` at ``settings.render`` for the views
     ``names``: the layers ``problem`` rendered when it was located at (depth, tilt) with the
-    same samples, γ and surface reflection (the same launch, so the same pixels; their sum as
-    ``render`` sums them), and a render of the other views (those where it saw no model)."""
+    same samples, γ and surface reflection (the same launch, so the same pixels; their total
+    by ``with_total``, as ``render``'s), and a render of the other views (those where it saw
+    no model)."""
     views = {}
     if problem.estimate == (float(depth), float(tilt)) and settings.render == problem.prediction_settings:
-        for name, layers in zip(problem.data.names, problem.predicted):
-            views[name] = np.concatenate([layers, layers.sum(axis=0, keepdims=True, dtype=np.float32)])
+        views.update(zip(problem.data.names, with_total(problem.predicted)))
     rest = [name for name in names if name not in views]
     if rest:
         views.update(render(model, dataset.sonar, dataset.rig, depth, tilt, views=rest, settings=settings.render,

@@ -137,6 +137,12 @@ def render_views(mesh, sonar: SonarSpec, rotations, translations, plane_normals,
     handle = backend.load_mesh(vertices, faces)
     layers = backend.render(handle, sonar, rotations, translations, normals, offsets, settings.samples,
                             gamma=settings.gamma, surface_reflection=settings.surface_reflection)
+    return with_total(layers)
+
+
+def with_total(layers: np.ndarray) -> np.ndarray:
+    """(N, 4, bins, beams) float32 component layers -> (N, 5, bins, beams), their float32 sum
+    appended (the order of ``LAYERS``)."""
     return np.concatenate([layers, layers.sum(axis=1, keepdims=True, dtype=np.float32)], axis=1)
 
 
