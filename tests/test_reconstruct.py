@@ -86,7 +86,7 @@ def test_truth_metrics_reach_their_entries_in_order():
         metrics.submit(alone, truth)
         metrics.collect(wait=True)
     assert alone == {"iteration": 0} and len(lines) == 2  # no truth model: nothing to add
-    assert metrics.child is None
+    assert metrics.children == []
 
 
 def test_truth_metrics_in_the_child_process_are_compares_and_raise_its_errors():
@@ -99,15 +99,39 @@ def test_truth_metrics_in_the_child_process_are_compares_and_raise_its_errors():
     with reconstruct_module._TruthMetrics(truth, [].append) as metrics:
         metrics.submit(entry, model)
         metrics.collect(wait=True)
-        child = metrics.child
+        children = metrics.children
     want = compare(model, truth)
     assert (entry["E_V"], entry["chamfer_m"], entry["fscore"]) == (want["E_V"], want["chamfer_m"], want["fscore"])
-    assert child.returncode == 0
+    assert [child.returncode for child in children] == [0]
     with pytest.raises(InputError, match="holds no triangles"):
         with reconstruct_module._TruthMetrics(truth, [].append) as metrics:
             metrics.submit({"iteration": 1}, trimesh.Trimesh())
             metrics.collect(wait=True)
-    assert metrics.child.returncode == 0
+    assert [child.returncode for child in metrics.children] == [0]
+
+
+def test_truth_metrics_share_out_among_at_most_their_workers_in_order():
+    """Five models on two workers: each entry gets its own model's compare, bit for bit and in
+    order, from no more than two child processes, which end with the context; one worker per
+    4 CPUs, 1 to 4."""
+    truth = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
+    models = [trimesh.creation.icosphere(subdivisions=2, radius=r) for r in (0.09, 0.1, 0.105, 0.11, 0.12)]
+    entries = [{"iteration": i} for i in range(len(models))]
+    lines = []
+    with reconstruct_module._TruthMetrics(truth, lines.append, workers=2) as metrics:
+        for entry, model in zip(entries, models):
+            metrics.submit(entry, model)
+        metrics.collect(wait=True)
+        children = metrics.children
+    for entry, model in zip(entries, models):
+        want = compare(model, truth)
+        assert (entry["E_V"], entry["chamfer_m"], entry["fscore"]) == (want["E_V"], want["chamfer_m"], want["fscore"])
+    assert [line.split()[1] for line in lines] == ["0", "1", "2", "3", "4"]
+    assert 1 <= len(children) <= 2 and all(child.returncode == 0 for child in children)
+    for cpus, want in ((None, 1), (1, 1), (2, 1), (8, 2), (16, 4), (128, 4)):
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr("os.cpu_count", lambda: cpus)
+            assert reconstruct_module.truth_workers() == want
 
 
 def test_image_errors_vanish_for_the_truth_and_grow_with_a_bad_model(coral_one):
