@@ -115,13 +115,18 @@ def inside_grid(mesh, origin, step: float, shape) -> np.ndarray:
 def surface_distances(a, b, *, samples: int = SAMPLES, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Distances (m) from ``samples`` seeded surface points of ``a`` to the surface of ``b``
     and from as many points of ``b`` to ``a``: ((samples,), (samples,))."""
-    import trimesh
-
     _check_mesh("a", a)
     _check_mesh("b", b)
-    pa, _ = trimesh.sample.sample_surface(a, samples, seed=np.random.default_rng([seed, 0]))
-    pb, _ = trimesh.sample.sample_surface(b, samples, seed=np.random.default_rng([seed, 1]))
-    return point_mesh_distance(pa, b), point_mesh_distance(pb, a)
+    return _directed_distances(a, b, samples, [seed, 0]), _directed_distances(b, a, samples, [seed, 1])
+
+
+def _directed_distances(a, b, samples: int, seed: list[int]) -> np.ndarray:
+    """(samples,) distances (m) from points sampled on ``a`` (generator seeded with ``seed``)
+    to the surface of ``b``."""
+    import trimesh
+
+    points, _ = trimesh.sample.sample_surface(a, samples, seed=np.random.default_rng(seed))
+    return point_mesh_distance(points, b)
 
 
 def chamfer(a, b, *, samples: int = SAMPLES, seed: int = 0) -> float:
@@ -148,9 +153,26 @@ def compare(estimate, truth, *, samples: int = SAMPLES, seed: int = 0) -> dict:
     """Every metric of an estimate against the truth, for reports (JSON-ready): E_V, the share
     of the true volume inside the estimate, volumes (m³), Chamfer-L1 (m), F-score, precision,
     recall and τ (m), and how volumes and points were obtained."""
-    va, vt, both, method = volumes(estimate, truth)
+    return combine(truth, *(compare_part(estimate, truth, part, samples=samples, seed=seed) for part in (0, 1)),
+                   samples=samples, seed=seed)
+
+
+def compare_part(estimate, truth, part: int, *, samples: int = SAMPLES, seed: int = 0) -> tuple:
+    """Half of :func:`compare`'s work, so that two processes can share one compare: part 0,
+    (the volumes of :func:`volumes`, the (samples,) distances from the estimate to the truth);
+    part 1, (the distances from the truth to the estimate,)."""
+    _check_mesh("estimate", estimate)
+    _check_mesh("truth", truth)
+    if part == 0:
+        return volumes(estimate, truth), _directed_distances(estimate, truth, samples, [seed, 0])
+    return (_directed_distances(truth, estimate, samples, [seed, 1]),)
+
+
+def combine(truth, first: tuple, second: tuple, *, samples: int = SAMPLES, seed: int = 0) -> dict:
+    """:func:`compare`'s dict from its two :func:`compare_part` results."""
+    (va, vt, both, method), d_et = first
+    (d_te,) = second
     tau = default_tau(truth)
-    d_et, d_te = surface_distances(estimate, truth, samples=samples, seed=seed)
     f, precision, recall = _fscore(d_et, d_te, tau)
     union = va + vt - both
     return {"E_V": (va + vt - 2.0 * both) / union if union > 0 else 0.0,
@@ -262,10 +284,11 @@ def _check_mesh(name: str, mesh) -> None:
 
 
 def serve_compare() -> None:
-    """The loop of a ``compare`` worker process (fsswarp.reconstruct's truth metrics on a GPU
-    backend): from stdin, pickled meshes, the truth first; to stdout, one pickled ``compare``
-    dict (or the exception it raised) per later mesh, in order; returns at end of input.
-    Anything the code prints goes to stderr, so that stdout carries the replies alone."""
+    """The loop of a ``compare`` worker process (fsswarp.reconstruct's truth metrics): from
+    stdin, pickled objects, the truth mesh first, then (mesh, part) requests; to stdout, one
+    pickled ``compare_part(mesh, truth, part)`` (or the exception it raised) per request, in
+    order; returns at end of input. Anything the code prints goes to stderr, so that stdout
+    carries the replies alone."""
     import os
     import pickle
     import sys
@@ -277,11 +300,11 @@ def serve_compare() -> None:
     truth = pickle.load(requests)
     while True:
         try:
-            model = pickle.load(requests)
+            model, part = pickle.load(requests)
         except EOFError:
             return
         try:
-            reply = compare(model, truth)
+            reply = compare_part(model, truth, part)
         except Exception as error:  # handed to the parent, which raises it
             reply = error
         pickle.dump(reply, replies)

@@ -82,6 +82,7 @@ import numpy as np
 
 from .carve import CarveSettings, carve
 from .errors import InputError, check_integer
+from .metrics import combine
 from .motion import average_contour_error, average_intensity_error
 from .pose import PoseProblem, PoseSettings, PoseWarning, check_pose, estimate_pose
 from .refine import RefineSettings, refine_shape
@@ -316,11 +317,13 @@ class _TruthMetrics:
     24.2 and 24.7 s with the child process and 23.4 and 24.9 s with no truth metrics at all.
     On this 2-core CPU, where they were computed at once (the kernels use both cores), the
     child process uses the core that the loop's host work leaves idle: coral-one 84.9 s → 80.6
-    s (side by side, medians of 2, the same iterates). ``workers`` children at most (default
-    :func:`truth_workers`) compare models at once, each started when a model finds every
-    earlier child busy: on an H100 host one child took about 1 s per compare, the loop
-    recorded one model a second, and the run waited 3.8–5.5 s at its end for the backlog.
-    The values do not depend on where they are computed. ``collect`` writes them into the
+    s (side by side, medians of 2, the same iterates). Each compare is two requests, one
+    per direction of the surface distances (``fsswarp.metrics.compare_part``), and
+    ``workers`` children at most (default :func:`truth_workers`) serve requests at once, each
+    started when a request finds every earlier child busy: on an H100 host one child took
+    about 1 s per compare, the loop recorded one model a second, and the run waited 3.8–5.5 s
+    at its end for the backlog; with four children it waited 1.06 s, one compare, which the
+    two halves share out. The values do not depend on where they are computed. ``collect`` writes them into the
     history entries, in order, and reports each with ``say``. A context manager: leaving it
     stops the workers and their processes."""
 
@@ -333,8 +336,8 @@ class _TruthMetrics:
         self.pool = ThreadPoolExecutor(self.workers, thread_name_prefix="fsswarp-truth") \
             if mesh is not None else None
         self.children = []  # every compare process started (at most ``workers``)
-        self.idle = queue.SimpleQueue()  # those waiting for a model
-        self.pending = []  # (history entry, future), oldest first
+        self.idle = queue.SimpleQueue()  # those waiting for a request
+        self.pending = []  # (history entry, (future of part 0, future of part 1)), oldest first
 
     def __enter__(self):
         return self
@@ -349,11 +352,13 @@ class _TruthMetrics:
 
     def submit(self, entry: dict, model) -> None:
         if self.pool is not None:
-            self.pending.append((entry, self.pool.submit(self._compare_in_child, model)))
+            self.pending.append((entry, tuple(self.pool.submit(self._compare_in_child, model, part)
+                                              for part in (0, 1))))
 
-    def _compare_in_child(self, model) -> dict:
-        """``compare(model, truth)`` in an idle child process, or a new one (on a worker
-        thread; a worker holds one child while it waits, so there are at most ``workers``)."""
+    def _compare_in_child(self, model, part: int) -> tuple:
+        """``compare_part(model, truth, part)`` in an idle child process, or a new one (on a
+        worker thread; a worker holds one child while it waits, so there are at most
+        ``workers``)."""
         import pickle
         import queue
 
@@ -362,7 +367,7 @@ class _TruthMetrics:
         except queue.Empty:
             child = self._start_child()
         try:
-            pickle.dump(model, child.stdin)
+            pickle.dump((model, part), child.stdin)
             child.stdin.flush()
             try:
                 reply = pickle.load(child.stdout)
@@ -393,9 +398,9 @@ class _TruthMetrics:
 
     def collect(self, *, wait: bool) -> None:
         """Fill in the finished entries (all of them, waiting, with ``wait``)."""
-        while self.pending and (wait or self.pending[0][1].done()):
-            entry, future = self.pending.pop(0)
-            metrics = future.result()
+        while self.pending and (wait or all(future.done() for future in self.pending[0][1])):
+            entry, futures = self.pending.pop(0)
+            metrics = combine(self.mesh, *(future.result() for future in futures))
             entry.update(E_V=metrics["E_V"], chamfer_m=metrics["chamfer_m"], fscore=metrics["fscore"])
             self.say(f"iteration {entry['iteration']} against the truth: E_V {entry['E_V']:.3f}, Chamfer "
                      f"{entry['chamfer_m'] * 1e3:.2f} mm, F {entry['fscore']:.3f}")
