@@ -69,7 +69,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import InputError, check_integer, is_integer
-from .motion import image_jacobian
+from .motion import image_jacobian, truncated_lstsq
 from .pose import PoseProblem, PoseSettings, PoseWarning
 from .render import check_mesh, is_watertight
 from .surface import surface_in_reference
@@ -182,12 +182,12 @@ def refine_shape(model, dataset, depth: float, tilt: float, *, settings: RefineS
     steps, moved = [], []
     ce_before, views = None, ()
     edges = mesh.edges_unique  # the topology never changes (step 6): one Laplacian for every update
-    laplacian = _graph_laplacian(edges, len(mesh.vertices))
+    membrane = _Membrane(_graph_laplacian(edges, len(mesh.vertices)), settings.smoothing)
     for _ in range(settings.iterations):
         update = _Update(mesh, dataset, depth, tilt, settings, backend)
         if ce_before is None:
             ce_before, views = update.errors, update.problem.data.names
-        displacement = update.displacement(laplacian)
+        displacement = update.displacement(membrane)
         mesh, factor = _apply(mesh, displacement, settings, edges)
         norm = float(np.linalg.norm(displacement, axis=1).mean()) * factor
         moved.append(norm)
@@ -266,9 +266,7 @@ class _Update:
             jac.append(j if c == 0 else j @ h)
         a = np.where(seen[..., None, None], np.stack(jac, axis=1), 0.0).reshape(len(chosen), -1, 3)
         b = np.where(seen[..., None], moves, 0.0).reshape(len(chosen), -1)
-        u, s, vt = np.linalg.svd(a, full_matrices=False)
-        inv = np.divide(1.0, s, out=np.zeros_like(s), where=s > self.settings.rcond * s[:, :1])
-        self.motion[chosen] = np.einsum("kji,kj->ki", vt, inv * np.einsum("kri,kr->ki", u, b))
+        self.motion[chosen] = truncated_lstsq(a, b, self.settings.rcond)[0]
         return chosen
 
     # --- overshoot term -------------------------------------------------------------------
@@ -326,13 +324,9 @@ class _Update:
         return chosen
 
     # --- vertex displacements -------------------------------------------------------------
-    def displacement(self, laplacian) -> np.ndarray:
+    def displacement(self, membrane: "_Membrane") -> np.ndarray:
         """(Nv, 3) vertex displacements: capped patch motions, area-weighted to the vertices,
-        spread and smoothed by the membrane solve (module docstring, step 5) with the mesh's
-        (Nv, Nv) sparse graph ``laplacian`` (:func:`_graph_laplacian`)."""
-        from scipy.sparse import diags
-        from scipy.sparse.linalg import splu
-
+        spread and smoothed by the membrane solve (module docstring, step 5)."""
         mesh, st = self.mesh, self.settings
         motion = self.motion
         norm = np.linalg.norm(motion, axis=1)
@@ -347,10 +341,38 @@ class _Update:
                            for i in range(3)], axis=1)
         target = np.divide(target, covered[:, None], out=np.zeros_like(target), where=covered[:, None] > 0)
         confidence = np.divide(covered, adjacent, out=np.zeros(n), where=adjacent > 0)
-        system = (diags(confidence + 1e-9) + st.smoothing * laplacian).tocsc()
-        # symmetric positive definite: a symmetric ordering, no pivoting (1.7x faster than spsolve)
-        factor = splu(system, permc_spec="MMD_AT_PLUS_A", options=dict(SymmetricMode=True))
-        return factor.solve(confidence[:, None] * target)
+        return membrane.solve(confidence + 1e-9, confidence[:, None] * target)
+
+
+class _Membrane:
+    """The membrane solve of one mesh topology (module docstring, step 5): x (Nv, 3) of
+    (diag(w) + λ L) x = b, L the (Nv, Nv) sparse graph ``laplacian`` (:func:`_graph_laplacian`),
+    λ = ``smoothing``. The system is symmetric positive definite: SuperLU runs with a symmetric
+    ordering and no pivoting (1.7x faster than spsolve). The fill-reducing order (MMD on
+    Aᵀ + A) depends on the sparsity pattern alone, which the topology fixes: the first solve
+    finds it, and the later ones factor the system permuted to it in the natural order (one
+    solve of coral-one's carved model, 9,744 vertices: 28 ms, then 19 ms, here; the same
+    displacements to 3e-16 m)."""
+
+    def __init__(self, laplacian, smoothing: float):
+        self.laplacian = smoothing * laplacian
+        self.order = self.ordered = None  # the fill-reducing order and the permuted λ L
+
+    def solve(self, weights: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+        """x for the (Nv,) positive ``weights`` w and the (Nv, 3) ``rhs`` b."""
+        from scipy.sparse import diags
+        from scipy.sparse.linalg import splu
+
+        options = dict(SymmetricMode=True)
+        if self.order is None:
+            factor = splu((diags(weights) + self.laplacian).tocsc(), permc_spec="MMD_AT_PLUS_A", options=options)
+            self.order = np.argsort(factor.perm_c)  # row and column i of the permuted system: vertex order[i]
+            self.ordered = self.laplacian.tocsr()[self.order][:, self.order]
+            return factor.solve(rhs)
+        factor = splu((diags(weights[self.order]) + self.ordered).tocsc(), permc_spec="NATURAL", options=options)
+        solution = np.empty_like(rhs)
+        solution[self.order] = factor.solve(rhs[self.order])
+        return solution
 
 
 def smoothed_rows(image: np.ndarray, sigma: tuple[float, float], lo: int, hi: int) -> np.ndarray:

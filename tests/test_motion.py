@@ -9,7 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fsswarp.motion import (average_contour_error, average_intensity_error, image_error, image_jacobian,
-                            intensity_error, normalized_errors, patch_motions, pose_error, view_errors)
+                            intensity_error, normalized_errors, patch_motions, pose_error, truncated_lstsq,
+                            view_errors)
 from fsswarp.rig import world_to_reference
 from fsswarp.scenes import builtin_scene
 from fsswarp.sonar import fan_xy, from_polar, to_polar
@@ -244,6 +245,31 @@ def test_patch_motions_rejects_bad_inputs(rig_case, kwargs, message):
 
 
 # --- E_mu (eq. 6) ------------------------------------------------------------------------------
+
+def test_truncated_lstsq_is_numpy_lstsq_with_its_rcond():
+    """NumPy's lstsq (SVD; singular values at or below rcond × the largest dropped) is the
+    oracle: full-rank, rank-2, rank-1 and all-zero systems, solutions and ranks, and a
+    direction just above the cut-off is kept while one just below is dropped."""
+    rng = np.random.default_rng(5)
+    a = rng.normal(size=(40, 12, 3))
+    a[10:20, :, 2] = a[10:20, :, 0] - a[10:20, :, 1]  # rank 2
+    a[20:30] = rng.normal(size=(10, 12, 1)) * rng.normal(size=(10, 1, 3))  # rank 1
+    a[30:32] = 0.0
+    for k, smallest in zip(range(32, 36), (0.008, 0.012, 0.005, 0.02)):  # singular values 1, 0.5, smallest
+        u, _ = np.linalg.qr(rng.normal(size=(12, 3)))
+        v, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        a[k] = u @ np.diag([1.0, 0.5, smallest]) @ v.T
+    b = rng.normal(size=(40, 12))
+    rcond = 1e-2
+    delta, rank = truncated_lstsq(a, b, rcond)
+    for k in range(len(a)):
+        want, _, want_rank, _ = np.linalg.lstsq(a[k], b[k], rcond=rcond)
+        np.testing.assert_allclose(delta[k], want, rtol=1e-9, atol=1e-12)
+        assert rank[k] == want_rank
+    assert rank[:10].tolist() == [3] * 10 and rank[10:20].tolist() == [2] * 10
+    assert rank[20:30].tolist() == [1] * 10 and rank[30:32].tolist() == [0, 0]
+    assert delta[30:32].tolist() == [[0.0] * 3] * 2 and rank[32:36].tolist() == [2, 3, 2, 3]
+
 
 def test_view_errors_closed_form():
     # 3 patches, 2 views, surface normal +Z (H flips z).

@@ -12,7 +12,7 @@ from fsswarp.backends import get_backend
 from fsswarp.carve import carve
 from fsswarp.errors import InputError
 from fsswarp.metrics import compare
-from fsswarp.refine import RefineSettings, _graph_laplacian, _last_echo_rows, refine_shape, smoothed_rows
+from fsswarp.refine import RefineSettings, _graph_laplacian, _Membrane, _last_echo_rows, refine_shape, smoothed_rows
 
 
 @pytest.fixture(scope="module")
@@ -223,6 +223,29 @@ def test_graph_laplacian_is_degree_less_adjacency_of_the_faces():
         adjacency[mesh.faces[:, a], mesh.faces[:, b]] = adjacency[mesh.faces[:, b], mesh.faces[:, a]] = 1.0
     want = np.diag(adjacency.sum(axis=1)) - adjacency
     np.testing.assert_array_equal(_graph_laplacian(mesh.edges_unique, n).toarray(), want)
+
+
+def test_membrane_solves_match_spsolve_and_keep_the_first_order():
+    """The membrane system (diag(w) + λ L) x = b against scipy's spsolve, for the first solve
+    (which finds SuperLU's order) and later ones with other weights (which reuse it); the
+    order is found once."""
+    from scipy.sparse import diags
+    from scipy.sparse.linalg import spsolve
+
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    n = len(mesh.vertices)
+    laplacian = _graph_laplacian(mesh.edges_unique, n)
+    membrane = _Membrane(laplacian, 4.0)
+    rng = np.random.default_rng(3)
+    orders = []
+    for _ in range(3):
+        weights = np.where(rng.random(n) < 0.3, rng.random(n), 0.0) + 1e-9
+        rhs = rng.normal(size=(n, 3)) * (weights > 1e-6)[:, None]
+        want = spsolve((diags(weights) + 4.0 * laplacian).tocsc(), rhs)
+        got = membrane.solve(weights, rhs)
+        np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12 * np.abs(want).max())
+        orders.append(membrane.order)
+    assert orders[0] is orders[1] is orders[2] and sorted(orders[0]) == list(range(n))
 
 
 @pytest.mark.parametrize("lo, hi", [(0, 1), (0, 40), (3, 9), (100, 180), (250, 256), (255, 256), (0, 256)])
