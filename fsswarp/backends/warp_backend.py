@@ -19,7 +19,9 @@ from .bvh import triangle_bounds
 # No contraction of a*b + c into fma: the watertight ray-triangle test relies on a shared edge
 # giving the same float expression in both triangles (with fma on CUDA, 6 of 10,248 rays
 # through vertices and edges leaked), and kernels/*.cl build with FP_CONTRACT OFF too.
-wp.set_module_options({"fuse_fp": False})
+# No adjoint code: nothing here is differentiated, and without it the module compiles in
+# half the time (3.4 s against 7.1 s for the CPU with an empty kernel cache, here).
+wp.set_module_options({"fuse_fp": False, "enable_backward": False})
 
 _INDEX_LIMIT = wp.constant(1073741824.0)  # ±2^30: far-away points cannot overflow int32
 
