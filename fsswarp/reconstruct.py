@@ -345,8 +345,9 @@ class _TruthMetrics:
     def __exit__(self, *exc) -> None:
         if self.pool is not None:
             self.pool.shutdown(wait=True, cancel_futures=True)
-        for child in self.children:
+        for child in self.children:  # every child ends at once: each takes ~0.1 s to exit
             child.stdin.close()
+        for child in self.children:
             child.wait()
             child.stdout.close()
 
