@@ -906,7 +906,6 @@ def pose_grid(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3,
                            limit=_limit(profile, bytes_moved=pairs * pixels * 4 + distance_bytes + cost_bytes,
                                         ops=pairs * pixels * CONTOUR_OPS)))
         _say(progress, out[-1])
-        del layers
         return out
 
     return sweep([(s, s * s, s * s) for s in sides], run_point,
