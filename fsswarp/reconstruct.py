@@ -323,9 +323,9 @@ class _TruthMetrics:
     started when a request finds every earlier child busy: on an H100 host one child took
     about 1 s per compare, the loop recorded one model a second, and the run waited 3.8–5.5 s
     at its end for the backlog; with four children it waited 1.06 s, one compare, which the
-    two halves share out. The values do not depend on where they are computed. ``collect`` writes them into the
-    history entries, in order, and reports each with ``say``. A context manager: leaving it
-    stops the workers and their processes."""
+    two halves share out. The values do not depend on where they are computed. ``collect``
+    writes them into the history entries, in order, and reports each with ``say``. A context
+    manager: leaving it stops the workers and their processes."""
 
     def __init__(self, mesh, say: Callable[[str], None], workers: int | None = None):
         import queue
