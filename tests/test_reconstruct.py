@@ -128,8 +128,14 @@ def test_truth_metrics_share_out_among_at_most_their_workers_in_order():
         assert (entry["E_V"], entry["chamfer_m"], entry["fscore"]) == (want["E_V"], want["chamfer_m"], want["fscore"])
     assert [line.split()[1] for line in lines] == ["0", "1", "2", "3", "4"]
     assert 1 <= len(children) <= 2 and all(child.returncode == 0 for child in children)
-    for cpus, want in ((None, 1), (1, 1), (2, 1), (8, 2), (16, 4), (128, 4)):
-        with pytest.MonkeyPatch.context() as patch:
+    for cpus, want in ((1, 1), (2, 1), (8, 2), (16, 4), (128, 4)):
+        with pytest.MonkeyPatch.context() as patch:  # a container given `cpus` of a 128-CPU host
+            patch.setattr("os.sched_getaffinity", lambda pid: set(range(cpus)), raising=False)
+            patch.setattr("os.cpu_count", lambda: 128)
+            assert reconstruct_module.truth_workers() == want
+    for cpus, want in ((None, 1), (2, 1), (16, 4)):
+        with pytest.MonkeyPatch.context() as patch:  # no affinity to ask (macOS, Windows)
+            patch.delattr("os.sched_getaffinity", raising=False)
             patch.setattr("os.cpu_count", lambda: cpus)
             assert reconstruct_module.truth_workers() == want
 
