@@ -294,17 +294,19 @@ class PoseProblem:
         estimate; ``estimate`` records it and ``predicted`` keeps those (V, 4, bins, beams)
         layers of the data views (exact samples)."""
         check_pose(depth, tilt)
-        self.data, self.predicted = self._data_contours(depth, tilt)
+        self.data, self.predicted, layers, keep = self._data_contours(depth, tilt)
         self._capped = {}
-        self.anchors, self.shift = self._detection_shift(depth, tilt)
+        self.anchors, self.shift = self._detection_shift(depth, tilt, layers, keep)
         self.estimate = (float(depth), float(tilt))
 
     # --- data contours ---------------------------------------------------------------------
     def _data_contours(self, depth: float, tilt: float):
         """(DataContours, (V, 4, bins, beams) layers synthesized at (depth, tilt)) of the views
-        where the model is seen. The predicted contours are scanned from the row before the
-        smoothing can first see a return (every layer of a view is 0 above its first echo row,
-        so no row there crosses the threshold): the same contours as a scan from row 0."""
+        where the model is seen; for ``_detection_shift``, the device layers of every view to
+        optimize and the (V,) positions of the views seen among them. The predicted contours
+        are scanned from the row before the smoothing can first see a return (every layer of a
+        view is 0 above its first echo row, so no row there crosses the threshold): the same
+        contours as a scan from row 0."""
         sonar, st, views, highlight, threshold = self.sonar, self.settings, self.views, self.highlight, self.threshold
         names = [self.rig.views[i].name for i in views]
         every = np.ones((len(views), 2, sonar.beams), bool)
@@ -346,7 +348,7 @@ class PoseProblem:
         data = DataContours(tuple(views[k] for k in keep), tuple(names[k] for k in keep), threshold[keep],
                             np.asarray(windows, np.int64), np.asarray(masks), np.asarray(rows),
                             np.asarray(distances, np.float32))
-        return data, predicted[keep]
+        return data, predicted[keep], layers, keep
 
     def warn_unseen(self, names, depth: float, tilt: float, *, stacklevel: int = 2) -> None:
         """PoseWarning that the model is not seen in the views ``names`` at (depth m, tilt rad)."""
@@ -354,22 +356,28 @@ class PoseProblem:
                       f"tilt {math.degrees(tilt):.2f} deg; the pose estimation leaves them out", PoseWarning,
                       stacklevel=stacklevel)
 
-    def _detection_shift(self, depth: float, tilt: float):
+    def _detection_shift(self, depth: float, tilt: float, layers, keep: np.ndarray):
         """(anchor view names, shift in rows or None): the views whose pose relative to the
         reference depends neither on D nor on β (at the reference position), and the shift of
         ``settings.shifts`` (refined by a parabola through its neighbours) that minimizes their
         object term; None without anchor views (each cell then takes its own best shift), from
-        the layers ``predicted`` at (depth, tilt)."""
-        data, predicted = self.data, self.predicted
+        the device ``layers`` of ``_data_contours`` and the positions ``keep`` of the data views
+        among them: every pair is costed where it lies (a view left out against data view 0,
+        and dropped) rather than the anchors' layers uploaded again; a pair's cost does not
+        depend on the others."""
+        data = self.data
         pose_a = self.rig.relative_poses(depth, tilt)
         pose_b = self.rig.relative_poses(depth + 0.01, tilt + 0.01)
         fixed = [k for k, v in enumerate(data.views)
                  if all(np.allclose(a[v], b[v], rtol=0, atol=1e-12) for a, b in zip(pose_a, pose_b))]
         if not fixed:
             return (), None
+        index = np.zeros(layers.shape[0], np.int64)  # each pair's data view
+        index[keep] = np.arange(len(keep))
         _, sums, counts = self.backend.contour_cost(
-            predicted[fixed], np.asarray(fixed), data.threshold, data.windows, data.masks,
+            layers, index, data.threshold, data.windows, data.masks,
             self._capped_distances(self.settings.min_cap), self.shifts, self.smoothing)
+        sums, counts = sums[keep[fixed]], counts[keep[fixed]]
         sums[:, 1], counts[:, 1] = 0.0, 0
         counts_data = data.counts[fixed]
         counts_data[:, 1] = 0

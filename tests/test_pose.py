@@ -17,8 +17,8 @@ from fsswarp.dataset import Dataset
 from fsswarp.errors import InputError
 from fsswarp.figures import pose_figure
 from fsswarp.icp import icp_many
-from fsswarp.pose import (PoseProblem, PoseSettings, PoseWarning, contour_distance, detection_threshold,
-                          estimate_pose, pose_objective)
+from fsswarp.pose import (PoseProblem, PoseSettings, PoseWarning, _parabola_minimum, _view_cost, contour_distance,
+                          detection_threshold, estimate_pose, pose_objective)
 from fsswarp.rig import Rig
 from fsswarp.surface import COMPONENTS
 
@@ -373,6 +373,30 @@ def test_located_problems_share_their_data_distance_maps(coral_one, truth_proble
     first = truth_problem._distance(rows)
     assert truth_problem._distance(rows.copy()) is first and not first.flags.writeable
     assert _remembered_distance.cache_info().hits >= 1
+
+
+def test_detection_shift_with_views_left_out_is_that_of_the_anchors_layers_alone(coral_one, truth_model, opencl):
+    """Locating costs every rendered pair where it lies, views left out included (against
+    data view 0, then dropped): the anchors' costs, and so the shift, equal those of the
+    anchors' predicted layers uploaded alone."""
+    truth = coral_one.manifest.truth
+    aside = truth_model.copy()
+    aside.vertices += (0.4, 0.0, 0.0)  # out of the elevation aperture of the views rolled 67.5-90 deg
+    settings = PoseSettings(exact_samples=(1, 16))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PoseWarning)
+        problem = PoseProblem(aside, coral_one, truth.depth, truth.tilt, settings=settings, backend=opencl)
+    data = problem.data
+    assert len(data.views) < len(problem.views) and problem.anchors  # views left out, anchors kept
+    fixed = [data.names.index(name) for name in problem.anchors]
+    _, sums, counts = opencl.contour_cost(problem.predicted[fixed], np.asarray(fixed), data.threshold, data.windows,
+                                          data.masks, np.minimum(data.distances, np.float32(settings.min_cap)),
+                                          problem.shifts, problem.smoothing)
+    sums[:, 1], counts[:, 1] = 0.0, 0
+    counts_data = data.counts[fixed]
+    counts_data[:, 1] = 0
+    cost = _view_cost(sums[None], counts[None], counts_data, settings.min_cap)[0].mean(axis=0)
+    assert problem.shift == _parabola_minimum(problem.shifts, cost)
 
 
 def test_a_handed_over_problem_gives_the_same_estimate_and_warnings(coral_one, truth_model, opencl):
