@@ -318,25 +318,25 @@ class _TruthMetrics:
     On this 2-core CPU, where they were computed at once (the kernels use both cores), the
     child process uses the core that the loop's host work leaves idle: coral-one 84.9 s → 80.6
     s (side by side, medians of 2, the same iterates). Each compare is two requests, one
-    per direction of the surface distances (``fsswarp.metrics.compare_part``), and
-    ``workers`` children at most (default :func:`truth_workers`) serve requests at once, each
-    started when a request finds every earlier child busy: on an H100 host one child took
-    about 1 s per compare, the loop recorded one model a second, and the run waited 3.8–5.5 s
-    at its end for the backlog; with four children it waited 1.06 s, one compare, which the
-    two halves share out. The values do not depend on where they are computed. ``collect``
+    per direction of the surface distances (``fsswarp.metrics.compare_part``), served by up
+    to ``workers`` worker threads (default :func:`truth_workers`), each with its own child,
+    started by its first request (the pool starts a thread only when none is idle): on an
+    H100 host one child took about 1 s per compare, the loop recorded one model a second, and
+    the run waited 3.8–5.5 s at its end for the backlog; with four children it waited 1.06 s,
+    one compare, which the two halves share out. The values do not depend on where they are computed. ``collect``
     writes them into the history entries, in order, and reports each with ``say``. A context
     manager: leaving it stops the workers and their processes."""
 
     def __init__(self, mesh, say: Callable[[str], None], workers: int | None = None):
-        import queue
+        import threading
         from concurrent.futures import ThreadPoolExecutor
 
         self.mesh, self.say = mesh, say
         self.workers = truth_workers() if workers is None else workers
         self.pool = ThreadPoolExecutor(self.workers, thread_name_prefix="fsswarp-truth") \
             if mesh is not None else None
+        self.local = threading.local()  # each worker thread's child
         self.children = []  # every compare process started (at most ``workers``)
-        self.idle = queue.SimpleQueue()  # those waiting for a request
         self.pending = []  # (history entry, (future of part 0, future of part 1)), oldest first
 
     def __enter__(self):
@@ -357,25 +357,18 @@ class _TruthMetrics:
                                               for part in (0, 1))))
 
     def _compare_in_child(self, model, part: int) -> tuple:
-        """``compare_part(model, truth, part)`` in an idle child process, or a new one (on a
-        worker thread; a worker holds one child while it waits, so there are at most
-        ``workers``)."""
+        """``compare_part(model, truth, part)`` in this worker thread's child process."""
         import pickle
-        import queue
 
+        child = getattr(self.local, "child", None)
+        if child is None:
+            child = self.local.child = self._start_child()
+        pickle.dump((model, part), child.stdin)
+        child.stdin.flush()
         try:
-            child = self.idle.get_nowait()
-        except queue.Empty:
-            child = self._start_child()
-        try:
-            pickle.dump((model, part), child.stdin)
-            child.stdin.flush()
-            try:
-                reply = pickle.load(child.stdout)
-            except EOFError:
-                raise RuntimeError(f"the truth-metrics process ended (exit status {child.wait()})") from None
-        finally:
-            self.idle.put(child)
+            reply = pickle.load(child.stdout)
+        except EOFError:
+            raise RuntimeError(f"the truth-metrics process ended (exit status {child.wait()})") from None
         if isinstance(reply, Exception):
             raise reply
         return reply
