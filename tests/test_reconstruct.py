@@ -90,13 +90,13 @@ def test_truth_metrics_reach_their_entries_in_order():
 
 
 def test_truth_metrics_in_the_child_process_are_compares_and_raise_its_errors():
-    """The metrics come from a child process: the same values as ``compare`` here, bit for
-    bit; its errors reach ``collect``; the process ends with the context; without a truth
-    model no process starts."""
+    """The metrics come from a child process (one worker: one child, on any machine): the same
+    values as ``compare`` here, bit for bit; its errors reach ``collect``; the process ends
+    with the context; without a truth model no process starts."""
     truth = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
     model = trimesh.creation.icosphere(subdivisions=2, radius=0.105)
     entry = {"iteration": 0}
-    with reconstruct_module._TruthMetrics(truth, [].append) as metrics:
+    with reconstruct_module._TruthMetrics(truth, [].append, workers=1) as metrics:
         metrics.submit(entry, model)
         metrics.collect(wait=True)
         children = metrics.children
@@ -104,7 +104,7 @@ def test_truth_metrics_in_the_child_process_are_compares_and_raise_its_errors():
     assert (entry["E_V"], entry["chamfer_m"], entry["fscore"]) == (want["E_V"], want["chamfer_m"], want["fscore"])
     assert [child.returncode for child in children] == [0]
     with pytest.raises(InputError, match="holds no triangles"):
-        with reconstruct_module._TruthMetrics(truth, [].append) as metrics:
+        with reconstruct_module._TruthMetrics(truth, [].append, workers=1) as metrics:
             metrics.submit({"iteration": 1}, trimesh.Trimesh())
             metrics.collect(wait=True)
     assert [child.returncode for child in metrics.children] == [0]
