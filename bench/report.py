@@ -3,7 +3,8 @@
     python bench/report.py [RECORD.json ...] [--notes FILE] [--out FILE] [--figures DIR]
 
 Defaults: every bench/records/*.json (a run's bench.json from ``fsswarp bench``) and every
-bench/records/reconstruction/*.json (a ``bench/paper_table.py`` run, rendered first), the
+bench/records/reconstruction/*.json (a ``bench/paper_table.py`` run, rendered first) and
+bench/records/identifiability/*.json (a ``bench/identifiability.py`` run, after it), the
 hand-written bench/notes.md appended at the end, bench/RESULTS.md and bench/figures/ (one
 log-log plot per record and family). Records are reported in the order given (sorted names by
 default); each names its machine, command and date.
@@ -21,9 +22,10 @@ HERE = Path(__file__).resolve().parent
 
 
 def report(records: list[Path], notes: Path | None, figures: Path | None, base: Path,
-           tables: list[Path] = ()) -> str:
+           tables: list[Path] = (), studies: list[Path] = ()) -> str:
     """The Markdown of RESULTS.md; writes the figures under ``figures`` (links relative to ``base``).
-    ``tables``: records of ``bench/paper_table.py`` (the reconstruction table, first)."""
+    ``tables``: records of ``bench/paper_table.py`` (the reconstruction table, first);
+    ``studies``: records of ``bench/identifiability.py`` (after it)."""
     from fsswarp.bench import FAMILIES, machine_markdown, markdown, plot_family, slowest
 
     lines = ["# Benchmark results", "",
@@ -31,7 +33,7 @@ def report(records: list[Path], notes: Path | None, figures: Path | None, base: 
              "`bench.json` of one `fsswarp bench` run) and the hand-written `bench/notes.md`; do not edit "
              "by hand. To record: on a CPU machine `fsswarp bench --out bench-cpu` and copy "
              "`bench-cpu/bench.json` to `bench/records/<machine>.json`; on the GPU machine "
-             "`.device/w3/gpu_bench.sh` (its `bench-*/bench.json` likewise). Method, operation counts "
+             "`bash bench/device/gpu.sh bench` (its `bench-*/bench.json` likewise). Method, operation counts "
              "and peak figures: the docstring of `fsswarp/bench.py`. Every figure: median of the timed runs "
              "after a warm-up, (min–max), the number of runs; the limit is the lower bound on the time "
              "(memory: bytes over bandwidth; compute: minimal operations over the peak rate; link: host "
@@ -45,6 +47,14 @@ def report(records: list[Path], notes: Path | None, figures: Path | None, base: 
                   "start and from β 2° off; the README's \"Reconstruction\" section discusses the results).", ""]
         for path in tables:
             lines.append(paper_table.table_markdown(json.loads(path.read_text(encoding="utf-8")), path.stem))
+    if studies:
+        study = _load_module("bench_identifiability", HERE / "identifiability.py")
+        lines += ["## Reconstruction: where the images pin the tilt", "",
+                  "Generated from `bench/records/identifiability/*.json`, each written by one "
+                  "`python bench/identifiability.py` run (models refined at points along the D–β valley; "
+                  "the README's \"Reconstruction\" section discusses the results).", ""]
+        for path in studies:
+            lines.append(study.table_markdown(json.loads(path.read_text(encoding="utf-8")), path.stem))
     for path in records:
         run = json.loads(path.read_text(encoding="utf-8"))
         name = path.stem
@@ -98,8 +108,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     from fsswarp.atomic import write_text
 
-    tables = [] if args.records else sorted((HERE / "records" / "reconstruction").glob("*.json"))
-    text = report(records, args.notes, args.figures.resolve(), args.out.resolve().parent, tables)
+    tables, studies = ([], []) if args.records else (sorted((HERE / "records" / kind).glob("*.json"))
+                                                     for kind in ("reconstruction", "identifiability"))
+    text = report(records, args.notes, args.figures.resolve(), args.out.resolve().parent, tables, studies)
     write_text(args.out, text)
     print(f"wrote {args.out} from {len(records)} record(s)")
     return 0

@@ -7,6 +7,9 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
+import os
+import re
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -269,3 +272,93 @@ def test_ab_reconstruct_bad_options_exit_2_with_one_line(args, capsys, monkeypat
     assert _bench_module("ab_reconstruct").main(args) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("bench/ab_reconstruct.py:") and "\n" not in err
+
+
+def _identifiability():
+    return _bench_module("identifiability")
+
+
+def test_identifiability_valley_keeps_the_centroid_below_the_surface():
+    """valley_depth against the closed form in the world frame: the centroid's world height is
+    c_y sin(β + δβ) + c_z cos(β + δβ) − (D + δD) for a reference of any heading ψ, so D(β)
+    follows that sum's change from the true tilt; ψ and δD drop out."""
+    from fsswarp.rig import Rig, View
+
+    study = _identifiability()
+    rig = Rig((View("a", position=(0.3, -1.0), heading=0.7, depth_offset=0.05, tilt_offset=math.radians(1.5)),
+               View("b", heading=math.pi)))
+    centroid = np.array([0.04, 2.1, -0.07])
+    depth_true, tilt_true, offset = 0.43, math.radians(10.3), math.radians(1.5)
+
+    def height(tilt):
+        return centroid[1] * math.sin(tilt + offset) + centroid[2] * math.cos(tilt + offset)
+
+    assert study.valley_depth(rig, centroid, depth_true, tilt_true, tilt_true) == pytest.approx(depth_true, abs=1e-12)
+    for delta in (-2.0, -0.5, 1.0):
+        tilt = tilt_true + math.radians(delta)
+        expected = depth_true + height(tilt) - height(tilt_true)
+        assert study.valley_depth(rig, centroid, depth_true, tilt_true, tilt) == pytest.approx(expected, abs=1e-12)
+    # about 3.7 cm per degree at 2.1 m: the valley of the README
+    slope = study.valley_depth(rig, centroid, depth_true, tilt_true, tilt_true + math.radians(1.0)) - depth_true
+    assert 0.03 < slope < 0.04
+
+
+def test_identifiability_runs_every_start_and_renders_the_table(tmp_path, capsys):
+    """bench/identifiability.py end to end at one valley point and no refinement: the truth
+    starts score E_V 0 (to rounding) at the truth, the carved start more, and report.py renders the record."""
+    study = _identifiability()
+    assert study.main(["--scenes", "coral-one", "--tilts", "0", "--rounds", "0", "--records", str(tmp_path),
+                       "--name", "tiny", "--backend", "opencl"]) == 0
+    record = json.loads((tmp_path / "tiny.json").read_text())
+    result = record["scenes"]["coral-one"]
+    assert result["valley"] == [[0.0, pytest.approx(0.43, abs=1e-12)]]
+    assert set(result["starts"]) == set(study.STARTS)
+    for start, series in result["starts"].items():
+        (only,) = series[0]
+        assert set(only) == set(study.METRICS) and all(math.isfinite(v) for v in only.values())
+        assert (only["E_V"] < 1e-9) == start.startswith("true shape")
+    carved, truth = (result["starts"][s][0][0] for s in ("carved", "true shape"))
+    assert carved["AIE"] > truth["AIE"] and carved["E_V"] > 0.1
+    text = study.table_markdown(record, "tiny")
+    assert f"| true shape | AIE | 0 | {truth['AIE']:.3f} | +0° |" in text and "#### coral-one" in text
+    assert "### tiny" in capsys.readouterr().out
+    rendered = _bench_module("report").report([], None, None, tmp_path, [], [tmp_path / "tiny.json"])
+    assert "## Reconstruction: where the images pin the tilt" in rendered and "### tiny" in rendered
+
+
+def test_identifiability_lowest_at_skips_missing_values_and_names_ties():
+    study = _identifiability()
+    assert study.lowest_at([0.5, math.nan, 0.2, 0.3], [-1.0, -0.5, 0.0, 0.5]) == "+0°"
+    assert study.lowest_at([math.nan], [1.0]) == "—"
+    assert study.lowest_at([3e-16, 0.0, 1e-15], [-1.0, 0.0, 1.0]) == "all equal"
+    assert study.lowest_at([0.2], [1.0]) == "+1°"
+
+
+@pytest.mark.parametrize("args", [["--tilts", "7"], ["--rounds", "-1"], ["--scenes", "nowhere"]])
+def test_identifiability_bad_options_exit_2(args, tmp_path):
+    try:
+        code = _identifiability().main([*args, "--records", str(tmp_path)])
+    except SystemExit as stop:  # argparse's own errors
+        code = stop.code
+    assert code == 2 and not list(tmp_path.iterdir())
+
+
+def _gpu_runner(tmp_path, *args):
+    env_file = tmp_path / "env.sh"
+    env_file.write_text("export FSW_TEST_ENV=1\n")
+    script = Path(__file__).resolve().parents[1] / "bench" / "device" / "gpu.sh"
+    return subprocess.run(["bash", str(script), *args], capture_output=True, text=True,
+                          env=dict(os.environ, FSW_ENV=str(env_file), OUT=str(tmp_path)))
+
+
+def test_gpu_runner_names_every_run_it_knows_and_refuses_others_with_exit_2(tmp_path):
+    """bench/device/gpu.sh: every run its header lists has a case, and an unknown one is a
+    one-line error with exit status 2."""
+    script = (Path(__file__).resolve().parents[1] / "bench" / "device" / "gpu.sh").read_text()
+    listed = set(re.findall(r"^#   bash bench/device/gpu\.sh (\w+)", script, re.M))
+    handled = set(re.findall(r"^  (\w+)\)$", script, re.M))
+    assert listed == handled == {"tests", "table", "study", "bench", "ab"}
+    done = _gpu_runner(tmp_path, "nowhere")
+    assert done.returncode == 2
+    assert done.stderr.strip().startswith("bench/device/gpu.sh: error: unknown run 'nowhere'")
+    assert "\n" not in done.stderr.strip()

@@ -1,0 +1,210 @@
+"""Where the images pin the sonar's tilt: models refined along the D–β valley, one command:
+
+    python bench/identifiability.py [--name NAME] [--backend B] [--device D] [--scenes ...]
+                                    [--tilts DEG ...] [--rounds R] [--seed S]
+
+For every scene: simulate it (noisy, ``--seed``), then for every tilt error δ of ``--tilts``
+put the sonar at β = β_true + δ and at the depth D(β) that keeps the true object's centroid
+at its true depth below the surface (:func:`valley_depth`: the valley along which the ghost
+and mirror stay put, ΔD ≈ 3.5 cm per degree at 2 m). There, three starting shapes are
+refined for ``--rounds`` rounds of the loop's shape step (3 updates each,
+``ReconstructSettings().refine``):
+
+- ``carved``: the model carved at that (D, β), as the loop starts;
+- ``true shape``: the truth mesh, with the loop's refinement (contour, mirror-contour and
+  overshoot terms);
+- ``true shape, contours only``: the truth mesh, refined by the object contours alone
+  (no mirror, no overshoot term), which leave the true shape nearly in place at the truth.
+
+After every round it records AIE, ACE, E_mu and E_V (``fsswarp.reconstruct.image_errors``,
+``fsswarp.pose.pose_objective``, ``fsswarp.metrics.compare``). A shape free to move that
+matches the images equally well at every δ means the images cannot tell the tilt; the tilt
+of the lowest value says which β the images prefer for that family of shapes. Writes
+``bench/records/identifiability/NAME.json`` (the machine, the command, the date, every value)
+and regenerates ``bench/RESULTS.md`` with ``bench/report.py``, which renders every such
+record with :func:`table_markdown`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import math
+import sys
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+SCENES = ("coral-one", "coral-two", "table")
+#: The starting shapes (module docstring): name -> (starts from the truth, RefineSettings overrides).
+STARTS = {"carved": (False, {}), "true shape": (True, {}),
+          "true shape, contours only": (True, {"shrink": 0.0, "mirror": False})}
+METRICS = ("AIE", "ACE", "E_mu", "E_V")
+
+
+def valley_depth(rig, centroid, depth_true: float, tilt_true: float, tilt: float) -> float:
+    """The depth D (m) at which the surface lies as far above ``centroid`` (3,) (reference
+    frame, m) at tilt ``tilt`` (rad) as it does at the true (depth_true m, tilt_true rad)."""
+    import numpy as np
+
+    from fsswarp.surface import surface_in_reference
+
+    normal, offset = surface_in_reference(rig, depth_true, tilt_true)
+    below = float(offset) - float(np.dot(normal, centroid))  # the centroid's depth below the surface
+    normal, offset = surface_in_reference(rig, depth_true, tilt)
+    return depth_true + below - (float(offset) - float(np.dot(normal, centroid)))  # the offset is D + δD_ref
+
+
+def state(model, dataset, depth: float, tilt: float, truth, backend) -> dict:
+    """AIE, ACE (m), E_mu (m) and E_V of ``model`` at (depth m, tilt rad)."""
+    from fsswarp.metrics import compare
+    from fsswarp.pose import PoseWarning, pose_objective
+    from fsswarp.reconstruct import image_errors
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PoseWarning)  # a view that does not see the model gets no CE
+        images = image_errors(model, dataset, depth, tilt, backend=backend)
+        e_mu = pose_objective(model, dataset, depth, tilt, backend=backend)
+    return {"AIE": images["AIE"], "ACE": images["ACE"], "E_mu": e_mu, "E_V": compare(model, truth)["E_V"]}
+
+
+def run_scene(dataset, backend, *, tilts_deg, rounds: int, progress=print) -> dict:
+    """{"valley": [(δ deg, D m), ...], "starts": {start: [[state per round] per δ]}} of one
+    simulated dataset (module docstring)."""
+    import dataclasses
+
+    import trimesh
+
+    from fsswarp.carve import carve
+    from fsswarp.reconstruct import ReconstructSettings
+    from fsswarp.refine import refine_shape
+
+    truth_info = dataset.manifest.truth
+    truth = trimesh.load_mesh(dataset.truth_model_path, process=True)
+    base = ReconstructSettings()
+    valley = [(delta, valley_depth(dataset.rig, truth.center_mass, truth_info.depth, truth_info.tilt,
+                                   truth_info.tilt + math.radians(delta))) for delta in tilts_deg]
+    out = {"valley": valley, "starts": {}}
+    for start, (from_truth, overrides) in STARTS.items():
+        settings = dataclasses.replace(base.refine, **overrides)
+        series = []
+        for delta, depth in valley:
+            tilt = truth_info.tilt + math.radians(delta)
+            model = truth if from_truth else carve(dataset, depth, tilt, resolution=base.resolution,
+                                                   settings=base.carve, backend=backend).mesh
+            states = [state(model, dataset, depth, tilt, truth, backend)]
+            for _ in range(rounds):
+                model = refine_shape(model, dataset, depth, tilt, settings=settings, backend=backend).mesh
+                states.append(state(model, dataset, depth, tilt, truth, backend))
+            series.append(states)
+            first, last = states[0], states[-1]
+            progress(f"  {start}, tilt {delta:+g} deg, D {depth:.4f} m: AIE {first['AIE']:.3f} -> {last['AIE']:.3f}, "
+                     f"E_mu {first['E_mu'] * 1e3:.2f} -> {last['E_mu'] * 1e3:.2f} mm, "
+                     f"E_V {first['E_V']:.3f} -> {last['E_V']:.3f}")
+        out["starts"][start] = series
+    return out
+
+
+def lowest_at(values, tilts_deg) -> str:
+    """The tilt error (deg) of the lowest finite value, as the table prints it; "all equal"
+    where the finite values differ by rounding alone (the truth's E_V of 0 at every tilt)."""
+    finite = [(v, t) for v, t in zip(values, tilts_deg) if math.isfinite(v)]
+    if not finite:
+        return "—"
+    low, high = min(v for v, _ in finite), max(v for v, _ in finite)
+    if len(finite) > 1 and high - low <= 1e-9 * max(1.0, abs(low)):
+        return "all equal"
+    return f"{min(finite)[1]:+g}°"
+
+
+def table_markdown(record: dict, name: str) -> str:
+    """The Markdown of one record: the machine line and, per scene, one table with a row per
+    (start, metric) at the start (round 0) and after the last round."""
+    m = record["machine"]
+    tilts, rounds = record["tilts_deg"], record["rounds"]
+    lines = [f"### {name}", "",
+             f"- machine: {m['host']} ({m['system']}), CPU {m['cpu']}, {m['logical_cpus']} logical CPUs; "
+             f"backend {m['backend']} on {m['device']}; Python {m['python']}",
+             f"- command: `{record['command']}`", f"- date: {record['date']}",
+             f"- noisy images, seed {record['seed']}; {rounds} rounds of the loop's shape step (3 updates each) "
+             f"at every point; whole command {record['seconds']:.0f} s", ""]
+    header = "| start | value | round | " + " | ".join(f"{t:+g}°" for t in tilts) + " | lowest at |"
+    rule = "|---|---|---|" + "---|" * len(tilts) + "---|"
+    scale = {"AIE": (1.0, "{:.3f}"), "ACE": (1e3, "{:.2f}"), "E_mu": (1e3, "{:.2f}"), "E_V": (1.0, "{:.3f}")}
+    unit = {"AIE": "AIE", "ACE": "ACE (mm)", "E_mu": "E_mu (mm)", "E_V": "E_V"}
+    for scene, result in record["scenes"].items():
+        depths = ", ".join(f"{d:.4f}" for _, d in result["valley"])
+        lines += [f"#### {scene}", "", f"Depths along the valley (m): {depths}.", "", header, rule]
+        for start, series in result["starts"].items():
+            for metric in METRICS:
+                for k in sorted({0, rounds}):
+                    factor, form = scale[metric]
+                    values = [states[k][metric] * factor for states in series]
+                    cells = " | ".join(form.format(v) if math.isfinite(v) else "—" for v in values)
+                    lines.append(f"| {start} | {unit[metric]} | {k} | {cells} | {lowest_at(values, tilts)} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--name", default=None, help="record name (default: BACKEND-DEVICE)")
+    parser.add_argument("--backend", default=None, help="warp or opencl (default: fsswarp's choice)")
+    parser.add_argument("--device", default=None, help="backend device, e.g. cuda:0, cpu, nvidia")
+    parser.add_argument("--scenes", nargs="+", choices=SCENES, default=list(SCENES))
+    parser.add_argument("--tilts", nargs="+", type=float, default=[-1.0, -0.5, 0.0, 0.5, 1.0],
+                        help="tilt errors (degrees) along the valley")
+    parser.add_argument("--rounds", type=int, default=3, help="shape steps (3 updates each) per point")
+    parser.add_argument("--seed", type=int, default=0, help="noise seed of the simulations")
+    parser.add_argument("--records", type=Path, default=HERE / "records" / "identifiability")
+    args = parser.parse_args(argv)
+    from fsswarp.atomic import write_text
+    from fsswarp.backends import get_backend
+    from fsswarp.errors import InputError, check_integer
+    from fsswarp.simulate import simulate
+
+    paper_table = _load_module("bench_paper_table", HERE / "paper_table.py")
+    try:
+        backend = get_backend(args.backend or "auto", args.device)
+        check_integer("--seed", args.seed, 0)
+        check_integer("--rounds", args.rounds, 0)
+        bad = [t for t in args.tilts if not (math.isfinite(t) and abs(t) <= 5)]
+        if bad:
+            raise InputError("must be in [-5, 5] degrees", field="--tilts", value=bad[0])
+    except InputError as err:
+        print(f"identifiability: error: {err}", file=sys.stderr)
+        return 2
+    name = args.name or f"{backend.name}-{backend.device}".replace(":", "")
+    command = "python bench/identifiability.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    begin = time.perf_counter()
+    scenes = {}
+    with tempfile.TemporaryDirectory() as folder:
+        for scene in args.scenes:
+            print(scene, flush=True)
+            dataset = simulate(scene, Path(folder) / scene, seed=args.seed, backend=backend)
+            scenes[scene] = run_scene(dataset, backend, tilts_deg=args.tilts, rounds=args.rounds,
+                                      progress=lambda line: print(line, flush=True))
+    record = {"schema": 1, "date": time.strftime("%Y-%m-%d %H:%M:%S %z"), "command": command.strip(),
+              "seed": args.seed, "rounds": args.rounds, "tilts_deg": args.tilts,
+              "machine": paper_table.machine(backend), "seconds": time.perf_counter() - begin, "scenes": scenes}
+    path = args.records / f"{name}.json"
+    write_text(path, json.dumps(record, indent=1))
+    print(table_markdown(record, name))
+    print(f"wrote {path}")
+    if args.records != HERE / "records" / "identifiability":
+        return 0  # a record elsewhere: RESULTS.md renders only bench/records/
+    return _load_module("bench_report", HERE / "report.py").main([])
+
+
+def _load_module(name: str, path: Path):
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+if __name__ == "__main__":
+    sys.exit(main())
