@@ -1,0 +1,48 @@
+#!/usr/bin/env bash
+# The project's GPU runs on a lent device machine, from the checkout root there, after
+# ../shared/device/README.md has staged the wheels (its /tmp/fsw/env.sh, or $FSW_ENV, exists):
+#
+#   bash bench/device/gpu.sh tests                  pytest -m gpu (Warp CUDA and OpenCL on the GPU)
+#   bash bench/device/gpu.sh table NAME SCENE...    bench/paper_table.py on Warp CUDA
+#   bash bench/device/gpu.sh study NAME SCENE...    bench/identifiability.py on Warp CUDA
+#   bash bench/device/gpu.sh bench                  fsswarp bench: Warp CUDA, OpenCL on the GPU, PoCL on the host
+#   bash bench/device/gpu.sh ab BEFORE AFTER [ARGS] bench/ab_reconstruct.py on Warp CUDA
+#
+# Records land in $OUT (the device tool brings them back), as under bench/records/: copy
+# $OUT/reconstruction/NAME.json (table) and $OUT/identifiability/NAME.json (study) to the same
+# folders there and each bench run's $OUT/bench-*/bench.json to bench/records/<machine>.json,
+# then run `python bench/report.py`.
+# The machine has no network and no hatchling, so the project runs from the checkout
+# (PYTHONPATH), not installed.
+set -euo pipefail
+source "${FSW_ENV:-/tmp/fsw/env.sh}"
+export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}
+out=${OUT:?OUT must name the folder that comes back}
+command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,driver_version --format=csv,noheader
+what=${1:?usage: bash bench/device/gpu.sh tests|table|study|bench|ab ...}
+shift
+case "$what" in
+  tests)
+    python -m pytest -q -p no:cacheprovider -m gpu tests "$@" ;;
+  table)
+    name=${1:?table NAME SCENE...}; shift
+    python bench/paper_table.py --name "$name" --backend warp --device cuda:0 --records "$out/reconstruction" \
+      --scenes "$@" ;;
+  study)
+    name=${1:?study NAME SCENE...}; shift
+    python bench/identifiability.py --name "$name" --backend warp --device cuda:0 --records "$out/identifiability" \
+      --scenes "$@" ;;
+  bench)
+    families=raycast,synthesis,carving,pose,reconstruction
+    python -m fsswarp --backend warp --device cuda:0 bench --out "$out/bench-warp-cuda" --families "$families" \
+      --budget 10 --repeat 3
+    python -m fsswarp --backend opencl --device nvidia bench --out "$out/bench-opencl-nvidia" --families "$families" \
+      --budget 10 --repeat 3 --no-peers
+    python -m fsswarp --backend opencl --device pocl bench --out "$out/bench-pocl" \
+      --families raycast,synthesis,carving,pose --budget 3 --repeat 3 --no-peers ;;
+  ab)
+    python bench/ab_reconstruct.py "$@" --backend warp --device cuda:0 ;;
+  *)
+    echo "bench/device/gpu.sh: error: unknown run '$what' (tests, table, study, bench or ab)" >&2
+    exit 2 ;;
+esac
