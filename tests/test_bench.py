@@ -357,8 +357,43 @@ def test_gpu_runner_names_every_run_it_knows_and_refuses_others_with_exit_2(tmp_
     script = (Path(__file__).resolve().parents[1] / "bench" / "device" / "gpu.sh").read_text()
     listed = set(re.findall(r"^#   bash bench/device/gpu\.sh (\w+)", script, re.M))
     handled = set(re.findall(r"^  (\w+)\)$", script, re.M))
-    assert listed == handled == {"tests", "table", "study", "bench", "ab"}
+    assert listed == handled == {"tests", "table", "study", "bench", "ab", "profile"}
     done = _gpu_runner(tmp_path, "nowhere")
     assert done.returncode == 2
     assert done.stderr.strip().startswith("bench/device/gpu.sh: error: unknown run 'nowhere'")
     assert "\n" not in done.stderr.strip()
+
+
+def test_loop_profile_call_times_count_time_and_restore():
+    """CallTimes against a function that sleeps a known time: calls counted, inclusive seconds
+    at least the sleeps, and the original back after restore."""
+    import time
+    import types
+
+    times = _bench_module("loop_profile").CallTimes()
+    owner = types.SimpleNamespace(nap=lambda seconds: time.sleep(seconds) or seconds)
+    original = owner.nap
+    times.wrap(owner, "nap", "nap")
+    assert owner.nap(0.02) == 0.02 and owner.nap(0.01) == 0.01
+    calls, seconds = times.totals["nap"]
+    assert calls == 2 and 0.03 <= seconds < 1.0
+    times.restore()
+    assert owner.nap is original
+    assert "| `nap` | 2 |" in times.table(seconds)
+
+
+def test_loop_profile_times_a_reconstruction_and_leaves_fsswarp_as_it_was(capsys):
+    import fsswarp.carve
+    import fsswarp.pose
+    import fsswarp.reconstruct
+
+    before = (fsswarp.reconstruct.carve, fsswarp.reconstruct.refine_shape, fsswarp.pose.PoseProblem.exact)
+    assert _bench_module("loop_profile").main(["--backend", "opencl", "--iterations", "0"]) == 0
+    assert (fsswarp.reconstruct.carve, fsswarp.reconstruct.refine_shape, fsswarp.pose.PoseProblem.exact) == before
+    assert fsswarp.reconstruct.carve is fsswarp.carve.carve
+    out = capsys.readouterr().out
+    assert "0 iterations" in out and "| `carve` | 1 |" in out and "| `_image_errors` | 1 |" in out
+
+
+def test_loop_profile_bad_options_exit_2():
+    assert _bench_module("loop_profile").main(["--iterations", "-1"]) == 2

@@ -7,6 +7,7 @@
 #   bash bench/device/gpu.sh study NAME SCENE...    bench/identifiability.py on Warp CUDA
 #   bash bench/device/gpu.sh bench                  fsswarp bench: Warp CUDA, OpenCL on the GPU, PoCL on the host
 #   bash bench/device/gpu.sh ab BEFORE AFTER [ARGS] bench/ab_reconstruct.py on Warp CUDA
+#   bash bench/device/gpu.sh profile [ARGS]         bench/loop_profile.py on Warp CUDA
 #
 # Records land in $OUT (the device tool brings them back), as under bench/records/: copy
 # $OUT/reconstruction/NAME.json (table) and $OUT/identifiability/NAME.json (study) to the same
@@ -19,7 +20,7 @@ source "${FSW_ENV:-/tmp/fsw/env.sh}"
 export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}
 out=${OUT:?OUT must name the folder that comes back}
 command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,driver_version --format=csv,noheader
-what=${1:?usage: bash bench/device/gpu.sh tests|table|study|bench|ab ...}
+what=${1:?usage: bash bench/device/gpu.sh tests|table|study|bench|ab|profile ...}
 shift
 case "$what" in
   tests)
@@ -42,7 +43,9 @@ case "$what" in
       --families raycast,synthesis,carving,pose --budget 3 --repeat 3 --no-peers ;;
   ab)
     python bench/ab_reconstruct.py "$@" --backend warp --device cuda:0 ;;
+  profile)
+    python bench/loop_profile.py --backend warp --device cuda:0 "$@" ;;
   *)
-    echo "bench/device/gpu.sh: error: unknown run '$what' (tests, table, study, bench or ab)" >&2
+    echo "bench/device/gpu.sh: error: unknown run '$what' (tests, table, study, bench, ab or profile)" >&2
     exit 2 ;;
 esac

@@ -1,0 +1,142 @@
+"""Where a reconstruction's time goes, without a sampling profiler, one command:
+
+    python bench/loop_profile.py [--scene NAME] [--backend B] [--device D] [--iterations T]
+                                 [--seed S]
+
+Simulates the scene (noisy, ``--seed``), reconstructs it once with one iteration (none with
+``--iterations 0``; to fill the kernel caches), then once with ``--iterations`` while the loop's main functions are wrapped
+to count their calls and sum their wall time (inclusive: a function's time holds that of the
+functions it calls, so the rows overlap). Prints one Markdown table, slowest first: calls,
+seconds, share of the run and milliseconds per call. A sampling profiler (py-spy) slowed the
+H100 run 1.5–3.5 times and so hid where the run waited (bench/notes.md); these wrappers cost
+microseconds per call.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import functools
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+#: (module, class name or None, function names) wrapped where the loop looks them up.
+WRAPPED = (
+    ("fsswarp.pose", "PoseProblem", ("__init__", "locate", "exact", "surrogate", "view_costs", "align",
+                                     "frontal_motions", "contour_errors", "_detection_shift", "_data_contours")),
+    ("fsswarp.pose", None, ("estimate_pose", "_polish", "patch_motions")),
+    ("fsswarp.refine", None, ("refine_shape",)),
+    ("fsswarp.refine", "_Membrane", ("solve",)),
+    ("fsswarp.carve", None, ("carve", "voxel_mesh")),
+    ("fsswarp.reconstruct", None, ("_image_errors", "_complete")),
+)
+BACKEND_METHODS = ("render_device", "contour_cost", "icp_runs", "frontal_faces", "load_mesh", "device_distances",
+                   "carve")
+#: Functions that other modules import by name: those modules get the wrapper too.
+REBOUND = {"estimate_pose": ("fsswarp.reconstruct",), "refine_shape": ("fsswarp.reconstruct",),
+           "carve": ("fsswarp.reconstruct",)}
+
+
+class CallTimes:
+    """Calls and inclusive wall seconds per wrapped function (``totals``: label -> [calls, s])."""
+
+    def __init__(self):
+        self.totals = collections.defaultdict(lambda: [0, 0.0])
+        self.undo = []
+
+    def wrap(self, owner, name: str, label: str):
+        """Replace ``owner.name`` by a timed wrapper, and return it."""
+        original = getattr(owner, name)
+
+        @functools.wraps(original)
+        def timed(*args, **kwargs):
+            start = time.perf_counter()
+            try:
+                return original(*args, **kwargs)
+            finally:
+                entry = self.totals[label]
+                entry[0] += 1
+                entry[1] += time.perf_counter() - start
+
+        self.replace(owner, name, timed)
+        return timed
+
+    def replace(self, owner, name: str, value) -> None:
+        """Set ``owner.name`` to ``value`` until ``restore``."""
+        self.undo.append((owner, name, getattr(owner, name)))
+        setattr(owner, name, value)
+
+    def restore(self) -> None:
+        for owner, name, original in reversed(self.undo):
+            setattr(owner, name, original)
+        self.undo.clear()
+
+    def table(self, total: float) -> str:
+        """Markdown: one row per function, slowest first; shares of ``total`` seconds."""
+        lines = ["| function | calls | s | share | ms per call |", "|---|---|---|---|---|"]
+        for label, (calls, seconds) in sorted(self.totals.items(), key=lambda item: -item[1][1]):
+            lines.append(f"| `{label}` | {calls} | {seconds:.3f} | {100 * seconds / total:.1f}% | "
+                         f"{1e3 * seconds / calls:.2f} |")
+        return "\n".join(lines)
+
+
+def instrument(times: CallTimes, backend) -> None:
+    """Wrap ``WRAPPED`` (and rebind the names in ``REBOUND``) and ``backend``'s ``BACKEND_METHODS``."""
+    import importlib
+
+    wrapped = {}
+    for module_name, owner_name, names in WRAPPED:
+        module = importlib.import_module(module_name)
+        owner = getattr(module, owner_name) if owner_name else module
+        for name in names:
+            label = f"{owner_name}.{name}" if owner_name else name
+            wrapped[label] = times.wrap(owner, name, label)
+    for name, modules in REBOUND.items():
+        for module_name in modules:
+            times.replace(importlib.import_module(module_name), name, wrapped[name])
+    for name in BACKEND_METHODS:
+        if hasattr(type(backend), name):
+            times.wrap(type(backend), name, f"backend.{name}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scene", default="coral-one", choices=("coral-one", "coral-two", "table"))
+    parser.add_argument("--backend", default=None, help="warp or opencl (default: fsswarp's choice)")
+    parser.add_argument("--device", default=None, help="backend device, e.g. cuda:0, cpu, nvidia")
+    parser.add_argument("--iterations", type=int, default=10)
+    parser.add_argument("--seed", type=int, default=0, help="noise seed of the simulation")
+    args = parser.parse_args(argv)
+    from fsswarp.backends import get_backend
+    from fsswarp.errors import InputError, check_integer
+    from fsswarp.reconstruct import ReconstructSettings, reconstruct
+    from fsswarp.simulate import simulate
+
+    try:
+        backend = get_backend(args.backend or "auto", args.device)
+        check_integer("--iterations", args.iterations, 0)
+        check_integer("--seed", args.seed, 0)
+    except InputError as err:
+        print(f"loop_profile: error: {err}", file=sys.stderr)
+        return 2
+    with tempfile.TemporaryDirectory() as folder:
+        dataset = simulate(args.scene, Path(folder) / args.scene, seed=args.seed, backend=backend)
+        reconstruct(dataset, settings=ReconstructSettings(iterations=min(1, args.iterations)), backend=backend)
+        times = CallTimes()
+        instrument(times, backend)
+        try:
+            start = time.perf_counter()
+            result = reconstruct(dataset, settings=ReconstructSettings(iterations=args.iterations), backend=backend)
+            total = time.perf_counter() - start
+        finally:
+            times.restore()
+    print(f"{args.scene} from the measured start on {backend.name} {backend.device}: {total:.2f} s, "
+          f"{result.iterations} iterations\n")
+    print(times.table(total))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
