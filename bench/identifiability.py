@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
-import json
 import math
 import sys
 import tempfile
@@ -150,23 +149,17 @@ def table_markdown(record: dict, name: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    paper_table = _load_module("bench_paper_table", HERE / "paper_table.py")
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--name", default=None, help="record name (default: BACKEND-DEVICE)")
-    parser.add_argument("--backend", default=None, help="warp or opencl (default: fsswarp's choice)")
-    parser.add_argument("--device", default=None, help="backend device, e.g. cuda:0, cpu, nvidia")
-    parser.add_argument("--scenes", nargs="+", choices=SCENES, default=list(SCENES))
+    paper_table.add_run_options(parser, HERE / "records" / "identifiability")
     parser.add_argument("--tilts", nargs="+", type=float, default=[-1.0, -0.5, 0.0, 0.5, 1.0],
                         help="tilt errors (degrees) along the valley")
     parser.add_argument("--rounds", type=int, default=3, help="shape steps (3 updates each) per point")
-    parser.add_argument("--seed", type=int, default=0, help="noise seed of the simulations")
-    parser.add_argument("--records", type=Path, default=HERE / "records" / "identifiability")
     args = parser.parse_args(argv)
-    from fsswarp.atomic import write_text
     from fsswarp.backends import get_backend
     from fsswarp.errors import InputError, check_integer
     from fsswarp.simulate import simulate
 
-    paper_table = _load_module("bench_paper_table", HERE / "paper_table.py")
     try:
         backend = get_backend(args.backend or "auto", args.device)
         check_integer("--seed", args.seed, 0)
@@ -190,13 +183,8 @@ def main(argv: list[str] | None = None) -> int:
     record = {"schema": 1, "date": time.strftime("%Y-%m-%d %H:%M:%S %z"), "command": command.strip(),
               "seed": args.seed, "rounds": args.rounds, "tilts_deg": args.tilts,
               "machine": paper_table.machine(backend), "seconds": time.perf_counter() - begin, "scenes": scenes}
-    path = args.records / f"{name}.json"
-    write_text(path, json.dumps(record, indent=1))
-    print(table_markdown(record, name))
-    print(f"wrote {path}")
-    if args.records != HERE / "records" / "identifiability":
-        return 0  # a record elsewhere: RESULTS.md renders only bench/records/
-    return _load_module("bench_report", HERE / "report.py").main([])
+    return paper_table.save_record(record, name, args.records, HERE / "records" / "identifiability",
+                                   table_markdown)
 
 
 def _load_module(name: str, path: Path):

@@ -122,18 +122,41 @@ def machine(backend) -> dict:
             "device": backend.device, "device_name": device_name(backend)}
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def add_run_options(parser: argparse.ArgumentParser, records: Path) -> None:
+    """--name, --backend, --device, --scenes, --seed and --records (default ``records``), the
+    options of this script and of bench/identifiability.py."""
     parser.add_argument("--name", default=None, help="record name (default: BACKEND-DEVICE)")
     parser.add_argument("--backend", default=None, help="warp or opencl (default: fsswarp's choice)")
     parser.add_argument("--device", default=None, help="backend device, e.g. cuda:0, cpu, nvidia")
     parser.add_argument("--scenes", nargs="+", choices=SCENES, default=list(SCENES))
     parser.add_argument("--seed", type=int, default=0, help="noise seed of the simulations")
+    parser.add_argument("--records", type=Path, default=records)
+
+
+def save_record(record: dict, name: str, records: Path, default: Path, markdown) -> int:
+    """Write ``record`` to ``records``/NAME.json, print ``markdown(record, name)`` and, when
+    ``records`` is the ``default`` folder under bench/records/, regenerate RESULTS.md with
+    bench/report.py (its exit status)."""
+    from fsswarp.atomic import write_text
+
+    path = records / f"{name}.json"
+    write_text(path, json.dumps(record, indent=1))
+    print(markdown(record, name))
+    print(f"wrote {path}")
+    if records != default:
+        return 0  # a record elsewhere: RESULTS.md renders only bench/records/
+    spec = importlib.util.spec_from_file_location("bench_report", HERE / "report.py")
+    report = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(report)
+    return report.main([])
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_run_options(parser, HERE / "records" / "reconstruction")
     parser.add_argument("--iterations", type=int, default=10)
     parser.add_argument("--tilt-offset", type=float, default=2.0, help="degrees off the truth of the second start")
-    parser.add_argument("--records", type=Path, default=HERE / "records" / "reconstruction")
     args = parser.parse_args(argv)
-    from fsswarp.atomic import write_text
     from fsswarp.backends import get_backend
     from fsswarp.errors import InputError, check_integer
 
@@ -154,16 +177,7 @@ def main(argv: list[str] | None = None) -> int:
     record = {"schema": 1, "date": time.strftime("%Y-%m-%d %H:%M:%S %z"), "command": command.strip(),
               "seed": args.seed, "iterations": args.iterations, "machine": machine(backend),
               "seconds": time.perf_counter() - begin, "runs": runs}
-    path = args.records / f"{name}.json"
-    write_text(path, json.dumps(record, indent=1))
-    print(table_markdown(record, name))
-    print(f"wrote {path}")
-    if args.records != HERE / "records" / "reconstruction":
-        return 0  # a record elsewhere: RESULTS.md renders only bench/records/
-    spec = importlib.util.spec_from_file_location("bench_report", HERE / "report.py")
-    report = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(report)
-    return report.main([])
+    return save_record(record, name, args.records, HERE / "records" / "reconstruction", table_markdown)
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -39,22 +40,20 @@ def report(records: list[Path], notes: Path | None, figures: Path | None, base: 
              "(memory: bytes over bandwidth; compute: minimal operations over the peak rate; link: host "
              "transfers of an end-to-end GPU figure) and the fraction is limit / median (1 = at the limit).",
              ""]
-    if tables:
-        paper_table = _load_module("bench_paper_table", HERE / "paper_table.py")
-        lines += ["## Reconstruction: the paper's table, end to end", "",
-                  "Generated from `bench/records/reconstruction/*.json`, each written by one "
-                  "`python bench/paper_table.py` run (simulate each scene, reconstruct it from the measured "
-                  "start and from β 2° off; the README's \"Reconstruction\" section discusses the results).", ""]
-        for path in tables:
-            lines.append(paper_table.table_markdown(json.loads(path.read_text(encoding="utf-8")), path.stem))
-    if studies:
-        study = _load_module("bench_identifiability", HERE / "identifiability.py")
-        lines += ["## Reconstruction: where the images pin the tilt", "",
-                  "Generated from `bench/records/identifiability/*.json`, each written by one "
-                  "`python bench/identifiability.py` run (models refined at points along the D–β valley; "
-                  "the README's \"Reconstruction\" section discusses the results).", ""]
-        for path in studies:
-            lines.append(study.table_markdown(json.loads(path.read_text(encoding="utf-8")), path.stem))
+    sections = (
+        (tables, "paper_table.py", "## Reconstruction: the paper's table, end to end",
+         "Generated from `bench/records/reconstruction/*.json`, each written by one `python bench/paper_table.py` "
+         "run (simulate each scene, reconstruct it from the measured start and from β 2° off; the README's "
+         "\"Reconstruction\" section discusses the results)."),
+        (studies, "identifiability.py", "## Reconstruction: where the images pin the tilt",
+         "Generated from `bench/records/identifiability/*.json`, each written by one `python "
+         "bench/identifiability.py` run (models refined at points along the D–β valley; the README's "
+         "\"Reconstruction\" section discusses the results)."))
+    for paths, script, heading, intro in sections:
+        if paths:  # each script renders its own records with its table_markdown
+            module = _load_module(f"bench_{Path(script).stem}", HERE / script)
+            lines += [heading, "", intro, ""]
+            lines += [module.table_markdown(json.loads(path.read_text(encoding="utf-8")), path.stem) for path in paths]
     for path in records:
         run = json.loads(path.read_text(encoding="utf-8"))
         name = path.stem
@@ -68,7 +67,7 @@ def report(records: list[Path], notes: Path | None, figures: Path | None, base: 
                 png = plot_family(run["records"], family, figures / f"{name}-{family}.png",
                                   title=f"{name}: {family}")
                 if png is not None:
-                    shown.append(f"![{name} {family}]({png.relative_to(base).as_posix()})")
+                    shown.append(f"![{name} {family}]({Path(os.path.relpath(png, base)).as_posix()})")
             if shown:
                 lines += ["### Cost curves (dashed: the limit of the same series)", "",
                           "Drawn by `python bench/report.py` into `bench/figures/` (generated, not committed):", "",
