@@ -22,7 +22,7 @@ matches the images equally well at every δ means the images cannot tell the til
 of the lowest value says which β the images prefer for that family of shapes. Writes
 ``bench/records/identifiability/NAME.json`` (the machine, the command, the date, every value)
 and regenerates ``bench/RESULTS.md`` with ``bench/report.py``, which renders every such
-record with :func:`table_markdown`.
+record with :func:`table_markdown` and draws it with :func:`plot_record`.
 """
 
 from __future__ import annotations
@@ -146,6 +146,40 @@ def table_markdown(record: dict, name: str) -> str:
                     lines.append(f"| {start} | {unit[metric]} | {k} | {cells} | {lowest_at(values, tilts)} |")
         lines.append("")
     return "\n".join(lines)
+
+
+def plot_record(record: dict, path: Path, *, title: str = "") -> Path:
+    """One panel per (scene, metric): the metric against the tilt error along the valley, a
+    line per start after the last round, dotted at round 0 (the two true-shape starts share
+    it); the truth's tilt marked. Returns the PNG's path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from fsswarp.figures import _save
+
+    tilts, rounds, scenes = record["tilts_deg"], record["rounds"], record["scenes"]
+    scale = {"AIE": (1.0, "AIE"), "ACE": (1e3, "ACE (mm)"), "E_mu": (1e3, "E_mu (mm)"), "E_V": (1.0, "E_V")}
+    fig, axes = plt.subplots(len(scenes), len(METRICS), figsize=(3.2 * len(METRICS), 2.6 * len(scenes)),
+                             squeeze=False)
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for row, (scene, result) in enumerate(scenes.items()):
+        for col, metric in enumerate(METRICS):
+            ax = axes[row][col]
+            factor, label = scale[metric]
+            for k, (start, series) in enumerate(result["starts"].items()):
+                for when, style in ((0, ":"), (rounds, "-")):
+                    ax.plot(tilts, [states[when][metric] * factor for states in series], style, marker="o",
+                            markersize=3, color=colours[k % len(colours)],
+                            label=f"{start}, round {when}" if row == col == 0 else None)
+            ax.axvline(0.0, color="0.6", linewidth=0.8)
+            ax.set_xticks(tilts)
+            ax.set_title(f"{scene}: {label}", fontsize=9)
+            ax.set_xlabel("tilt error along the valley (°)", fontsize=8)
+            ax.tick_params(labelsize=7)
+    fig.legend(loc="lower center", ncol=3, fontsize=7, frameon=False)
+    return _save(fig, path, title, rect=(0, 0.06, 1, 1))
 
 
 def main(argv: list[str] | None = None) -> int:

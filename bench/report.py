@@ -50,10 +50,16 @@ def report(records: list[Path], notes: Path | None, figures: Path | None, base: 
          "bench/identifiability.py` run (models refined at points along the D–β valley; the README's "
          "\"Reconstruction\" section discusses the results)."))
     for paths, script, heading, intro in sections:
-        if paths:  # each script renders its own records with its table_markdown
+        if paths:  # each script renders its own records with its table_markdown (and plot_record)
             module = _load_module(f"bench_{Path(script).stem}", HERE / script)
             lines += [heading, "", intro, ""]
-            lines += [module.table_markdown(json.loads(path.read_text(encoding="utf-8")), path.stem) for path in paths]
+            plot = getattr(module, "plot_record", None) if figures is not None else None
+            for path in paths:
+                record = json.loads(path.read_text(encoding="utf-8"))
+                lines.append(module.table_markdown(record, path.stem))
+                if plot is not None:
+                    png = plot(record, figures / f"{Path(script).stem}-{path.stem}.png", title=path.stem)
+                    lines += [f"![{path.stem}]({Path(os.path.relpath(png, base)).as_posix()})", ""]
     for path in records:
         run = json.loads(path.read_text(encoding="utf-8"))
         name = path.stem

@@ -327,8 +327,10 @@ def test_identifiability_runs_every_start_and_renders_the_table(tmp_path, capsys
     text = study.table_markdown(record, "tiny")
     assert f"| true shape | AIE | 0 | {truth['AIE']:.3f} | +0° |" in text and "#### coral-one" in text
     assert "### tiny" in capsys.readouterr().out
-    rendered = _bench_module("report").report([], None, None, tmp_path, [], [tmp_path / "tiny.json"])
+    rendered = _bench_module("report").report([], None, tmp_path / "figs", tmp_path, [], [tmp_path / "tiny.json"])
     assert "## Reconstruction: where the images pin the tilt" in rendered and "### tiny" in rendered
+    assert "![tiny](figs/identifiability-tiny.png)" in rendered
+    assert (tmp_path / "figs" / "identifiability-tiny.png").read_bytes().startswith(b"\x89PNG")
 
 
 def test_identifiability_lowest_at_skips_missing_values_and_names_ties():
