@@ -365,10 +365,12 @@ def test_gpu_runner_names_every_run_it_knows_and_refuses_others_with_exit_2(tmp_
     listed = set(re.findall(r"^#   bash bench/device/gpu\.sh (\w+)", script, re.M))
     handled = set(re.findall(r"^  (\w+)\)$", script, re.M))
     assert listed == handled == {"tests", "table", "study", "bench", "ab", "profile"}
-    done = _gpu_runner(tmp_path, "nowhere")
-    assert done.returncode == 2
-    assert done.stderr.strip().startswith("bench/device/gpu.sh: error: unknown run 'nowhere'")
-    assert "\n" not in done.stderr.strip()
+    for args, message in ((["nowhere"], "unknown run 'nowhere'"), ([], "name a run"),
+                          (["table", "h100"], "table needs NAME and at least one SCENE")):
+        done = _gpu_runner(tmp_path, *args)
+        assert done.returncode == 2
+        assert done.stderr.strip().startswith(f"bench/device/gpu.sh: error: {message}")
+        assert "\n" not in done.stderr.strip()
 
 
 def test_loop_profile_call_times_count_time_and_restore():

@@ -20,17 +20,21 @@ source "${FSW_ENV:-/tmp/fsw/env.sh}"
 export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}
 out=${OUT:?OUT must name the folder that comes back}
 command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,driver_version --format=csv,noheader
-what=${1:?usage: bash bench/device/gpu.sh tests|table|study|bench|ab|profile ...}
+fail() { echo "bench/device/gpu.sh: error: $1" >&2; exit 2; }
+[ $# -gt 0 ] || fail "name a run: tests, table, study, bench, ab or profile"
+what=$1
 shift
 case "$what" in
   tests)
     python -m pytest -q -p no:cacheprovider -m gpu tests "$@" ;;
   table)
-    name=${1:?table NAME SCENE...}; shift
+    [ $# -ge 2 ] || fail "table needs NAME and at least one SCENE"
+    name=$1; shift
     python bench/paper_table.py --name "$name" --backend warp --device cuda:0 --records "$out/reconstruction" \
       --scenes "$@" ;;
   study)
-    name=${1:?study NAME SCENE...}; shift
+    [ $# -ge 2 ] || fail "study needs NAME and at least one SCENE"
+    name=$1; shift
     python bench/identifiability.py --name "$name" --backend warp --device cuda:0 --records "$out/identifiability" \
       --scenes "$@" ;;
   bench)
@@ -46,6 +50,5 @@ case "$what" in
   profile)
     python bench/loop_profile.py --backend warp --device cuda:0 "$@" ;;
   *)
-    echo "bench/device/gpu.sh: error: unknown run '$what' (tests, table, study, bench, ab or profile)" >&2
-    exit 2 ;;
+    fail "unknown run '$what' (tests, table, study, bench, ab or profile)" ;;
 esac
