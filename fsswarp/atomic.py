@@ -33,14 +33,10 @@ def write_text(path: str | os.PathLike, text: str) -> Path:
     return write_bytes(path, text.encode("utf-8"))
 
 
-@contextlib.contextmanager
-def output_folder(path: str | os.PathLike, *, marker: str) -> Iterator[Path]:
-    """Yield a temporary folder that becomes ``path`` when the block ends without error.
-
-    An existing ``path`` is replaced only if it holds ``marker`` (a file an earlier run of the
-    same command wrote) or is empty; anything else is refused, so user files are never lost.
-    On error the temporary folder is removed and ``path`` is left as it was.
-    """
+def check_output_folder(path: str | os.PathLike, *, marker: str) -> Path:
+    """``path`` as a Path if ``output_folder`` can write it: absent under a folder that exists
+    or can be made, empty, or an earlier output holding ``marker``; else InputError (field
+    --out). Commands call it before their long work, so a wrong --out fails at once."""
     path = Path(path)
     if path.exists():
         if not path.is_dir():
@@ -48,8 +44,31 @@ def output_folder(path: str | os.PathLike, *, marker: str) -> Iterator[Path]:
         if any(path.iterdir()) and not (path / marker).exists():
             raise InputError(f"folder exists and is not an fsswarp output (no {marker}); "
                              "choose another --out", field="--out", value=str(path))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
+    above = path.parent
+    while not above.exists() and above != above.parent:  # the nearest existing ancestor
+        above = above.parent
+    if not above.is_dir():
+        raise InputError(f"cannot be created: {above} is not a folder", field="--out", value=str(path))
+    if not os.access(above, os.W_OK | os.X_OK):
+        raise InputError(f"cannot be created: {above} is not writable", field="--out", value=str(path))
+    return path
+
+
+@contextlib.contextmanager
+def output_folder(path: str | os.PathLike, *, marker: str) -> Iterator[Path]:
+    """Yield a temporary folder that becomes ``path`` when the block ends without error.
+
+    An existing ``path`` is replaced only if it holds ``marker`` (a file an earlier run of the
+    same command wrote) or is empty; anything else is refused, so user files are never lost
+    (:func:`check_output_folder`). On error the temporary folder is removed and ``path`` is
+    left as it was.
+    """
+    path = check_output_folder(path, marker=marker)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
+    except OSError as err:
+        raise InputError(f"cannot be created: {err.strerror}", field="--out", value=str(path)) from None
     try:
         yield tmp
         if path.exists():

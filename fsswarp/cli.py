@@ -17,6 +17,11 @@ import click
 
 from .errors import InputError
 
+#: The file that marks each command's output folder: ``fsswarp.atomic.output_folder`` replaces
+#: an existing --out only if it holds this file (or is empty).
+MARKERS = {"bench": "bench.json", "render": "render.json", "carve": "carve.json", "demo": "demo.json",
+           "reconstruct": "result.json", "enhance": "enhance.json"}
+
 
 @dataclass
 class State:
@@ -86,11 +91,12 @@ def bench(state: State, out: Path, quick: bool, families: str, budget: float, re
     import time
 
     from . import bench as suite
-    from .atomic import output_folder
+    from .atomic import check_output_folder, output_folder
     from .backends import describe_backends, get_backend
 
     chosen = [f.strip() for f in families.split(",") if f.strip()]
     suite.check_options(chosen, budget)
+    check_output_folder(out, marker=MARKERS["bench"])
     if state.backend != "auto" or state.device is not None:
         backends = [state.get_backend()]
     else:
@@ -106,7 +112,7 @@ def bench(state: State, out: Path, quick: bool, families: str, budget: float, re
     run = suite.run_suite(backends, chosen, quick=quick, budget=budget, repeat=repeat, peers=not no_peers,
                           command=command, progress=state.echo)
     run["seconds"] = time.perf_counter() - start
-    with output_folder(out, marker="bench.json") as tmp:
+    with output_folder(out, marker=MARKERS["bench"]) as tmp:
         (tmp / "bench.json").write_text(json.dumps(run, indent=1))
         (tmp / "bench.md").write_text(f"# fsswarp bench\n\n{suite.machine_markdown(run)}\n{suite.markdown(run)}")
         plots = [suite.plot_family(run["records"], family, tmp / f"{family}.png") for family in chosen]
@@ -222,7 +228,7 @@ def render(state: State, model: Path, dataset_dir: Path, out: Path, depth, tilt,
 
     import tifffile
 
-    from .atomic import output_folder
+    from .atomic import check_output_folder, output_folder
     from .dataset import load_manifest
     from .figures import layers_figure
     from .render import LAYERS, RenderSettings
@@ -231,6 +237,7 @@ def render(state: State, model: Path, dataset_dir: Path, out: Path, depth, tilt,
 
     manifest = load_manifest(dataset_dir)
     mesh = load_mesh_file(model)
+    check_output_folder(out, marker=MARKERS["render"])
     depth = manifest.surface.depth if depth is None else depth
     tilt = manifest.surface.tilt if tilt is None else math.radians(tilt)
     settings = RenderSettings(samples=tuple(samples))
@@ -238,7 +245,7 @@ def render(state: State, model: Path, dataset_dir: Path, out: Path, depth, tilt,
     names = list(view_names) + new_names if (view_names or new_names) else None
     backend = state.get_backend()
     views = run(mesh, manifest.sonar, rig, depth, tilt, views=names, settings=settings, backend=backend)
-    with output_folder(out, marker="render.json") as tmp:
+    with output_folder(out, marker=MARKERS["render"]) as tmp:
         for name, stack in views.items():
             for layer, image in zip(LAYERS, stack):
                 tifffile.imwrite(tmp / f"{name}_{layer}.tiff", image, compression="zlib")
@@ -336,7 +343,7 @@ def carve(state: State, dataset_dir: Path, out: Path, depth, tilt, resolution: i
 
     import numpy as np
 
-    from .atomic import output_folder
+    from .atomic import check_output_folder, output_folder
     from .carve import CarveSettings
     from .carve import carve as run
     from .dataset import load_dataset
@@ -346,6 +353,7 @@ def carve(state: State, dataset_dir: Path, out: Path, depth, tilt, resolution: i
     start = time.perf_counter()
     dataset = load_dataset(dataset_dir)
     loaded = time.perf_counter() - start
+    check_output_folder(out, marker=MARKERS["carve"])
     given = depth is not None or tilt is not None
     tilt = None if tilt is None else math.radians(tilt)
     backend = state.get_backend()
@@ -384,7 +392,7 @@ def carve(state: State, dataset_dir: Path, out: Path, depth, tilt, resolution: i
                  "watertight": bool(mesh.is_watertight)},
         "backend": result.backend, "device": result.device, "timings_s": timings, "metrics": metrics,
     }
-    with output_folder(out, marker="carve.json") as tmp:
+    with output_folder(out, marker=MARKERS["carve"]) as tmp:
         mesh.export(tmp / "carved.ply")
         carve_figure(mesh, tmp / "carve.png", truth=truth,
                      title=f"{dataset_dir.name}: carved (D = {result.depth:.3f} m, tilt = "
@@ -413,10 +421,12 @@ def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, pat
     """Reconstruct the object and estimate the sonar's depth and tilt from the dataset DIR
     (carve, then alternate pose and shape steps): OUT/model.ply, OUT/carved.ply,
     OUT/result.json and OUT/figures/."""
+    from .atomic import check_output_folder
     from .dataset import load_dataset
     from .reconstruct import ReconstructSettings
 
     dataset = load_dataset(dataset_dir)
+    check_output_folder(out, marker=MARKERS["reconstruct"])
     run_reconstruction(state, dataset, out,
                        ReconstructSettings(iterations=iterations, patience=patience, resolution=resolution),
                        depth0=depth, tilt0=None if tilt is None else math.radians(tilt))
@@ -443,7 +453,7 @@ def demo(state: State, scene_name: str, out: Path, seed: int, iterations: int) -
 
     backend = state.get_backend()
     start = time.perf_counter()
-    with output_folder(out, marker="demo.json") as tmp:
+    with output_folder(out, marker=MARKERS["demo"]) as tmp:
         state.echo(f"simulating {scene_name} ({backend.name} on {backend.device})")
         dataset = run_simulation(scene_name, tmp / "dataset", seed=seed, backend=backend)
         simulation_figure(dataset, tmp / "dataset" / "figures" / "layers.png")
@@ -474,7 +484,7 @@ def run_reconstruction(state: State, dataset, out: Path, settings, *, depth0: fl
     truth = dataset.manifest.truth
     truth_path = dataset.truth_model_path
     truth_mesh = load_mesh_file(truth_path) if truth_path is not None and truth_path.is_file() else None
-    with output_folder(out, marker="result.json") as tmp:
+    with output_folder(out, marker=MARKERS["reconstruct"]) as tmp:
         result.model.export(tmp / "model.ply")
         result.carved.export(tmp / "carved.ply")
         history_figure(result.history, tmp / "figures" / "history.png",
@@ -521,10 +531,12 @@ def enhance(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt
     OUT/enhance.png, and the figures of the paper's Figures 10-14, OUT/views_optimized.png and
     OUT/views_heldout.png (data | ghost-free | [initial synthetic |] synthetic of MODEL). Views
     that MODEL does not project into are skipped with a warning; none at all is an error."""
+    from .atomic import check_output_folder
     from .dataset import load_dataset
 
     dataset = load_dataset(dataset_dir)
     mesh = load_mesh_file(model)
+    check_output_folder(out, marker=MARKERS["enhance"])
     initial = None
     if initial_model is not None:
         try:
@@ -602,7 +614,7 @@ def run_enhancement(state: State, dataset, mesh, model_name: str, depth: float, 
               "figures": figures,
               "scores": scores, "backend": backend.name, "device": backend.device,
               "seconds": time.perf_counter() - start}
-    with output_folder(out, marker="enhance.json") as tmp:
+    with output_folder(out, marker=MARKERS["enhance"]) as tmp:
         for name, result in results.items():
             tifffile.imwrite(tmp / f"{name}_enhanced.tiff", result.enhanced, compression="zlib")
             tifffile.imwrite(tmp / f"{name}_ghost.tiff", result.ghost, compression="zlib")

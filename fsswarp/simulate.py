@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from .dataset import Dataset, Manifest, Truth, load_dataset, load_scene, save_dataset
+from .atomic import check_output_folder
+from .dataset import MANIFEST_NAME, Dataset, Manifest, Truth, load_dataset, load_scene, save_dataset
 from .errors import InputError, check_integer
 from .render import LAYERS, RenderSettings, add_noise, render
 from .rig import world_to_reference
@@ -33,6 +34,7 @@ def simulate(scene: str | Path | Manifest, out: str | Path, *, seed: int = 0,
     into the folder ``out``: noisy images, the noise-free layers and the truth model (in the
     reference frame of the true depth and tilt). Returns the saved Dataset."""
     check_integer("--seed", seed, 0)
+    check_output_folder(out, marker=MANIFEST_NAME)  # before the rendering
     manifest, base = (scene, None) if isinstance(scene, Manifest) else resolve_scene(scene)
     if manifest.target is None or manifest.truth is None:
         raise InputError("a scene needs [target] and [truth]", field="scene", value=str(scene))

@@ -599,6 +599,20 @@ def test_save_refuses_an_unrelated_folder(tmp_path):
     assert (folder / "notes.txt").read_text() == "keep me"
 
 
+def test_output_folder_under_a_file_is_an_input_error(tmp_path):
+    from fsswarp.atomic import check_output_folder, output_folder
+
+    (tmp_path / "file").write_text("a file")
+    for path in (tmp_path / "file" / "out", tmp_path / "file" / "deeper" / "out"):
+        with pytest.raises(InputError, match="cannot be created: .*file is not a folder"):
+            check_output_folder(path, marker="x.json")
+        with pytest.raises(InputError, match="cannot be created"):
+            with output_folder(path, marker="x.json"):
+                raise AssertionError("the block must not run")
+    assert check_output_folder(tmp_path / "new" / "deeper", marker="x.json") == tmp_path / "new" / "deeper"
+    assert sorted(os.listdir(tmp_path)) == ["file"]
+
+
 def test_save_replaces_an_earlier_dataset(tmp_path):
     manifest = make_manifest()
     folder = save_dataset(Dataset(manifest, make_images(manifest, seed=1)), tmp_path / "ds")

@@ -337,6 +337,26 @@ def test_bad_input_exits_2_and_writes_nothing(coral_one, tmp_path, args, field):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("command", [["reconstruct", "DATA"], ["carve", "DATA"],
+                                     ["enhance", "DATA", "--model", "TRUTH"], ["render", "TRUTH", "--dataset", "DATA"],
+                                     ["simulate", "coral-one"]])
+@pytest.mark.parametrize("where, message", [("mine", "not an fsswarp output"), ("file/out", "file is not a folder")])
+def test_a_wrong_out_fails_before_the_work(coral_one, tmp_path, command, where, message):
+    """--out in a folder of the user's, or under a file, is refused before anything runs
+    (nothing printed), and the user's files stay."""
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("keep me")
+    (tmp_path / "file").write_text("a file")
+    named = {"DATA": str(coral_one.root), "TRUTH": str(coral_one.truth_model_path)}
+    done = run_cli(*[named.get(a, a) for a in command], "--out", str(tmp_path / where))
+    assert done.returncode == 2, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "--out" in lines[0] and message in lines[0], lines
+    assert done.stdout == ""
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file", "mine"]
+    assert [p.name for p in (tmp_path / "mine").iterdir()] == ["notes.txt"]
+
+
 def test_demo_simulates_and_reconstructs(tmp_path):
     out = tmp_path / "demo"
     done = run_cli("demo", "coral-one", "--out", str(out), "--iterations", "0")
