@@ -13,10 +13,14 @@ from .errors import InputError
 
 
 def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
-    """Write ``data`` to ``path`` atomically (a reader sees the old file or the new one)."""
+    """Write ``data`` to ``path`` atomically (a reader sees the old file or the new one).
+    InputError (naming ``path``) where its folder cannot be made or written."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as err:
+        raise InputError(f"cannot be written: {_blocked(path) or err.strerror}", file=path) from None
     try:
         with os.fdopen(fd, "wb") as handle:
             handle.write(data)
@@ -44,14 +48,23 @@ def check_output_folder(path: str | os.PathLike, *, marker: str) -> Path:
         if any(path.iterdir()) and not (path / marker).exists():
             raise InputError(f"folder exists and is not an fsswarp output (no {marker}); "
                              "choose another --out", field="--out", value=str(path))
+    blocked = _blocked(path)
+    if blocked:
+        raise InputError(f"cannot be created: {blocked}", field="--out", value=str(path))
+    return path
+
+
+def _blocked(path: Path) -> str | None:
+    """Why ``path`` cannot be created, judged by its nearest existing ancestor (not a folder,
+    or not writable), or None."""
     above = path.parent
-    while not above.exists() and above != above.parent:  # the nearest existing ancestor
+    while not above.exists() and above != above.parent:
         above = above.parent
     if not above.is_dir():
-        raise InputError(f"cannot be created: {above} is not a folder", field="--out", value=str(path))
+        return f"{above} is not a folder"
     if not os.access(above, os.W_OK | os.X_OK):
-        raise InputError(f"cannot be created: {above} is not writable", field="--out", value=str(path))
-    return path
+        return f"{above} is not writable"
+    return None
 
 
 @contextlib.contextmanager

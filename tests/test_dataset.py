@@ -600,7 +600,7 @@ def test_save_refuses_an_unrelated_folder(tmp_path):
 
 
 def test_output_folder_under_a_file_is_an_input_error(tmp_path):
-    from fsswarp.atomic import check_output_folder, output_folder
+    from fsswarp.atomic import check_output_folder, output_folder, write_text
 
     (tmp_path / "file").write_text("a file")
     for path in (tmp_path / "file" / "out", tmp_path / "file" / "deeper" / "out"):
@@ -610,6 +610,8 @@ def test_output_folder_under_a_file_is_an_input_error(tmp_path):
             with output_folder(path, marker="x.json"):
                 raise AssertionError("the block must not run")
     assert check_output_folder(tmp_path / "new" / "deeper", marker="x.json") == tmp_path / "new" / "deeper"
+    with pytest.raises(InputError, match=r"x\.toml: cannot be written: .*file is not a folder"):
+        write_text(tmp_path / "file" / "x.toml", "a = 1\n")
     assert sorted(os.listdir(tmp_path)) == ["file"]
 
 
