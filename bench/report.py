@@ -111,6 +111,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"report: error: no recorded run {'at ' + ', '.join(missing) if missing else 'in bench/records'}",
               file=sys.stderr)
         return 2
+    for path in records:
+        try:
+            run = json.loads(path.read_text(encoding="utf-8"))
+            why = None if isinstance(run, dict) and "records" in run else "it has no 'records'"
+        except (UnicodeDecodeError, json.JSONDecodeError) as err:
+            why = f"{type(err).__name__}: {err}"
+        if why:
+            print(f"report: error: {path}: not the bench.json of an fsswarp bench run ({why})", file=sys.stderr)
+            return 2
     from fsswarp.atomic import write_text
 
     tables, studies = ([], []) if args.records else (sorted((HERE / "records" / kind).glob("*.json"))

@@ -198,6 +198,10 @@ def test_report_regenerates_results_from_records(cli_run, tmp_path):
     assert "## tiny-cpu" in text and "Furthest from their limits" in text and text.rstrip().endswith("kept by hand")
     assert "](figures/tiny-cpu-raycast.png)" in text and (tmp_path / "figures" / "tiny-cpu-carving.png").is_file()
     assert report.main([str(tmp_path / "missing.json"), "--out", str(tmp_path / "R2.md")]) == 2
+    for name, text in (("garbage.json", "not json"), ("other.json", '{"runs": []}')):
+        (tmp_path / name).write_text(text)
+        assert report.main([str(tmp_path / name), "--out", str(tmp_path / "R3.md")]) == 2
+        assert not (tmp_path / "R3.md").exists()
     # figures in a folder beside, not below, the report's: links climb out of its folder
     elsewhere = tmp_path / "elsewhere" / "RESULTS.md"
     assert report.main([str(records / "tiny-cpu.json"), "--out", str(elsewhere), "--figures",
