@@ -131,7 +131,9 @@ def check(state: State, path: Path) -> None:
     if path.is_dir():
         dataset = load_dataset(path)
         manifest = dataset.manifest
-        kind = f"dataset, {len(dataset.images)} images"
+        truth = dataset.truth_mesh()
+        kind = f"dataset, {len(dataset.images)} images" + (f", truth model of {len(truth.faces)} triangles"
+                                                            if truth is not None else "")
     elif path.is_file():
         manifest = load_scene(path)
         kind = "scene"
@@ -264,18 +266,10 @@ def render(state: State, model: Path, dataset_dir: Path, out: Path, depth, tilt,
 
 
 def load_mesh_file(path: Path):
-    """A triangle mesh from a file, or InputError naming it."""
-    import trimesh
+    """The mesh of the MODEL argument (``fsswarp.dataset.read_mesh``)."""
+    from .dataset import read_mesh
 
-    if not path.is_file():
-        raise InputError("no such mesh file", field="MODEL", value=str(path))
-    try:
-        mesh = trimesh.load_mesh(path, process=True)
-    except Exception as err:  # trimesh raises many kinds for unreadable files
-        raise InputError(f"cannot read mesh ({' '.join(str(err).split())})", field="MODEL", value=str(path)) from None
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise InputError("holds no triangles", field="MODEL", value=str(path))
-    return mesh
+    return read_mesh(path, field="MODEL")
 
 
 @app.command("import-aris")
@@ -354,6 +348,7 @@ def carve(state: State, dataset_dir: Path, out: Path, depth, tilt, resolution: i
     dataset = load_dataset(dataset_dir)
     loaded = time.perf_counter() - start
     check_output_folder(out, marker=MARKERS["carve"])
+    truth = dataset.truth_mesh()  # before the work: a bad truth model fails at once
     given = depth is not None or tilt is not None
     tilt = None if tilt is None else math.radians(tilt)
     backend = state.get_backend()
@@ -367,18 +362,14 @@ def carve(state: State, dataset_dir: Path, out: Path, depth, tilt, resolution: i
                f"{voxels.voxel_size * 1e3:.3g} mm kept; mesh {len(mesh.faces)} triangles, "
                f"{mesh.volume * 1e6:.4g} cm3")
     timings = {"load_s": loaded, **result.timings}
-    truth_path = dataset.truth_model_path
     metrics = None
-    if truth_path is not None and truth_path.is_file():
+    if truth is not None:
         begin = time.perf_counter()
-        truth = load_mesh_file(truth_path)
         metrics = compare(mesh, truth)
         timings["metrics_s"] = time.perf_counter() - begin
         state.echo(f"  vs truth: E_V {metrics['E_V']:.3f}, true volume kept {metrics['truth_volume_kept']:.3f}, "
                    f"Chamfer {metrics['chamfer_m'] * 1e3:.2f} mm, F-score {metrics['fscore']:.3f} "
                    f"(tau {metrics['tau_m'] * 1e3:.2f} mm)")
-    else:
-        truth = None
     record = {
         "dataset": str(dataset_dir), "depth_m": result.depth, "tilt_deg": math.degrees(result.tilt),
         "depth_tilt_source": "given" if given else "measured", "views": list(result.views),
@@ -482,8 +473,7 @@ def run_reconstruction(state: State, dataset, out: Path, settings, *, depth0: fl
     result = run(dataset, depth0=depth0, tilt0=tilt0, settings=settings, backend=backend,
                  progress=lambda line: state.echo("  " + line))
     truth = dataset.manifest.truth
-    truth_path = dataset.truth_model_path
-    truth_mesh = load_mesh_file(truth_path) if truth_path is not None and truth_path.is_file() else None
+    truth_mesh = dataset.truth_mesh()
     with output_folder(out, marker=MARKERS["reconstruct"]) as tmp:
         result.model.export(tmp / "model.ply")
         result.carved.export(tmp / "carved.ply")

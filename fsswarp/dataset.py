@@ -207,6 +207,14 @@ class Dataset:
             return None
         return self.root / truth.model
 
+    def truth_mesh(self):
+        """The truth mesh (trimesh.Trimesh, reference frame; a new one per call), or None
+        without one; InputError naming dataset.toml's ``truth.model`` when it is unreadable."""
+        path = self.truth_model_path
+        if path is None:
+            return None
+        return read_mesh(path, file=self.root / MANIFEST_NAME, field="truth.model")
+
     def truth_layer(self, view: str, component: str) -> np.ndarray:
         """The noise-free ``component`` layer (object, ghost, mirror, mirror2) of ``view``:
         ``root/truth/<view>_<component>.tiff``, validated; InputError if absent."""
@@ -237,6 +245,24 @@ def parse_manifest(table: dict, *, file) -> Manifest:
     views = _parse_views(top, file)
     rig = _parse_rig(top.table("rig", required=False), views, file)
     return Manifest(sonar=sonar, surface=surface, rig=rig, truth=truth, target=target)
+
+
+def read_mesh(path: Path, *, field: str, file: Path | None = None):
+    """A triangle mesh (trimesh.Trimesh, processed) from the file ``path``, or InputError
+    naming ``field`` (and ``file``, where the path was given) and the path."""
+    import trimesh
+
+    value = str(path)
+    if not path.is_file():
+        raise InputError("no such mesh file", file=file, field=field, value=value)
+    try:
+        mesh = trimesh.load_mesh(path, process=True)
+    except Exception as err:  # trimesh raises many kinds for unreadable files
+        raise InputError(f"cannot read mesh ({' '.join(str(err).split())})", file=file, field=field,
+                         value=value) from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise InputError("holds no triangles", file=file, field=field, value=value)
+    return mesh
 
 
 def load_manifest(path) -> Manifest:

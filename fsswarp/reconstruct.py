@@ -163,7 +163,7 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
     backend = backend or get_backend()
     say = progress or (lambda line: None)
     start = time.perf_counter()
-    with _TruthMetrics(_truth_model(dataset), say) as truth:
+    with _TruthMetrics(dataset.truth_mesh(), say) as truth:
         given = "given" if depth0 is not None or tilt0 is not None else "measured"
         say(f"iteration 0: carving at the {given} D0 = {depth:.4f} m, tilt0 = {math.degrees(tilt):.3f} deg")
         carved = carve(dataset, depth, tilt, resolution=settings.resolution, settings=settings.carve,
@@ -415,13 +415,3 @@ def _line(entry: dict) -> str:
     return (f"iteration {entry['iteration']}: D {entry['depth_m']:.4f} m, tilt {entry['tilt_deg']:.3f} deg, "
             f"E_mu {entry['E_mu'] * 1e3:.2f} mm, AIE {entry['AIE']:.3f}, ACE {entry['ACE'] * 1e3:.2f} mm, "
             f"E_I {entry['E_I']:.3f}")
-
-
-def _truth_model(dataset):
-    """The dataset's truth mesh, or None."""
-    import trimesh
-
-    path = dataset.truth_model_path
-    if path is None or not path.is_file():
-        return None
-    return trimesh.load_mesh(path, process=True)

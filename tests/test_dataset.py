@@ -120,6 +120,7 @@ def test_dataset_round_trip(tmp_path):
             assert loaded.truth_layer(name, component).tobytes() == layer.tobytes()
     model = trimesh.load_mesh(loaded.truth_model_path)
     np.testing.assert_allclose(np.sort(model.vertices, axis=0), np.sort(mesh.vertices, axis=0))
+    assert loaded.truth_mesh().volume == pytest.approx(mesh.volume, rel=1e-6)
     assert sorted(p for p, _, _ in listing(folder) if (folder / p).is_file()) == sorted(
         ["dataset.toml", "images/a.tiff", "frames/b-view.tif", "images/c.tiff", "truth/model.ply"]
         + [f"truth/{v}_{c}.tiff" for v in ("a", "c") for c in COMPONENTS])
@@ -613,6 +614,21 @@ def test_output_folder_under_a_file_is_an_input_error(tmp_path):
     with pytest.raises(InputError, match=r"x\.toml: cannot be written: .*file is not a folder"):
         write_text(tmp_path / "file" / "x.toml", "a = 1\n")
     assert sorted(os.listdir(tmp_path)) == ["file"]
+
+
+@pytest.mark.parametrize("content, message", [(b"not a mesh", "cannot read mesh"),
+                                              (b"ply\nformat ascii 1.0\nend_header\n", "")])
+def test_truth_mesh_names_an_unreadable_truth_model(tmp_path, content, message):
+    import trimesh
+
+    manifest = make_manifest()
+    folder = save_dataset(Dataset(manifest, make_images(manifest)), tmp_path / "ds",
+                          truth_mesh=trimesh.creation.box())
+    (folder / "truth" / "model.ply").write_bytes(content)
+    with pytest.raises(InputError, match=f"dataset.toml: truth.model = .*model.ply.*: {message}") as caught:
+        load_dataset(folder).truth_mesh()
+    assert "\n" not in str(caught.value)
+    assert load_dataset(tmp_path / "ds").manifest == load_dataset(folder).manifest  # loading alone still works
 
 
 def test_save_replaces_an_earlier_dataset(tmp_path):

@@ -357,6 +357,20 @@ def test_a_wrong_out_fails_before_the_work(coral_one, tmp_path, command, where, 
     assert [p.name for p in (tmp_path / "mine").iterdir()] == ["notes.txt"]
 
 
+@pytest.mark.parametrize("command", ["check", "reconstruct", "carve"])
+def test_an_unreadable_truth_model_is_named_before_the_work(coral_one, tmp_path, command):
+    import shutil
+
+    data = tmp_path / "data"
+    shutil.copytree(coral_one.root, data)
+    (data / "truth" / "model.ply").write_text("not a mesh")
+    done = run_cli(command, str(data), *(["--out", str(tmp_path / "out")] if command != "check" else []))
+    assert done.returncode == 2, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "dataset.toml: truth.model" in lines[0] and "cannot read mesh" in lines[0]
+    assert not (tmp_path / "out").exists() and "iteration" not in done.stdout and "carving" not in done.stdout
+
+
 def test_demo_simulates_and_reconstructs(tmp_path):
     out = tmp_path / "demo"
     done = run_cli("demo", "coral-one", "--out", str(out), "--iterations", "0")
