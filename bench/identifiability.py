@@ -37,11 +37,24 @@ import warnings
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+
+
+def _load_module(name: str, path: Path):
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+#: bench/paper_table.py (bench/ is not a package): its run options, record header and saving.
+paper_table = _load_module("bench_paper_table", HERE / "paper_table.py")
 SCENES = ("coral-one", "coral-two", "table")
 #: The starting shapes (module docstring): name -> (starts from the truth, RefineSettings overrides).
 STARTS = {"carved": (False, {}), "true shape": (True, {}),
           "true shape, contours only": (True, {"shrink": 0.0, "mirror": False})}
-METRICS = ("AIE", "ACE", "E_mu", "E_V")
+#: The recorded values: name -> (factor to the printed unit, label with the unit, table format).
+METRICS = {"AIE": (1.0, "AIE", "{:.3f}"), "ACE": (1e3, "ACE (mm)", "{:.2f}"), "E_mu": (1e3, "E_mu (mm)", "{:.2f}"),
+           "E_V": (1.0, "E_V", "{:.3f}")}
 
 
 def valley_depth(rig, centroid, depth_true: float, tilt_true: float, tilt: float) -> float:
@@ -75,14 +88,12 @@ def run_scene(dataset, backend, *, tilts_deg, rounds: int, progress=print) -> di
     simulated dataset (module docstring)."""
     import dataclasses
 
-    import trimesh
-
     from fsswarp.carve import carve
     from fsswarp.reconstruct import ReconstructSettings
     from fsswarp.refine import refine_shape
 
     truth_info = dataset.manifest.truth
-    truth = trimesh.load_mesh(dataset.truth_model_path, process=True)
+    truth = dataset.truth_mesh()
     base = ReconstructSettings()
     valley = [(delta, valley_depth(dataset.rig, truth.center_mass, truth_info.depth, truth_info.tilt,
                                    truth_info.tilt + math.radians(delta))) for delta in tilts_deg]
@@ -122,28 +133,21 @@ def lowest_at(values, tilts_deg) -> str:
 def table_markdown(record: dict, name: str) -> str:
     """The Markdown of one record: the machine line and, per scene, one table with a row per
     (start, metric) at the start (round 0) and after the last round."""
-    m = record["machine"]
     tilts, rounds = record["tilts_deg"], record["rounds"]
-    lines = [f"### {name}", "",
-             f"- machine: {m['host']} ({m['system']}), CPU {m['cpu']}, {m['logical_cpus']} logical CPUs; "
-             f"backend {m['backend']} on {m['device']}; Python {m['python']}",
-             f"- command: `{record['command']}`", f"- date: {record['date']}",
-             f"- noisy images, seed {record['seed']}; {rounds} rounds of the loop's shape step (3 updates each) "
-             f"at every point; whole command {record['seconds']:.0f} s", ""]
+    lines = paper_table.record_header(record, name) + [
+        f"- noisy images, seed {record['seed']}; {rounds} rounds of the loop's shape step (3 updates each) "
+        f"at every point; whole command {record['seconds']:.0f} s", ""]
     header = "| start | value | round | " + " | ".join(f"{t:+g}°" for t in tilts) + " | lowest at |"
     rule = "|---|---|---|" + "---|" * len(tilts) + "---|"
-    scale = {"AIE": (1.0, "{:.3f}"), "ACE": (1e3, "{:.2f}"), "E_mu": (1e3, "{:.2f}"), "E_V": (1.0, "{:.3f}")}
-    unit = {"AIE": "AIE", "ACE": "ACE (mm)", "E_mu": "E_mu (mm)", "E_V": "E_V"}
     for scene, result in record["scenes"].items():
         depths = ", ".join(f"{d:.4f}" for _, d in result["valley"])
         lines += [f"#### {scene}", "", f"Depths along the valley (m): {depths}.", "", header, rule]
         for start, series in result["starts"].items():
-            for metric in METRICS:
+            for metric, (factor, label, form) in METRICS.items():
                 for k in sorted({0, rounds}):
-                    factor, form = scale[metric]
                     values = [states[k][metric] * factor for states in series]
                     cells = " | ".join(form.format(v) if math.isfinite(v) else "—" for v in values)
-                    lines.append(f"| {start} | {unit[metric]} | {k} | {cells} | {lowest_at(values, tilts)} |")
+                    lines.append(f"| {start} | {label} | {k} | {cells} | {lowest_at(values, tilts)} |")
         lines.append("")
     return "\n".join(lines)
 
@@ -160,14 +164,12 @@ def plot_record(record: dict, path: Path, *, title: str = "") -> Path:
     from fsswarp.figures import _save
 
     tilts, rounds, scenes = record["tilts_deg"], record["rounds"], record["scenes"]
-    scale = {"AIE": (1.0, "AIE"), "ACE": (1e3, "ACE (mm)"), "E_mu": (1e3, "E_mu (mm)"), "E_V": (1.0, "E_V")}
     fig, axes = plt.subplots(len(scenes), len(METRICS), figsize=(3.2 * len(METRICS), 2.6 * len(scenes)),
                              squeeze=False)
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for row, (scene, result) in enumerate(scenes.items()):
-        for col, metric in enumerate(METRICS):
+        for col, (metric, (factor, label, _)) in enumerate(METRICS.items()):
             ax = axes[row][col]
-            factor, label = scale[metric]
             for k, (start, series) in enumerate(result["starts"].items()):
                 for when, style in ((0, ":"), (rounds, "-")):
                     ax.plot(tilts, [states[when][metric] * factor for states in series], style, marker="o",
@@ -183,7 +185,6 @@ def plot_record(record: dict, path: Path, *, title: str = "") -> Path:
 
 
 def main(argv: list[str] | None = None) -> int:
-    paper_table = _load_module("bench_paper_table", HERE / "paper_table.py")
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     paper_table.add_run_options(parser, HERE / "records" / "identifiability")
     parser.add_argument("--tilts", nargs="+", type=float, default=[-1.0, -0.5, 0.0, 0.5, 1.0],
@@ -219,13 +220,6 @@ def main(argv: list[str] | None = None) -> int:
               "machine": paper_table.machine(backend), "seconds": time.perf_counter() - begin, "scenes": scenes}
     return paper_table.save_record(record, name, args.records, HERE / "records" / "identifiability",
                                    table_markdown)
-
-
-def _load_module(name: str, path: Path):
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 if __name__ == "__main__":

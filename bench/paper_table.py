@@ -77,21 +77,27 @@ def summary(run: dict) -> dict:
     return out
 
 
+def record_header(record: dict, name: str) -> list[str]:
+    """The Markdown lines that open a record of this script or of bench/identifiability.py:
+    its name, machine, command and date."""
+    m = record["machine"]
+    return [f"### {name}", "",
+            f"- machine: {m['host']} ({m['system']}), CPU {m['cpu']}, {m['logical_cpus']} logical CPUs; "
+            f"backend {m['backend']} on {m['device']}"
+            + ("" if m["device_name"] in m["device"] else f" ({m['device_name']})") + f"; Python {m['python']}",
+            f"- command: `{record['command']}`", f"- date: {record['date']}"]
+
+
 def table_markdown(record: dict, name: str) -> str:
     """The Markdown of one record: the machine line and one table row per run."""
-    m = record["machine"]
     mark = {True: "yes", False: "no"}
-    lines = [f"### {name}", "",
-             f"- machine: {m['host']} ({m['system']}), CPU {m['cpu']}, {m['logical_cpus']} logical CPUs; "
-             f"backend {m['backend']} on {m['device']}"
-             + ("" if m["device_name"] in m["device"] else f" ({m['device_name']})") + f"; Python {m['python']}",
-             f"- command: `{record['command']}`", f"- date: {record['date']}",
-             f"- noisy images, seed {record['seed']}; at most {record['iterations']} iterations; aims: D within "
-             f"{AIM_DEPTH_M * 1e3:g} mm and β within {AIM_TILT_DEG:g}°, E_V down ≥ {AIM_EV_DROP:.0%}, "
-             f"E_I down ≥ {AIM_EI_DROP:.0%} (relative to the carved model)", "",
-             "| scene | start D0 (m), β0 (°) | final D (m), β (°) | D error (mm) | β error (°) | pose aim | "
-             "iterations: kept of run | E_V carved → final | E_I final | Chamfer (mm) | F | reconstruction (s) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = record_header(record, name) + [
+        f"- noisy images, seed {record['seed']}; at most {record['iterations']} iterations; aims: D within "
+        f"{AIM_DEPTH_M * 1e3:g} mm and β within {AIM_TILT_DEG:g}°, E_V down ≥ {AIM_EV_DROP:.0%}, "
+        f"E_I down ≥ {AIM_EI_DROP:.0%} (relative to the carved model)", "",
+        "| scene | start D0 (m), β0 (°) | final D (m), β (°) | D error (mm) | β error (°) | pose aim | "
+        "iterations: kept of run | E_V carved → final | E_I final | Chamfer (mm) | F | reconstruction (s) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for run in record["runs"]:
         s = summary(run)
         first, last = run["history"][0], run["history"][run["best_iteration"]]
