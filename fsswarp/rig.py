@@ -9,6 +9,7 @@ frame: ``P_ref = R_m @ P_view + t_m``; they change with β.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -118,8 +119,11 @@ class Rig:
     def reference_pose(self, depth, tilt):
         """World pose of the reference frame: the reference view with zero roll.
 
-        Returns ``(R, s)`` of shapes (*G, 3, 3) and (*G, 3)."""
-        depth, tilt = np.broadcast_arrays(np.asarray(depth, np.float64), np.asarray(tilt, np.float64))
+        Returns ``(R, s)`` of shapes (*G, 3, 3) and (*G, 3); read-only for one candidate
+        (``_one``)."""
+        return self._one("reference", depth, tilt)
+
+    def _reference_pose(self, depth, tilt):
         ref = self.views[self.reference]
         rot = rotation_z(np.full(tilt.shape, ref.heading)) @ rotation_x(tilt + ref.tilt_offset)
         s = np.stack([np.full(depth.shape, ref.position[0]), np.full(depth.shape, ref.position[1]),
@@ -130,7 +134,28 @@ class Rig:
         """Every view's pose in the reference frame: ``P_ref = R @ P_view + t``.
 
         ``R_m = (R_ref^W)ᵀ R_m^W`` and ``t_m = (R_ref^W)ᵀ (s_m - s_ref)``; both depend on β.
-        Returns ``(R, t)``: (*G, V, 3, 3) and (*G, V, 3)."""
+        Returns ``(R, t)``: (*G, V, 3, 3) and (*G, V, 3); read-only for one candidate (``_one``)."""
+        return self._one("relative", depth, tilt)
+
+    def _one(self, which: str, depth, tilt):
+        """``reference_pose`` or ``relative_poses`` (``which``) of broadcast (*G,) depths and
+        tilts; one candidate (G of size 1, a pose step asks for each several times) is
+        remembered (``_remembered``)."""
+        depth, tilt = np.broadcast_arrays(np.asarray(depth, np.float64), np.asarray(tilt, np.float64))
+        if depth.size == 1:
+            return self._remembered(which, depth.shape, float(depth.flat[0]), float(tilt.flat[0]))
+        return self._reference_pose(depth, tilt) if which == "reference" else self._relative_poses(depth, tilt)
+
+    @functools.lru_cache(maxsize=256)
+    def _remembered(self, which: str, shape: tuple, depth: float, tilt: float):
+        """The read-only result of ``_one`` for one candidate of ``shape``."""
+        depth, tilt = np.full(shape, depth), np.full(shape, tilt)
+        result = self._reference_pose(depth, tilt) if which == "reference" else self._relative_poses(depth, tilt)
+        for array in result:
+            array.setflags(write=False)
+        return result
+
+    def _relative_poses(self, depth, tilt):
         rot_w, s_w = self.world_poses(depth, tilt)
         rot_ref, s_ref = self.reference_pose(depth, tilt)
         rt = np.swapaxes(rot_ref, -1, -2)[..., None, :, :]

@@ -200,6 +200,30 @@ def test_grid_of_candidates_broadcasts():
     assert n.shape == (3, 4, 16, 3) and d.shape == (3, 4, 16)
 
 
+def test_one_candidate_is_remembered_read_only_and_equals_the_grid():
+    """A pose step asks for the poses of one (D, β) several times: the result for one
+    candidate (a scalar or a (1,) array) is remembered, read-only, and equals that cell of a
+    grid bit for bit; a new candidate gets its own."""
+    rig = paper_rig()
+    depths, tilts = np.array([0.41, 0.43, 0.47]), np.array([0.15, 0.18, 0.2])
+    grid_rot, grid_t = rig.relative_poses(depths, tilts)
+    grid_ref = rig.reference_pose(depths, tilts)
+    for i in range(3):
+        for d, t in ((depths[i], tilts[i]), (depths[i:i + 1], tilts[i:i + 1])):
+            rot, trans = rig.relative_poses(d, t)
+            assert rot.shape == grid_rot.shape[1:] if np.ndim(d) == 0 else rot.shape == (1, 16, 3, 3)
+            np.testing.assert_array_equal(rot.reshape(16, 3, 3), grid_rot[i])
+            np.testing.assert_array_equal(trans.reshape(16, 3), grid_t[i])
+            for mine, grid in zip(rig.reference_pose(d, t), grid_ref):
+                np.testing.assert_array_equal(mine.reshape(grid[i].shape), grid[i])
+            assert rig.relative_poses(d, t)[0] is rot  # remembered
+            with pytest.raises(ValueError, match="read-only"):
+                rot[..., 0, 0] = 2.0
+    assert rig.relative_poses(0.41, 0.15)[0] is not rig.relative_poses(0.41, 0.16)[0]
+    grid = rig.relative_poses(depths, tilts)[0]
+    assert grid.flags.writeable and grid is not grid_rot  # grids are computed each time
+
+
 def test_rig_errors():
     with pytest.raises(InputError, match="unique"):
         Rig((View("a"), View("a")))
