@@ -60,6 +60,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import InputError, check_integer, is_integer
+from .render import signed_volume
 from .rig import to_view
 from .segment import Segmentation, SegmentSettings, segment
 from .sonar import SonarSpec, from_polar, to_polar
@@ -428,7 +429,7 @@ def voxel_mesh(voxels: VoxelCarving, *, smooth: int = 10, faces: int = 20_000):
         vertices, triangles, _, _ = marching_cubes(padded, level=MC_LEVEL, spacing=(h, h, h), method="lewiner",
                                                    allow_degenerate=False)
     mesh = trimesh.Trimesh(vertices + (voxels.origin - h), triangles, process=True)
-    if mesh.volume < 0:
+    if signed_volume(mesh.triangles) < 0:
         mesh.invert()
     if not mesh.is_watertight:
         raise RuntimeError(f"marching cubes gave a mesh that is not watertight ({len(mesh.faces)} faces)")
@@ -466,7 +467,7 @@ def _decimate(mesh, faces: int, max_tolerance: float):
 
 def _accept(before, after, what: str):
     """``after`` if it is still a watertight, outward volume, else ``before`` with a warning."""
-    if after.is_watertight and after.is_winding_consistent and after.volume > 0:
+    if after.is_watertight and after.is_winding_consistent and signed_volume(after.triangles) > 0:
         return after
     warnings.warn(f"{what} broke the carved mesh's watertightness; kept the mesh without it",
                   CarveWarning, stacklevel=3)

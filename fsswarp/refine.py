@@ -71,7 +71,7 @@ import numpy as np
 from .errors import InputError, check_integer, is_integer
 from .motion import image_jacobian, truncated_lstsq
 from .pose import PoseProblem, PoseSettings, PoseWarning
-from .render import check_mesh, is_watertight
+from .render import check_mesh, is_watertight, signed_volume
 from .surface import surface_in_reference
 
 #: Share of the step that the first rings of neighbours of a held vertex take (module
@@ -419,7 +419,7 @@ def _apply(mesh, displacement: np.ndarray, settings: RefineSettings, edges: np.n
     for attempt in range(settings.holds + settings.halvings + 1):
         moved = trimesh.Trimesh(mesh.vertices + factor * displacement * weight[:, None], mesh.faces, process=False)
         bad = judged & (np.einsum("ij,ij->i", moved.face_normals, before) <= math.cos(settings.max_turn))
-        if not bad.any() and watertight and _signed_volume(moved.triangles) > 0:
+        if not bad.any() and watertight and signed_volume(moved.triangles) > 0:
             return moved, factor * float(weight.mean())
         if attempt < settings.holds:
             held[mesh.faces[bad].ravel()] = True
@@ -427,13 +427,6 @@ def _apply(mesh, displacement: np.ndarray, settings: RefineSettings, edges: np.n
         else:
             factor *= 0.5
     return mesh, 0.0
-
-
-def _signed_volume(triangles: np.ndarray) -> float:
-    """Signed volume (m³) enclosed by (F, 3, 3) triangles, positive for outward normals (the
-    divergence theorem; trimesh's ``volume`` integrates more than this sign test needs)."""
-    a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]
-    return float(np.einsum("ij,ij->", a, np.cross(b, c))) / 6.0
 
 
 def _hold_weights(held: np.ndarray, edges: np.ndarray) -> np.ndarray:

@@ -114,6 +114,14 @@ def is_watertight(mesh) -> bool:
     return _WATERTIGHT[key]
 
 
+def signed_volume(triangles: np.ndarray) -> float:
+    """Signed volume (m³) enclosed by (F, 3, 3) triangles, positive for outward normals (the
+    divergence theorem; trimesh's ``volume`` integrates its mass properties, several times
+    the work that this sign test needs)."""
+    a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]
+    return float(np.einsum("ij,ij->", a, np.cross(b, c))) / 6.0
+
+
 def render_views(mesh, sonar: SonarSpec, rotations, translations, plane_normals, plane_offsets, *,
                  settings: RenderSettings = RenderSettings(), backend=None) -> np.ndarray:
     """Noise-free layers of N views of ``mesh`` (reference frame), in one launch.

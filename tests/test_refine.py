@@ -194,15 +194,16 @@ def test_a_step_that_turns_the_mesh_inside_out_or_an_open_mesh_is_refused():
     that reverses the mesh; a mesh with a hole refuses every step."""
     import trimesh
 
-    from fsswarp.refine import _apply, _signed_volume
+    from fsswarp.refine import _apply
+    from fsswarp.render import signed_volume
 
     sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
     box = trimesh.creation.box(extents=(0.3, 0.2, 0.1))
     for mesh in (sphere, box):
-        assert _signed_volume(mesh.triangles) == pytest.approx(mesh.volume, rel=1e-12)
+        assert signed_volume(mesh.triangles) == pytest.approx(mesh.volume, rel=1e-12)
         inverted = mesh.copy()
         inverted.invert()
-        assert _signed_volume(inverted.triangles) == pytest.approx(-mesh.volume, rel=1e-12)
+        assert signed_volume(inverted.triangles) == pytest.approx(-mesh.volume, rel=1e-12)
     settings = RefineSettings(step=1.0, holds=0, halvings=1, max_turn=np.pi)  # judge the volume alone
     through = -2.0 * sphere.vertices  # every vertex to the far side of the centre: normals kept, volume reversed
     kept, factor = _apply(sphere, through, settings)
