@@ -295,7 +295,7 @@ class PoseProblem:
         layers of the data views (exact samples)."""
         check_pose(depth, tilt)
         self.data, self.predicted, layers, keep = self._data_contours(depth, tilt)
-        self._capped = {}
+        self._distances = self.backend.device_distances(self.data.distances)  # read at every cap
         self.anchors, self.shift = self._detection_shift(depth, tilt, layers, keep)
         self.estimate = (float(depth), float(tilt))
 
@@ -327,8 +327,9 @@ class PoseProblem:
         keep = np.flatnonzero(seen)
         beams = np.arange(sonar.beams)
         pad = int(math.ceil(st.window / sonar.range_step))
-        windows, masks, rows, distances = [], [], [], []
-        for k in keep:
+        windows, masks, rows = [], [], []
+        distances = np.empty((len(keep), 2, sonar.bins, sonar.beams), np.float32)
+        for i, k in enumerate(keep):
             first = contour[k][contour[k] >= 0]
             lo, hi = int(math.floor(first.min())) - pad, int(math.ceil(first.max())) + pad + 1
             windows.append((max(lo, 0), min(hi, sonar.bins)))
@@ -344,10 +345,11 @@ class PoseProblem:
             row = np.stack([np.where(obj, first_row, -1), np.where(mir, first_row, -1)])
             masks.append(np.stack([obj, mir]))
             rows.append(row)
-            distances.append(np.stack([self._distance(r) for r in row]))
+            for c, r in enumerate(row):
+                distances[i, c] = self._distance(r)
         data = DataContours(tuple(views[k] for k in keep), tuple(names[k] for k in keep), threshold[keep],
                             np.asarray(windows, np.int64), np.asarray(masks), np.asarray(rows),
-                            np.asarray(distances, np.float32))
+                            distances)
         return data, predicted[keep], layers, keep
 
     def warn_unseen(self, names, depth: float, tilt: float, *, stacklevel: int = 2) -> None:
@@ -374,23 +376,15 @@ class PoseProblem:
             return (), None
         index = np.zeros(layers.shape[0], np.int64)  # each pair's data view
         index[keep] = np.arange(len(keep))
-        _, sums, counts = self.backend.contour_cost(
-            layers, index, data.threshold, data.windows, data.masks,
-            self._capped_distances(self.settings.min_cap), self.shifts, self.smoothing)
+        _, sums, counts = self.backend.contour_cost(layers, index, data.threshold, data.windows, data.masks,
+                                                    self._distances, self.shifts, self.smoothing,
+                                                    self.settings.min_cap)
         sums, counts = sums[keep[fixed]], counts[keep[fixed]]
         sums[:, 1], counts[:, 1] = 0.0, 0
         counts_data = data.counts[fixed]
         counts_data[:, 1] = 0
         cost = _view_cost(sums[None], counts[None], counts_data, self.settings.min_cap)[0].mean(axis=0)
         return tuple(data.names[k] for k in fixed), _parabola_minimum(self.shifts, cost)
-
-    def _capped_distances(self, cap: float):
-        """The data distances at most ``cap`` (m), (V, 2, bins, beams) float32 on the device
-        (``Backend.device_distances``); one copy per cap until the next ``locate`` (a pose step
-        reads the same cap in every E_mu)."""
-        if cap not in self._capped:
-            self._capped[cap] = self.backend.device_distances(np.minimum(self.data.distances, np.float32(cap)))
-        return self._capped[cap]
 
     def _distance(self, rows: np.ndarray) -> np.ndarray:
         """(bins, beams) distance (m) of every pixel to the contour pixels (row per beam), at
@@ -445,7 +439,6 @@ class PoseProblem:
         rows = int(np.max(need_hi - need_lo))
         first = np.minimum(need_lo, sonar.bins - rows)
         per = max(1, self.settings.launch_bytes // (32 * rows * sonar.beams * n_views))
-        distances = self._capped_distances(cap)
         costs, contours = [], []
         for start in range(0, len(depths), per):
             cell_d, cell_t = depths[start:start + per], tilts[start:start + per]
@@ -457,7 +450,7 @@ class PoseProblem:
                                            rows=(np.tile(first, len(cell_d)), rows))
             contour, sums, counts = self.backend.contour_cost(
                 layers, np.tile(np.arange(n_views), len(cell_d)), data.threshold, data.windows, data.masks,
-                distances, self.shifts if self.shift is None else [self.shift], self.smoothing)
+                self._distances, self.shifts if self.shift is None else [self.shift], self.smoothing, cap)
             del layers
             g = len(cell_d)
             costs.append(_view_cost(sums.reshape(g, n_views, 2, -1), counts.reshape(g, n_views, 2), data.counts, cap))

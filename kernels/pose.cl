@@ -17,8 +17,8 @@
  *   linear interpolation); -1 when no row of the window crosses.
  * contour_cost, work-item (s, c, n) = (shift, component, pair), v = view_index[n]:
  *   over the beams b (in order) with contour x = contour[n][c][b] >= 0, the data distance
- *   dist[v][c][·][b] read at y = clamp(x + shift[s], 0, bins − 1) by linear interpolation
- *   between rows floor(y) and floor(y) + 1 (clamped): sums[n][c][s] = Σ_b of it, and
+ *   min(dist[v][c][·][b], cap) read at y = clamp(x + shift[s], 0, bins − 1) by linear
+ *   interpolation between rows floor(y) and floor(y) + 1 (clamped): sums[n][c][s] = Σ_b of it, and
  *   counts[n][c] = the number of such beams (written by s == 0).
  *
  * Bands: the clamping is to the image [0, bins − 1], never to the band; the host guarantees
@@ -35,6 +35,7 @@
  *   mask         (V, 2, beams) uchar  beams where each component's contour counts
  *   wB, rB       (2 rB + 1,) float range weights;  wb, rb  (2 rb + 1,) float beam weights
  *   dist         (V, 2, bins, beams) float  distance (m) of every pixel to the data's contour
+ *   cap          float            distances above it count as cap (m)
  *   shifts       (S,) float       range shifts (rows)
  *   contour      (N, 2, beams) float  out (frontal_contour), in (contour_cost)
  *   sums         (N, 2, S) float;  counts (N, 2) int   out
@@ -102,6 +103,7 @@ __kernel void frontal_contour(__global const float *layers,
 __kernel void contour_cost(__global const float *contour,
                            __global const int *view_index,
                            __global const float *dist,
+                           const float cap,
                            __global const float *shifts,
                            const int n_shifts,
                            const int bins,
@@ -128,7 +130,7 @@ __kernel void contour_cost(__global const float *contour,
         const int B0 = (int)floor(y);
         const int B1 = min(B0 + 1, bins - 1);
         const float t = y - (float)B0;
-        total += (1.0f - t) * d[(size_t)B0 * beams + b] + t * d[(size_t)B1 * beams + b];
+        total += (1.0f - t) * fmin(d[(size_t)B0 * beams + b], cap) + t * fmin(d[(size_t)B1 * beams + b], cap);
         count += 1;
     }
     sums[((size_t)n * 2 + c) * n_shifts + s] = total;

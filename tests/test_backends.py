@@ -218,6 +218,36 @@ def test_warp_devices(wp_device):
         assert get_backend("warp", "cuda") is get_backend("warp", "cuda:0")
 
 
+def test_warp_reuses_an_input_upload_for_the_same_bytes(backend_for_label):
+    """``WarpBackend._constant`` keeps read-only kernel inputs on the device: the same bytes
+    (of the same type and shape) give the same device array, different ones their own with
+    their values; inputs above ``CONSTANT_BYTES`` are uploaded each time; the least recently
+    used go first beyond ``CONSTANTS``."""
+    import warp as wp
+
+    from fsswarp.backends import warp_backend
+
+    backend = backend_for_label("warp-cpu")
+    backend._constants.clear()
+    a = np.arange(12, dtype=np.float32)
+    first = backend._constant(a, float)
+    assert backend._constant(a.copy(), float) is first
+    np.testing.assert_array_equal(first.numpy(), a)
+    other = backend._constant(a + 1, float)
+    assert other is not first
+    np.testing.assert_array_equal(other.numpy(), a + 1)
+    assert backend._constant(a.reshape(3, 4), float) is not first  # another shape
+    assert backend._constant(a.view(np.int32), wp.int32) is not first  # another type
+    big = np.zeros(warp_backend.CONSTANT_BYTES // 4 + 1, np.float32)
+    assert backend._constant(big, float) is not backend._constant(big, float)
+    for k in range(warp_backend.CONSTANTS):
+        backend._constant(np.array([k], np.int32), wp.int32)
+        backend._constant(a, float)  # used again and again: kept
+    assert len(backend._constants) == warp_backend.CONSTANTS
+    assert backend._constant(a, float) is first
+    assert backend._constant(a + 1, float) is not other  # dropped
+
+
 def test_get_backend_is_cached():
     auto = get_backend()
     assert get_backend("auto") is auto

@@ -186,6 +186,25 @@ def test_device_distances_give_the_host_arrays_results(backend, seed):
             np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_cap_reads_the_distances_as_if_capped_on_the_host(backend, seed):
+    """``cap`` reads each distance as min(distance, cap): the results of the maps capped in
+    float32 on the host, bit for bit, at caps below, among and above the distances; and the
+    oracle's at one of them."""
+    case = random_case(seed)
+    uploaded = backend.device_distances(case[5])
+    for cap in (0.004, 0.02, 0.05, 1.0):
+        capped = np.minimum(case[5], np.float32(cap))
+        want = backend.contour_cost(*case[:5], capped, *case[6:])
+        got = backend.contour_cost(*case[:5], uploaded, *case[6:], cap=cap)
+        for a, b in zip(got, want):
+            np.testing.assert_array_equal(a, b)
+    reference = contour_cost_reference(*case[:5], np.minimum(case[5], np.float32(0.02)), *case[6:])
+    got = backend.contour_cost(*case, cap=0.02)
+    np.testing.assert_allclose(got[1], reference[1], rtol=0, atol=2e-4 * case[5].shape[3])
+    assert not np.allclose(got[1], backend.contour_cost(*case)[1])  # the cap is read
+
+
 def test_device_distances_are_checked_once_and_stay_with_their_backend(backend_for_label):
     opencl, warp = backend_for_label("opencl-cpu"), backend_for_label("warp-cpu")
     with pytest.raises(ValueError, match=">= 0"):
@@ -205,6 +224,8 @@ def test_device_distances_are_checked_once_and_stay_with_their_backend(backend_f
     (dict(masks=np.ones((3, 2, 4), np.uint8)), "masks"),
     (dict(distances=-np.ones((3, 2, 8, 4))), ">= 0"),
     (dict(shifts=[]), "shifts"),
+    (dict(cap=0.0), "cap"),
+    (dict(cap=float("nan")), "cap"),
     (dict(smoothing=([0.5, 0.5], [1.0])), "odd"),
     (dict(layers=np.zeros((2, 4, 8, 5))), "layers"),
 ])

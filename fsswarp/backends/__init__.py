@@ -369,7 +369,7 @@ class Backend(abc.ABC):
 
     # --- frontal contours and their distance to the data's (the (D, β) grid search) ----------
     def contour_cost(self, layers, view_index, thresholds, windows, masks, distances, shifts,
-                     smoothing) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     smoothing, cap: float = math.inf) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Frontal contours of N synthetic views and their distances to the data's contours
         (the grid surrogate of fsswarp/pose.py; kernels/pose.cl states the rule exactly).
 
@@ -390,6 +390,8 @@ class Backend(abc.ABC):
             ``device_distances`` (checked and uploaded once for many calls)
         shifts : (S,) float, range shifts (rows) at which the distances are read
         smoothing : (range_weights (2 rB + 1,), beam_weights (2 rb + 1,)) float, odd lengths
+        cap : > 0 (m), the distances read as min(distance, cap) in float32 (a pose step reads
+            one upload of the maps at several caps); default none
 
         Returns ``(contours, sums, counts)``: (N, 2, beams) float32 fractional row of the first
         threshold crossing of the smoothed object + ghost (0) and mirror + double-bounce (1)
@@ -419,6 +421,8 @@ class Backend(abc.ABC):
         steps = _real_array("shifts", shifts, ("S",))
         if steps.shape[0] == 0:
             raise ValueError("shifts must hold at least one shift")
+        if not (isinstance(cap, (int, float)) and cap > 0):  # NaN fails too
+            raise ValueError(f"cap must be a distance > 0 (m), got {cap!r}")
         weights = [_real_array(name, w, ("K",)) for name, w in zip(("range weights", "beam weights"),
                                                                       smoothing)]
         if len(smoothing) != 2 or any(w.shape[0] % 2 == 0 for w in weights):
@@ -450,13 +454,13 @@ class Backend(abc.ABC):
                     np.zeros((0, 2), np.int32))
         return self._contour_cost(layers, first, index, thr,
                                   np.ascontiguousarray(win, np.int32), np.ascontiguousarray(mask, np.uint8),
-                                  weights[0], weights[1], dist, steps)
+                                  weights[0], weights[1], dist, float(cap), steps)
 
     @abc.abstractmethod
     def _contour_cost(self, layers: "DeviceLayers", first_rows: np.ndarray, view_index: np.ndarray,
                       thresholds: np.ndarray, windows: np.ndarray, masks: np.ndarray,
                       range_weights: np.ndarray, beam_weights: np.ndarray, distances: "DeviceDistances",
-                      shifts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                      cap: float, shifts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Kernel launches of ``contour_cost``: layers a DeviceLayers of this backend or any
         other (read back with ``.numpy()``), (N, 4, R, beams), with first_rows (N,) int32 the
         image row of each pair's row 0 (zeros and R = bins for full layers; every band holds

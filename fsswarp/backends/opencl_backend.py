@@ -270,7 +270,7 @@ class OpenCLBackend(Backend):
 
     # --- frontal contours and their distance to the data's ------------------------------------
     def _contour_cost(self, layers, first_rows, view_index, thresholds, windows, masks, range_weights,
-                      beam_weights, distances, shifts):
+                      beam_weights, distances, cap, shifts):
         n_pairs, bins, beams = view_index.shape[0], distances.shape[2], distances.shape[3]
         n_shifts = shifts.shape[0]
         if isinstance(layers, OpenCLLayers) and layers.queue.context == self.context:
@@ -292,7 +292,7 @@ class OpenCLBackend(Backend):
             group = min(GROUP, 1 << (n_shifts - 1).bit_length())
             self._contour_cost_kernel(
                 self.queue, (-(-n_shifts // group) * group, 2, n_pairs), (group, 1, 1),
-                contour_buf, index, distances.data, self._input(shifts), np.int32(n_shifts),
+                contour_buf, index, distances.data, np.float32(cap), self._input(shifts), np.int32(n_shifts),
                 np.int32(bins), np.int32(beams), sums_buf, counts_buf)
             for host, buf in ((contour, contour_buf), (sums, sums_buf), (counts, counts_buf)):
                 cl.enqueue_copy(self.queue, host, buf, is_blocking=False)

@@ -24,6 +24,10 @@ from .bvh import triangle_bounds
 wp.set_module_options({"fuse_fp": False, "enable_backward": False})
 
 _INDEX_LIMIT = wp.constant(1073741824.0)  # ±2^30: far-away points cannot overflow int32
+#: ``WarpBackend._constant``: inputs up to this size are kept on the device for reuse ...
+CONSTANT_BYTES = 1 << 18
+#: ... and this many of them (at most 16 MiB).
+CONSTANTS = 64
 
 
 # --- shared geometry (kernels/sonar.h) -------------------------------------------------------
@@ -538,9 +542,27 @@ class WarpBackend(Backend):
         self.device = str(self._device.alias)
         self.is_gpu = bool(self._device.is_cuda)
         self.has_float64 = True
+        self._constants: dict[tuple, wp.array] = {}  # _constant's uploads, least recently used first
 
     def _array(self, data: np.ndarray, dtype) -> wp.array:
         return wp.array(data, dtype=dtype, device=self._device)
+
+    def _constant(self, data: np.ndarray, dtype) -> wp.array:
+        """``_array`` of a kernel input that no kernel writes, reused while the same bytes come
+        again: a pose step passes the same thresholds, windows, masks, weights and beam tables
+        to hundreds of launches, and each upload waits for its copy. Inputs above
+        ``CONSTANT_BYTES`` are uploaded each time; the last ``CONSTANTS`` are kept."""
+        data = np.ascontiguousarray(data)
+        if data.nbytes > CONSTANT_BYTES:
+            return self._array(data, dtype)
+        key = (dtype, data.shape, data.dtype.str, data.tobytes())
+        array = self._constants.pop(key, None)
+        if array is None:
+            array = self._array(data, dtype)
+            if len(self._constants) >= CONSTANTS:
+                self._constants.pop(next(iter(self._constants)))  # the least recently used
+        self._constants[key] = array
+        return array
 
     def _upload(self, array: np.ndarray) -> wp.array:
         return self._array(array, float)
@@ -553,7 +575,7 @@ class WarpBackend(Backend):
             inside = wp.empty((n_views, n_points), dtype=wp.uint8)
             wp.launch(project_points, dim=(n_views, n_points),
                       inputs=[self._array(points, wp.vec3), self._array(rotations, wp.mat33),
-                              self._array(translations, wp.vec3), self._array(sonar.beam_table, float),
+                              self._array(translations, wp.vec3), self._constant(sonar.beam_table, float),
                               sonar.use_table, sonar.beams, sonar.bins, sonar.half_azimuth,
                               sonar.beam_scale, sonar.range_min, sonar.inv_range_step,
                               sonar.half_elevation],
@@ -605,7 +627,7 @@ class WarpBackend(Backend):
             wp.launch(frontal_rays_kernel, dim=shape,
                       inputs=[mesh.id, mesh.points, mesh.indices, self._array(rotations, wp.mat33),
                               self._array(translations, wp.vec3), self._array(plane_normals, wp.vec3),
-                              self._array(plane_offsets, float), self._array(views, wp.int32),
+                              self._array(plane_offsets, float), self._constant(views, wp.int32),
                               self._array(azimuths, float), int(mirror), sonar.half_azimuth,
                               sonar.half_elevation, float(np.float32(FRONTAL_EPSILON)),
                               float(np.float32(FRONTAL_VISIBLE)), float(np.float32(FRONTAL_MAX_DISTANCE))],
@@ -629,13 +651,13 @@ class WarpBackend(Backend):
             wp.launch(render_kernel, dim=(n_views, sonar.beams, k_theta * k_phi),
                       inputs=[mesh.id, mesh.points, mesh.indices, self._array(rotations, wp.mat33),
                               self._array(translations, wp.vec3), self._array(plane_normals, wp.vec3),
-                              self._array(plane_offsets, float), self._array(centres, float),
-                              self._array(np.ascontiguousarray(beam_widths, np.float32), float),
-                              self._array(sonar.beam_table, float), sonar.use_table, sonar.beams,
+                              self._array(plane_offsets, float), self._constant(centres, float),
+                              self._constant(np.asarray(beam_widths, np.float32), float),
+                              self._constant(sonar.beam_table, float), sonar.use_table, sonar.beams,
                               sonar.half_azimuth, sonar.beam_scale, sonar.range_min,
                               sonar.inv_range_step, sonar.half_elevation, int(k_theta), int(k_phi),
                               weight, float(gamma), float(surface_reflection),
-                              self._array(first_rows, wp.int32)],
+                              self._constant(first_rows, wp.int32)],
                       outputs=[acc])
             layers = wp.empty(shape, dtype=float)
             wp.launch(fixed_to_float, dim=acc.size, inputs=[acc.flatten()], outputs=[layers.flatten()])
@@ -650,7 +672,7 @@ class WarpBackend(Backend):
             seen = wp.empty(n_voxels, dtype=wp.uint8)
             rejected = wp.empty(n_voxels, dtype=wp.uint8)
             common = [self._array(rotations, wp.mat33), self._array(translations, wp.vec3),
-                      self._array(integral, wp.int32), self._array(sonar.beam_table, float), sonar.use_table,
+                      self._array(integral, wp.int32), self._constant(sonar.beam_table, float), sonar.use_table,
                       sonar.beams, sonar.bins, sonar.half_azimuth, sonar.beam_scale, sonar.range_min,
                       sonar.inv_range_step, sonar.half_elevation, radius]
             if centres is not None:
@@ -665,26 +687,26 @@ class WarpBackend(Backend):
 
     # --- frontal contours and their distance to the data's (kernels after the class) ---------
     def _contour_cost(self, layers, first_rows, view_index, thresholds, windows, masks, range_weights,
-                      beam_weights, distances, shifts):
+                      beam_weights, distances, cap, shifts):
         n_pairs, beams = view_index.shape[0], distances.shape[3]
         with wp.ScopedDevice(self._device):
             if isinstance(layers, WarpLayers) and layers.array.device == self._device:
                 stack = layers.array
             else:
                 stack = self._array(np.ascontiguousarray(layers.numpy(), np.float32), float)
-            index = self._array(view_index, wp.int32)
+            index = self._constant(view_index, wp.int32)
             contour = wp.empty((n_pairs, 2, beams), dtype=float)
             wp.launch(frontal_contour, dim=(n_pairs, 2, beams),
-                      inputs=[stack, self._array(first_rows, wp.int32), index, self._array(thresholds, float),
-                              self._array(windows, wp.int32),
-                              self._array(masks, wp.uint8), self._array(range_weights, float),
-                              (range_weights.shape[0] - 1) // 2, self._array(beam_weights, float),
+                      inputs=[stack, self._constant(first_rows, wp.int32), index, self._constant(thresholds, float),
+                              self._constant(windows, wp.int32),
+                              self._constant(masks, wp.uint8), self._constant(range_weights, float),
+                              (range_weights.shape[0] - 1) // 2, self._constant(beam_weights, float),
                               (beam_weights.shape[0] - 1) // 2],
                       outputs=[contour])
             sums = wp.empty((n_pairs, 2, shifts.shape[0]), dtype=float)
             counts = wp.empty((n_pairs, 2), dtype=wp.int32)
             wp.launch(contour_cost_kernel, dim=(n_pairs, 2, shifts.shape[0]),
-                      inputs=[contour, index, distances.data, self._array(shifts, float)],
+                      inputs=[contour, index, distances.data, float(np.float32(cap)), self._constant(shifts, float)],
                       outputs=[sums, counts])
             wp.synchronize_device(self._device)
             return contour.numpy(), sums.numpy(), counts.numpy()
@@ -757,7 +779,7 @@ def frontal_contour(layers: wp.array4d(dtype=float), first_rows: wp.array(dtype=
 
 @wp.kernel
 def contour_cost_kernel(contour: wp.array3d(dtype=float), view_index: wp.array(dtype=wp.int32),
-                        dist: wp.array4d(dtype=float), shifts: wp.array(dtype=float),
+                        dist: wp.array4d(dtype=float), cap: float, shifts: wp.array(dtype=float),
                         sums: wp.array3d(dtype=float), counts: wp.array2d(dtype=wp.int32)):
     """Thread (n, c, s): distances of pair n's contour c to the data's, read at shift s."""
     n, c, s = wp.tid()
@@ -775,7 +797,7 @@ def contour_cost_kernel(contour: wp.array3d(dtype=float), view_index: wp.array(d
             b0 = int(wp.floor(y))
             b1 = wp.min(b0 + 1, bins - 1)
             t = y - float(b0)
-            total += (1.0 - t) * dist[v, c, b0, b] + t * dist[v, c, b1, b]
+            total += (1.0 - t) * wp.min(dist[v, c, b0, b], cap) + t * wp.min(dist[v, c, b1, b], cap)
             count += 1
     sums[n, c, s] = total
     if s == 0:
