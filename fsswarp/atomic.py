@@ -17,6 +17,8 @@ def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     InputError (naming ``path``) where its folder cannot be made or written."""
     path = Path(path)
     try:
+        if path.is_dir():
+            raise InputError("is a folder; name a file", file=path)
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     except OSError as err:
@@ -24,6 +26,7 @@ def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     try:
         with os.fdopen(fd, "wb") as handle:
             handle.write(data)
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp's 0600 would hide the file from the user's group
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
@@ -40,28 +43,50 @@ def write_text(path: str | os.PathLike, text: str) -> Path:
 def check_output_folder(path: str | os.PathLike, *, marker: str) -> Path:
     """``path`` as a Path if ``output_folder`` can write it: absent under a folder that exists
     or can be made, empty, or an earlier output holding ``marker``; else InputError (field
-    --out). Commands call it before their long work, so a wrong --out fails at once."""
-    path = Path(path)
-    if path.exists():
-        if not path.is_dir():
-            raise InputError("exists and is not a folder", field="--out", value=str(path))
-        if any(path.iterdir()) and not (path / marker).exists():
-            raise InputError(f"folder exists and is not an fsswarp output (no {marker}); "
-                             "choose another --out", field="--out", value=str(path))
-    blocked = _blocked(path)
+    --out). Commands call it before their long work, so a wrong --out fails at once. The
+    current folder and the folders above it are refused (replacing them would pull the
+    folder out from under the shell), as is an existing folder that cannot be moved aside."""
+    value = str(path)
+    path = Path(os.path.abspath(path))
+    try:
+        if Path.cwd().is_relative_to(path):
+            raise InputError("is the current folder or holds it; name a new folder for the output",
+                             field="--out", value=value)
+        if path.exists():
+            if not path.is_dir():
+                raise InputError("exists and is not a folder", field="--out", value=value)
+            if any(path.iterdir()) and not (path / marker).exists():
+                raise InputError(f"folder exists and is not an fsswarp output (no {marker}); "
+                                 "choose another --out", field="--out", value=value)
+            if not os.access(path, os.W_OK | os.X_OK):
+                raise InputError("folder exists and is not writable, so it cannot be replaced",
+                                 field="--out", value=value)
+        blocked = _blocked(path)
+    except OSError as err:  # a name too long, a folder on the way that cannot be searched
+        raise InputError(f"cannot be used: {err.strerror}", field="--out", value=value) from None
     if blocked:
-        raise InputError(f"cannot be created: {blocked}", field="--out", value=str(path))
+        raise InputError(f"cannot be created: {blocked}", field="--out", value=value)
     return path
+
+
+def _umask() -> int:
+    """The process's file-mode creation mask (read by setting it and back)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 def _blocked(path: Path) -> str | None:
     """Why ``path`` cannot be created, judged by its nearest existing ancestor (not a folder,
-    or not writable), or None."""
+    or not writable, or not searchable), or None."""
     above = path.parent
-    while not above.exists() and above != above.parent:
-        above = above.parent
-    if not above.is_dir():
-        return f"{above} is not a folder"
+    try:
+        while not above.exists() and above != above.parent:
+            above = above.parent
+        if not above.is_dir():
+            return f"{above} is not a folder"
+    except OSError as err:
+        return err.strerror
     if not os.access(above, os.W_OK | os.X_OK):
         return f"{above} is not writable"
     return None
@@ -76,17 +101,23 @@ def output_folder(path: str | os.PathLike, *, marker: str) -> Iterator[Path]:
     (:func:`check_output_folder`). On error the temporary folder is removed and ``path`` is
     left as it was.
     """
+    value = str(path)
     path = check_output_folder(path, marker=marker)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
+        os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp's 0700 would hide the output from the user's group
     except OSError as err:
-        raise InputError(f"cannot be created: {err.strerror}", field="--out", value=str(path)) from None
+        raise InputError(f"cannot be created: {err.strerror}", field="--out", value=value) from None
     try:
         yield tmp
         if path.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old", dir=path.parent))
-            os.replace(path, old / "x")
+            try:
+                os.replace(path, old / "x")
+            except OSError as err:
+                old.rmdir()
+                raise InputError(f"cannot be replaced: {err.strerror}", field="--out", value=value) from None
             os.replace(tmp, path)
             shutil.rmtree(old, ignore_errors=True)
         else:

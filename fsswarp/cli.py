@@ -699,6 +699,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except click.exceptions.Exit as done:
         return done.exit_code
+    except OSError as err:  # a path that cannot be read or searched (too long, no permission): one line
+        if err.filename is None:
+            raise
+        print(f"fsswarp: error: {err.filename}: {err.strerror}", file=sys.stderr)
+        return 2
     except (click.Abort, KeyboardInterrupt):
         print("fsswarp: interrupted", file=sys.stderr)
         return 130

@@ -616,6 +616,64 @@ def test_output_folder_under_a_file_is_an_input_error(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["file"]
 
 
+def test_outputs_follow_the_umask_like_any_other_file(tmp_path):
+    """mkdtemp and mkstemp make 0700 folders and 0600 files; the outputs get the modes the
+    user's umask gives a plain mkdir and open (0755 and 0644 under umask 022)."""
+    from fsswarp.atomic import output_folder, write_text
+
+    old = os.umask(0o022)
+    try:
+        with output_folder(tmp_path / "out", marker="x.json") as tmp:
+            (tmp / "x.json").write_text("{}")
+        write_text(tmp_path / "x.toml", "a = 1\n")
+        os.umask(0o077)
+        write_text(tmp_path / "private.toml", "a = 1\n")
+    finally:
+        os.umask(old)
+    assert (tmp_path / "out").stat().st_mode & 0o777 == 0o755
+    assert (tmp_path / "x.toml").stat().st_mode & 0o777 == 0o644
+    assert (tmp_path / "private.toml").stat().st_mode & 0o777 == 0o600
+
+
+def test_output_folder_refuses_the_current_folder_and_what_cannot_be_replaced(tmp_path, monkeypatch):
+    """--out "." (or "", or a folder above it) would be renamed away from under the shell,
+    and an existing folder that is not writable cannot be moved aside: both are refused
+    before any work; a replacement that fails anyway leaves the old folder and no temporary
+    one; a name too long is an InputError; write_bytes onto a folder names it."""
+    from fsswarp import atomic
+    from fsswarp.atomic import check_output_folder, output_folder, write_text
+
+    here = tmp_path / "here"
+    here.mkdir()
+    monkeypatch.chdir(here)
+    for value in (".", "", str(here), str(tmp_path)):
+        with pytest.raises(InputError, match="current folder"):
+            check_output_folder(value, marker="x.json")
+    with pytest.raises(InputError, match="cannot be used: File name too long"):
+        check_output_folder(tmp_path / ("n" * 300), marker="x.json")
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    real_access = os.access
+    monkeypatch.setattr(atomic.os, "access", lambda p, mode: Path(p) != locked and real_access(p, mode))
+    with pytest.raises(InputError, match="not writable, so it cannot be replaced"):
+        check_output_folder(locked, marker="x.json")
+    monkeypatch.setattr(atomic.os, "access", real_access)
+    real_replace = os.replace
+
+    def refuse_the_old(src, dst):
+        if Path(src) == locked:
+            raise PermissionError(13, "Permission denied")
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(atomic.os, "replace", refuse_the_old)
+    with pytest.raises(InputError, match="cannot be replaced: Permission denied"):
+        with output_folder(locked, marker="x.json") as tmp:
+            (tmp / "x.json").write_text("{}")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["here", "locked"] and not any(locked.iterdir())
+    with pytest.raises(InputError, match="is a folder"):
+        write_text(locked, "a = 1\n")
+
+
 @pytest.mark.parametrize("content, message", [(b"not a mesh", "cannot read mesh"),
                                               (b"ply\nformat ascii 1.0\nend_header\n", "")])
 def test_truth_mesh_names_an_unreadable_truth_model(tmp_path, content, message):

@@ -64,6 +64,9 @@ def test_help_explains_every_command():
     (("scene", "coral-one", "--out", "x.txt"), "x.txt"),
     (("--backend", "warp", "--device", "cuda:7", "info"), "cuda:7"),
     (("--backend", "opencl", "--device", "nosuchdevice", "info"), "nosuchdevice"),
+    (("check", "n" * 300), "File name too long"),  # an OSError of a path: one line, not a traceback
+    (("check", "n" * 300 + ".toml"), "File name too long"),
+    (("scene", "table", "--out", "n" * 300 + "/x.toml"), "File name too long"),
 ])
 def test_user_mistakes_exit_2_with_one_line(tmp_path, args, needle):
     done = run_cli(*args, cwd=tmp_path)
