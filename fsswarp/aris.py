@@ -36,6 +36,7 @@ import math
 import mmap
 import re
 import struct
+import tomllib
 import warnings
 from dataclasses import dataclass, field, fields
 from functools import cache
@@ -46,7 +47,8 @@ from typing import Iterable
 import numpy as np
 
 from .atomic import output_folder, write_text
-from .dataset import MANIFEST_NAME, Dataset, Manifest, SurfaceEstimate, load_dataset, save_dataset
+from .dataset import (MANIFEST_NAME, Dataset, Manifest, SurfaceEstimate, load_dataset, manifest_to_toml, parse_manifest,
+                      save_dataset)
 from .errors import InputError, is_integer
 from .rig import Rig, View
 from .sonar import SonarSpec
@@ -495,6 +497,10 @@ def import_aris(path, out, *, frames=None, elevation_fov_deg: float | None = Non
         record = _record(aris, path, table, elevation, elevation_fov_deg is None, headers,
                          (depth, depth_source), (tilt, tilt_source))
     manifest = Manifest(sonar=sonar, surface=SurfaceEstimate(depth=depth, tilt=math.radians(tilt)), rig=Rig(views))
+    try:  # validated before writing, as a reader will (else the error would name a temporary manifest)
+        parse_manifest(tomllib.loads(manifest_to_toml(manifest)), file=None)
+    except InputError as err:
+        raise err.with_file(poses if poses is not None and (err.field or "").startswith("views") else path) from None
     out = Path(out)
     # the folder appears whole: save_dataset fills the (empty) temporary folder, aris.json joins it
     with output_folder(out, marker=MANIFEST_NAME) as tmp:

@@ -244,15 +244,22 @@ def parse_manifest(table: dict, *, file) -> Manifest:
     target = _parse_target(top.table("target", required=False), file)
     views = _parse_views(top, file)
     rig = _parse_rig(top.table("rig", required=False), views, file)
+    for depth, what in ((surface.depth, "surface.depth_m"), (truth.depth if truth else math.inf, "truth.depth_m")):
+        for view in views:
+            if depth + view.depth_offset <= 0:
+                raise InputError(f"puts the sonar above the surface at {what} = {depth:g} m (it must lie below: "
+                                 "depth + offset > 0)", file=file, field=f"views[{view.name}].depth_offset_m",
+                                 value=view.depth_offset)
     return Manifest(sonar=sonar, surface=surface, rig=rig, truth=truth, target=target)
 
 
-def read_mesh(path: Path, *, field: str, file: Path | None = None):
+def read_mesh(path: Path, *, field: str, file: Path | None = None, value: str | None = None):
     """A triangle mesh (trimesh.Trimesh, processed) from the file ``path``, or InputError
-    naming ``field`` (and ``file``, where the path was given) and the path."""
+    naming ``field`` (and ``file``, where the path was given) and ``value``, the path as the
+    user wrote it (default ``path``)."""
     import trimesh
 
-    value = str(path)
+    value = str(path) if value is None else value
     if not path.is_file():
         raise InputError("no such mesh file", file=file, field=field, value=value)
     try:
@@ -312,11 +319,11 @@ def load_scene(path) -> Manifest:
     path = Path(path)
     if path.is_dir():
         raise InputError("is a folder; a scene file is a .toml file", file=path)
+    from .scenes import target_world_mesh
+
     manifest = load_manifest(path)
     _check_scene(manifest, path)
-    mesh = manifest.target.mesh_path(path.parent)
-    if mesh is not None and not mesh.is_file():
-        raise InputError(f"file not found: {mesh}", file=path, field="target.mesh", value=manifest.target.mesh)
+    target_world_mesh(manifest.target, base=path.parent, file=path)  # the mesh is read and placed
     return manifest
 
 

@@ -69,26 +69,29 @@ def builtin_scene(name: str) -> Manifest:
     )
 
 
-def target_world_mesh(target: Target, *, base=None):
+def target_world_mesh(target: Target, *, base=None, file=None):
     """The target mesh placed in the world frame: scaled, rotated (x, then y, then z, about
-    the mesh origin) and moved to ``target.position``. ``base`` folder resolves ``target.mesh``."""
+    the mesh origin) and moved to ``target.position``. ``base`` folder resolves ``target.mesh``;
+    ``file`` (the scene file) is named in the InputError of a mesh that cannot be read or
+    whose placed vertices leave float32's range (the kernels' precision)."""
     import trimesh
 
+    from .dataset import read_mesh
     from .rig import rotation_x, rotation_y, rotation_z
 
     if target.builtin is not None:
         mesh = builtin_mesh(target.builtin)
     else:
-        path = str(target.mesh_path(base if base is not None else "."))
-        try:
-            mesh = trimesh.load_mesh(path, process=True)
-        except (OSError, ValueError) as err:
-            raise InputError(f"cannot read mesh ({err})", field="target.mesh", value=target.mesh) from None
-        if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-            raise InputError("holds no triangles", field="target.mesh", value=target.mesh)
+        mesh = read_mesh(target.mesh_path(base if base is not None else "."), field="target.mesh", file=file,
+                         value=target.mesh)
     rx, ry, rz = target.rotation
     rot = rotation_z(rz) @ rotation_y(ry) @ rotation_x(rx)
-    vertices = (np.asarray(mesh.vertices) * target.scale) @ rot.T + np.asarray(target.position)
+    with np.errstate(over="ignore", invalid="ignore"):
+        vertices = (np.asarray(mesh.vertices) * target.scale) @ rot.T + np.asarray(target.position)
+        finite = np.all(np.abs(vertices) < np.finfo(np.float32).max)
+    if not finite:
+        raise InputError("places the target's vertices beyond float32's range", file=file, field="target.scale_m",
+                         value=target.scale)
     return trimesh.Trimesh(vertices=vertices, faces=np.asarray(mesh.faces), process=False)
 
 

@@ -301,6 +301,20 @@ def test_pose_file_mistakes_are_refused(tmp_path, text, field):
     assert "\n" not in message and str(path) in message and field in message
 
 
+@pytest.mark.parametrize("row, field", [("0,0,0,0,999,0", "roll_deg = 999.0"), ("0,0,0,0,0,90", "tilt_offset_deg")])
+def test_pose_values_out_of_range_name_the_pose_file(tmp_path, row, field):
+    """A pose row that the manifest refuses (a roll of 999°) is reported against the pose
+    file before anything is written, not against the temporary manifest of the output."""
+    path = write(tmp_path, synthetic(frames=1))
+    poses = tmp_path / "poses.csv"
+    poses.write_text(f"frame,x_m,y_m,heading_deg,roll_deg,tilt_offset_deg\n{row}\n")
+    with pytest.raises(InputError) as info:
+        import_aris(path, tmp_path / "ds", poses=poses)
+    message = str(info.value)
+    assert message.startswith(f"{poses}: views[") and field in message and ".tmp" not in message
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([path.name, "poses.csv"])
+
+
 # --- bad recordings on the command line --------------------------------------------------------
 
 def _bad_cases(data: bytes) -> dict[str, tuple[bytes, list[str], str]]:

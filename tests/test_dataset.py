@@ -200,8 +200,10 @@ def test_scene_round_trip(tmp_path):
                     rotation=(math.radians(90.0), 0.0, math.radians(-12.5)))
     manifest = make_manifest(target=target, images=False)
     path = save_scene(manifest, tmp_path / "scene.toml")
+    import trimesh
+
     (tmp_path / "meshes").mkdir()
-    (tmp_path / "meshes/rock.ply").write_text("ply\n")
+    trimesh.creation.box().export(tmp_path / "meshes/rock.ply")
     assert same_manifest(load_scene(path), manifest)
     assert load_scene(path).target.mesh_path(path.parent) == tmp_path / "meshes/rock.ply"
     assert sorted(os.listdir(tmp_path)) == ["meshes", "scene.toml"]
@@ -276,14 +278,16 @@ def manifests(draw) -> Manifest:
                               tilt_sigma=rad(draw(degrees(0.0, 30.0))))
     view_names = draw(st.lists(names, min_size=1, max_size=4, unique=True))
     coord = st.floats(-100.0, 100.0, **finite)
-    views = tuple(View(name, position=(draw(coord), draw(coord)), heading=rad(draw(degrees(-360, 360))),
-                       roll=rad(draw(degrees(-180, 180))), depth_offset=draw(st.floats(-1.0, 1.0, **finite)),
-                       tilt_offset=rad(draw(degrees(-89.0, 89.0))), optimize=draw(st.booleans()),
-                       image=draw(st.sampled_from([None, f"img/{name}.tif"])))
-                  for name in view_names)
     truth = draw(st.none() | st.builds(Truth, depth=st.floats(1e-4, 100.0, **finite),
                                        tilt=degrees(-89.9, 89.9).map(rad),
                                        model=st.sampled_from([None, "truth/model.ply"])))
+    shallowest = min(surface.depth, truth.depth if truth is not None else math.inf, 1.0)
+    offsets = st.floats(-shallowest, 1.0, exclude_min=True, **finite)  # every sonar below the surface
+    views = tuple(View(name, position=(draw(coord), draw(coord)), heading=rad(draw(degrees(-360, 360))),
+                       roll=rad(draw(degrees(-180, 180))), depth_offset=draw(offsets),
+                       tilt_offset=rad(draw(degrees(-89.0, 89.0))), optimize=draw(st.booleans()),
+                       image=draw(st.sampled_from([None, f"img/{name}.tif"])))
+                  for name in view_names)
     target = None
     if draw(st.booleans()):
         source = draw(st.sampled_from([("mesh", "m.ply")] + [("builtin", b) for b in BUILTIN_TARGETS]))
@@ -392,7 +396,9 @@ def _both(*edits):
 
 
 def _mesh_file(table, folder):
-    (folder / "rock.ply").write_text("ply\n")
+    import trimesh
+
+    trimesh.creation.box().export(folder / "rock.ply")
 
 
 nan_image = good_image()

@@ -117,6 +117,51 @@ def test_empty_mesh_exits_2(tmp_path):
     assert "target.mesh" in done.stderr and not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("content, scale, field, message", [
+    (b"#!/bin/sh\n", 1.0, "target.mesh", "cannot read mesh"),            # trimesh: NotImplementedError
+    ("truncated", 1.0, "target.mesh", "cannot read mesh"),                 # trimesh: IndexError
+    ("cube", 1e300, "target.scale_m", "float32"),                          # vertices of inf
+])
+def test_a_scene_whose_mesh_cannot_be_read_or_placed_is_refused_by_check_and_simulate(tmp_path, content, scale,
+                                                                                       field, message):
+    """``check`` reads and places a scene's target mesh as ``simulate`` does: whatever trimesh
+    raises for an unreadable file, or a scale that overflows float32, is one line naming the
+    scene file and the field, exit 2, nothing written."""
+    import dataclasses
+
+    import trimesh
+
+    mesh = tmp_path / ("target.sh" if isinstance(content, bytes) else "target.ply")
+    if isinstance(content, bytes):
+        mesh.write_bytes(content)
+    else:
+        trimesh.creation.box(extents=(0.1, 0.1, 0.1)).export(mesh)
+    if content == "truncated":
+        mesh.write_bytes(mesh.read_bytes()[:100])
+    target = dataclasses.replace(builtin_scene("coral-one").target, builtin=None, mesh=mesh.name, scale=scale)
+    path = scene_file(tmp_path, target=target)
+    for args in (("check", str(path)), ("simulate", str(path), "--out", str(tmp_path / "out"))):
+        done = run_cli(*args)
+        lines = done.stderr.strip().splitlines()
+        assert done.returncode == 2 and len(lines) == 1 and "Traceback" not in done.stderr, done.stderr
+        assert lines[0].startswith(f"fsswarp: error: {path}: {field}") and message in lines[0]
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_view_offset_that_lifts_the_sonar_above_the_surface_is_refused(tmp_path):
+    """A view's depth offset that puts its sonar above the surface (at the measured or the
+    true depth) names the view's field in the scene file, in check as in simulate."""
+    path = scene_file(tmp_path)
+    text = path.read_text()
+    assert "depth_offset_m = 0.0" in text
+    path.write_text(text.replace("depth_offset_m = 0.0", "depth_offset_m = -0.5", 1))
+    for args in (("check", str(path)), ("simulate", str(path), "--out", str(tmp_path / "out"))):
+        done = run_cli(*args)
+        assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+        assert f"{path}: views[" in done.stderr and "].depth_offset_m = -0.5: puts the sonar above" in done.stderr
+    assert not (tmp_path / "out").exists()
+
+
 @pytest.mark.parametrize("edit, field", [
     (("range_min_m = 1.0", "range_min_m = 3.0"), "range_max_m"),   # empty window
     (("range_max_m = 3.0", "range_max_m = 0.5"), "range_max_m"),   # inverted window
