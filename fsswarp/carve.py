@@ -61,7 +61,7 @@ import numpy as np
 
 from .errors import InputError, check_integer, is_integer
 from .render import signed_volume
-from .rig import to_view
+from .rig import check_depth_tilt, to_view
 from .segment import Segmentation, SegmentSettings, segment
 from .sonar import SonarSpec, from_polar, to_polar
 from .surface import surface_in_reference
@@ -173,10 +173,7 @@ def carve(dataset, depth: float | None = None, tilt: float | None = None, *, res
     surface = dataset.manifest.surface
     depth = surface.depth if depth is None else float(depth)
     tilt = surface.tilt if tilt is None else float(tilt)
-    if not (math.isfinite(depth) and depth > 0):
-        raise InputError("must be a finite depth > 0 (m)", field="--depth", value=depth)
-    if not (math.isfinite(tilt) and abs(tilt) < math.pi / 2):
-        raise InputError("must be a finite tilt in (-90, 90) degrees", field="--tilt", value=math.degrees(tilt))
+    check_depth_tilt(depth, tilt)
     rig = dataset.rig
     names = rig.names if views is None else [rig.views[rig.index(n)].name for n in views]
     missing = [n for n in names if masks is not None and n not in masks]

@@ -80,11 +80,13 @@ import nlopt
 import numpy as np
 
 from .backends import rows_read
+from .dataset import MANIFEST_NAME
 from .errors import InputError, check_integer, is_integer
 from .icp import CONTOUR_TOL, icp_many
 from .motion import patch_motions, view_errors
 from .render import RenderSettings, check_mesh
 from .segment import SegmentSettings, memoized, segment
+from .rig import check_depth_tilt
 from .surface import mirror_points, surface_in_reference, surface_in_views
 
 #: Half-width of the polish box in cells of the finest grid level.
@@ -265,7 +267,7 @@ class PoseProblem:
                  backend=None):
         from .backends import get_backend
 
-        check_pose(depth, tilt)
+        check_depth_tilt(depth, tilt)
         vertices, faces = check_mesh(model, name="model")
         self.dataset, self.settings = dataset, settings
         self.sonar, self.rig = dataset.sonar, dataset.rig
@@ -293,7 +295,7 @@ class PoseProblem:
         (``anchors``, ``shift``) with the model synthesized at (depth m, tilt rad), the current
         estimate; ``estimate`` records it and ``predicted`` keeps those (V, 4, bins, beams)
         layers of the data views (exact samples)."""
-        check_pose(depth, tilt)
+        check_depth_tilt(depth, tilt)
         self.data, self.predicted, layers, keep = self._data_contours(depth, tilt)
         self._distances = self.backend.device_distances(self.data.distances)  # read at every cap
         self.anchors, self.shift = self._detection_shift(depth, tilt, layers, keep)
@@ -475,7 +477,7 @@ class PoseProblem:
     # --- E_mu --------------------------------------------------------------------------------
     def exact(self, depth: float, tilt: float) -> ExactError:
         """E_mu (eq. 6) at (depth m, tilt rad), with its per-view μ_m."""
-        check_pose(depth, tilt)
+        check_depth_tilt(depth, tilt)
         self.counters["exact"] += 1
         data = self.data
         contour, shift = self.synthetic_contours(depth, tilt)
@@ -638,9 +640,9 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
     surface = dataset.manifest.surface
     depth0 = surface.depth if depth0 is None else float(depth0)
     tilt0 = surface.tilt if tilt0 is None else float(tilt0)
-    check_pose(depth0, tilt0)
+    check_depth_tilt(depth0, tilt0)
     if bounds is None:
-        bounds = (BOUNDS_FACTOR * surface.depth_sigma, BOUNDS_FACTOR * surface.tilt_sigma)
+        bounds = check_uncertainties(dataset, depth0)
     e_d, e_b = (float(b) for b in bounds) if len(bounds) == 2 else (math.nan, math.nan)
     if not (math.isfinite(e_d) and 0 < e_d < depth0 and math.isfinite(e_b) and 0 < e_b < math.pi / 4):
         raise InputError("must be (e_D, e_beta) with 0 < e_D < depth0 m and 0 < e_beta < 45 deg",
@@ -697,6 +699,23 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
 
 
 # --- helpers -------------------------------------------------------------------------------
+
+def check_uncertainties(dataset, depth0: float) -> tuple[float, float]:
+    """The default grid half-widths (e_D m, e_β rad), ``BOUNDS_FACTOR`` × the manifest's
+    uncertainties; InputError naming the manifest's field unless they span a search from
+    ``depth0`` (m): 0 < e_D < depth0 and 0 < e_β < 45°."""
+    file = dataset.root / MANIFEST_NAME if getattr(dataset, "root", None) is not None else None
+    surface = dataset.manifest.surface
+    bounds = (BOUNDS_FACTOR * surface.depth_sigma, BOUNDS_FACTOR * surface.tilt_sigma)
+    if not 0 < bounds[0] < depth0:
+        raise InputError(f"must be > 0 and, times {BOUNDS_FACTOR:g}, below the start depth {depth0:g} m: the depth "
+                         "search spans that many sigmas", file=file, field="surface.depth_sigma_m",
+                         value=surface.depth_sigma)
+    if not 0 < bounds[1] < math.pi / 4:
+        raise InputError(f"must be > 0 and, times {BOUNDS_FACTOR:g}, below 45 deg: the tilt search spans that many "
+                         "sigmas", file=file, field="surface.tilt_sigma_deg", value=math.degrees(surface.tilt_sigma))
+    return bounds
+
 
 def _check_handed_over(problem: PoseProblem, model, dataset, depth: float, tilt: float, settings: PoseSettings,
                        backend) -> None:
@@ -870,9 +889,3 @@ def fan_points(theta, rng) -> np.ndarray:
     return np.stack([rng * np.sin(theta), rng * np.cos(theta)], axis=1)
 
 
-def check_pose(depth: float, tilt: float) -> None:
-    """InputError unless depth (m) > 0 and |tilt| < π/2 (rad), both finite."""
-    if not (isinstance(depth, (int, float, np.floating)) and math.isfinite(depth) and depth > 0):
-        raise InputError("must be a finite depth > 0 (m)", field="depth", value=depth)
-    if not (isinstance(tilt, (int, float, np.floating)) and math.isfinite(tilt) and abs(tilt) < math.pi / 2):
-        raise InputError("must be a finite tilt in (-90, 90) degrees", field="tilt", value=tilt)

@@ -84,9 +84,10 @@ from .carve import CarveSettings, carve
 from .errors import InputError, check_integer
 from .metrics import combine
 from .motion import average_contour_error, average_intensity_error
-from .pose import PoseProblem, PoseSettings, PoseWarning, check_pose, estimate_pose
+from .pose import PoseProblem, PoseSettings, PoseWarning, check_uncertainties, estimate_pose
 from .refine import RefineSettings, refine_shape
 from .render import RenderSettings, render, with_total
+from .rig import check_depth_tilt
 
 
 @dataclass(frozen=True)
@@ -159,7 +160,8 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
     surface = dataset.manifest.surface
     depth = surface.depth if depth0 is None else depth0
     tilt = surface.tilt if tilt0 is None else tilt0
-    check_pose(depth, tilt)
+    check_depth_tilt(depth, tilt)
+    check_uncertainties(dataset, depth)  # the pose steps' grids, before the carving
     backend = backend or get_backend()
     say = progress or (lambda line: None)
     start = time.perf_counter()

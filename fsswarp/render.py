@@ -45,7 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import InputError, is_integer
-from .rig import Rig
+from .rig import Rig, check_depth_tilt
 from .sonar import SonarSpec, to_polar
 from .surface import COMPONENTS, apparent_returns, surface_in_views
 
@@ -161,10 +161,7 @@ def render(mesh, sonar: SonarSpec, rig: Rig, depth: float, tilt: float, *, views
     views : names to render (default: all). Returns ``{view name: (5, bins, beams) float32}``
     with layers in the order of ``LAYERS``. Warns when the mesh falls outside a view's window.
     """
-    if not (np.isfinite(depth) and depth > 0):
-        raise InputError("must be a finite depth > 0 (m)", field="depth", value=depth)
-    if not (np.isfinite(tilt) and abs(tilt) < np.pi / 2):
-        raise InputError("must be a finite tilt in (-90, 90) degrees", field="tilt", value=np.degrees(tilt))
+    check_depth_tilt(depth, tilt)
     names = rig.names if views is None else list(views)
     index = [rig.index(name) for name in names]
     rot, t = rig.relative_poses(depth, tilt)

@@ -224,6 +224,29 @@ def test_one_candidate_is_remembered_read_only_and_equals_the_grid():
     assert grid.flags.writeable and grid is not grid_rot  # grids are computed each time
 
 
+def test_new_rolls_lie_in_a_turn_and_each_name_is_one_roll():
+    """``with_rolls`` (render --roll): a roll given twice makes one view; rolls beyond ±180°
+    (a manifest's range) and two rolls that share a 6-digit name are refused, naming --roll
+    in degrees; depth and tilt are checked with their options' names, the tilt in degrees."""
+    from fsswarp.rig import check_depth_tilt, with_rolls
+
+    rig = paper_rig()
+    extended, names = with_rolls(rig, [math.radians(10.0), math.radians(10.0), math.radians(-180.0)])
+    assert names == ["roll10", "roll-180"] and len(extended.views) == len(rig.views) + 2
+    for degrees, text in ((200.0, r"--roll = 200\.0.*\[-180, 180\]"), (1e6, r"--roll = 1000000\.0"),
+                          (float("nan"), "--roll = nan")):
+        with pytest.raises(InputError, match=text):
+            with_rolls(rig, [math.radians(degrees)])
+    with pytest.raises(InputError, match=r"--roll = 0\.10000000001: differs .* roll0\.1"):
+        with_rolls(rig, [math.radians(0.1), math.radians(0.10000000001)])
+    with pytest.raises(InputError, match=r"--tilt = 95\.0: must be a finite tilt in \(-90, 90\) degrees"):
+        check_depth_tilt(0.4, np.float64(math.radians(95.0)))
+    with pytest.raises(InputError, match=r"--depth = nan"):
+        check_depth_tilt(float("nan"), 0.1)
+    with pytest.raises(InputError, match=r"--depth = 'deep'"):
+        check_depth_tilt("deep", 0.1)
+
+
 def test_rig_errors():
     with pytest.raises(InputError, match="unique"):
         Rig((View("a"), View("a")))

@@ -140,6 +140,28 @@ def test_truth_metrics_share_out_among_at_most_their_workers_in_order():
             assert reconstruct_module.truth_workers() == want
 
 
+@pytest.mark.parametrize("field, change", [("surface.depth_sigma_m", dict(depth_sigma=0.0)),
+                                           ("surface.depth_sigma_m", dict(depth_sigma=1.0)),
+                                           ("surface.tilt_sigma_deg", dict(tilt_sigma=0.0)),
+                                           ("surface.tilt_sigma_deg", dict(tilt_sigma=math.radians(40.0)))])
+def test_uncertainties_that_span_no_search_name_their_field_before_the_carving(coral_one, monkeypatch, field,
+                                                                               change):
+    """The pose steps' grids span ``BOUNDS_FACTOR`` × the manifest's uncertainties: one that
+    gives no grid (zero, or wider than the depth or 45°) is refused naming the manifest's
+    field, before the carving runs."""
+    import dataclasses
+
+    from fsswarp import reconstruct as module
+
+    manifest = coral_one.manifest
+    spoilt = dataclasses.replace(coral_one, manifest=dataclasses.replace(
+        manifest, surface=dataclasses.replace(manifest.surface, **change)))
+    monkeypatch.setattr(module, "carve", lambda *a, **k: pytest.fail("carved before the check"))
+    with pytest.raises(InputError, match=f"dataset.toml: {field} = .*: must be > 0") as info:
+        reconstruct(spoilt, settings=FAST)
+    assert "\n" not in str(info.value)
+
+
 def test_image_errors_vanish_for_the_truth_and_grow_with_a_bad_model(coral_one):
     """The true model at the true (D, β) explains the images better than a sphere there."""
     truth = trimesh.load_mesh(coral_one.truth_model_path)
