@@ -132,11 +132,14 @@ def check(state: State, path: Path) -> None:
         dataset = load_dataset(path)
         manifest = dataset.manifest
         truth = dataset.truth_mesh()
-        kind = f"dataset, {len(dataset.images)} images" + (f", truth model of {len(truth.faces)} triangles"
-                                                            if truth is not None else "")
+        layers = dataset.check_truth_layers()
+        kind = (f"dataset, {len(dataset.images)} images" + (f", {layers} truth layers" if layers else "")
+                + (f", truth model of {len(truth.faces)} triangles" if truth is not None else ""))
     elif path.is_file():
         manifest = load_scene(path)
         kind = "scene"
+    elif path.exists():
+        raise InputError("is neither a regular file nor a folder", field="PATH", value=str(path))
     else:
         raise InputError("no such file or folder", field="PATH", value=str(path))
     state.echo(f"{path}: valid {kind}")
@@ -265,11 +268,11 @@ def render(state: State, model: Path, dataset_dir: Path, out: Path, depth, tilt,
     state.echo(f"wrote {out}: {len(views)} views x {len(LAYERS)} layers, figure {out / 'layers.png'}")
 
 
-def load_mesh_file(path: Path):
-    """The mesh of the MODEL argument (``fsswarp.dataset.read_mesh``)."""
+def load_mesh_file(path: Path, field: str = "MODEL"):
+    """The mesh of the MODEL argument, or of the option ``field`` (``fsswarp.dataset.read_mesh``)."""
     from .dataset import read_mesh
 
-    return read_mesh(path, field="MODEL")
+    return read_mesh(path, field=field)
 
 
 @app.command("import-aris")
@@ -321,7 +324,7 @@ def import_aris(state: State, file: Path, out: Path, frames_spec: str, elevation
               help="Folder for carved.ply, carve.json and carve.png.")
 @click.option("--depth", type=float, default=None, help="Sonar depth D (m); default: the dataset's measured depth.")
 @click.option("--tilt", type=float, default=None, help="Sonar tilt (deg); default: the dataset's measured tilt.")
-@click.option("--resolution", default=128, show_default=True, type=int,
+@click.option("--resolution", default=128, show_default=True, type=click.IntRange(8, 1024),
               help="Voxels along the longest side of the carving box at the finest level.")
 @click.option("--box", nargs=6, type=float, default=None, metavar="X0 Y0 Z0 X1 Y1 Z1",
               help="Carve only inside this box (reference frame, m); default: the region every view sees.")
@@ -400,7 +403,7 @@ def carve(state: State, dataset_dir: Path, out: Path, depth, tilt, resolution: i
               help="Most pose + shape iterations after the carving.")
 @click.option("--patience", default=2, show_default=True, type=click.IntRange(min=1),
               help="Stop after this many iterations in a row without a new lowest image error E_I.")
-@click.option("--resolution", default=128, show_default=True, type=click.IntRange(min=16),
+@click.option("--resolution", default=128, show_default=True, type=click.IntRange(16, 1024),
               help="Voxels along the longest side of the carving box.")
 @click.option("--depth", type=float, default=None,
               help="Initial sonar depth D0 (m); default: the dataset's measured depth.")
@@ -509,9 +512,10 @@ def run_reconstruction(state: State, dataset, out: Path, settings, *, depth0: fl
 @click.option("--initial-model", type=click.Path(path_type=Path), default=None,
               help="Initial mesh (e.g. OUT/carved.ply of reconstruct), rendered at the measured depth and tilt "
                    "as the comparison figures' 'initial synthetic' column.")
-@click.option("--ghost-sigma", nargs=2, type=click.FloatRange(min=0.0), default=(0.0, 0.0), show_default=True,
-              metavar="BINS BEAMS", help="Despeckle the isolated ghost (Gaussian sigma inside the ghost region); "
-                                         "0 0 keeps the recorded ghost, 1 0.7 estimates the noise-free one.")
+@click.option("--ghost-sigma", nargs=2, type=float, default=(0.0, 0.0), show_default=True,
+              metavar="BINS BEAMS", help="Despeckle the isolated ghost (Gaussian sigma inside the ghost region, "
+                                         "0 to 20 pixels); 0 0 keeps the recorded ghost, 1 0.7 estimates the "
+                                         "noise-free one.")
 @click.pass_obj
 def enhance(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt, view_names, initial_model,
             ghost_sigma) -> None:
@@ -523,16 +527,15 @@ def enhance(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt
     that MODEL does not project into are skipped with a warning; none at all is an error."""
     from .atomic import check_output_folder
     from .dataset import load_dataset
+    from .enhance import check_ghost_sigma
 
     dataset = load_dataset(dataset_dir)
-    mesh = load_mesh_file(model)
+    mesh = load_mesh_file(model, "--model")
     check_output_folder(out, marker=MARKERS["enhance"])
+    check_ghost_sigma(tuple(ghost_sigma))
     initial = None
     if initial_model is not None:
-        try:
-            initial = (load_mesh_file(initial_model), str(initial_model))
-        except InputError as err:
-            raise InputError(err.message, field="--initial-model", value=str(initial_model)) from None
+        initial = (load_mesh_file(initial_model, "--initial-model"), str(initial_model))
     given = depth is not None or tilt is not None
     depth = dataset.manifest.surface.depth if depth is None else depth
     tilt = dataset.manifest.surface.tilt if tilt is None else math.radians(tilt)

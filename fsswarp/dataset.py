@@ -215,6 +215,17 @@ class Dataset:
             return None
         return read_mesh(path, file=self.root / MANIFEST_NAME, field="truth.model")
 
+    def check_truth_layers(self) -> int:
+        """Read and validate every truth layer file the folder holds (``truth_layer``); returns
+        how many there are (0 without a folder)."""
+        if self.root is None:
+            return 0
+        present = [(view, component) for view in self.rig.names for component in COMPONENTS
+                   if (self.root / _truth_layer_file(view, component)).exists()]
+        for view, component in present:
+            self.truth_layer(view, component)
+        return len(present)
+
     def truth_layer(self, view: str, component: str) -> np.ndarray:
         """The noise-free ``component`` layer (object, ghost, mirror, mirror2) of ``view``:
         ``root/truth/<view>_<component>.tiff``, validated; InputError if absent."""

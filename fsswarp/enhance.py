@@ -45,6 +45,8 @@ from .errors import InputError
 from .render import LAYERS, RenderSettings, RenderWarning, render
 
 _DB_FLOOR = 1e-30
+#: Largest despeckle σ (pixels) of the isolated ghost (``--ghost-sigma``).
+MAX_GHOST_SIGMA = 20.0
 
 
 @dataclass(frozen=True)
@@ -83,6 +85,7 @@ def enhance_view(image, layers, *, threshold: float = 1e-3, dilate: int = 1, lev
     the recorded, speckled ghost; (1, 0.7), segment's smoothing, estimates the noise-free
     one). InputError when the shapes differ or the synthetic object leaves too few
     non-overlapping pixels (fewer than 16) to learn the LUT from."""
+    check_ghost_sigma(ghost_sigma)
     image = np.asarray(image, np.float64)
     layers = np.asarray(layers, np.float64)
     if image.ndim != 2 or layers.shape != (len(LAYERS),) + image.shape:
@@ -131,6 +134,17 @@ def enhance_view(image, layers, *, threshold: float = 1e-3, dilate: int = 1, lev
                         layer["total"].astype(np.float32), obj, ghost, mirror, overlap, lut, background)
 
 
+def check_ghost_sigma(sigma) -> None:
+    """InputError (field --ghost-sigma) unless ``sigma`` is two numbers in [0, MAX_GHOST_SIGMA]
+    (pixels): a larger σ blurs the ghost over more than the region it fills, and a huge one
+    would run for minutes."""
+    values = tuple(sigma) if isinstance(sigma, (tuple, list)) else ()
+    if len(values) != 2 or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                   and 0.0 <= v <= MAX_GHOST_SIGMA for v in values):  # NaN fails too
+        raise InputError(f"must be two sigmas (bins, beams) in [0, {MAX_GHOST_SIGMA:g}] pixels", field="--ghost-sigma",
+                         value=sigma)
+
+
 def enhance(dataset, model, depth: float, tilt: float, *, views=None, settings: RenderSettings = RenderSettings(),
             backend=None, model_name: str = "model", **options) -> dict[str, EnhancedView]:
     """Enhanced views of ``dataset`` (fsswarp.dataset.Dataset) with the mesh ``model`` (reference
@@ -145,6 +159,8 @@ def enhance(dataset, model, depth: float, tilt: float, *, views=None, settings: 
     names = list(dataset.rig.names if views is None else views)
     if not names:
         raise InputError("no views to enhance", field="views", value=names)
+    if "ghost_sigma" in options:
+        check_ghost_sigma(options["ghost_sigma"])
     for name in names:
         if name not in dataset.images:
             raise InputError(f"no such view in the dataset (views: {', '.join(dataset.rig.names)})",

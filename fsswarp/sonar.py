@@ -166,7 +166,8 @@ class SonarSpec:
 
     # --- images ----------------------------------------------------------------------------
     def check_image(self, image, *, file=None, field: str = "image") -> np.ndarray:
-        """``image`` as a (bins, beams) float32 array of finite values, or InputError."""
+        """``image`` as a (bins, beams) float32 array of finite values >= 0 (linear intensity),
+        or InputError."""
         array = np.asarray(image)
         if array.shape != (self.bins, self.beams):
             raise InputError(f"shape must be (bins, beams) = ({self.bins}, {self.beams})",
@@ -176,6 +177,8 @@ class SonarSpec:
         if not np.all(np.isfinite(array)):
             raise InputError("holds non-finite values", file=file, field=field,
                              value=f"{int(np.size(array) - np.isfinite(array).sum())} NaN/inf")
+        if array.size and array.min() < 0:
+            raise InputError("must be linear intensity >= 0", file=file, field=field, value=float(array.min()))
         return array
 
 

@@ -622,6 +622,37 @@ def test_output_folder_under_a_file_is_an_input_error(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["file"]
 
 
+@pytest.mark.parametrize("spoil, where, message", [
+    ("negative-pixel", "images/a.tiff", "must be linear intensity >= 0"),
+    ("truth-layer-garbage", "truth/a_ghost.tiff", ""),
+    ("truth-layer-shape", "truth/a_ghost.tiff", "shape must be"),
+])
+def test_check_reads_every_image_and_truth_layer(tmp_path, spoil, where, message):
+    """``fsswarp check`` refuses what the commands would: a negative pixel (intensities are
+    linear, >= 0) and a truth layer that cannot be read or has the wrong shape, naming the
+    file, with exit 2; the intact dataset reports its truth layers."""
+    import tifffile
+
+    manifest = make_manifest()
+    layers = {"a": {"ghost": np.zeros((BINS, BEAMS), np.float32)}}
+    folder = save_dataset(Dataset(manifest, make_images(manifest)), tmp_path / "ds", truth_layers=layers)
+    done = subprocess.run([sys.executable, "-m", "fsswarp", "check", str(folder)], capture_output=True, text=True)
+    assert done.returncode == 0 and "1 truth layers" in done.stdout, done.stderr
+    path = folder / where
+    if spoil == "negative-pixel":
+        image = tifffile.imread(path)
+        image[3, 2] = -1.0
+        tifffile.imwrite(path, image)
+    elif spoil == "truth-layer-garbage":
+        path.write_bytes(b"not a tiff")
+    else:
+        tifffile.imwrite(path, np.zeros((BINS, 2), np.float32))
+    done = subprocess.run([sys.executable, "-m", "fsswarp", "check", str(folder)], capture_output=True, text=True)
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 2 and len(lines) == 1 and "Traceback" not in done.stderr, done.stderr
+    assert str(path) in lines[0] and message in lines[0]
+
+
 def test_outputs_follow_the_umask_like_any_other_file(tmp_path):
     """mkdtemp and mkstemp make 0700 folders and 0600 files; the outputs get the modes the
     user's umask gives a plain mkdir and open (0755 and 0644 under umask 022)."""

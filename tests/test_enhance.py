@@ -110,6 +110,11 @@ def test_bad_input(coral_one, truth_model):
         enhance_view(image, np.zeros((len(LAYERS), 3, 3), np.float32))
     with pytest.raises(InputError, match="does not project"):
         enhance_view(image, np.zeros((len(LAYERS),) + image.shape, np.float32))
+    for sigma in ((float("inf"), 1.0), (float("nan"), 0.0), (21.0, 0.0), (-1.0, 0.0), (1.0,), "1 1"):
+        with pytest.raises(InputError, match=r"--ghost-sigma = .*: must be two sigmas .* in \[0, 20\]"):
+            enhance(coral_one, far, truth.depth, truth.tilt, views=["S0"], ghost_sigma=sigma)  # before rendering
+        with pytest.raises(InputError, match="--ghost-sigma"):
+            enhance_view(image, np.zeros((len(LAYERS),) + image.shape, np.float32), ghost_sigma=sigma)
 
 
 def _png_size(path):
@@ -129,6 +134,16 @@ def _moved(coral_one, tmp_path, name, offset):
     path = tmp_path / name
     trimesh.load_mesh(coral_one.truth_model_path, process=False).apply_translation(offset).export(path)
     return str(path)
+
+
+def test_cli_names_the_mesh_options(coral_one, tmp_path, capsys):
+    """A missing --model or --initial-model mesh is named by its option, before any work."""
+    for extra, field in ((["--model", "nope.ply"], "--model = 'nope.ply'"),
+                         (["--model", str(coral_one.truth_model_path), "--initial-model", "nope.ply"],
+                          "--initial-model = 'nope.ply'")):
+        status, err = _cli(capsys, "enhance", str(coral_one.root), *extra, "--out", str(tmp_path / "e"))
+        assert status == 2 and len(err) == 1 and field in err[0] and "no such mesh file" in err[0], err
+    assert not (tmp_path / "e").exists()
 
 
 def test_cli_figures(coral_one, tmp_path, capsys):

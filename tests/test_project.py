@@ -64,6 +64,7 @@ def test_help_explains_every_command():
     (("scene", "coral-one", "--out", "x.txt"), "x.txt"),
     (("--backend", "warp", "--device", "cuda:7", "info"), "cuda:7"),
     (("--backend", "opencl", "--device", "nosuchdevice", "info"), "nosuchdevice"),
+    (("check", "/dev/null"), "is neither a regular file nor a folder"),
     (("check", "n" * 300), "File name too long"),  # an OSError of a path: one line, not a traceback
     (("check", "n" * 300 + ".toml"), "File name too long"),
     (("scene", "table", "--out", "n" * 300 + "/x.toml"), "File name too long"),
