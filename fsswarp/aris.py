@@ -46,8 +46,8 @@ from typing import Iterable
 
 import numpy as np
 
-from .atomic import output_folder, write_text
-from .dataset import (MANIFEST_NAME, Dataset, Manifest, SurfaceEstimate, load_dataset, manifest_to_toml, parse_manifest,
+from .atomic import check_output_folder, output_folder, write_text
+from .dataset import (Dataset, Manifest, SurfaceEstimate, load_dataset, manifest_to_toml, parse_manifest,
                       save_dataset)
 from .errors import InputError, is_integer
 from .rig import Rig, View
@@ -63,6 +63,8 @@ FULL_SCALE_DB = 80.0
 #: also used for the telephoto lens, whose figure could not be confirmed.
 DEFAULT_ELEVATION_FOV_DEG = 14.0
 SYSTEM_NAMES = {0: "ARIS 1800", 1: "ARIS 3000", 2: "ARIS 1200"}
+#: The import's record in the dataset folder; it marks a folder that a new import may replace.
+ARIS_RECORD = "aris.json"
 
 _BEAMS_BY_PING_MODE = {**dict.fromkeys((1, 2), 48), **dict.fromkeys((3, 4, 5), 96),
                        **dict.fromkeys((6, 7, 8), 64), **dict.fromkeys((9, 10, 11, 12), 128)}
@@ -473,6 +475,7 @@ def import_aris(path, out, *, frames=None, elevation_fov_deg: float | None = Non
     the computed and stored range windows.
     """
     path = Path(path)
+    check_output_folder(out, marker=ARIS_RECORD)  # before reading the recording
     elevation = _elevation(elevation_fov_deg)
     with open_aris(path) as aris:
         chosen = parse_frames(frames, aris.frame_count, file=path)
@@ -503,9 +506,9 @@ def import_aris(path, out, *, frames=None, elevation_fov_deg: float | None = Non
         raise err.with_file(poses if poses is not None and (err.field or "").startswith("views") else path) from None
     out = Path(out)
     # the folder appears whole: save_dataset fills the (empty) temporary folder, aris.json joins it
-    with output_folder(out, marker=MANIFEST_NAME) as tmp:
+    with output_folder(out, marker=ARIS_RECORD) as tmp:  # only an earlier import is replaced
         save_dataset(Dataset(manifest, images), tmp)
-        write_text(tmp / "aris.json", json.dumps(record, indent=2) + "\n")
+        write_text(tmp / ARIS_RECORD, json.dumps(record, indent=2) + "\n")
     return load_dataset(out)
 
 

@@ -56,7 +56,7 @@ def check_output_folder(path: str | os.PathLike, *, marker: str) -> Path:
             if not path.is_dir():
                 raise InputError("exists and is not a folder", field="--out", value=value)
             if any(path.iterdir()) and not (path / marker).exists():
-                raise InputError(f"folder exists and is not an fsswarp output (no {marker}); "
+                raise InputError(f"folder exists and is not an fsswarp output of this command (no {marker}); "
                                  "choose another --out", field="--out", value=value)
             if not os.access(path, os.W_OK | os.X_OK):
                 raise InputError("folder exists and is not writable, so it cannot be replaced",

@@ -297,12 +297,12 @@ def import_aris(state: State, file: Path, out: Path, frames_spec: str, elevation
     """Import a Sound Metrics ARIS recording (.aris) as a dataset: one view per frame (f0000,
     f0001, ...), the lens's beam-angle table, the sensors' depth and tilt as the measured D0
     and tilt, and figures/frame0_fan.png (the first imported frame)."""
-    from .aris import import_aris as run
+    from .aris import ARIS_RECORD, import_aris as run
     from .figures import fan_figure
 
     dataset = run(file, out, frames=frames_spec, elevation_fov_deg=elevation_fov_deg, poses=poses,
                   depth_m=depth, tilt_deg=tilt)
-    record = json.loads((out / "aris.json").read_text())
+    record = json.loads((out / ARIS_RECORD).read_text())
     first = dataset.rig.views[0].name
     figure = fan_figure(dataset.images[first], dataset.sonar, out / "figures" / "frame0_fan.png",
                         title=f"{file.name} {first} ({record['system']}, {record['lens']} lens)")

@@ -388,18 +388,30 @@ def save_scene(manifest: Manifest, path) -> Path:
     The mesh of a mesh target is not checked here (``load_scene`` checks it)."""
     path = Path(path)
     _check_scene(manifest, path)
+    if path.is_file() and not _is_scene_file(path):
+        raise InputError("exists and is not a scene file (no [target] table); choose another file", file=path)
     text = manifest_to_toml(manifest)
     parse_manifest(tomllib.loads(text), file=path)  # every field validated as a reader will
     return write_text(path, text)
 
 
+def _is_scene_file(path: Path) -> bool:
+    """Whether ``path`` is TOML with a ``[target]`` table (a scene file, which ``save_scene``
+    may replace; a dataset's manifest or any other file it must not)."""
+    try:
+        return isinstance(tomllib.loads(path.read_text(encoding="utf-8")).get("target"), dict)
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return False
+
+
 def save_dataset(dataset: Dataset, folder, *, truth_layers: dict[str, dict[str, np.ndarray]] | None = None,
-                 truth_mesh=None) -> Path:
+                 truth_mesh=None, marker: str = MANIFEST_NAME) -> Path:
     """Write ``dataset`` as a dataset folder, all or nothing.
 
     Everything is validated and encoded before anything is written; the folder appears whole
-    (``fsswarp.atomic.output_folder``): an earlier dataset there is replaced, any other
-    non-empty folder is refused. ``truth_layers`` (view -> component -> image) go to
+    (``fsswarp.atomic.output_folder``): an earlier dataset there (a folder holding ``marker``:
+    ``simulate`` passes its truth model, so a simulation never replaces a recording) is
+    replaced, any other non-empty folder is refused. ``truth_layers`` (view -> component -> image) go to
     ``truth/<view>_<component>.tiff``; ``truth_mesh`` (a trimesh.Trimesh) to ``truth/model.ply``,
     and the manifest's ``truth.model`` then names it. Without them, a dataset loaded from a
     folder keeps the truth layers and model found there. Both need a ``[truth]`` table.
@@ -465,7 +477,7 @@ def save_dataset(dataset: Dataset, folder, *, truth_layers: dict[str, dict[str, 
                                                        field=f"truth_layers[{view!r}][{component!r}]"))
     files[MANIFEST_NAME] = text.encode("utf-8")
 
-    with output_folder(folder, marker=MANIFEST_NAME) as tmp:
+    with output_folder(folder, marker=marker) as tmp:
         for rel, data in files.items():
             target = tmp / rel
             target.parent.mkdir(parents=True, exist_ok=True)

@@ -9,7 +9,7 @@ import numpy as np
 import trimesh
 
 from .atomic import check_output_folder
-from .dataset import MANIFEST_NAME, Dataset, Manifest, Truth, load_dataset, load_scene, save_dataset
+from .dataset import TRUTH_MODEL, Dataset, Manifest, Truth, load_dataset, load_scene, save_dataset
 from .errors import InputError, check_integer
 from .render import LAYERS, RenderSettings, add_noise, render
 from .rig import world_to_reference
@@ -34,7 +34,7 @@ def simulate(scene: str | Path | Manifest, out: str | Path, *, seed: int = 0,
     into the folder ``out``: noisy images, the noise-free layers and the truth model (in the
     reference frame of the true depth and tilt). Returns the saved Dataset."""
     check_integer("--seed", seed, 0)
-    check_output_folder(out, marker=MANIFEST_NAME)  # before the rendering
+    check_output_folder(out, marker=TRUTH_MODEL)  # before the rendering; a recording is never replaced
     manifest, base = (scene, None) if isinstance(scene, Manifest) else resolve_scene(scene)
     if manifest.target is None or manifest.truth is None:
         raise InputError("a scene needs [target] and [truth]", field="scene", value=str(scene))
@@ -52,5 +52,5 @@ def simulate(scene: str | Path | Manifest, out: str | Path, *, seed: int = 0,
     dataset_manifest = dataclasses.replace(manifest, target=None,
                                            truth=Truth(depth=truth.depth, tilt=truth.tilt))
     dataset = Dataset(dataset_manifest, images)
-    save_dataset(dataset, out, truth_layers=layers, truth_mesh=model)
+    save_dataset(dataset, out, truth_layers=layers, truth_mesh=model, marker=TRUTH_MODEL)
     return load_dataset(out)

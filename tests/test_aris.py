@@ -301,6 +301,29 @@ def test_pose_file_mistakes_are_refused(tmp_path, text, field):
     assert "\n" not in message and str(path) in message and field in message
 
 
+def test_an_import_and_a_simulation_never_replace_each_other(tmp_path):
+    """import-aris replaces only an earlier import (its aris.json), simulate only an earlier
+    simulation (its truth model): a recording is never lost to a simulation with swapped
+    arguments, nor a simulation to an import; each refuses before its work."""
+    from fsswarp.simulate import simulate
+
+    path = write(tmp_path, synthetic(frames=1))
+    imported = tmp_path / "imported"
+    import_aris(path, imported)
+    import_aris(path, imported)  # an earlier import is replaced
+    before = sorted((p.relative_to(imported), p.stat().st_mtime_ns) for p in imported.rglob("*"))
+    with pytest.raises(InputError, match="--out = .*imported.*not an fsswarp output of this command "
+                                         r"\(no truth/model\.ply\)"):
+        simulate("coral-one", imported)
+    assert sorted((p.relative_to(imported), p.stat().st_mtime_ns) for p in imported.rglob("*")) == before
+    simulated = tmp_path / "simulated"
+    simulated.mkdir()
+    (simulated / "dataset.toml").write_text("# a dataset of another kind\n")
+    with pytest.raises(InputError, match=r"no aris\.json"):
+        import_aris(path, simulated)
+    assert [p.name for p in simulated.iterdir()] == ["dataset.toml"]
+
+
 @pytest.mark.parametrize("row, field", [("0,0,0,0,999,0", "roll_deg = 999.0"), ("0,0,0,0,0,90", "tilt_offset_deg")])
 def test_pose_values_out_of_range_name_the_pose_file(tmp_path, row, field):
     """A pose row that the manifest refuses (a roll of 999°) is reported against the pose

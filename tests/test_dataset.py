@@ -653,6 +653,22 @@ def test_check_reads_every_image_and_truth_layer(tmp_path, spoil, where, message
     assert str(path) in lines[0] and message in lines[0]
 
 
+def test_scene_files_replace_scene_files_only(tmp_path):
+    """save_scene (fsswarp scene --out) replaces an earlier scene file but refuses a dataset's
+    manifest or any other file, which it would have overwritten silently."""
+    manifest = make_manifest(target=Target(position=(0.0, 2.0, -0.1), builtin="table"), images=False)
+    path = save_scene(manifest, tmp_path / "scene.toml")
+    save_scene(manifest, path)  # an earlier scene file
+    dataset = save_dataset(Dataset(make_manifest(), make_images(make_manifest())), tmp_path / "ds")
+    for other in (dataset / "dataset.toml", tmp_path / "notes.toml"):
+        if not other.exists():
+            other.write_text("not = 'a scene'\n")
+        before = other.read_bytes()
+        with pytest.raises(InputError, match="exists and is not a scene file"):
+            save_scene(manifest, other)
+        assert other.read_bytes() == before
+
+
 def test_outputs_follow_the_umask_like_any_other_file(tmp_path):
     """mkdtemp and mkstemp make 0700 folders and 0600 files; the outputs get the modes the
     user's umask gives a plain mkdir and open (0755 and 0644 under umask 022)."""
