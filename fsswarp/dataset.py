@@ -775,12 +775,18 @@ def _truth_layer_file(view: str, component: str) -> str:
 
 
 def _read_image(path: Path, sonar: SonarSpec, *, field: str) -> np.ndarray:
-    """A TIFF image, validated against ``sonar`` (InputError naming the file otherwise)."""
+    """A TIFF image of one page, validated against ``sonar`` (InputError naming the file
+    otherwise: a second page would be dropped unseen)."""
     try:
-        array = tifffile.imread(path)
+        with tifffile.TiffFile(path) as tiff:
+            pages = len(tiff.pages)
+            array = tiff.asarray() if pages == 1 else None
     except Exception as err:  # noqa: BLE001 - any failure to decode is a bad file
         raise InputError(f"not a readable TIFF image ({type(err).__name__}: {err})", file=path,
                          field=field) from None
+    if array is None:
+        raise InputError("must hold one image (one page), one view per file", file=path, field=field,
+                         value=f"{pages} pages")
     array = np.asarray(array)
     if array.dtype.kind == "f" and array.dtype.itemsize == 4 and not array.dtype.isnative:
         array = array.astype(np.float32)

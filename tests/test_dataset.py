@@ -375,14 +375,20 @@ def _set(path: str, value):
     return edit
 
 
-def _image(name: str, array=None, raw: bytes | None = None):
-    """An edit that replaces (or, with neither argument, deletes) ``images/<name>.tiff``."""
+def _image(name: str, array=None, raw: bytes | None = None, pages: int = 0):
+    """An edit that replaces (or, with no argument, deletes) ``images/<name>.tiff``; ``pages``
+    appends that many good images as separate series (a reader of the first series alone
+    would not notice the others)."""
     def edit(table: dict, folder: Path) -> None:
         path = folder / "images" / f"{name}.tiff"
         if raw is not None:
             path.write_bytes(raw)
         elif array is not None:
             tifffile.imwrite(path, array)
+        elif pages:
+            path.unlink()
+            for _ in range(pages):
+                tifffile.imwrite(path, good_image(), append=True)
         else:
             path.unlink()
     return edit
@@ -445,6 +451,7 @@ BAD = [
         file="images/b.tiff"),
     Bad("image-with-nan", _image("c", nan_image), "views[2].image", "1 NaN", file="images/c.tiff"),
     Bad("image-not-a-tiff", _image("a", raw=b"not a tiff at all"), "views[0].image", file="images/a.tiff"),
+    Bad("image-of-two-pages", _image("a", pages=2), "views[0].image", "'2 pages'", file="images/a.tiff"),
     Bad("truth-model-missing", _set("truth.model", "truth/model.ply"), "truth.model", "'truth/model.ply'"),
     # scene files
     Bad("scene-mesh-and-builtin", _both(_mesh_file, _set("target.mesh", "rock.ply")), "target.mesh",
