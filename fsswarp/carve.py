@@ -436,6 +436,9 @@ def voxel_mesh(voxels: VoxelCarving, *, smooth: int = 10, faces: int = 20_000):
         mesh = _accept(mesh, smoothed, "Taubin smoothing")
     if faces and len(mesh.faces) > faces:
         mesh = _accept(mesh, _decimate(mesh, faces, 2.0 * h), "decimation")
+        if len(mesh.faces) > faces:
+            warnings.warn(f"decimation stopped at {len(mesh.faces)} faces, above the {faces} asked for: it moves "
+                          "the surface by at most 2 voxels", CarveWarning, stacklevel=2)
     return mesh
 
 

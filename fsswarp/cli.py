@@ -329,7 +329,8 @@ def import_aris(state: State, file: Path, out: Path, frames_spec: str, elevation
 @click.option("--box", nargs=6, type=float, default=None, metavar="X0 Y0 Z0 X1 Y1 Z1",
               help="Carve only inside this box (reference frame, m); default: the region every view sees.")
 @click.option("--faces", default=20_000, show_default=True, type=click.IntRange(min=0),
-              help="Decimate the mesh to at most this many triangles (0: keep all).")
+              help="Decimate the mesh to at most this many triangles (0: keep all); the decimation moves the "
+                   "surface by at most 2 voxels and warns where that leaves more.")
 @click.pass_obj
 def carve(state: State, dataset_dir: Path, out: Path, depth, tilt, resolution: int, box, faces: int) -> None:
     """Segment every view and carve the voxels they agree on into a closed mesh (space carving):

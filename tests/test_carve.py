@@ -206,6 +206,9 @@ def test_carving_is_conservative_and_coarse_to_fine_is_exact(backend):
     assert carved.kept < 3.0 * inside.sum()
     mesh = voxel_mesh(carved, faces=3000)
     assert mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0 and len(mesh.faces) <= 3000
+    with pytest.warns(CarveWarning, match=r"decimation stopped at \d+ faces, above the 4 asked for"):
+        coarse = voxel_mesh(carved, faces=4)  # more than 2 voxels from the surface: not reached
+    assert coarse.is_watertight and 4 < len(coarse.faces) < len(mesh.faces)
     assert trimesh.boolean.intersection([mesh, sphere], engine="manifold").volume >= 0.99 * sphere.volume
 
 
