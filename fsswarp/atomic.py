@@ -45,9 +45,11 @@ def check_output_folder(path: str | os.PathLike, *, marker: str) -> Path:
     or can be made, empty, or an earlier output holding ``marker``; else InputError (field
     --out). Commands call it before their long work, so a wrong --out fails at once. The
     current folder and the folders above it are refused (replacing them would pull the
-    folder out from under the shell), as is an existing folder that cannot be moved aside."""
+    folder out from under the shell), as is an existing folder that cannot be moved aside.
+    Returns the path with links resolved: ``--out`` a link to a folder writes where it points,
+    and the link stays."""
     value = str(path)
-    path = Path(os.path.abspath(path))
+    path = Path(os.path.realpath(path))  # a link to a folder: the output goes where it points
     try:
         if Path.cwd().is_relative_to(path):
             raise InputError("is the current folder or holds it; name a new folder for the output",

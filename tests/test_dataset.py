@@ -695,6 +695,23 @@ def test_outputs_follow_the_umask_like_any_other_file(tmp_path):
     assert (tmp_path / "private.toml").stat().st_mode & 0o777 == 0o600
 
 
+def test_an_output_given_as_a_link_goes_where_the_link_points(tmp_path):
+    """--out a symbolic link to a folder (an output kept on another disk) writes into the
+    folder it points to, and the link stays a link; replacing an earlier output there too."""
+    from fsswarp.atomic import output_folder
+
+    target = tmp_path / "disk" / "out"
+    target.mkdir(parents=True)
+    link = tmp_path / "out"
+    link.symlink_to(target, target_is_directory=True)
+    for text in ("{}", '{"again": 1}'):
+        with output_folder(link, marker="x.json") as tmp:
+            (tmp / "x.json").write_text(text)
+        assert link.is_symlink() and (target / "x.json").read_text() == text
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["disk", "out"]
+    assert [p.name for p in (tmp_path / "disk").iterdir()] == ["out"]
+
+
 def test_output_folder_refuses_the_current_folder_and_what_cannot_be_replaced(tmp_path, monkeypatch):
     """--out "." (or "", or a folder above it) would be renamed away from under the shell,
     and an existing folder that is not writable cannot be moved aside: both are refused
