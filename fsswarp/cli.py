@@ -697,7 +697,8 @@ def main(argv: list[str] | None = None) -> int:
         click.echo(err.ctx.get_help())
         return 2
     except click.UsageError as err:
-        command = err.ctx.command_path if err.ctx is not None else "fsswarp"
+        named = [a for a in (sys.argv[1:] if argv is None else argv) if a in app.commands]
+        command = err.ctx.command_path if err.ctx is not None else " ".join(["fsswarp"] + named[:1])
         message = " ".join(err.format_message().split())
         print(f"fsswarp: error: {message} (see '{command} --help')", file=sys.stderr)
         return 2

@@ -65,6 +65,7 @@ def test_help_explains_every_command():
     (("--backend", "warp", "--device", "cuda:7", "info"), "cuda:7"),
     (("--backend", "opencl", "--device", "nosuchdevice", "info"), "nosuchdevice"),
     (("check", "/dev/null"), "is neither a regular file nor a folder"),
+    (("carve", "ds", "--out", "x", "--box", "1", "2", "3"), "(see 'fsswarp carve --help')"),  # click gives no ctx
     (("check", "n" * 300), "File name too long"),  # an OSError of a path: one line, not a traceback
     (("check", "n" * 300 + ".toml"), "File name too long"),
     (("scene", "table", "--out", "n" * 300 + "/x.toml"), "File name too long"),
