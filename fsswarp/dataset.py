@@ -274,12 +274,18 @@ def read_mesh(path: Path, *, field: str, file: Path | None = None, value: str | 
     if not path.is_file():
         raise InputError("no such mesh file", file=file, field=field, value=value)
     try:
-        mesh = trimesh.load_mesh(path, process=True)
+        mesh = trimesh.load_mesh(path, process=False)  # processing would drop non-finite vertices unseen
     except Exception as err:  # trimesh raises many kinds for unreadable files
         raise InputError(f"cannot read mesh ({' '.join(str(err).split())})", file=file, field=field,
                          value=value) from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise InputError("holds no triangles", file=file, field=field, value=value)
+    with np.errstate(invalid="ignore"):
+        bad = int(np.sum(~(np.abs(np.asarray(mesh.vertices)) < np.finfo(np.float32).max).all(axis=1)))
+    if bad:
+        raise InputError(f"has {bad} vertices that are not finite numbers within float32's range (the kernels')",
+                         file=file, field=field, value=value)
+    mesh.process()  # as trimesh.load_mesh(..., process=True): duplicate vertices merged
     return mesh
 
 

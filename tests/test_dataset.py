@@ -752,6 +752,10 @@ def test_output_folder_refuses_the_current_folder_and_what_cannot_be_replaced(tm
 
 
 @pytest.mark.parametrize("content, message", [(b"not a mesh", "cannot read mesh"),
+                                              (b"ply\nformat ascii 1.0\nelement vertex 3\nproperty double x\n"
+                                               b"property double y\nproperty double z\nelement face 1\n"
+                                               b"property list uchar int vertex_indices\nend_header\n"
+                                               b"0 0 0\nnan 1 0\n0 0 1e39\n3 0 1 2\n", "has 2 vertices that are not"),
                                               (b"ply\nformat ascii 1.0\nend_header\n", "")])
 def test_truth_mesh_names_an_unreadable_truth_model(tmp_path, content, message):
     import trimesh
