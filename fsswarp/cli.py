@@ -127,6 +127,7 @@ def check(state: State, path: Path) -> None:
     """Validate a dataset folder (with dataset.toml) or a scene file (.toml) and summarize it.
     Exit 2 naming the first bad field."""
     from .dataset import load_dataset, load_scene
+    from .scenes import target_world_mesh
 
     if path.is_dir():
         dataset = load_dataset(path)
@@ -137,6 +138,7 @@ def check(state: State, path: Path) -> None:
                 + (f", truth model of {len(truth.faces)} triangles" if truth is not None else ""))
     elif path.is_file():
         manifest = load_scene(path)
+        target_world_mesh(manifest.target, base=path.parent, file=path)  # read and placed as simulate will
         kind = "scene"
     elif path.exists():
         raise InputError("is neither a regular file nor a folder", field="PATH", value=str(path))

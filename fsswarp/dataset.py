@@ -336,11 +336,11 @@ def load_scene(path) -> Manifest:
     path = Path(path)
     if path.is_dir():
         raise InputError("is a folder; a scene file is a .toml file", file=path)
-    from .scenes import target_world_mesh
-
     manifest = load_manifest(path)
     _check_scene(manifest, path)
-    target_world_mesh(manifest.target, base=path.parent, file=path)  # the mesh is read and placed
+    mesh = manifest.target.mesh_path(path.parent)
+    if mesh is not None and not mesh.is_file():
+        raise InputError(f"file not found: {mesh}", file=path, field="target.mesh", value=manifest.target.mesh)
     return manifest
 
 

@@ -18,14 +18,14 @@ from .targets import BUILTIN_TARGETS
 
 
 def resolve_scene(scene: str | Path) -> tuple[Manifest, Path | None]:
-    """A built-in scene name or a scene file → (manifest, folder that resolves its mesh path)."""
+    """A built-in scene name or a scene file → (manifest, the scene file or None)."""
     if str(scene) in BUILTIN_TARGETS:
         return builtin_scene(str(scene)), None
     path = Path(scene)
     if not path.is_file():
         raise InputError(f"neither a scene file nor a built-in scene ({', '.join(BUILTIN_TARGETS)})",
                          field="SCENE", value=str(scene))
-    return load_scene(path), path.parent
+    return load_scene(path), path
 
 
 def simulate(scene: str | Path | Manifest, out: str | Path, *, seed: int = 0,
@@ -35,11 +35,11 @@ def simulate(scene: str | Path | Manifest, out: str | Path, *, seed: int = 0,
     reference frame of the true depth and tilt). Returns the saved Dataset."""
     check_integer("--seed", seed, 0)
     check_output_folder(out, marker=TRUTH_MODEL)  # before the rendering; a recording is never replaced
-    manifest, base = (scene, None) if isinstance(scene, Manifest) else resolve_scene(scene)
+    manifest, file = (scene, None) if isinstance(scene, Manifest) else resolve_scene(scene)
     if manifest.target is None or manifest.truth is None:
         raise InputError("a scene needs [target] and [truth]", field="scene", value=str(scene))
     truth = manifest.truth
-    world = target_world_mesh(manifest.target, base=base)
+    world = target_world_mesh(manifest.target, base=file.parent if file else None, file=file)
     model = trimesh.Trimesh(world_to_reference(world.vertices, manifest.rig, truth.depth, truth.tilt),
                             world.faces, process=False)
     views = render(model, manifest.sonar, manifest.rig, truth.depth, truth.tilt, settings=settings,
