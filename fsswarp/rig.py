@@ -121,7 +121,7 @@ class Rig:
 
         Returns ``(R, s)`` of shapes (*G, 3, 3) and (*G, 3); read-only for one candidate
         (``_one``)."""
-        return self._one("reference", depth, tilt)
+        return self._one("_reference_pose", depth, tilt)
 
     def _reference_pose(self, depth, tilt):
         ref = self.views[self.reference]
@@ -135,22 +135,21 @@ class Rig:
 
         ``R_m = (R_ref^W)ᵀ R_m^W`` and ``t_m = (R_ref^W)ᵀ (s_m - s_ref)``; both depend on β.
         Returns ``(R, t)``: (*G, V, 3, 3) and (*G, V, 3); read-only for one candidate (``_one``)."""
-        return self._one("relative", depth, tilt)
+        return self._one("_relative_poses", depth, tilt)
 
-    def _one(self, which: str, depth, tilt):
-        """``reference_pose`` or ``relative_poses`` (``which``) of broadcast (*G,) depths and
-        tilts; one candidate (G of size 1, a pose step asks for each several times) is
-        remembered (``_remembered``)."""
+    def _one(self, method: str, depth, tilt):
+        """The result of the method named ``method`` (``_reference_pose`` or ``_relative_poses``)
+        for broadcast (*G,) depths and tilts; one candidate (G of size 1, a pose step asks for
+        each several times) is remembered (``_remembered``)."""
         depth, tilt = np.broadcast_arrays(np.asarray(depth, np.float64), np.asarray(tilt, np.float64))
         if depth.size == 1:
-            return self._remembered(which, depth.shape, float(depth.flat[0]), float(tilt.flat[0]))
-        return self._reference_pose(depth, tilt) if which == "reference" else self._relative_poses(depth, tilt)
+            return self._remembered(method, depth.shape, float(depth.flat[0]), float(tilt.flat[0]))
+        return getattr(self, method)(depth, tilt)
 
     @functools.lru_cache(maxsize=256)
-    def _remembered(self, which: str, shape: tuple, depth: float, tilt: float):
+    def _remembered(self, method: str, shape: tuple, depth: float, tilt: float):
         """The read-only result of ``_one`` for one candidate of ``shape``."""
-        depth, tilt = np.full(shape, depth), np.full(shape, tilt)
-        result = self._reference_pose(depth, tilt) if which == "reference" else self._relative_poses(depth, tilt)
+        result = getattr(self, method)(np.full(shape, depth), np.full(shape, tilt))
         for array in result:
             array.setflags(write=False)
         return result
