@@ -205,8 +205,7 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as err:
         print(f"identifiability: error: {err}", file=sys.stderr)
         return 2
-    name = args.name or f"{backend.name}-{backend.device}".replace(":", "")
-    command = "python bench/identifiability.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    name, command = paper_table.run_identity("identifiability.py", args.name, backend, argv)
     begin = time.perf_counter()
     scenes = {}
     with tempfile.TemporaryDirectory() as folder:

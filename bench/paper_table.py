@@ -139,6 +139,13 @@ def add_run_options(parser: argparse.ArgumentParser, records: Path) -> None:
     parser.add_argument("--records", type=Path, default=records)
 
 
+def run_identity(script: str, name: str | None, backend, argv: list[str] | None) -> tuple[str, str]:
+    """(record name: ``name`` or BACKEND-DEVICE, the command line that ran) of a run of the
+    bench script ``script`` (e.g. "paper_table.py") with arguments ``argv`` (default sys.argv)."""
+    command = f"python bench/{script} " + " ".join(argv if argv is not None else sys.argv[1:])
+    return name or f"{backend.name}-{backend.device}".replace(":", ""), command
+
+
 def save_record(record: dict, name: str, records: Path, default: Path, markdown) -> int:
     """Write ``record`` to ``records``/NAME.json, print ``markdown(record, name)`` and, when
     ``records`` is the ``default`` folder under bench/records/, regenerate RESULTS.md with
@@ -175,8 +182,7 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as err:
         print(f"paper_table: error: {err}", file=sys.stderr)
         return 2
-    name = args.name or f"{backend.name}-{backend.device}".replace(":", "")
-    command = "python bench/paper_table.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    name, command = run_identity("paper_table.py", args.name, backend, argv)
     begin = time.perf_counter()
     runs = run_table(backend, args.scenes, seed=args.seed, iterations=args.iterations,
                      tilt_offset_deg=args.tilt_offset, progress=lambda line: print(line, flush=True))
