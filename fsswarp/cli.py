@@ -20,7 +20,7 @@ from .errors import InputError
 #: The file that marks each command's output folder: ``fsswarp.atomic.output_folder`` replaces
 #: an existing --out only if it holds this file (or is empty).
 MARKERS = {"bench": "bench.json", "render": "render.json", "carve": "carve.json", "demo": "demo.json",
-           "reconstruct": "result.json", "enhance": "enhance.json"}
+           "reconstruct": "result.json", "enhance": "enhance.json", "pose": "pose.json"}
 
 
 @dataclass
@@ -427,6 +427,69 @@ def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, pat
     run_reconstruction(state, dataset, out,
                        ReconstructSettings(iterations=iterations, patience=patience, resolution=resolution),
                        depth0=depth, tilt0=None if tilt is None else math.radians(tilt))
+
+
+@app.command()
+@click.argument("dataset_dir", metavar="DIR", type=click.Path(path_type=Path))
+@click.option("--model", required=True, type=click.Path(path_type=Path),
+              help="Mesh of the object in the dataset's reference frame (a known shape, truth/model.ply of a "
+                   "simulation, or OUT/model.ply of reconstruct).")
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="Folder for pose.json and pose.png.")
+@click.option("--depth", type=float, default=None,
+              help="Initial sonar depth D0 (m); default: the dataset's measured depth.")
+@click.option("--tilt", type=float, default=None,
+              help="Initial sonar tilt (deg); default: the dataset's measured tilt.")
+@click.option("--levels", default=3, show_default=True, type=click.IntRange(1, 6),
+              help="Grid levels, each 9 x 9 cells around the previous level's best, at half its spacing.")
+@click.pass_obj
+def pose(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt, levels: int) -> None:
+    """Estimate the sonar's depth D and tilt from the dataset DIR with a given MODEL of the
+    object (the pose step of reconstruct, alone): a grid over D0 ± 1.2 depth_sigma_m and tilt0
+    ± 1.2 tilt_sigma_deg of the manifest, refined per level, then a BOBYQA polish on E_mu;
+    the estimate is kept only where E_mu falls. OUT/pose.json and OUT/pose.png (the grid
+    levels)."""
+    from .atomic import check_output_folder, output_folder
+    from .dataset import load_dataset
+    from .figures import pose_figure
+    from .pose import PoseWarning, estimate_pose
+
+    dataset = load_dataset(dataset_dir)
+    mesh = load_mesh_file(model, "--model")
+    check_output_folder(out, marker=MARKERS["pose"])
+    backend = state.get_backend()
+    given = depth is not None or tilt is not None
+    state.echo(f"estimating depth and tilt of {dataset_dir} with {model}: {levels} grid levels "
+               f"({backend.name} on {backend.device})")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", PoseWarning)  # the views left out are listed below
+            result = estimate_pose(mesh, dataset, depth0=depth, tilt0=None if tilt is None else math.radians(tilt),
+                                   levels=levels, backend=backend, progress=lambda line: state.echo("  " + line))
+    except InputError as err:
+        if err.field != "model":
+            raise
+        raise InputError(err.message, field="--model", value=str(model)) from None
+    left_out = [v.name for v in dataset.rig.views if v.optimize and v.name not in result.views]
+    record = {"dataset": str(dataset_dir), "model": str(model), **result.summary(),
+              "start_source": "given" if given else "measured", "views_left_out": left_out,
+              "backend": backend.name, "device": backend.device}
+    truth = dataset.manifest.truth
+    if truth is not None:
+        record["truth"] = {"depth_m": truth.depth, "tilt_deg": math.degrees(truth.tilt),
+                           "depth_error_m": result.depth - truth.depth,
+                           "tilt_error_deg": math.degrees(result.tilt - truth.tilt)}
+        state.echo(f"  vs truth: D {1e3 * (result.depth - truth.depth):+.1f} mm, tilt "
+                   f"{math.degrees(result.tilt - truth.tilt):+.3f} deg (from {1e3 * (result.depth0 - truth.depth):+.1f}"
+                   f" mm, {math.degrees(result.tilt0 - truth.tilt):+.3f} deg)")
+    if left_out:
+        state.echo(f"  views left out (the model is not seen in them): {', '.join(left_out)}")
+    with output_folder(out, marker=MARKERS["pose"]) as tmp:
+        pose_figure(result, tmp / "pose.png", truth=None if truth is None else (truth.depth, truth.tilt),
+                    title=f"{dataset_dir.name}: the (D, tilt) grid search with {model.name}")
+        (tmp / "pose.json").write_text(json.dumps(record, indent=2))
+    state.echo(f"wrote {out}: D {result.depth:.4f} m, tilt {math.degrees(result.tilt):.3f} deg "
+               f"({'moved' if result.accepted else 'kept: E_mu did not fall'}), pose.json, pose.png "
+               f"({result.seconds:.1f} s)")
 
 
 @app.command()

@@ -252,6 +252,26 @@ class PoseResult:
     views: tuple[str, ...]
     mirror_views: tuple[str, ...]
 
+    def summary(self) -> dict:
+        """``pose.json`` of ``fsswarp pose`` (README): lengths in m, angles in degrees, E_mu in
+        m; a value that is not finite (E_mu where no patch was found) is null."""
+        def point(depth: float, tilt: float) -> dict:
+            return {"depth_m": depth, "tilt_deg": math.degrees(tilt)}
+
+        def finite(value: float) -> float | None:
+            return float(value) if math.isfinite(value) else None
+
+        return {**point(self.depth, self.tilt), "start": point(self.depth0, self.tilt0),
+                "candidate": point(*self.candidate), "accepted": self.accepted,
+                "E_mu_start_m": finite(self.error_before), "E_mu_m": finite(self.error_after),
+                "E_mu_candidate_m": finite(self.polish_error),
+                "levels": [{"depths_m": level.depths.tolist(), "tilts_deg": np.degrees(level.tilts).tolist(),
+                            "costs_m": [[finite(c) for c in row] for row in level.costs.tolist()],
+                            "best": point(*level.best)} for level in self.levels],
+                "detection_shift_rows": self.shift, "anchor_views": list(self.anchors), "views": list(self.views),
+                "mirror_views": list(self.mirror_views), "evaluations": dict(self.evaluations),
+                "seconds": self.seconds}
+
 
 # --- the problem -----------------------------------------------------------------------------
 

@@ -2,6 +2,7 @@
 (noisy images, the true model)."""
 
 import dataclasses
+import json
 import math
 import warnings
 
@@ -13,6 +14,7 @@ from hypothesis import strategies as st
 from scipy.ndimage import distance_transform_edt
 
 from fsswarp.backends import get_backend
+from fsswarp.cli import main
 from fsswarp.dataset import Dataset
 from fsswarp.errors import InputError
 from fsswarp.figures import pose_figure
@@ -435,3 +437,50 @@ def test_a_handed_over_problem_gives_the_same_estimate_and_warnings(coral_one, t
     with pytest.raises(ValueError, match="problem must be a PoseProblem of this model"):
         estimate_pose(aside, coral_one, depth0=truth.depth, tilt0=truth.tilt, settings=settings, backend=opencl,
                       problem=used)
+
+
+def _cli(capsys, *args):
+    """Run the command line; returns (exit status, stderr lines)."""
+    capsys.readouterr()
+    status = main(list(args))
+    return status, capsys.readouterr().err.splitlines()
+
+
+def test_cli_pose_recovers_the_truth_from_the_measured_start(coral_one, tmp_path, capsys):
+    """``fsswarp pose`` with the true model, from the manifest's measured (D0, β0) (4 cm and
+    0.8° off): within 5 mm and 0.2° of the simulation's truth, pose.json strict JSON."""
+    truth, surface = coral_one.manifest.truth, coral_one.manifest.surface
+    out = tmp_path / "pose"
+    status, err = _cli(capsys, "pose", str(coral_one.root), "--model", str(coral_one.truth_model_path),
+                       "--out", str(out))
+    assert status == 0 and err == []
+    record = json.loads((out / "pose.json").read_text(), parse_constant=lambda name: pytest.fail(name))
+    assert abs(record["depth_m"] - truth.depth) <= 0.005
+    assert abs(record["tilt_deg"] - math.degrees(truth.tilt)) <= 0.2
+    assert record["start"] == {"depth_m": surface.depth, "tilt_deg": pytest.approx(math.degrees(surface.tilt))}
+    assert record["start_source"] == "measured" and record["accepted"]
+    assert record["E_mu_m"] < 0.2 * record["E_mu_start_m"]
+    assert record["truth"]["depth_error_m"] == pytest.approx(record["depth_m"] - truth.depth)
+    assert record["truth"]["tilt_error_deg"] == pytest.approx(record["tilt_deg"] - math.degrees(truth.tilt))
+    assert [np.shape(level["costs_m"]) for level in record["levels"]] == [(9, 9)] * 3
+    assert record["views"] == [v.name for v in coral_one.rig.views if v.optimize]
+    assert record["views_left_out"] == [] and record["backend"] == get_backend().name
+    assert (out / "pose.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_cli_pose_bad_input(coral_one, tmp_path, capsys):
+    """Each mistake: one line naming the option and value, exit 2, nothing written (a wrong
+    --out: tests/test_reconstruct.py)."""
+    model = str(coral_one.truth_model_path)
+    far = tmp_path / "far.ply"
+    trimesh.load_mesh(model, process=False).apply_translation([0.0, 10.0, 0.0]).export(far)
+    bad = tmp_path / "bad"
+    cases = [(["--model", str(tmp_path / "nope.ply")], ["--model", "nope.ply", "no such mesh file"]),
+             (["--model", str(far)], ["--model", "far.ply", "seen in none of the views"]),
+             (["--model", model, "--tilt", "95"], ["--tilt = 95"]),
+             (["--model", model, "--levels", "0"], ["--levels", "0"])]
+    for args, words in cases:
+        status, err = _cli(capsys, "pose", str(coral_one.root), *args, "--out", str(bad))
+        assert status == 2 and len(err) == 1 and err[0].startswith("fsswarp: error: "), (args, err)
+        assert all(w in err[0] for w in words), err
+        assert not bad.exists() and not list(tmp_path.glob(".bad.*"))

@@ -360,7 +360,8 @@ def test_bad_input_exits_2_and_writes_nothing(coral_one, tmp_path, args, field):
 
 
 @pytest.mark.parametrize("command", [["reconstruct", "DATA"], ["carve", "DATA"],
-                                     ["enhance", "DATA", "--model", "TRUTH"], ["render", "TRUTH", "--dataset", "DATA"],
+                                     ["enhance", "DATA", "--model", "TRUTH"], ["pose", "DATA", "--model", "TRUTH"],
+                                     ["render", "TRUTH", "--dataset", "DATA"],
                                      ["simulate", "coral-one"]])
 @pytest.mark.parametrize("where, message", [("mine", "not an fsswarp output"), ("file/out", "file is not a folder")])
 def test_a_wrong_out_fails_before_the_work(coral_one, tmp_path, command, where, message):
