@@ -313,28 +313,38 @@ class PoseProblem:
     def locate(self, depth: float, tilt: float) -> None:
         """Find the data contours (``data``), the anchor views and the detection shift
         (``anchors``, ``shift``) with the model synthesized at (depth m, tilt rad), the current
-        estimate; ``estimate`` records it and ``predicted`` keeps those (V, 4, bins, beams)
-        layers of the data views (exact samples)."""
+        estimate; ``estimate`` records it. The layers rendered there (exact samples) stay on
+        the device for the costs at the estimate; ``predicted`` reads them on first use."""
         check_depth_tilt(depth, tilt)
-        self.data, self.predicted, layers, keep = self._data_contours(depth, tilt)
+        self.data, self._layers, self._keep, self._predicted = self._data_contours(depth, tilt)
         self._distances = self.backend.device_distances(self.data.distances)  # read at every cap
-        self.anchors, self.shift = self._detection_shift(depth, tilt, layers, keep)
+        self.anchors, self.shift = self._detection_shift(depth, tilt)
         self.estimate = (float(depth), float(tilt))
+
+    @property
+    def predicted(self) -> np.ndarray:
+        """(V, 4, bins, beams) float32 layers of the data views at the located estimate (exact
+        samples), read from the device on first use."""
+        if self._predicted is None:
+            self._predicted = self._layers.numpy()[self._keep]
+        return self._predicted
 
     # --- data contours ---------------------------------------------------------------------
     def _data_contours(self, depth: float, tilt: float):
-        """(DataContours, (V, 4, bins, beams) layers synthesized at (depth, tilt)) of the views
-        where the model is seen; for ``_detection_shift``, the device layers of every view to
-        optimize and the (V,) positions of the views seen among them. The predicted contours
-        are scanned from the row before the smoothing can first see a return (every layer of a
-        view is 0 above its first echo row, so no row there crosses the threshold): the same
-        contours as a scan from row 0."""
+        """(DataContours of the views where the model is seen, the device layers synthesized at
+        (depth, tilt) of every view to optimize, the (V,) positions of the views seen among
+        them, their (V, 4, bins, beams) host copy or None). On a CPU device the host copy is
+        read, and the predicted contours are scanned from the row before the smoothing can
+        first see a return (every layer of a view is 0 above its first echo row, so no row there
+        crosses the threshold): the same contours as a scan from row 0, which a GPU does
+        instead, leaving the copy until ``predicted`` is read."""
         sonar, st, views, highlight, threshold = self.sonar, self.settings, self.views, self.highlight, self.threshold
         names = [self.rig.views[i].name for i in views]
         every = np.ones((len(views), 2, sonar.beams), bool)
         layers = self.render_pairs(views, np.array([depth]), np.array([tilt]), st.exact_samples)
-        predicted = layers.numpy()
-        scan = np.stack([scan_start(predicted, len(self.smoothing[0])), np.full(len(views), sonar.bins)], axis=1)
+        predicted = None if self.backend.is_gpu else layers.numpy()
+        first = np.zeros(len(views), np.int64) if predicted is None else scan_start(predicted, len(self.smoothing[0]))
+        scan = np.stack([first, np.full(len(views), sonar.bins)], axis=1)
         contour, _, _ = self.backend.contour_cost(layers, np.arange(len(views)), threshold, scan, every,
                                                   self._no_distances, [0.0], self.smoothing)
         seen = (contour[:, 0] >= 0).any(axis=1)
@@ -372,7 +382,7 @@ class PoseProblem:
         data = DataContours(tuple(views[k] for k in keep), tuple(names[k] for k in keep), threshold[keep],
                             np.asarray(windows, np.int64), np.asarray(masks), np.asarray(rows),
                             distances)
-        return data, predicted[keep], layers, keep
+        return data, layers, keep, None if predicted is None else predicted[keep]
 
     def warn_unseen(self, names, depth: float, tilt: float, *, stacklevel: int = 2) -> None:
         """PoseWarning that the model is not seen in the views ``names`` at (depth m, tilt rad)."""
@@ -380,15 +390,12 @@ class PoseProblem:
                       f"tilt {math.degrees(tilt):.2f} deg; the pose estimation leaves them out", PoseWarning,
                       stacklevel=stacklevel)
 
-    def _detection_shift(self, depth: float, tilt: float, layers, keep: np.ndarray):
+    def _detection_shift(self, depth: float, tilt: float):
         """(anchor view names, shift in rows or None): the views whose pose relative to the
         reference depends neither on D nor on β (at the reference position), and the shift of
         ``settings.shifts`` (refined by a parabola through its neighbours) that minimizes their
         object term; None without anchor views (each cell then takes its own best shift), from
-        the device ``layers`` of ``_data_contours`` and the positions ``keep`` of the data views
-        among them: every pair is costed where it lies (a view left out against data view 0,
-        and dropped) rather than the anchors' layers uploaded again; a pair's cost does not
-        depend on the others."""
+        the located layers (``_located_costs``)."""
         data = self.data
         pose_a = self.rig.relative_poses(depth, tilt)
         pose_b = self.rig.relative_poses(depth + 0.01, tilt + 0.01)
@@ -396,17 +403,25 @@ class PoseProblem:
                  if all(np.allclose(a[v], b[v], rtol=0, atol=1e-12) for a, b in zip(pose_a, pose_b))]
         if not fixed:
             return (), None
-        index = np.zeros(layers.shape[0], np.int64)  # each pair's data view
-        index[keep] = np.arange(len(keep))
-        _, sums, counts = self.backend.contour_cost(layers, index, data.threshold, data.windows, data.masks,
-                                                    self._distances, self.shifts, self.smoothing,
-                                                    self.settings.min_cap)
-        sums, counts = sums[keep[fixed]], counts[keep[fixed]]
+        _, sums, counts = self._located_costs(self.shifts, self.settings.min_cap)
+        sums, counts = sums[fixed], counts[fixed]
         sums[:, 1], counts[:, 1] = 0.0, 0
         counts_data = data.counts[fixed]
         counts_data[:, 1] = 0
         cost = _view_cost(sums[None], counts[None], counts_data, self.settings.min_cap)[0].mean(axis=0)
         return tuple(data.names[k] for k in fixed), _parabola_minimum(self.shifts, cost)
+
+    def _located_costs(self, shifts, cap: float):
+        """``Backend.contour_cost`` (contours, sums, counts) of the data views' layers at the
+        located estimate, from the device layers of every view to optimize: every pair is
+        costed where it lies (a view left out against data view 0, then dropped) rather than
+        the data views' layers uploaded again; a pair's cost does not depend on the others."""
+        index = np.zeros(self._layers.shape[0], np.int64)  # each pair's data view
+        index[self._keep] = np.arange(len(self._keep))
+        data = self.data
+        found = self.backend.contour_cost(self._layers, index, data.threshold, data.windows, data.masks,
+                                          self._distances, shifts, self.smoothing, cap)
+        return tuple(a[self._keep] for a in found)
 
     def _distance(self, rows: np.ndarray) -> np.ndarray:
         """(bins, beams) distance (m) of every pixel to the contour pixels (row per beam), at
@@ -453,27 +468,28 @@ class PoseProblem:
         ``rows``): the window [lo, hi) ± the range smoothing's radius rB, clipped to the image,
         R rows for every pair (the widest view's), started lower where it would pass the last
         row; the contours and costs are those of full layers, bit for bit. One cell at the
-        located estimate with the exact samples reads the layers rendered there, ``predicted``
-        (no render: the same pixels)."""
+        located estimate with the exact samples reads the layers rendered there, on the device
+        (``_located_costs``; no render: the same pixels)."""
         data, sonar = self.data, self.sonar
         n_views = len(data.views)
         need_lo, need_hi = rows_read(data.windows, len(self.smoothing[0]), sonar.bins)
         rows = int(np.max(need_hi - need_lo))
         first = np.minimum(need_lo, sonar.bins - rows)
         per = max(1, self.settings.launch_bytes // (32 * rows * sonar.beams * n_views))
+        shifts = self.shifts if self.shift is None else [self.shift]
         costs, contours = [], []
         for start in range(0, len(depths), per):
             cell_d, cell_t = depths[start:start + per], tilts[start:start + per]
             if len(cell_d) == 1 and (float(cell_d[0]), float(cell_t[0])) == self.estimate \
                     and tuple(samples) == tuple(self.settings.exact_samples):
-                layers = self.predicted
+                contour, sums, counts = self._located_costs(shifts, cap)
             else:
                 layers = self.render_pairs(data.views, cell_d, cell_t, samples,
                                            rows=(np.tile(first, len(cell_d)), rows))
-            contour, sums, counts = self.backend.contour_cost(
-                layers, np.tile(np.arange(n_views), len(cell_d)), data.threshold, data.windows, data.masks,
-                self._distances, self.shifts if self.shift is None else [self.shift], self.smoothing, cap)
-            del layers
+                contour, sums, counts = self.backend.contour_cost(
+                    layers, np.tile(np.arange(n_views), len(cell_d)), data.threshold, data.windows, data.masks,
+                    self._distances, shifts, self.smoothing, cap)
+                del layers
             g = len(cell_d)
             costs.append(_view_cost(sums.reshape(g, n_views, 2, -1), counts.reshape(g, n_views, 2), data.counts, cap))
             contours.append(contour.reshape(g, n_views, 2, -1))

@@ -224,6 +224,24 @@ def test_costs_at_the_estimate_read_the_located_layers(coral_one, truth_model, b
         assert (one[1] >= 0).sum() > 100
 
 
+def test_a_gpu_locates_without_the_host_copy(coral_one, truth_model, opencl, monkeypatch):
+    """On a GPU, locating scans the predicted views from row 0 and leaves their host copy
+    unread until ``predicted`` is read: the same data contours, anchors, shift, layers and
+    E_mu as the CPU's scan from ``scan_start`` with the copy read at once."""
+    truth = coral_one.manifest.truth
+    depth, tilt = truth.depth + 0.01, truth.tilt
+    cpu = PoseProblem(truth_model, coral_one, depth, tilt, backend=opencl)
+    monkeypatch.setattr(opencl, "is_gpu", True)
+    gpu = PoseProblem(truth_model, coral_one, depth, tilt, backend=opencl)
+    assert cpu._predicted is not None and gpu._predicted is None
+    for name in (f.name for f in dataclasses.fields(cpu.data)):
+        np.testing.assert_array_equal(getattr(gpu.data, name), getattr(cpu.data, name), err_msg=name)
+    assert (gpu.anchors, gpu.shift) == (cpu.anchors, cpu.shift) and gpu.anchors
+    np.testing.assert_array_equal(gpu.exact(depth, tilt).per_view, cpu.exact(depth, tilt).per_view)
+    assert gpu._predicted is None  # E_mu at the estimate costs the device layers
+    np.testing.assert_array_equal(gpu.predicted, cpu.predicted)
+
+
 def test_a_relocated_problem_reads_its_new_data_contours(coral_one, truth_model, opencl):
     """After ``locate`` moves a used problem, its surrogate and E_mu are a fresh problem's there,
     bit for bit (nothing of the old data contours, e.g. their capped distances, stays)."""
