@@ -446,12 +446,13 @@ def pose(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt, l
     """Estimate the sonar's depth D and tilt from the dataset DIR with a given MODEL of the
     object (the pose step of reconstruct, alone): a grid over D0 ± 1.2 depth_sigma_m and tilt0
     ± 1.2 tilt_sigma_deg of the manifest, refined per level, then a BOBYQA polish on E_mu;
-    the estimate is kept only where E_mu falls. OUT/pose.json and OUT/pose.png (the grid
-    levels)."""
+    the estimate is kept only where E_mu falls. OUT/pose.json, OUT/pose.png (the grid levels)
+    and OUT/contours.png (per view, the data's contours and the model's at the estimate and
+    at the start)."""
     from .atomic import check_output_folder, output_folder
     from .dataset import load_dataset
-    from .figures import pose_figure
-    from .pose import PoseWarning, estimate_pose
+    from .figures import contours_figure, pose_figure
+    from .pose import PoseWarning, estimate_pose, view_contours
 
     dataset = load_dataset(dataset_dir)
     mesh = load_mesh_file(model, "--model")
@@ -465,6 +466,8 @@ def pose(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt, l
             warnings.simplefilter("ignore", PoseWarning)  # the views left out are listed below
             result = estimate_pose(mesh, dataset, depth0=depth, tilt0=None if tilt is None else math.radians(tilt),
                                    levels=levels, backend=backend, progress=lambda line: state.echo("  " + line))
+            contours = view_contours(mesh, dataset, result.depth, result.tilt, at=[(result.depth0, result.tilt0)],
+                                     backend=backend)
     except InputError as err:
         if err.field != "model":
             raise
@@ -472,6 +475,8 @@ def pose(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt, l
     left_out = [v.name for v in dataset.rig.views if v.optimize and v.name not in result.views]
     record = {"dataset": str(dataset_dir), "model": str(model), **result.summary(),
               "start_source": "given" if given else "measured", "views_left_out": left_out,
+              "view_mu_m": {name: dict(zip(("estimate", "start"), (m if math.isfinite(m) else None for m in c["mu"])))
+                            for name, c in contours.items()},
               "backend": backend.name, "device": backend.device}
     truth = dataset.manifest.truth
     if truth is not None:
@@ -486,9 +491,13 @@ def pose(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt, l
     with output_folder(out, marker=MARKERS["pose"]) as tmp:
         pose_figure(result, tmp / "pose.png", truth=None if truth is None else (truth.depth, truth.tilt),
                     title=f"{dataset_dir.name}: the (D, tilt) grid search with {model.name}")
+        contours_figure(dataset.images, contours, dataset.sonar, tmp / "contours.png",
+                        title=f"{dataset_dir.name}: frontal contours of the data and of {model.name} at the estimate "
+                              f"(D {result.depth:.4f} m, tilt {math.degrees(result.tilt):.3f} deg) and at the start "
+                              f"(D {result.depth0:.4f} m, tilt {math.degrees(result.tilt0):.3f} deg)")
         (tmp / "pose.json").write_text(json.dumps(record, indent=2))
     state.echo(f"wrote {out}: D {result.depth:.4f} m, tilt {math.degrees(result.tilt):.3f} deg "
-               f"({'moved' if result.accepted else 'kept: E_mu did not fall'}), pose.json, pose.png "
+               f"({'moved' if result.accepted else 'kept: E_mu did not fall'}), pose.json, pose.png, contours.png "
                f"({result.seconds:.1f} s)")
 
 

@@ -194,6 +194,60 @@ def pose_figure(result, path: str | Path, *, truth: tuple[float, float] | None =
     return _save(fig, path, title, rect=(0, 0.07, 1, 1))
 
 
+def contours_figure(images: dict[str, np.ndarray], contours: dict[str, dict], sonar: SonarSpec, path: str | Path, *,
+                    labels=("estimate", "start"), title: str = "") -> Path:
+    """Save a PNG of what E_mu compares: per view (up to five per row) the data image in
+    beam-bin coordinates (dB below the view's peak, zoomed to the contours' ranges), the data's
+    frontal object and mirror contours (dots) and the synthetic ones at each pose (lines,
+    the mirror dashed), with μ_m per pose in the panel's title.
+
+    images : {view: (bins, beams)}; contours : ``fsswarp.pose.view_contours``'s dict (its
+    views that ``images`` holds); labels : one name per synthetic pose, in its order."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = [name for name in contours if name in images]
+    cols = min(5, max(1, len(names)))
+    rows = max(1, math.ceil(len(names) / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(3.0 * cols, 3.1 * rows + 0.4), squeeze=False)
+    azimuth = np.degrees(sonar.beam_centres)
+    extent = (azimuth[0], azimuth[-1], sonar.range_min, sonar.range_max)
+    colours = ("red", "yellow", "lime", "magenta")
+    handles = {}
+    for ax, name in zip(axes.ravel(), names):
+        entry = contours[name]
+        image = np.asarray(images[name], np.float64)
+        ax.imshow(_decibels(image, float(image.max()) or 1.0), origin="lower", aspect="auto", extent=extent,
+                  cmap="gray", vmin=-40, vmax=0)
+        for c, (marker, colour) in enumerate((("o", "white"), ("^", "cyan"))):
+            handles[f"data {('object', 'mirror')[c]}"], = ax.plot(azimuth, entry["data"][c], marker, color=colour,
+                                                                 markersize=2.2, ls="none")
+        for pose, (label, ranges) in reversed(list(enumerate(zip(labels, entry["synthetic"])))):  # the first on top
+            colour = colours[pose % len(colours)]
+            handles[f"synthetic, {label}"], = ax.plot(azimuth, ranges[0], "-", color=colour, lw=1.0)
+            ax.plot(azimuth, ranges[1], "--", color=colour, lw=1.0)
+        values = np.stack([entry["data"]] + list(entry["synthetic"]))  # (poses + 1, 2, beams)
+        found = np.isfinite(values)
+        if found.any():
+            ax.set_ylim(max(sonar.range_min, values[found].min() - 0.1), min(sonar.range_max, values[found].max() + 0.1))
+            beams = np.flatnonzero(found.any(axis=(0, 1)))
+            ax.set_xlim(max(azimuth[0], azimuth[beams[0]] - 3.0), min(azimuth[-1], azimuth[beams[-1]] + 3.0))
+        mu = ", ".join(f"{label} {m * 1e3:.1f}" if math.isfinite(m) else f"{label} -"
+                       for label, m in zip(labels, entry["mu"]))
+        ax.set_title(f"{name}: mu (mm) {mu}", fontsize=7)
+        ax.set_xlabel("azimuth (deg)", fontsize=6)
+        ax.set_ylabel("range (m)", fontsize=6)
+        ax.tick_params(labelsize=5)
+    for ax in axes.ravel()[len(names):]:
+        ax.axis("off")
+    legend = fig.legend(list(handles.values()), list(handles), loc="lower center", ncol=len(handles), fontsize=7,
+                        facecolor="lightgrey", markerscale=2.5)
+    legend.get_frame().set_edgecolor("none")
+    return _save(fig, path, title, rect=(0, 0.05, 1, 1))
+
+
 def history_figure(history: list[dict], path: str | Path, *, truth_depth: float | None = None,
                    truth_tilt_deg: float | None = None, best_iteration: int | None = None, title: str = "") -> Path:
     """Save a PNG like the paper's Figures 7–8: depth and tilt against iteration (truth dashed),

@@ -654,6 +654,27 @@ def pose_objective(model, dataset, depth: float, tilt: float, *, settings: PoseS
     return PoseProblem(model, dataset, depth, tilt, settings=settings, backend=backend).exact(depth, tilt).value
 
 
+def view_contours(model, dataset, depth: float, tilt: float, *, at=(), settings: PoseSettings = PoseSettings(),
+                  backend=None) -> dict[str, dict]:
+    """What E_mu compares, per view, for figures: ``model`` (reference frame) against
+    ``dataset`` with the data contours found at (depth m, tilt rad), the synthetic ones there
+    and at each (depth, tilt) of ``at``. Returns {view name: {"data": (2, beams) range (m) of
+    the data's object (0) and mirror (1) contour per beam, "synthetic": [(2, beams) ranges at
+    (depth, tilt), then at each of ``at``], "mu": [μ_m (m) at the same poses]}}, NaN where a
+    beam has no contour point (or a view no μ_m), for the views where the model is seen."""
+    problem = PoseProblem(model, dataset, depth, tilt, settings=settings, backend=backend)
+    data, sonar = problem.data, problem.sonar
+    out = {name: {"data": np.where(data.rows[k] >= 0, sonar.bin_range(data.rows[k]), np.nan),
+                  "synthetic": [], "mu": []} for k, name in enumerate(data.names)}
+    for pose in [(depth, tilt), *at]:
+        contours, shift = problem.synthetic_contours(*pose)
+        mu = problem.exact(*pose).per_view
+        for k, name in enumerate(data.names):
+            out[name]["synthetic"].append(np.where(contours[k] >= 0, sonar.bin_range(contours[k] + shift), np.nan))
+            out[name]["mu"].append(float(mu[k]))
+    return out
+
+
 def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float | None = None,
                   bounds: tuple[float, float] | None = None, levels: int = 3,
                   settings: PoseSettings = PoseSettings(), backend=None,

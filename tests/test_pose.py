@@ -17,10 +17,10 @@ from fsswarp.backends import get_backend
 from fsswarp.cli import main
 from fsswarp.dataset import Dataset
 from fsswarp.errors import InputError
-from fsswarp.figures import pose_figure
+from fsswarp.figures import contours_figure, pose_figure
 from fsswarp.icp import icp_many
 from fsswarp.pose import (PoseProblem, PoseSettings, PoseWarning, _parabola_minimum, _view_cost, contour_distance,
-                          detection_threshold, estimate_pose, pose_objective)
+                          detection_threshold, estimate_pose, pose_objective, view_contours)
 from fsswarp.rig import Rig
 from fsswarp.surface import COMPONENTS
 
@@ -484,6 +484,11 @@ def test_cli_pose_recovers_the_truth_from_the_measured_start(coral_one, tmp_path
     assert record["views"] == [v.name for v in coral_one.rig.views if v.optimize]
     assert record["views_left_out"] == [] and record["backend"] == get_backend().name
     assert (out / "pose.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (out / "contours.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    mu = record["view_mu_m"]
+    assert list(mu) == record["views"]
+    assert np.mean([m["estimate"] for m in mu.values()]) == pytest.approx(record["E_mu_m"], rel=0.1)
+    assert np.mean([m["start"] for m in mu.values()]) > 3 * record["E_mu_m"]
 
 
 def test_cli_pose_bad_input(coral_one, tmp_path, capsys):
@@ -502,3 +507,29 @@ def test_cli_pose_bad_input(coral_one, tmp_path, capsys):
         assert status == 2 and len(err) == 1 and err[0].startswith("fsswarp: error: "), (args, err)
         assert all(w in err[0] for w in words), err
         assert not bad.exists() and not list(tmp_path.glob(".bad.*"))
+
+
+def test_view_contours_are_what_e_mu_compares(coral_one, truth_model, opencl, tmp_path):
+    """At the truth the mean μ_m is E_mu (``pose_objective``) and the synthetic object
+    contours of the true model lie on the data's (median within a range bin); 4 cm and 0.8°
+    off, the views away from the reference position see them move, and μ_m grows."""
+    truth, sonar = coral_one.manifest.truth, coral_one.sonar
+    off = (truth.depth + 0.04, truth.tilt + math.radians(0.8))
+    contours = view_contours(truth_model, coral_one, truth.depth, truth.tilt, at=[off], backend=opencl)
+    assert list(contours) == [v.name for v in coral_one.rig.views if v.optimize]
+    mu = np.array([c["mu"] for c in contours.values()])  # (views, 2 poses)
+    assert np.mean(mu[:, 0]) == pytest.approx(pose_objective(truth_model, coral_one, truth.depth, truth.tilt,
+                                                             backend=opencl), rel=1e-12)
+    assert np.all(mu[:, 1] > mu[:, 0])
+    for name, entry in contours.items():
+        data, (at_truth, at_off) = entry["data"][0], entry["synthetic"]
+        both = np.isfinite(data) & np.isfinite(at_truth[0])
+        assert both.sum() >= 5 and np.median(np.abs(at_truth[0][both] - data[both])) <= sonar.range_step, name
+        if name.startswith("N"):  # the far position: the tilt error moves its object contours
+            moved = np.isfinite(at_off[0]) & both
+            assert np.median(np.abs(at_off[0][moved] - data[moved])) > 2 * sonar.range_step, name
+    images = {name: coral_one.images[name] for name in contours}
+    blank = dict(next(iter(contours.values())), data=np.full((2, sonar.beams), np.nan))
+    blank["synthetic"] = [np.full((2, sonar.beams), np.nan)] * 2
+    path = contours_figure(images, dict(contours, Sm90=blank), sonar, tmp_path / "c.png", title="coral-one")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
