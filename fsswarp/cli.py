@@ -543,7 +543,8 @@ def run_reconstruction(state: State, dataset, out: Path, settings, *, depth0: fl
     OUT/model.ply, carved.ply, result.json and figures (``shown``: the folder's name in
     messages, when OUT is a temporary folder); returns the ReconstructResult."""
     from .atomic import output_folder
-    from .figures import carve_figure, history_figure, pose_figure
+    from .figures import carve_figure, contours_figure, history_figure, pose_figure
+    from .pose import PoseWarning, view_contours
     from .reconstruct import reconstruct as run
 
     backend = state.get_backend()
@@ -552,6 +553,10 @@ def run_reconstruction(state: State, dataset, out: Path, settings, *, depth0: fl
                  progress=lambda line: state.echo("  " + line))
     truth = dataset.manifest.truth
     truth_mesh = dataset.truth_mesh()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PoseWarning)  # the figure shows the views where the model is seen
+        contours = view_contours(result.model, dataset, result.depth, result.tilt, settings=settings.pose,
+                                 backend=backend)
     with output_folder(out, marker=MARKERS["reconstruct"]) as tmp:
         result.model.export(tmp / "model.ply")
         result.carved.export(tmp / "carved.ply")
@@ -567,6 +572,10 @@ def run_reconstruction(state: State, dataset, out: Path, settings, *, depth0: fl
             pose_figure(result.pose_steps[0], tmp / "figures" / "pose.png",
                         truth=None if truth is None else (truth.depth, truth.tilt),
                         title="first pose step: the (D, tilt) grid search around the measured values")
+        contours_figure(dataset.images, contours, dataset.sonar, tmp / "figures" / "contours.png", labels=("final",),
+                        title=f"{dataset.root.name}: frontal contours of the data and of the final model (iteration "
+                              f"{result.best_iteration}) at D {result.depth:.4f} m, tilt "
+                              f"{math.degrees(result.tilt):.3f} deg")
         (tmp / "result.json").write_text(json.dumps(result.summary(), indent=2))
     best = result.history[result.best_iteration]
     state.echo(f"wrote {shown or out}: D {result.depth:.4f} m, tilt {math.degrees(result.tilt):.3f} deg, E_I "

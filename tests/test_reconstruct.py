@@ -326,8 +326,8 @@ def test_reconstruct_command_writes_model_result_and_figures(coral_one, tmp_path
                    "--resolution", "48")
     assert done.returncode == 0, done.stderr
     names = sorted(p.relative_to(tmp_path / "r").as_posix() for p in (tmp_path / "r").rglob("*") if p.is_file())
-    assert names == ["carved.ply", "figures/carved.png", "figures/history.png", "figures/model.png",
-                     "model.ply", "result.json"]
+    assert names == ["carved.ply", "figures/carved.png", "figures/contours.png", "figures/history.png",
+                     "figures/model.png", "model.ply", "result.json"]
     result = json.loads((tmp_path / "r" / "result.json").read_text())
     assert set(result) == RESULT_KEYS and result["iterations"] == 0
     assert trimesh.load_mesh(tmp_path / "r" / "model.ply").is_watertight
