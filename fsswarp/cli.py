@@ -434,7 +434,7 @@ def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, pat
 @click.option("--model", required=True, type=click.Path(path_type=Path),
               help="Mesh of the object in the dataset's reference frame (a known shape, truth/model.ply of a "
                    "simulation, or OUT/model.ply of reconstruct).")
-@click.option("--out", required=True, type=click.Path(path_type=Path), help="Folder for pose.json and pose.png.")
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="Folder for pose.json, pose.png and contours.png.")
 @click.option("--depth", type=float, default=None,
               help="Initial sonar depth D0 (m); default: the dataset's measured depth.")
 @click.option("--tilt", type=float, default=None,
