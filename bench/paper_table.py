@@ -7,7 +7,9 @@ one command:
 For every scene: simulate it (noisy, ``--seed``), then run ``fsswarp.reconstruct`` from two
 starts: the scene's measured D0 and β0 (3–5 cm and 0.6–1° off the truth, the paper's sensor
 class), and β0 ``--tilt-offset`` degrees (default 2) off the truth, on the side of the measured
-error, with the same D0. Writes the record ``bench/records/reconstruction/NAME.json`` (the
+error, with the same D0; and from the same two starts, ``fsswarp.pose.estimate_pose`` with the
+scene's true model in place of the reconstruction (the pose step alone, as ``fsswarp pose``
+runs it). Writes the record ``bench/records/reconstruction/NAME.json`` (the
 machine, the command, the date, each run's history and wall time) and then regenerates
 ``bench/RESULTS.md`` with ``bench/report.py``, which renders every such record with
 :func:`table_markdown`.
@@ -33,7 +35,10 @@ AIM_DEPTH_M, AIM_TILT_DEG, AIM_EV_DROP, AIM_EI_DROP = 0.005, 0.2, 0.16, 0.20
 
 def run_table(backend, scenes, *, seed: int, iterations: int, tilt_offset_deg: float, progress=print) -> list[dict]:
     """One run dict per (scene, start): the starts, the truth, the final estimate, the history
-    (DESIGN §12's keys) and the wall times of the simulation and the reconstruction."""
+    (DESIGN §12's keys), the wall times of the simulation and the reconstruction, and
+    ``true_model_pose``: the estimate of the pose step alone with the true model from the same
+    start (D, β, E_mu at the start and at the estimate, seconds)."""
+    from fsswarp.pose import estimate_pose
     from fsswarp.reconstruct import ReconstructSettings, reconstruct
     from fsswarp.simulate import simulate
 
@@ -52,12 +57,18 @@ def run_table(backend, scenes, *, seed: int, iterations: int, tilt_offset_deg: f
                 result = reconstruct(dataset, depth0=depth0, tilt0=tilt0, settings=settings, backend=backend,
                                      progress=lambda line: progress("  " + line))
                 depth0, tilt0 = result.history[0]["depth_m"], math.radians(result.history[0]["tilt_deg"])
+                pose = estimate_pose(dataset.truth_mesh(), dataset, depth0=depth0, tilt0=tilt0, backend=backend)
+                progress(f"  with the true model: D {pose.depth:.4f} m, tilt {math.degrees(pose.tilt):.3f} deg "
+                         f"({pose.seconds:.1f} s)")
                 runs.append({"scene": scene, "start": label, "depth0_m": depth0, "tilt0_deg": math.degrees(tilt0),
                              "truth_depth_m": truth.depth, "truth_tilt_deg": math.degrees(truth.tilt),
                              "depth_m": result.depth, "tilt_deg": math.degrees(result.tilt),
                              "best_iteration": result.best_iteration, "iterations": result.iterations,
                              "converged": result.converged,
-                             "seconds": result.seconds, "simulate_s": simulated, "history": result.history})
+                             "seconds": result.seconds, "simulate_s": simulated, "history": result.history,
+                             "true_model_pose": {"depth_m": pose.depth, "tilt_deg": math.degrees(pose.tilt),
+                                                 "E_mu_start_m": pose.error_before, "E_mu_m": pose.error_after,
+                                                 "seconds": pose.seconds}})
     return runs
 
 
@@ -116,6 +127,21 @@ def table_markdown(record: dict, name: str) -> str:
     total = sum(r["seconds"] for r in record["runs"])
     lines += ["", f"Reconstruction wall time, all {len(record['runs'])} runs: {total:.0f} s; whole command "
                   f"(with the simulations): {record['seconds']:.0f} s.", ""]
+    posed = [run for run in record["runs"] if "true_model_pose" in run]
+    if posed:
+        lines += ["From the same starts with the true model in place of the reconstruction (the pose step "
+                  "alone, as `fsswarp pose` runs it):", "",
+                  "| scene | start D0 (m), β0 (°) | final D (m), β (°) | D error (mm) | β error (°) | pose aim | "
+                  "E_mu start → final (mm) | seconds |", "|---|---|---|---|---|---|---|---|"]
+        for run in posed:
+            pose = run["true_model_pose"]
+            depth_error, tilt_error = pose["depth_m"] - run["truth_depth_m"], pose["tilt_deg"] - run["truth_tilt_deg"]
+            ok = abs(depth_error) <= AIM_DEPTH_M and abs(tilt_error) <= AIM_TILT_DEG
+            lines.append(f"| {run['scene']} ({run['start']}) | {run['depth0_m']:.4f}, {run['tilt0_deg']:.2f} | "
+                         f"{pose['depth_m']:.4f}, {pose['tilt_deg']:.3f} | {depth_error * 1e3:+.1f} | "
+                         f"{tilt_error:+.3f} | {mark[ok]} | {pose['E_mu_start_m'] * 1e3:.2f} → "
+                         f"{pose['E_mu_m'] * 1e3:.2f} | {pose['seconds']:.1f} |")
+        lines.append("")
     return "\n".join(lines)
 
 

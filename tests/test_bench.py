@@ -237,6 +237,11 @@ def test_paper_table_runs_both_starts_and_renders_the_table(tmp_path, capsys):
         assert not (s["pose_ok"] or s["E_I_ok"] or s["E_V_ok"])
     text = table.table_markdown(record, "tiny")
     assert "| coral-one (β +2°) | 0.4700, 12.30 | 0.4700, 12.300 | +40.0 | +2.000 | no | 0 of 0 (limit) |" in text
+    for run in record["runs"]:  # the pose step alone with the true model, from the same starts
+        pose = run["true_model_pose"]
+        assert abs(pose["depth_m"] - 0.43) <= 0.005 and abs(pose["tilt_deg"] - 10.3) <= 0.2
+        assert pose["E_mu_m"] < 0.2 * pose["E_mu_start_m"]
+    assert text.count("| yes | ") == 2 and "with the true model in place of the reconstruction" in text
     assert "### tiny" in capsys.readouterr().out
     rendered = _bench_module("report").report([], None, None, tmp_path, [tmp_path / "tiny.json"])
     assert "## Reconstruction: the paper's table" in rendered and "### tiny" in rendered
