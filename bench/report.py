@@ -44,7 +44,8 @@ def report(records: list[Path], notes: Path | None, figures: Path | None, base: 
     sections = (
         (tables, "paper_table.py", "## Reconstruction: the paper's table, end to end",
          "Generated from `bench/records/reconstruction/*.json`, each written by one `python bench/paper_table.py` "
-         "run (simulate each scene, reconstruct it from the measured start and from β 2° off; the README's "
+         "run (simulate each scene, reconstruct it from the measured start and from β 2° off, and, where the record "
+         "has them, estimate D and β from the same starts with the true model; the README's "
          "\"Reconstruction\" section discusses the results)."),
         (studies, "identifiability.py", "## Reconstruction: where the images pin the tilt",
          "Generated from `bench/records/identifiability/*.json`, each written by one `python "
