@@ -533,3 +533,18 @@ def test_view_contours_are_what_e_mu_compares(coral_one, truth_model, opencl, tm
     blank["synthetic"] = [np.full((2, sonar.beams), np.nan)] * 2
     path = contours_figure(images, dict(contours, Sm90=blank), sonar, tmp_path / "c.png", title="coral-one")
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_cli_pose_lists_the_views_that_do_not_see_the_model(coral_one, tmp_path, capsys):
+    """A model the views rolled 67.5-90° do not see (0.4 m aside): they are left out and listed
+    in pose.json, and the rest are used."""
+    aside = tmp_path / "aside.ply"
+    trimesh.load_mesh(coral_one.truth_model_path, process=False).apply_translation([0.4, 0.0, 0.0]).export(aside)
+    out = tmp_path / "pose"
+    status, err = _cli(capsys, "pose", str(coral_one.root), "--model", str(aside), "--out", str(out), "--levels", "1")
+    assert status == 0 and err == []
+    record = json.loads((out / "pose.json").read_text())
+    optimized = [v.name for v in coral_one.rig.views if v.optimize]
+    assert record["views_left_out"] and set(record["views_left_out"]) | set(record["views"]) == set(optimized)
+    assert not set(record["views_left_out"]) & set(record["views"]) and list(record["view_mu_m"]) == record["views"]
+    assert len(record["levels"]) == 1
