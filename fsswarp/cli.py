@@ -472,6 +472,11 @@ def pose(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt, l
         if err.field != "model":
             raise
         raise InputError(err.message, field="--model", value=str(model)) from None
+    edges = result.box_edges()
+    if edges:
+        warnings.warn(f"the grid search ended on the {' and '.join(edges)} edge of its box (D0 +- 1.2 "
+                      "depth_sigma_m, tilt0 +- 1.2 tilt_sigma_deg): the truth may lie beyond it; start nearer "
+                      "(--depth/--tilt) or widen the uncertainties in dataset.toml", PoseWarning, stacklevel=2)
     left_out = [v.name for v in dataset.rig.views if v.optimize and v.name not in result.views]
     record = {"dataset": str(dataset_dir), "model": str(model), **result.summary(),
               "start_source": "given" if given else "measured", "views_left_out": left_out,

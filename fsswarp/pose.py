@@ -252,6 +252,19 @@ class PoseResult:
     views: tuple[str, ...]
     mirror_views: tuple[str, ...]
 
+    def box_edges(self) -> tuple[str, ...]:
+        """The edges of the search box (the first grid level's span) that the finest grid
+        level's best cell lies on, within half of its cell: any of "lowest depth", "highest
+        depth", "lowest tilt", "highest tilt"; () inside. The levels stay inside the box, so a
+        best cell on its edge means the search pressed against it: the truth may lie beyond."""
+        first, last = self.levels[0], self.levels[-1]
+        edges = []
+        for name, value, span, fine in (("depth", last.best[0], first.depths, last.depths),
+                                        ("tilt", last.best[1], first.tilts, last.tilts)):
+            half = 0.5 * (fine[1] - fine[0])
+            edges += [f"lowest {name}"] * bool(value - span[0] < half) + [f"highest {name}"] * bool(span[-1] - value < half)
+        return tuple(edges)
+
     def summary(self) -> dict:
         """``pose.json`` of ``fsswarp pose`` (README): lengths in m, angles in degrees, E_mu in
         m; a value that is not finite (E_mu where no patch was found) is null."""
@@ -269,8 +282,8 @@ class PoseResult:
                             "costs_m": [[finite(c) for c in row] for row in level.costs.tolist()],
                             "best": point(*level.best)} for level in self.levels],
                 "detection_shift_rows": self.shift, "anchor_views": list(self.anchors), "views": list(self.views),
-                "mirror_views": list(self.mirror_views), "evaluations": dict(self.evaluations),
-                "seconds": self.seconds}
+                "mirror_views": list(self.mirror_views), "search_box_edges": list(self.box_edges()),
+                "evaluations": dict(self.evaluations), "seconds": self.seconds}
 
 
 # --- the problem -----------------------------------------------------------------------------

@@ -483,6 +483,7 @@ def test_cli_pose_recovers_the_truth_from_the_measured_start(coral_one, tmp_path
     assert [np.shape(level["costs_m"]) for level in record["levels"]] == [(9, 9)] * 3
     assert record["views"] == [v.name for v in coral_one.rig.views if v.optimize]
     assert record["views_left_out"] == [] and record["backend"] == get_backend().name
+    assert record["search_box_edges"] == []
     assert (out / "pose.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert (out / "contours.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     mu = record["view_mu_m"]
@@ -535,6 +536,7 @@ def test_view_contours_are_what_e_mu_compares(coral_one, truth_model, opencl, tm
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+@pytest.mark.filterwarnings("always::fsswarp.pose.PoseWarning")  # main prints it
 def test_cli_pose_lists_the_views_that_do_not_see_the_model(coral_one, tmp_path, capsys):
     """A model the views rolled 67.5-90° do not see (0.4 m aside): they are left out and listed
     in pose.json, and the rest are used."""
@@ -542,9 +544,31 @@ def test_cli_pose_lists_the_views_that_do_not_see_the_model(coral_one, tmp_path,
     trimesh.load_mesh(coral_one.truth_model_path, process=False).apply_translation([0.4, 0.0, 0.0]).export(aside)
     out = tmp_path / "pose"
     status, err = _cli(capsys, "pose", str(coral_one.root), "--model", str(aside), "--out", str(out), "--levels", "1")
-    assert status == 0 and err == []
+    assert status == 0 and all(line.startswith("fsswarp: warning: the grid search ended on") for line in err), err
     record = json.loads((out / "pose.json").read_text())
     optimized = [v.name for v in coral_one.rig.views if v.optimize]
     assert record["views_left_out"] and set(record["views_left_out"]) | set(record["views"]) == set(optimized)
     assert not set(record["views_left_out"]) & set(record["views"]) and list(record["view_mu_m"]) == record["views"]
     assert len(record["levels"]) == 1
+
+
+@pytest.mark.filterwarnings("always::fsswarp.pose.PoseWarning")  # main prints it
+def test_cli_pose_warns_when_the_estimate_lies_on_the_search_box_edge(coral_one, tmp_path, capsys):
+    """From 47 cm too deep the truth lies outside the box (D0 ± 6 cm): the grid search ends on
+    its lowest depth, and the command says so (exit 0) and records it."""
+    out = tmp_path / "pose"
+    status, err = _cli(capsys, "pose", str(coral_one.root), "--model", str(coral_one.truth_model_path),
+                       "--out", str(out), "--depth", "0.9", "--levels", "1")
+    assert status == 0 and len(err) == 1 and "ended on the lowest depth edge of its box" in err[0], err
+    record = json.loads((out / "pose.json").read_text())
+    assert record["search_box_edges"] == ["lowest depth"]
+    assert record["levels"][0]["best"]["depth_m"] == pytest.approx(0.9 - 0.06)
+
+
+def test_box_edges_name_the_edges_the_estimate_lies_on(coral_one, estimate):
+    result = estimate[0]
+    assert result.box_edges() == ()
+    first, last = result.levels[0], result.levels[-1]
+    corner = dataclasses.replace(last, best=(float(first.depths[-1]), float(first.tilts[0]) + 1e-6))
+    assert dataclasses.replace(result, levels=result.levels[:-1] + (corner,)).box_edges() == ("highest depth",
+                                                                                              "lowest tilt")
