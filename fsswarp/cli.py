@@ -441,22 +441,33 @@ def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, pat
               help="Initial sonar tilt (deg); default: the dataset's measured tilt.")
 @click.option("--levels", default=3, show_default=True, type=click.IntRange(1, 6),
               help="Grid levels, each 9 x 9 cells around the previous level's best, at half its spacing.")
+@click.option("--depth-range", type=float, default=None,
+              help="Half-width of the searched depths (m), below D0; default: 1.2 depth_sigma_m of the manifest.")
+@click.option("--tilt-range", type=float, default=None,
+              help="Half-width of the searched tilts (deg), below 45; default: 1.2 tilt_sigma_deg of the manifest.")
 @click.pass_obj
-def pose(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt, levels: int) -> None:
+def pose(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt, levels: int, depth_range,
+         tilt_range) -> None:
     """Estimate the sonar's depth D and tilt from the dataset DIR with a given MODEL of the
     object (the pose step of reconstruct, alone): a grid over D0 ± 1.2 depth_sigma_m and tilt0
-    ± 1.2 tilt_sigma_deg of the manifest, refined per level, then a BOBYQA polish on E_mu;
-    the estimate is kept only where E_mu falls. OUT/pose.json, OUT/pose.png (the grid levels)
-    and OUT/contours.png (per view, the data's contours and the model's at the estimate and
-    at the start)."""
+    ± 1.2 tilt_sigma_deg of the manifest (or --depth-range, --tilt-range), refined per level,
+    then a BOBYQA polish on E_mu; the estimate is kept only where E_mu falls. OUT/pose.json,
+    OUT/pose.png (the grid levels) and OUT/contours.png (per view, the data's contours and
+    the model's at the estimate and at the start)."""
     from .atomic import check_output_folder, output_folder
     from .dataset import load_dataset
     from .figures import contours_figure, pose_figure
-    from .pose import PoseWarning, estimate_pose, view_contours
+    from .pose import PoseWarning, check_uncertainties, estimate_pose, view_contours
+    from .rig import check_depth_tilt
 
     dataset = load_dataset(dataset_dir)
     mesh = load_mesh_file(model, "--model")
     check_output_folder(out, marker=MARKERS["pose"])
+    surface = dataset.manifest.surface
+    depth0, tilt0 = surface.depth if depth is None else depth, surface.tilt if tilt is None else math.radians(tilt)
+    check_depth_tilt(depth0, tilt0)
+    bounds = check_uncertainties(dataset, depth0, depth_range=depth_range,
+                                 tilt_range=None if tilt_range is None else math.radians(tilt_range))
     backend = state.get_backend()
     given = depth is not None or tilt is not None
     state.echo(f"estimating depth and tilt of {dataset_dir} with {model}: {levels} grid levels "
@@ -464,8 +475,8 @@ def pose(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt, l
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", PoseWarning)  # the views left out are listed below
-            result = estimate_pose(mesh, dataset, depth0=depth, tilt0=None if tilt is None else math.radians(tilt),
-                                   levels=levels, backend=backend, progress=lambda line: state.echo("  " + line))
+            result = estimate_pose(mesh, dataset, depth0=depth0, tilt0=tilt0, bounds=bounds, levels=levels,
+                                   backend=backend, progress=lambda line: state.echo("  " + line))
             contours = view_contours(mesh, dataset, result.depth, result.tilt, at=[(result.depth0, result.tilt0)],
                                      backend=backend)
     except InputError as err:
@@ -474,9 +485,10 @@ def pose(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt, l
         raise InputError(err.message, field="--model", value=str(model)) from None
     edges = result.box_edges()
     if edges:
-        warnings.warn(f"the grid search ended on the {' and '.join(edges)} edge of its box (D0 +- 1.2 "
-                      "depth_sigma_m, tilt0 +- 1.2 tilt_sigma_deg): the truth may lie beyond it; start nearer "
-                      "(--depth/--tilt) or widen the uncertainties in dataset.toml", PoseWarning, stacklevel=2)
+        warnings.warn(f"the grid search ended on the {' and '.join(edges)} edge of its box (D0 +- "
+                      f"{bounds[0]:.4g} m, tilt0 +- {math.degrees(bounds[1]):.4g} deg): the truth may lie beyond it; "
+                      "start nearer (--depth/--tilt) or search wider (--depth-range/--tilt-range)", PoseWarning,
+                      stacklevel=2)
     left_out = [v.name for v in dataset.rig.views if v.optimize and v.name not in result.views]
     record = {"dataset": str(dataset_dir), "model": str(model), **result.summary(),
               "start_source": "given" if given else "measured", "views_left_out": left_out,

@@ -770,21 +770,30 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
 
 # --- helpers -------------------------------------------------------------------------------
 
-def check_uncertainties(dataset, depth0: float) -> tuple[float, float]:
-    """The default grid half-widths (e_D m, e_β rad), ``BOUNDS_FACTOR`` × the manifest's
-    uncertainties; InputError naming the manifest's field unless they span a search from
-    ``depth0`` (m): 0 < e_D < depth0 and 0 < e_β < 45°."""
+def check_uncertainties(dataset, depth0: float, *, depth_range: float | None = None,
+                        tilt_range: float | None = None) -> tuple[float, float]:
+    """The grid half-widths (e_D m, e_β rad): ``depth_range`` (m) and ``tilt_range`` (rad) where
+    given (``--depth-range``, ``--tilt-range``), else ``BOUNDS_FACTOR`` × the manifest's
+    uncertainties; InputError naming the option or the manifest's field unless they span a
+    search from ``depth0`` (m): 0 < e_D < depth0 and 0 < e_β < 45°."""
     file = dataset.root / MANIFEST_NAME if getattr(dataset, "root", None) is not None else None
     surface = dataset.manifest.surface
-    bounds = (BOUNDS_FACTOR * surface.depth_sigma, BOUNDS_FACTOR * surface.tilt_sigma)
-    if not 0 < bounds[0] < depth0:
+    if depth_range is not None:
+        if not (math.isfinite(depth_range) and 0 < depth_range < depth0):
+            raise InputError(f"must be > 0 and below the start depth {depth0:g} m", field="--depth-range",
+                             value=depth_range)
+    elif not 0 < BOUNDS_FACTOR * surface.depth_sigma < depth0:
         raise InputError(f"must be > 0 and, times {BOUNDS_FACTOR:g}, below the start depth {depth0:g} m: the depth "
                          "search spans that many sigmas", file=file, field="surface.depth_sigma_m",
                          value=surface.depth_sigma)
-    if not 0 < bounds[1] < math.pi / 4:
+    if tilt_range is not None:
+        if not (math.isfinite(tilt_range) and 0 < tilt_range < math.pi / 4):
+            raise InputError("must be > 0 and below 45 (deg)", field="--tilt-range", value=math.degrees(tilt_range))
+    elif not 0 < BOUNDS_FACTOR * surface.tilt_sigma < math.pi / 4:
         raise InputError(f"must be > 0 and, times {BOUNDS_FACTOR:g}, below 45 deg: the tilt search spans that many "
                          "sigmas", file=file, field="surface.tilt_sigma_deg", value=math.degrees(surface.tilt_sigma))
-    return bounds
+    return (BOUNDS_FACTOR * surface.depth_sigma if depth_range is None else float(depth_range),
+            BOUNDS_FACTOR * surface.tilt_sigma if tilt_range is None else float(tilt_range))
 
 
 def _check_handed_over(problem: PoseProblem, model, dataset, depth: float, tilt: float, settings: PoseSettings,

@@ -502,7 +502,9 @@ def test_cli_pose_bad_input(coral_one, tmp_path, capsys):
     cases = [(["--model", str(tmp_path / "nope.ply")], ["--model", "nope.ply", "no such mesh file"]),
              (["--model", str(far)], ["--model", "far.ply", "seen in none of the views"]),
              (["--model", model, "--tilt", "95"], ["--tilt = 95"]),
-             (["--model", model, "--levels", "0"], ["--levels", "0"])]
+             (["--model", model, "--levels", "0"], ["--levels", "0"]),
+             (["--model", model, "--depth-range", "0.5"], ["--depth-range = 0.5", "below the start depth 0.47 m"]),
+             (["--model", model, "--tilt-range", "nan"], ["--tilt-range = nan"])]
     for args, words in cases:
         status, err = _cli(capsys, "pose", str(coral_one.root), *args, "--out", str(bad))
         assert status == 2 and len(err) == 1 and err[0].startswith("fsswarp: error: "), (args, err)
@@ -555,7 +557,8 @@ def test_cli_pose_lists_the_views_that_do_not_see_the_model(coral_one, tmp_path,
 @pytest.mark.filterwarnings("always::fsswarp.pose.PoseWarning")  # main prints it
 def test_cli_pose_warns_when_the_estimate_lies_on_the_search_box_edge(coral_one, tmp_path, capsys):
     """From 47 cm too deep the truth lies outside the box (D0 ± 6 cm): the grid search ends on
-    its lowest depth, and the command says so (exit 0) and records it."""
+    its lowest depth, and the command says so (exit 0) and records it; with --depth-range 0.5
+    the box holds the truth, and the estimate meets the pose aim."""
     out = tmp_path / "pose"
     status, err = _cli(capsys, "pose", str(coral_one.root), "--model", str(coral_one.truth_model_path),
                        "--out", str(out), "--depth", "0.9", "--levels", "1")
@@ -563,6 +566,12 @@ def test_cli_pose_warns_when_the_estimate_lies_on_the_search_box_edge(coral_one,
     record = json.loads((out / "pose.json").read_text())
     assert record["search_box_edges"] == ["lowest depth"]
     assert record["levels"][0]["best"]["depth_m"] == pytest.approx(0.9 - 0.06)
+    status, err = _cli(capsys, "pose", str(coral_one.root), "--model", str(coral_one.truth_model_path),
+                       "--out", str(out), "--depth", "0.9", "--depth-range", "0.5")
+    assert status == 0 and err == []
+    record = json.loads((out / "pose.json").read_text())
+    assert record["search_box_edges"] == [] and record["levels"][0]["depths_m"][0] == pytest.approx(0.4)
+    assert abs(record["truth"]["depth_error_m"]) <= 0.005 and abs(record["truth"]["tilt_error_deg"]) <= 0.2
 
 
 def test_box_edges_name_the_edges_the_estimate_lies_on(coral_one, estimate):
