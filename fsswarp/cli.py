@@ -59,6 +59,14 @@ def app(ctx: click.Context, backend: str, device: str | None, quiet: bool) -> No
     ctx.obj = State(backend=backend, device=device, quiet=quiet)
 
 
+def start_options(command):
+    """--depth and --tilt, the start of reconstruct's and pose's searches."""
+    command = click.option("--tilt", type=float, default=None,
+                           help="Initial sonar tilt (deg); default: the dataset's measured tilt.")(command)
+    return click.option("--depth", type=float, default=None,
+                        help="Initial sonar depth D0 (m); default: the dataset's measured depth.")(command)
+
+
 @app.command()
 @click.pass_obj
 def info(state: State) -> None:
@@ -408,10 +416,7 @@ def carve(state: State, dataset_dir: Path, out: Path, depth, tilt, resolution: i
               help="Stop after this many iterations in a row without a new lowest image error E_I.")
 @click.option("--resolution", default=128, show_default=True, type=click.IntRange(16, 1024),
               help="Voxels along the longest side of the carving box.")
-@click.option("--depth", type=float, default=None,
-              help="Initial sonar depth D0 (m); default: the dataset's measured depth.")
-@click.option("--tilt", type=float, default=None,
-              help="Initial sonar tilt (deg); default: the dataset's measured tilt.")
+@start_options
 @click.pass_obj
 def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, patience: int, resolution: int, depth,
                 tilt) -> None:
@@ -435,10 +440,7 @@ def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, pat
               help="Mesh of the object in the dataset's reference frame (a known shape, truth/model.ply of a "
                    "simulation, or OUT/model.ply of reconstruct).")
 @click.option("--out", required=True, type=click.Path(path_type=Path), help="Folder for pose.json, pose.png and contours.png.")
-@click.option("--depth", type=float, default=None,
-              help="Initial sonar depth D0 (m); default: the dataset's measured depth.")
-@click.option("--tilt", type=float, default=None,
-              help="Initial sonar tilt (deg); default: the dataset's measured tilt.")
+@start_options
 @click.option("--levels", default=3, show_default=True, type=click.IntRange(1, 6),
               help="Grid levels, each 9 x 9 cells around the previous level's best, at half its spacing.")
 @click.option("--depth-range", type=float, default=None,
