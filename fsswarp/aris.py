@@ -46,7 +46,7 @@ from typing import Iterable
 
 import numpy as np
 
-from .atomic import check_output_folder, output_folder, write_text
+from .atomic import check_output_folder, json_number, output_folder, write_text
 from .dataset import (Dataset, Manifest, SurfaceEstimate, load_dataset, manifest_to_toml, parse_manifest,
                       save_dataset)
 from .errors import InputError, is_integer
@@ -535,10 +535,6 @@ def _sensor(path: Path, headers: dict[int, FrameHeader], name: str, given, flag:
     return value, f"sensor {_sdk(FrameHeader, name)}, median of {len(headers)} frames"
 
 
-def _number(value: float) -> float | None:
-    return float(value) if math.isfinite(value) else None
-
-
 def _record(aris: ArisFile, path: Path, table: BeamTable, elevation: float, default_elevation: bool,
             headers: dict[int, FrameHeader], depth, tilt) -> dict:
     """The aris.json provenance record of an import."""
@@ -562,11 +558,11 @@ def _record(aris: ArisFile, path: Path, table: BeamTable, elevation: float, defa
         "surface": {"depth_m": depth[0], "depth_source": depth[1], "tilt_deg": tilt[0], "tilt_source": tilt[1]},
         "frames": [{
             "view": view_name(i), "frame": i, "frame_index": h.frame_index, "frame_time_us": h.frame_time_us,
-            "sensor_depth_m": _number(h.depth_m), "sensor_compass_pitch_deg": _number(h.compass_pitch_deg),
-            "sensor_compass_roll_deg": _number(h.compass_roll_deg),
-            "sensor_compass_heading_deg": _number(h.compass_heading_deg),
-            "window_start_m": h.window_start_m, "window_start_m_stored": _number(h.window_start_m_stored),
-            "window_length_m": h.window_length_m, "window_length_m_stored": _number(h.window_length_m_stored),
+            "sensor_depth_m": json_number(h.depth_m), "sensor_compass_pitch_deg": json_number(h.compass_pitch_deg),
+            "sensor_compass_roll_deg": json_number(h.compass_roll_deg),
+            "sensor_compass_heading_deg": json_number(h.compass_heading_deg),
+            "window_start_m": h.window_start_m, "window_start_m_stored": json_number(h.window_start_m_stored),
+            "window_length_m": h.window_length_m, "window_length_m_stored": json_number(h.window_length_m_stored),
             "last_sample_range_m": h.last_sample_range_m, "sound_speed_m_s": h.sound_speed_m_s,
         } for i, h in headers.items()],
     }

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import shutil
 import tempfile
@@ -33,6 +34,12 @@ def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
             os.unlink(tmp)
         raise
     return path
+
+
+def json_number(value: float) -> float | None:
+    """``value`` as a float for a JSON record, or None where it is not finite (JSON has no
+    NaN or infinity: ``json.dumps`` would write a file that readers refuse)."""
+    return float(value) if math.isfinite(value) else None
 
 
 def write_text(path: str | os.PathLike, text: str) -> Path:

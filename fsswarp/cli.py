@@ -439,7 +439,8 @@ def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, pat
 @click.option("--model", required=True, type=click.Path(path_type=Path),
               help="Mesh of the object in the dataset's reference frame (a known shape, truth/model.ply of a "
                    "simulation, or OUT/model.ply of reconstruct).")
-@click.option("--out", required=True, type=click.Path(path_type=Path), help="Folder for pose.json, pose.png and contours.png.")
+@click.option("--out", required=True, type=click.Path(path_type=Path),
+              help="Folder for pose.json, pose.png and contours.png.")
 @start_options
 @click.option("--levels", default=3, show_default=True, type=click.IntRange(1, 6),
               help="Grid levels, each 9 x 9 cells around the previous level's best, at half its spacing.")
@@ -456,7 +457,7 @@ def pose(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt, l
     then a BOBYQA polish on E_mu; the estimate is kept only where E_mu falls. OUT/pose.json,
     OUT/pose.png (the grid levels) and OUT/contours.png (per view, the data's contours and
     the model's at the estimate and at the start)."""
-    from .atomic import check_output_folder, output_folder
+    from .atomic import check_output_folder, json_number, output_folder
     from .dataset import load_dataset
     from .figures import contours_figure, pose_figure
     from .pose import PoseWarning, check_uncertainties, estimate_pose, view_contours
@@ -494,7 +495,7 @@ def pose(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt, l
     left_out = [v.name for v in dataset.rig.views if v.optimize and v.name not in result.views]
     record = {"dataset": str(dataset_dir), "model": str(model), **result.summary(),
               "start_source": "given" if given else "measured", "views_left_out": left_out,
-              "view_mu_m": {name: dict(zip(("estimate", "start"), (m if math.isfinite(m) else None for m in c["mu"])))
+              "view_mu_m": {name: dict(zip(("estimate", "start"), map(json_number, c["mu"])))
                             for name, c in contours.items()},
               "backend": backend.name, "device": backend.device}
     truth = dataset.manifest.truth

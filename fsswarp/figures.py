@@ -231,7 +231,8 @@ def contours_figure(images: dict[str, np.ndarray], contours: dict[str, dict], so
         values = np.stack([entry["data"]] + list(entry["synthetic"]))  # (poses + 1, 2, beams)
         found = np.isfinite(values)
         if found.any():
-            ax.set_ylim(max(sonar.range_min, values[found].min() - 0.1), min(sonar.range_max, values[found].max() + 0.1))
+            ax.set_ylim(max(sonar.range_min, values[found].min() - 0.1),
+                        min(sonar.range_max, values[found].max() + 0.1))
             beams = np.flatnonzero(found.any(axis=(0, 1)))
             ax.set_xlim(max(azimuth[0], azimuth[beams[0]] - 3.0), min(azimuth[-1], azimuth[beams[-1]] + 3.0))
         mu = ", ".join(f"{label} {m * 1e3:.1f}" if math.isfinite(m) else f"{label} -"

@@ -79,6 +79,7 @@ from typing import Callable
 import nlopt
 import numpy as np
 
+from .atomic import json_number
 from .backends import rows_read
 from .dataset import MANIFEST_NAME
 from .errors import InputError, check_integer, is_integer
@@ -262,7 +263,10 @@ class PoseResult:
         for name, value, span, fine in (("depth", last.best[0], first.depths, last.depths),
                                         ("tilt", last.best[1], first.tilts, last.tilts)):
             half = 0.5 * (fine[1] - fine[0])
-            edges += [f"lowest {name}"] * bool(value - span[0] < half) + [f"highest {name}"] * bool(span[-1] - value < half)
+            if value - span[0] < half:
+                edges.append(f"lowest {name}")
+            if span[-1] - value < half:
+                edges.append(f"highest {name}")
         return tuple(edges)
 
     def summary(self) -> dict:
@@ -271,15 +275,12 @@ class PoseResult:
         def point(depth: float, tilt: float) -> dict:
             return {"depth_m": depth, "tilt_deg": math.degrees(tilt)}
 
-        def finite(value: float) -> float | None:
-            return float(value) if math.isfinite(value) else None
-
         return {**point(self.depth, self.tilt), "start": point(self.depth0, self.tilt0),
                 "candidate": point(*self.candidate), "accepted": self.accepted,
-                "E_mu_start_m": finite(self.error_before), "E_mu_m": finite(self.error_after),
-                "E_mu_candidate_m": finite(self.polish_error),
+                "E_mu_start_m": json_number(self.error_before), "E_mu_m": json_number(self.error_after),
+                "E_mu_candidate_m": json_number(self.polish_error),
                 "levels": [{"depths_m": level.depths.tolist(), "tilts_deg": np.degrees(level.tilts).tolist(),
-                            "costs_m": [[finite(c) for c in row] for row in level.costs.tolist()],
+                            "costs_m": [[json_number(c) for c in row] for row in level.costs.tolist()],
                             "best": point(*level.best)} for level in self.levels],
                 "detection_shift_rows": self.shift, "anchor_views": list(self.anchors), "views": list(self.views),
                 "mirror_views": list(self.mirror_views), "search_box_edges": list(self.box_edges()),

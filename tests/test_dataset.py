@@ -811,3 +811,11 @@ def test_a_long_value_keeps_its_end_in_the_message():
     assert text.startswith("--initial-model = '/tmp/deep/") and "none.ply'" in text
     assert "..." in text and len(text) < 100
     assert str(InputError("bad", field="x", value="short")) == "x = 'short': bad"
+
+
+def test_json_number_writes_none_where_json_has_no_number():
+    from fsswarp.atomic import json_number
+
+    assert [json_number(v) for v in (1.5, np.float32(2.0), 0, math.nan, math.inf, -math.inf)] == \
+        [1.5, 2.0, 0.0, None, None, None]
+    assert type(json_number(np.float64(0.25))) is float
