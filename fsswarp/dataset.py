@@ -280,13 +280,19 @@ def read_mesh(path: Path, *, field: str, file: Path | None = None, value: str | 
                          value=value) from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise InputError("holds no triangles", file=file, field=field, value=value)
-    with np.errstate(invalid="ignore"):
-        bad = int(np.sum(~(np.abs(np.asarray(mesh.vertices)) < np.finfo(np.float32).max).all(axis=1)))
+    bad = vertices_beyond_float32(mesh.vertices)
     if bad:
         raise InputError(f"has {bad} vertices that are not finite numbers within float32's range (the kernels')",
                          file=file, field=field, value=value)
     mesh.process()  # as trimesh.load_mesh(..., process=True): duplicate vertices merged
     return mesh
+
+
+def vertices_beyond_float32(vertices) -> int:
+    """How many of the (N, 3) ``vertices`` are not finite numbers within float32's range (the
+    kernels' precision)."""
+    with np.errstate(invalid="ignore"):
+        return int(np.sum(~(np.abs(np.asarray(vertices)) < np.finfo(np.float32).max).all(axis=1)))
 
 
 def load_manifest(path) -> Manifest:

@@ -76,7 +76,7 @@ def target_world_mesh(target: Target, *, base=None, file=None):
     whose placed vertices leave float32's range (the kernels' precision)."""
     import trimesh
 
-    from .dataset import read_mesh
+    from .dataset import read_mesh, vertices_beyond_float32
     from .rig import rotation_x, rotation_y, rotation_z
 
     if target.builtin is not None:
@@ -88,8 +88,7 @@ def target_world_mesh(target: Target, *, base=None, file=None):
     rot = rotation_z(rz) @ rotation_y(ry) @ rotation_x(rx)
     with np.errstate(over="ignore", invalid="ignore"):
         vertices = (np.asarray(mesh.vertices) * target.scale) @ rot.T + np.asarray(target.position)
-        finite = np.all(np.abs(vertices) < np.finfo(np.float32).max)
-    if not finite:
+    if vertices_beyond_float32(vertices):
         raise InputError("places the target's vertices beyond float32's range", file=file, field="target.scale_m",
                          value=target.scale)
     return trimesh.Trimesh(vertices=vertices, faces=np.asarray(mesh.faces), process=False)
