@@ -42,6 +42,15 @@ class State:
 
         return get_backend(self.backend, self.device)
 
+    def figure_drawer(self):
+        """A ``fsswarp.figures.FigureDrawer`` whose processes start now (call it once the
+        command's input is checked) and stop when the command ends."""
+        from .figures import FigureDrawer
+
+        drawer = FigureDrawer()
+        click.get_current_context().call_on_close(drawer.close)
+        return drawer
+
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--backend", type=click.Choice(["auto", "warp", "opencl"]), default="auto", show_default=True,
@@ -187,6 +196,7 @@ def simulate(state: State, scene_name: str, out: Path, seed: int, samples, no_no
     truth model under truth/."""
     import time
 
+    from .figures import draw_here
     from .render import RenderSettings
     from .simulate import simulate as run
 
@@ -195,14 +205,15 @@ def simulate(state: State, scene_name: str, out: Path, seed: int, samples, no_no
     start = time.perf_counter()
     dataset = run(scene_name, out, seed=seed, settings=settings, noise=not no_noise, backend=backend)
     seconds = time.perf_counter() - start
-    figure = simulation_figure(dataset, out / "figures" / "layers.png")
+    figure = simulation_figure(dataset, out / "figures" / "layers.png", draw_here)
     state.echo(f"wrote {out}: {len(dataset.images)} views of {scene_name} "
                f"({backend.name} on {backend.device}, {seconds:.2f} s); figure {figure}")
 
 
-def simulation_figure(dataset, path: Path) -> Path:
+def simulation_figure(dataset, path: Path, draw) -> Path:
     """Layers and noisy data of up to three views (roll 0, the largest positive and the most
-    negative roll of the reference position) as beam-bin and fan images."""
+    negative roll of the reference position) as beam-bin and fan images, drawn by ``draw``
+    (``fsswarp.figures.FigureDrawer.batch``); returns ``path``."""
     import numpy as np
 
     from .figures import layers_figure
@@ -215,8 +226,9 @@ def simulation_figure(dataset, path: Path) -> Path:
               min(same, key=lambda v: v.roll).name}
     stacks = {name: np.stack([dataset.truth_layer(name, c) for c in COMPONENTS] + [dataset.images[name]])
               for name in [v.name for v in same if v.name in chosen]}
-    return layers_figure(stacks, dataset.sonar, path, layers=COMPONENTS + ("data",),
-                         title="simulated layers (noise-free) and data (noisy)")
+    draw(layers_figure, stacks, dataset.sonar, path, layers=COMPONENTS + ("data",),
+         title="simulated layers (noise-free) and data (noisy)")
+    return path
 
 
 @app.command()
@@ -431,7 +443,7 @@ def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, pat
     check_output_folder(out, marker=MARKERS["reconstruct"])
     run_reconstruction(state, dataset, out,
                        ReconstructSettings(iterations=iterations, patience=patience, resolution=resolution),
-                       depth0=depth, tilt0=None if tilt is None else math.radians(tilt))
+                       state.figure_drawer(), depth0=depth, tilt0=None if tilt is None else math.radians(tilt))
 
 
 @app.command()
@@ -472,6 +484,7 @@ def pose(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt, l
     bounds = check_uncertainties(dataset, depth0, depth_range=depth_range,
                                  tilt_range=None if tilt_range is None else math.radians(tilt_range))
     backend = state.get_backend()
+    drawer = state.figure_drawer()
     given = depth is not None or tilt is not None
     state.echo(f"estimating depth and tilt of {dataset_dir} with {model}: {levels} grid levels "
                f"({backend.name} on {backend.device})")
@@ -508,13 +521,13 @@ def pose(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt, l
                    f" mm, {math.degrees(result.tilt0 - truth.tilt):+.3f} deg)")
     if left_out:
         state.echo(f"  views left out (the model is not seen in them): {', '.join(left_out)}")
-    with output_folder(out, marker=MARKERS["pose"]) as tmp:
-        pose_figure(result, tmp / "pose.png", truth=None if truth is None else (truth.depth, truth.tilt),
-                    title=f"{dataset_dir.name}: the (D, tilt) grid search with {model.name}")
-        contours_figure(dataset.images, contours, dataset.sonar, tmp / "contours.png",
-                        title=f"{dataset_dir.name}: frontal contours of the data and of {model.name} at the estimate "
-                              f"(D {result.depth:.4f} m, tilt {math.degrees(result.tilt):.3f} deg) and at the start "
-                              f"(D {result.depth0:.4f} m, tilt {math.degrees(result.tilt0):.3f} deg)")
+    with output_folder(out, marker=MARKERS["pose"]) as tmp, drawer.batch() as draw:
+        draw(pose_figure, result, tmp / "pose.png", truth=None if truth is None else (truth.depth, truth.tilt),
+             title=f"{dataset_dir.name}: the (D, tilt) grid search with {model.name}")
+        draw(contours_figure, dataset.images, contours, dataset.sonar, tmp / "contours.png",
+             title=f"{dataset_dir.name}: frontal contours of the data and of {model.name} at the estimate "
+                   f"(D {result.depth:.4f} m, tilt {math.degrees(result.tilt):.3f} deg) and at the start "
+                   f"(D {result.depth0:.4f} m, tilt {math.degrees(result.tilt0):.3f} deg)")
         (tmp / "pose.json").write_text(json.dumps(record, indent=2))
     state.echo(f"wrote {out}: D {result.depth:.4f} m, tilt {math.degrees(result.tilt):.3f} deg "
                f"({'moved' if result.accepted else 'kept: E_mu did not fall'}), pose.json, pose.png, contours.png "
@@ -545,23 +558,26 @@ def demo(state: State, scene_name: str, out: Path, seed: int, iterations: int) -
     with output_folder(out, marker=MARKERS["demo"]) as tmp:
         state.echo(f"simulating {scene_name} ({backend.name} on {backend.device})")
         dataset = run_simulation(scene_name, tmp / "dataset", seed=seed, backend=backend)
-        simulation_figure(dataset, tmp / "dataset" / "figures" / "layers.png")
-        state.echo(f"  {len(dataset.images)} noisy views in {time.perf_counter() - start:.1f} s")
-        result = run_reconstruction(state, dataset, tmp / "reconstruction", ReconstructSettings(iterations=iterations),
-                                    shown=out / "reconstruction")
-        run_enhancement(state, dataset, result.model, "the reconstructed model", result.depth, result.tilt,
-                        tmp / "enhance", source="estimated", initial=(result.carved, "the carved model"),
-                        shown=out / "enhance", dataset_label=out / "dataset")
+        drawer = state.figure_drawer()
+        with drawer.batch() as draw:  # the layers figure is drawn while the reconstruction runs
+            simulation_figure(dataset, tmp / "dataset" / "figures" / "layers.png", draw)
+            state.echo(f"  {len(dataset.images)} noisy views in {time.perf_counter() - start:.1f} s")
+            result = run_reconstruction(state, dataset, tmp / "reconstruction",
+                                        ReconstructSettings(iterations=iterations), drawer, shown=out / "reconstruction")
+            run_enhancement(state, dataset, result.model, "the reconstructed model", result.depth, result.tilt,
+                            tmp / "enhance", drawer, source="estimated", initial=(result.carved, "the carved model"),
+                            shown=out / "enhance", dataset_label=out / "dataset")
         (tmp / "demo.json").write_text(json.dumps({"scene": scene_name, "seed": seed,
                                                    "seconds": time.perf_counter() - start}, indent=2))
     state.echo(f"wrote {out}: dataset/, reconstruction/, enhance/ ({time.perf_counter() - start:.1f} s in all)")
 
 
-def run_reconstruction(state: State, dataset, out: Path, settings, *, depth0: float | None = None,
+def run_reconstruction(state: State, dataset, out: Path, settings, drawer, *, depth0: float | None = None,
                        tilt0: float | None = None, shown: Path | None = None):
     """Reconstruct ``dataset`` from (depth0 m, tilt0 rad; default the measured values), write
-    OUT/model.ply, carved.ply, result.json and figures (``shown``: the folder's name in
-    messages, when OUT is a temporary folder); returns the ReconstructResult."""
+    OUT/model.ply, carved.ply, result.json and figures (drawn by ``drawer``, a
+    ``fsswarp.figures.FigureDrawer``; ``shown``: the folder's name in messages, when OUT is a
+    temporary folder); returns the ReconstructResult."""
     from .atomic import output_folder
     from .figures import carve_figure, contours_figure, history_figure, pose_figure
     from .pose import PoseWarning, view_contours
@@ -577,25 +593,26 @@ def run_reconstruction(state: State, dataset, out: Path, settings, *, depth0: fl
         warnings.simplefilter("ignore", PoseWarning)  # the figure shows the views where the model is seen
         contours = view_contours(result.model, dataset, result.depth, result.tilt, settings=settings.pose,
                                  backend=backend)
-    with output_folder(out, marker=MARKERS["reconstruct"]) as tmp:
+    with output_folder(out, marker=MARKERS["reconstruct"]) as tmp, drawer.batch() as draw:
         result.model.export(tmp / "model.ply")
         result.carved.export(tmp / "carved.ply")
-        history_figure(result.history, tmp / "figures" / "history.png",
-                       truth_depth=None if truth is None else truth.depth,
-                       truth_tilt_deg=None if truth is None else math.degrees(truth.tilt),
-                       best_iteration=result.best_iteration,
-                       title=f"{dataset.root.name}: depth and tilt, and errors, per iteration")
-        carve_figure(result.carved, tmp / "figures" / "carved.png", truth=truth_mesh, title="carved model (iteration 0)")
-        carve_figure(result.model, tmp / "figures" / "model.png", truth=truth_mesh, label="final",
-                     title=f"final model (iteration {result.best_iteration}, the lowest E_I)")
+        draw(carve_figure, result.carved, tmp / "figures" / "carved.png", truth=truth_mesh,
+             title="carved model (iteration 0)")
+        draw(carve_figure, result.model, tmp / "figures" / "model.png", truth=truth_mesh, label="final",
+             title=f"final model (iteration {result.best_iteration}, the lowest E_I)")
+        draw(contours_figure, dataset.images, contours, dataset.sonar, tmp / "figures" / "contours.png",
+             labels=("final",),
+             title=f"{dataset.root.name}: frontal contours of the data and of the final model (iteration "
+                   f"{result.best_iteration}) at D {result.depth:.4f} m, tilt {math.degrees(result.tilt):.3f} deg")
+        draw(history_figure, result.history, tmp / "figures" / "history.png",
+             truth_depth=None if truth is None else truth.depth,
+             truth_tilt_deg=None if truth is None else math.degrees(truth.tilt),
+             best_iteration=result.best_iteration,
+             title=f"{dataset.root.name}: depth and tilt, and errors, per iteration")
         if result.pose_steps:
-            pose_figure(result.pose_steps[0], tmp / "figures" / "pose.png",
-                        truth=None if truth is None else (truth.depth, truth.tilt),
-                        title="first pose step: the (D, tilt) grid search around the measured values")
-        contours_figure(dataset.images, contours, dataset.sonar, tmp / "figures" / "contours.png", labels=("final",),
-                        title=f"{dataset.root.name}: frontal contours of the data and of the final model (iteration "
-                              f"{result.best_iteration}) at D {result.depth:.4f} m, tilt "
-                              f"{math.degrees(result.tilt):.3f} deg")
+            draw(pose_figure, result.pose_steps[0], tmp / "figures" / "pose.png",
+                 truth=None if truth is None else (truth.depth, truth.tilt),
+                 title="first pose step: the (D, tilt) grid search around the measured values")
         (tmp / "result.json").write_text(json.dumps(result.summary(), indent=2))
     best = result.history[result.best_iteration]
     state.echo(f"wrote {shown or out}: D {result.depth:.4f} m, tilt {math.degrees(result.tilt):.3f} deg, E_I "
@@ -643,20 +660,22 @@ def enhance(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt
     given = depth is not None or tilt is not None
     depth = dataset.manifest.surface.depth if depth is None else depth
     tilt = dataset.manifest.surface.tilt if tilt is None else math.radians(tilt)
-    run_enhancement(state, dataset, mesh, str(model), depth, tilt, out, views=list(view_names) or None,
-                    source="given" if given else "measured", initial=initial, ghost_sigma=tuple(ghost_sigma))
+    run_enhancement(state, dataset, mesh, str(model), depth, tilt, out, state.figure_drawer(),
+                    views=list(view_names) or None, source="given" if given else "measured", initial=initial,
+                    ghost_sigma=tuple(ghost_sigma))
 
 
 #: The comparison figures of run_enhancement: file name and group of fsswarp.enhance.comparison_views.
 COMPARISON_FIGURES = {"views_optimized.png": "optimized", "views_heldout.png": "held-out"}
 
 
-def run_enhancement(state: State, dataset, mesh, model_name: str, depth: float, tilt: float, out: Path, *,
+def run_enhancement(state: State, dataset, mesh, model_name: str, depth: float, tilt: float, out: Path, drawer, *,
                     views=None, source: str, initial=None, ghost_sigma=(0.0, 0.0), shown: Path | None = None,
                     dataset_label: Path | None = None) -> None:
     """Enhance ``dataset``'s views with ``mesh`` at (depth m, tilt rad) and write OUT/<view>_enhanced.tiff,
     <view>_ghost.tiff, enhance.json, enhance.png and the comparison figures (COMPARISON_FIGURES; a
-    group with no view gets none). ``initial``: (mesh, name) of the initial model, rendered at the
+    group with no view gets none), the figures drawn by ``drawer`` (a
+    ``fsswarp.figures.FigureDrawer``). ``initial``: (mesh, name) of the initial model, rendered at the
     measured depth and tilt for the figures' "initial synthetic" column; ``ghost_sigma``: see
     fsswarp.enhance.enhance_view. ``shown``, ``dataset_label``:
     the names of OUT and of the dataset's folder in messages and enhance.json, when they are
@@ -711,15 +730,14 @@ def run_enhancement(state: State, dataset, mesh, model_name: str, depth: float, 
               "figures": figures,
               "scores": scores, "backend": backend.name, "device": backend.device,
               "seconds": time.perf_counter() - start}
-    with output_folder(out, marker=MARKERS["enhance"]) as tmp:
+    with output_folder(out, marker=MARKERS["enhance"]) as tmp, drawer.batch() as draw:
         for name, result in results.items():
             tifffile.imwrite(tmp / f"{name}_enhanced.tiff", result.enhanced, compression="zlib")
             tifffile.imwrite(tmp / f"{name}_ghost.tiff", result.ghost, compression="zlib")
         first = list(results)[:6]
-        enhance_figure({n: dataset.images[n] for n in first}, {n: results[n] for n in first}, dataset.sonar,
-                       tmp / "enhance.png",
-                       title=f"{label}: ghost removal with {model_name}"
-                       + (f" (first 6 of {len(results)} views)" if len(results) > 6 else ""))
+        draw(enhance_figure, {n: dataset.images[n] for n in first}, {n: results[n] for n in first}, dataset.sonar,
+             tmp / "enhance.png", title=f"{label}: ghost removal with {model_name}"
+             + (f" (first 6 of {len(results)} views)" if len(results) > 6 else ""))
         total = LAYERS.index("total")
         for file, entry in figures.items():
             names = entry["views"]
@@ -727,15 +745,16 @@ def run_enhancement(state: State, dataset, mesh, model_name: str, depth: float, 
                 n: match_level(initial_layers[n][total], dataset.images[n]) if n in initial_layers
                 else np.zeros_like(dataset.images[n]) for n in names}
             group = "held-out views (not optimized)" if COMPARISON_FIGURES[file] == "held-out" else "optimized views"
-            comparison_figure({n: dataset.images[n] for n in names}, {n: results[n].enhanced for n in names},
-                              {n: match_level(results[n].synthetic, dataset.images[n]) for n in names},
-                              dataset.sonar, tmp / file, initial=initial_images,
-                              title=f"{label}, {group}: {', '.join(names)}\n"
-                                    + (f"initial synthetic: {initial[1]} at the measured D0 = {surface.depth:.3f} m, "
-                                       f"tilt {math.degrees(surface.tilt):.2f} deg\n" if initial is not None else "")
-                                    + f"optimized synthetic: {model_name} at D = {depth:.3f} m, tilt "
-                                      f"{math.degrees(tilt):.2f} deg ({source})\nsynthetic: total layer, scaled to "
-                                      "the data's mean over its returns")
+            draw(comparison_figure, {n: dataset.images[n] for n in names},
+                 {n: results[n].enhanced for n in names},
+                 {n: match_level(results[n].synthetic, dataset.images[n]) for n in names},
+                 dataset.sonar, tmp / file, initial=initial_images,
+                 title=f"{label}, {group}: {', '.join(names)}\n"
+                       + (f"initial synthetic: {initial[1]} at the measured D0 = {surface.depth:.3f} m, "
+                          f"tilt {math.degrees(surface.tilt):.2f} deg\n" if initial is not None else "")
+                       + f"optimized synthetic: {model_name} at D = {depth:.3f} m, tilt "
+                         f"{math.degrees(tilt):.2f} deg ({source})\nsynthetic: total layer, scaled to "
+                         "the data's mean over its returns")
         (tmp / "enhance.json").write_text(json.dumps(record, indent=2))
     state.echo(f"wrote {shown or out}: {len(results)} views, enhance.json, enhance.png"
                + "".join(f", {file}" for file in figures) + f" ({time.perf_counter() - start:.1f} s)")

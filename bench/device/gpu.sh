@@ -8,6 +8,7 @@
 #   bash bench/device/gpu.sh bench                  fsswarp bench: Warp CUDA, OpenCL on the GPU, PoCL on the host
 #   bash bench/device/gpu.sh ab BEFORE AFTER [ARGS] bench/ab_reconstruct.py on Warp CUDA
 #   bash bench/device/gpu.sh profile [ARGS]         bench/loop_profile.py on Warp CUDA
+#   bash bench/device/gpu.sh demo [ARGS]            bench/demo_wall.py (the whole demo) on Warp CUDA
 #
 # Records land in $OUT (the device tool brings them back), as under bench/records/: copy
 # $OUT/reconstruction/NAME.json (table) and $OUT/identifiability/NAME.json (study) to the same
@@ -21,7 +22,7 @@ export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}
 out=${OUT:?OUT must name the folder that comes back}
 command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,driver_version --format=csv,noheader
 fail() { echo "bench/device/gpu.sh: error: $1" >&2; exit 2; }
-[ $# -gt 0 ] || fail "name a run: tests, table, study, bench, ab or profile"
+[ $# -gt 0 ] || fail "name a run: tests, table, study, bench, ab, profile or demo"
 what=$1
 shift
 case "$what" in
@@ -49,6 +50,8 @@ case "$what" in
     python bench/ab_reconstruct.py "$@" --backend warp --device cuda:0 ;;
   profile)
     python bench/loop_profile.py --backend warp --device cuda:0 "$@" ;;
+  demo)
+    python bench/demo_wall.py "$@" -- --backend warp --device cuda:0 ;;
   *)
-    fail "unknown run '$what' (tests, table, study, bench, ab or profile)" ;;
+    fail "unknown run '$what' (tests, table, study, bench, ab, profile or demo)" ;;
 esac
