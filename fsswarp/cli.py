@@ -556,9 +556,9 @@ def demo(state: State, scene_name: str, out: Path, seed: int, iterations: int) -
     backend = state.get_backend()
     start = time.perf_counter()
     with output_folder(out, marker=MARKERS["demo"]) as tmp:
+        drawer = state.figure_drawer()
         state.echo(f"simulating {scene_name} ({backend.name} on {backend.device})")
         dataset = run_simulation(scene_name, tmp / "dataset", seed=seed, backend=backend)
-        drawer = state.figure_drawer()
         with drawer.batch() as draw:  # the layers figure is drawn while the reconstruction runs
             simulation_figure(dataset, tmp / "dataset" / "figures" / "layers.png", draw)
             state.echo(f"  {len(dataset.images)} noisy views in {time.perf_counter() - start:.1f} s")

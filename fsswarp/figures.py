@@ -383,6 +383,7 @@ def figure_workers() -> int:
     process may use, at most 4."""
     import os
 
+    from .backends import usable_cpus
     from .errors import InputError
 
     value = os.environ.get("FSSWARP_FIGURE_WORKERS", "").strip()
@@ -390,8 +391,7 @@ def figure_workers() -> int:
         if not (value.isdigit() and int(value) <= 64):
             raise InputError("must be an integer from 0 to 64", field="FSSWARP_FIGURE_WORKERS", value=value)
         return int(value)
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    return min(4, cpus)
+    return min(4, usable_cpus())
 
 
 class FigureDrawer:

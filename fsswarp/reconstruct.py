@@ -404,13 +404,11 @@ class _TruthMetrics:
 
 def truth_workers() -> int:
     """Truth-metric processes that run at once: one per 4 CPUs that this process may use
-    (its affinity where the system tells it, as in a container given some of a host's CPUs;
-    else every CPU), 1 to 4: 1 on a 2-core CPU, where the loop's kernels use both cores; 4 on
-    a 16-core GPU host."""
-    import os
+    (``fsswarp.backends.usable_cpus``), 1 to 4: 1 on a 2-core CPU, where the loop's kernels use
+    both cores; 4 on a 16-core GPU host."""
+    from .backends import usable_cpus
 
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    return min(4, max(1, cpus // 4))
+    return min(4, max(1, usable_cpus() // 4))
 
 
 def _line(entry: dict) -> str:

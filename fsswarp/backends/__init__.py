@@ -1018,3 +1018,9 @@ def _host_memory() -> int | None:
         return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
     except (ValueError, OSError, AttributeError):
         return None
+
+
+def usable_cpus() -> int:
+    """CPUs this process may use: its affinity where the system tells it (a container given
+    some of a host's CPUs), else every CPU."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
