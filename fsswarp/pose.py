@@ -86,7 +86,7 @@ from .errors import InputError, check_integer, is_integer
 from .icp import CONTOUR_TOL, icp_many
 from .motion import patch_motions, view_errors
 from .render import RenderSettings, check_mesh
-from .segment import SegmentSettings, memoized, segment
+from .segment import SegmentSettings, memoized, normalized, segment
 from .rig import check_depth_tilt
 from .surface import mirror_points, surface_in_reference, surface_in_views
 
@@ -812,22 +812,14 @@ def _check_handed_over(problem: PoseProblem, model, dataset, depth: float, tilt:
 def detection_threshold(image, settings: SegmentSettings = SegmentSettings()) -> np.ndarray:
     """(bins,) linear intensity at which the segmentation's hysteresis low threshold lies in
     each row of a (bins, beams) image, less the background: ``(m + low·s − 1)·level(B)``
-    (``fsswarp.segment`` steps 1–2: the same background level, median m and spread s)."""
+    (``fsswarp.segment.normalized``, steps 0–2: the same clipped spikes, background level, median m
+    and spread s)."""
     array = np.asarray(image, np.float64)
     return memoized("detection_threshold", array, settings, lambda: _detection_threshold(array, settings))
 
 
 def _detection_threshold(array: np.ndarray, settings: SegmentSettings) -> np.ndarray:
-    from scipy import ndimage
-
-    peak = float(array.max()) if array.size else 0.0
-    level = ndimage.median_filter(np.median(array, axis=1) / math.log(2.0), settings.background_rows,
-                                  mode="nearest")
-    level = np.maximum(level, 1e-6 * peak if peak > 0 else 1e-30)
-    smooth = ndimage.gaussian_filter(array / level[:, None], (settings.sigma_bins, settings.sigma_beams),
-                                     mode="nearest")
-    centre = float(np.median(smooth))
-    spread = max(1.4826 * float(np.median(np.abs(smooth - centre))), 0.01 * (float(smooth.max()) - centre))
+    level, _, centre, spread = normalized(array, settings)
     return np.maximum(centre + settings.low * spread - 1.0, 0.0) * level
 
 

@@ -345,6 +345,29 @@ def test_cli_carve(coral_one, tmp_path):
     assert json.loads((out / "carve.json").read_text())["depth_tilt_source"] == "given"
 
 
+def test_cli_carve_with_a_hot_pixel_in_every_view(coral_one, tmp_path):
+    """A pixel at 1000 times its view's peak, in the background of every view, is clipped
+    (fsswarp.segment step 0): the carving keeps the same voxels as without it. Before, every
+    view lost its object and the carving failed."""
+    import shutil
+
+    import tifffile
+
+    hot = tmp_path / "hot"
+    shutil.copytree(coral_one.root, hot)
+    for name in coral_one.rig.names:
+        image = coral_one.images[name].copy()
+        image[30, 5] = 1000 * image.max()
+        tifffile.imwrite(hot / "images" / f"{name}.tiff", image)
+    records = []
+    for folder in (coral_one.root, hot):
+        done = run_cli("--quiet", "carve", str(folder), "--out", str(tmp_path / folder.name / "out"), "--resolution", "32")
+        assert done.returncode == 0, done.stderr
+        records.append(json.loads((tmp_path / folder.name / "out" / "carve.json").read_text()))
+    assert records[1]["voxels_kept"] == records[0]["voxels_kept"] > 0
+    assert records[1]["mesh"] == records[0]["mesh"]
+
+
 def test_cli_carve_bad_input_writes_nothing(coral_one, tmp_path):
     out = tmp_path / "nothing"
     done = run_cli("carve", str(coral_one.root), "--out", str(out), "--box", "1", "1", "1", "2", "2", "2")

@@ -17,7 +17,8 @@ import pytest
 
 from fsswarp.errors import InputError
 from fsswarp.render import add_noise
-from fsswarp.segment import SegmentSettings, SegmentWarning, from_highlight, segment
+from fsswarp.pose import detection_threshold
+from fsswarp.segment import SPIKE_RATIO, SegmentSettings, SegmentWarning, clip_spikes, from_highlight, segment
 from fsswarp.surface import COMPONENTS
 
 
@@ -43,6 +44,45 @@ def test_segmentation_of_coral_one(coral_one):
     assert np.mean(energy) >= 0.95 and np.mean(recall) >= 0.75
     assert np.mean(covered) >= 0.98 and np.min(covered) >= 0.9
     assert -3.0 <= np.mean(front) <= 0.5
+
+
+def test_a_hot_pixel_leaves_the_segmentation_as_it_was(coral_one):
+    """One pixel at 5 to 1000 times a view's peak, in its background: the highlight equals the
+    clean view's and the detection threshold is within 0.1% of it (before step 0, 5x shrank the
+    object's highlight and 20x lost it); every noisy view of the scene is left as it is."""
+    for name in coral_one.rig.names:
+        image = coral_one.images[name].astype(np.float64)
+        assert np.array_equal(clip_spikes(image), image), name
+    clean = coral_one.images["Sm22p5"].astype(np.float64)
+    base = segment(clean)
+    assert base.highlight.sum() > 100 and not base.highlight[:60, :10].any()
+    for factor in (5, 20, 1000):
+        hot = clean.copy()
+        hot[30, 5] = factor * clean.max()
+        assert np.array_equal(segment(hot).highlight, base.highlight), factor
+        # the clipped pixel takes its neighbours' value, not its own: the spread moves by 0.04%
+        np.testing.assert_allclose(detection_threshold(hot), detection_threshold(clean), rtol=1e-3)
+
+
+def test_clip_spikes():
+    """A pixel above SPIKE_RATIO times its largest neighbour takes that neighbour's value (at
+    the border too); a pair of bright pixels, a pixel at the ratio and images without a noise
+    floor (median 0) are kept."""
+    image = np.full((6, 5), 1.0)
+    image[2, 2] = 2.0
+    image[0, 4] = 10 * SPIKE_RATIO
+    image[2, 1] = SPIKE_RATIO * 2.0  # exactly at the ratio: kept
+    image[5, 0] = image[5, 1] = 1e6  # two pixels: an echo, not a spike
+    image[4, 3] = 1e3
+    clipped = clip_spikes(image)
+    want = image.copy()
+    want[0, 4] = 1.0
+    want[4, 3] = 1.0
+    assert np.array_equal(clipped, want)
+    sparse = np.zeros((6, 5))
+    sparse[3, 3] = 5.0
+    sparse[3, 4] = 0.01  # a noise-free facet's echo beside a faint one
+    assert clip_spikes(sparse) is sparse
 
 
 def test_noise_alone_has_no_highlight():
