@@ -415,3 +415,18 @@ def test_loop_profile_times_a_reconstruction_and_leaves_fsswarp_as_it_was(capsys
 
 def test_loop_profile_bad_options_exit_2():
     assert _bench_module("loop_profile").main(["--iterations", "-1"]) == 2
+
+
+def test_demo_wall_alternates_the_settings_after_a_warm_up(monkeypatch, capsys):
+    """bench/demo_wall.py with the demo replaced by a stand-in that takes known times: one
+    uncounted warm-up run, then the two figure settings in turn, and medians with their ratio."""
+    demo_wall = _bench_module("demo_wall")
+    calls, times = [], iter([99.0, 30.0, 20.0, 34.0, 22.0, 32.0, 21.0])
+    monkeypatch.setattr(demo_wall, "run_demo", lambda scene, out, workers, options: calls.append(
+        (scene, workers, tuple(options))) or next(times))
+    assert demo_wall.main(["--rounds", "3", "--scene", "table", "--", "--backend", "warp"]) == 0
+    assert calls == [("table", None, ("--backend", "warp"))] + [("table", w, ("--backend", "warp"))
+                                                                 for _ in range(3) for w in ("0", None)]
+    out = capsys.readouterr().out
+    assert "figures in the command's process: median 32.0 s (30.0-34.0)" in out
+    assert "figures in figure processes: median 21.0 s (20.0-22.0)" in out and out.rstrip().endswith("ratio 0.66")
