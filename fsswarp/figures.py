@@ -394,6 +394,10 @@ def figure_workers() -> int:
     return min(4, usable_cpus())
 
 
+class FigureWarning(UserWarning):
+    """Figures are drawn in the command's own process because figure processes could not start."""
+
+
 class FigureDrawer:
     """Draws figures in child processes while the command goes on (``workers``, default
     :func:`figure_workers`; 0 draws each at once in this process).
@@ -416,12 +420,19 @@ class FigureDrawer:
         self.pool = None
         if self.workers > 0:
             import multiprocessing
+            import warnings
             from concurrent.futures import ProcessPoolExecutor
 
-            self.pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
-                                            initializer=_start_figure_process)
-            for _ in range(self.workers):  # each submit with no idle process starts one
-                self.pool.submit(int)
+            try:
+                self.pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
+                                                initializer=_start_figure_process)
+                for _ in range(self.workers):  # each submit with no idle process starts one
+                    self.pool.submit(int)
+            except OSError as err:  # e.g. no /dev/shm for the pool's semaphores in some containers
+                self.close()
+                self.pool = None
+                warnings.warn(f"figure processes could not start ({err}); drawing the figures in this process "
+                              "(FSSWARP_FIGURE_WORKERS=0 does so without this warning)", FigureWarning, stacklevel=2)
 
     def close(self) -> None:
         """Stop the processes (a figure being drawn is finished first)."""

@@ -9,7 +9,7 @@ import trimesh
 from fsswarp.atomic import write_bytes
 from fsswarp.cli import main
 from fsswarp.errors import InputError
-from fsswarp.figures import FigureDrawer, carve_figure, draw_here, figure_workers
+from fsswarp.figures import FigureDrawer, FigureWarning, carve_figure, draw_here, figure_workers
 
 
 @pytest.fixture(scope="module")
@@ -81,3 +81,22 @@ def test_a_bad_workers_setting_is_a_user_mistake(monkeypatch, tmp_path, capsys, 
     assert err == "fsswarp: error: FSSWARP_FIGURE_WORKERS = 'many': must be an integer from 0 to 64\n"
     assert not (tmp_path / "r").exists()
 
+
+
+def test_figures_are_drawn_here_where_processes_cannot_start(monkeypatch, tmp_path):
+    """A system where the pool's semaphores or processes are not available (an OSError): one
+    warning, and the figures are drawn in this process."""
+    import concurrent.futures
+
+    def refuse(*args, **kwargs):
+        raise OSError(38, "Function not implemented")
+
+    monkeypatch.setattr(concurrent.futures, "ProcessPoolExecutor", refuse)
+    with pytest.warns(FigureWarning, match=r"figure processes could not start \(\[Errno 38\] Function not "
+                                           r"implemented\); drawing the figures in this process"):
+        drawer = FigureDrawer(2)
+    with drawer.batch() as draw:
+        assert draw is draw_here
+        draw(write_bytes, tmp_path / "a.bin", b"a")
+    assert (tmp_path / "a.bin").read_bytes() == b"a"
+    drawer.close()
