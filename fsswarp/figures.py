@@ -402,8 +402,8 @@ class FigureDrawer:
     """Draws figures in child processes while the command goes on (``workers``, default
     :func:`figure_workers`; 0 draws each at once in this process).
 
-    A figure is 0.2–2.6 s of matplotlib work (coral-one on the 2-core CI-class machine) and
-    the demo draws ten, 11 s of its 81 s there; on a GPU server, whose kernels are done in a
+    A figure is 0.3–2.6 s of matplotlib work (coral-one on the 2-core CI-class machine) and
+    the demo draws nine, 11 s of its 81 s there; on a GPU server, whose kernels are done in a
     fraction of that, they were most of the demo's wall time. The processes start (and import
     matplotlib, about 0.9 s) when the drawer is made, at the start of the command, so they
     are ready when its first figure comes. Each figure's arguments are pickled to its process,
