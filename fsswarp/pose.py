@@ -779,22 +779,23 @@ def check_uncertainties(dataset, depth0: float, *, depth_range: float | None = N
     search from ``depth0`` (m): 0 < e_D < depth0 and 0 < e_β < 45°."""
     file = dataset.root / MANIFEST_NAME if getattr(dataset, "root", None) is not None else None
     surface = dataset.manifest.surface
+    default = (BOUNDS_FACTOR * surface.depth_sigma, BOUNDS_FACTOR * surface.tilt_sigma)
     if depth_range is not None:
         if not (math.isfinite(depth_range) and 0 < depth_range < depth0):
             raise InputError(f"must be > 0 and below the start depth {depth0:g} m", field="--depth-range",
                              value=depth_range)
-    elif not 0 < BOUNDS_FACTOR * surface.depth_sigma < depth0:
+    elif not 0 < default[0] < depth0:
         raise InputError(f"must be > 0 and, times {BOUNDS_FACTOR:g}, below the start depth {depth0:g} m: the depth "
                          "search spans that many sigmas", file=file, field="surface.depth_sigma_m",
                          value=surface.depth_sigma)
     if tilt_range is not None:
         if not (math.isfinite(tilt_range) and 0 < tilt_range < math.pi / 4):
             raise InputError("must be > 0 and below 45 (deg)", field="--tilt-range", value=math.degrees(tilt_range))
-    elif not 0 < BOUNDS_FACTOR * surface.tilt_sigma < math.pi / 4:
+    elif not 0 < default[1] < math.pi / 4:
         raise InputError(f"must be > 0 and, times {BOUNDS_FACTOR:g}, below 45 deg: the tilt search spans that many "
                          "sigmas", file=file, field="surface.tilt_sigma_deg", value=math.degrees(surface.tilt_sigma))
-    return (BOUNDS_FACTOR * surface.depth_sigma if depth_range is None else float(depth_range),
-            BOUNDS_FACTOR * surface.tilt_sigma if tilt_range is None else float(tilt_range))
+    return (default[0] if depth_range is None else float(depth_range),
+            default[1] if tilt_range is None else float(tilt_range))
 
 
 def _check_handed_over(problem: PoseProblem, model, dataset, depth: float, tilt: float, settings: PoseSettings,
