@@ -96,6 +96,14 @@ def _save(fig, path: str | Path, title: str = "", *, rect=(0, 0, 1, 1)) -> Path:
     return write_bytes(path, buffer.getvalue())
 
 
+def _bottom_legend(fig, handles: dict, **options) -> None:
+    """One legend row of ``handles`` ({label: artist}) along the figure's bottom, on light grey
+    without a frame (``options``: more of ``Figure.legend``'s)."""
+    legend = fig.legend(list(handles.values()), list(handles), loc="lower center", ncol=len(handles), fontsize=7,
+                        facecolor="lightgrey", **options)
+    legend.get_frame().set_edgecolor("none")
+
+
 def _decibels(image: np.ndarray, peak: float) -> np.ndarray:
     with np.errstate(divide="ignore"):
         return np.maximum(20.0 * np.log10(np.maximum(image, 0) / peak), -60.0).astype(np.float32)
@@ -190,9 +198,7 @@ def pose_figure(result, path: str | Path, *, truth: tuple[float, float] | None =
         ax.set_title(f"level {k + 1}: {len(depths)} x {len(tilts)} cells, "
                      f"{step[0] * 1000:.2f} mm x {step[1]:.3f} deg", fontsize=8)
         ax.tick_params(labelsize=7)
-    legend = fig.legend(list(handles.values()), list(handles), loc="lower center", ncol=len(handles), fontsize=7,
-                        facecolor="lightgrey")
-    legend.get_frame().set_edgecolor("none")
+    _bottom_legend(fig, handles)
     return _save(fig, path, title, rect=(0, 0.07, 1, 1))
 
 
@@ -245,9 +251,7 @@ def contours_figure(images: dict[str, np.ndarray], contours: dict[str, dict], so
         ax.tick_params(labelsize=5)
     for ax in axes.ravel()[len(names):]:
         ax.axis("off")
-    legend = fig.legend(list(handles.values()), list(handles), loc="lower center", ncol=len(handles), fontsize=7,
-                        facecolor="lightgrey", markerscale=2.5)
-    legend.get_frame().set_edgecolor("none")
+    _bottom_legend(fig, handles, markerscale=2.5)
     return _save(fig, path, title, rect=(0, 0.05, 1, 1))
 
 
