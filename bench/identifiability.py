@@ -1,9 +1,9 @@
 """Where the images pin the sonar's tilt: models refined along the D–β valley, one command:
 
     python bench/identifiability.py [--name NAME] [--backend B] [--device D] [--scenes ...]
-                                    [--tilts DEG ...] [--rounds R] [--seed S]
+                                    [--positions LETTERS] [--tilts DEG ...] [--rounds R] [--seed S]
 
-For every scene: simulate it (noisy, ``--seed``), then for every tilt error δ of ``--tilts``
+For every scene: simulate it (noisy, ``--seed``; at ``--positions``, default its own), then for every tilt error δ of ``--tilts``
 put the sonar at β = β_true + δ and at the depth D(β) that keeps the true object's centroid
 at its true depth below the surface (:func:`valley_depth`: the valley along which the ghost
 and mirror stay put, ΔD ≈ 3.5 cm per degree at 2 m). There, three starting shapes are
@@ -135,7 +135,7 @@ def table_markdown(record: dict, name: str) -> str:
     (start, metric) at the start (round 0) and after the last round."""
     tilts, rounds = record["tilts_deg"], record["rounds"]
     lines = paper_table.record_header(record, name) + [
-        f"- noisy images, seed {record['seed']}; {rounds} rounds of the loop's shape step (3 updates each) "
+        f"- noisy images, seed {record['seed']}{paper_table.rig_note(record)}; {rounds} rounds of the loop's shape step (3 updates each) "
         f"at every point; whole command {record['seconds']:.0f} s", ""]
     header = "| start | value | round | " + " | ".join(f"{t:+g}°" for t in tilts) + " | lowest at |"
     rule = "|---|---|---|" + "---|" * len(tilts) + "---|"
@@ -193,11 +193,13 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     from fsswarp.backends import get_backend
     from fsswarp.errors import InputError, check_integer
+    from fsswarp.scenes import builtin_scene, check_positions
     from fsswarp.simulate import simulate
 
     try:
         backend = get_backend(args.backend or "auto", args.device)
         check_integer("--seed", args.seed, 0)
+        positions = None if args.positions is None else check_positions(args.positions)
         check_integer("--rounds", args.rounds, 0)
         bad = [t for t in args.tilts if not (math.isfinite(t) and abs(t) <= 5)]
         if bad:
@@ -211,11 +213,12 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as folder:
         for scene in args.scenes:
             print(scene, flush=True)
-            dataset = simulate(scene, Path(folder) / scene, seed=args.seed, backend=backend)
+            dataset = simulate(builtin_scene(scene, positions), Path(folder) / scene, seed=args.seed,
+                               backend=backend)
             scenes[scene] = run_scene(dataset, backend, tilts_deg=args.tilts, rounds=args.rounds,
                                       progress=lambda line: print(line, flush=True))
     record = {"schema": 1, "date": time.strftime("%Y-%m-%d %H:%M:%S %z"), "command": command.strip(),
-              "seed": args.seed, "rounds": args.rounds, "tilts_deg": args.tilts,
+              "seed": args.seed, "positions": positions, "rounds": args.rounds, "tilts_deg": args.tilts,
               "machine": paper_table.machine(backend), "seconds": time.perf_counter() - begin, "scenes": scenes}
     return paper_table.save_record(record, name, args.records, HERE / "records" / "identifiability",
                                    table_markdown)

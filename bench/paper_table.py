@@ -2,12 +2,13 @@
 one command:
 
     python bench/paper_table.py [--name NAME] [--backend B] [--device D] [--scenes ...]
-                                [--seed S] [--iterations T] [--tilt-offset DEG]
+                                [--positions LETTERS] [--seed S] [--iterations T] [--tilt-offset DEG]
 
 For every scene: simulate it (noisy, ``--seed``), then run ``fsswarp.reconstruct`` from two
 starts: the scene's measured D0 and β0 (3–5 cm and 0.6–1° off the truth, the paper's sensor
 class), and β0 ``--tilt-offset`` degrees (default 2) off the truth, on the side of the measured
-error, with the same D0; and from the same two starts, ``fsswarp.pose.estimate_pose`` with the
+error, with the same D0 (``--positions SNEW`` puts the scenes on another rig, as
+``fsswarp scene --positions`` does); and from the same two starts, ``fsswarp.pose.estimate_pose`` with the
 scene's true model in place of the reconstruction (the pose step alone, as ``fsswarp pose``
 runs it). Writes the record ``bench/records/reconstruction/NAME.json`` (the
 machine, the command, the date, each run's history and wall time) and then regenerates
@@ -33,13 +34,15 @@ SCENES = ("coral-one", "coral-two", "table")
 AIM_DEPTH_M, AIM_TILT_DEG, AIM_EV_DROP, AIM_EI_DROP = 0.005, 0.2, 0.16, 0.20
 
 
-def run_table(backend, scenes, *, seed: int, iterations: int, tilt_offset_deg: float, progress=print) -> list[dict]:
-    """One run dict per (scene, start): the starts, the truth, the final estimate, the history
-    (DESIGN §12's keys), the wall times of the simulation and the reconstruction, and
+def run_table(backend, scenes, *, seed: int, iterations: int, tilt_offset_deg: float, positions: str | None = None,
+              progress=print) -> list[dict]:
+    """One run dict per (scene, start) of the built-in ``scenes`` (at ``positions``, default
+    their own): the starts, the truth, the final estimate, the history (DESIGN §12's keys), the wall times of the simulation and the reconstruction, and
     ``true_model_pose``: the estimate of the pose step alone with the true model from the same
     start (D, β, E_mu at the start and at the estimate, seconds)."""
     from fsswarp.pose import estimate_pose
     from fsswarp.reconstruct import ReconstructSettings, reconstruct
+    from fsswarp.scenes import builtin_scene
     from fsswarp.simulate import simulate
 
     runs = []
@@ -47,7 +50,7 @@ def run_table(backend, scenes, *, seed: int, iterations: int, tilt_offset_deg: f
     with tempfile.TemporaryDirectory() as folder:
         for scene in scenes:
             begin = time.perf_counter()
-            dataset = simulate(scene, Path(folder) / scene, seed=seed, backend=backend)
+            dataset = simulate(builtin_scene(scene, positions), Path(folder) / scene, seed=seed, backend=backend)
             simulated = time.perf_counter() - begin
             surface, truth = dataset.manifest.surface, dataset.manifest.truth
             model = dataset.truth_mesh()  # for the pose step alone, from both starts
@@ -100,11 +103,17 @@ def record_header(record: dict, name: str) -> list[str]:
             f"- command: `{record['command']}`", f"- date: {record['date']}"]
 
 
+def rig_note(record: dict) -> str:
+    """"; sonar positions SNEW" for a record taken on another rig than the scenes' own, else ""."""
+    return f"; sonar positions {record['positions']}" if record.get("positions") else ""
+
+
 def table_markdown(record: dict, name: str) -> str:
     """The Markdown of one record: the machine line and one table row per run."""
     mark = {True: "yes", False: "no"}
     lines = record_header(record, name) + [
-        f"- noisy images, seed {record['seed']}; at most {record['iterations']} iterations; aims: D within "
+        f"- noisy images, seed {record['seed']}{rig_note(record)}; at most {record['iterations']} iterations; "
+        f"aims: D within "
         f"{AIM_DEPTH_M * 1e3:g} mm and β within {AIM_TILT_DEG:g}°, E_V down ≥ {AIM_EV_DROP:.0%}, "
         f"E_I down ≥ {AIM_EI_DROP:.0%} (relative to the carved model)", "",
         "| scene | start D0 (m), β0 (°) | final D (m), β (°) | D error (mm) | β error (°) | pose aim | "
@@ -156,12 +165,14 @@ def machine(backend) -> dict:
 
 
 def add_run_options(parser: argparse.ArgumentParser, records: Path) -> None:
-    """--name, --backend, --device, --scenes, --seed and --records (default ``records``), the
-    options of this script and of bench/identifiability.py."""
+    """--name, --backend, --device, --scenes, --positions, --seed and --records (default
+    ``records``), the options of this script and of bench/identifiability.py."""
     parser.add_argument("--name", default=None, help="record name (default: BACKEND-DEVICE)")
     parser.add_argument("--backend", default=None, help="warp or opencl (default: fsswarp's choice)")
     parser.add_argument("--device", default=None, help="backend device, e.g. cuda:0, cpu, nvidia")
     parser.add_argument("--scenes", nargs="+", choices=SCENES, default=list(SCENES))
+    parser.add_argument("--positions", default=None,
+                        help="sonar positions of every scene, letters of SNEW (default: each scene's own)")
     parser.add_argument("--seed", type=int, default=0, help="noise seed of the simulations")
     parser.add_argument("--records", type=Path, default=records)
 
@@ -199,11 +210,13 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     from fsswarp.backends import get_backend
     from fsswarp.errors import InputError, check_integer
+    from fsswarp.scenes import check_positions
 
     try:
         backend = get_backend(args.backend or "auto", args.device)
         for name in ("seed", "iterations"):
             check_integer(f"--{name}", getattr(args, name), 0)
+        positions = None if args.positions is None else check_positions(args.positions)
         if not (math.isfinite(args.tilt_offset) and 0 < args.tilt_offset < 10):
             raise InputError("must be in (0, 10) degrees", field="--tilt-offset", value=args.tilt_offset)
     except InputError as err:
@@ -212,9 +225,10 @@ def main(argv: list[str] | None = None) -> int:
     name, command = run_identity("paper_table.py", args.name, backend, argv)
     begin = time.perf_counter()
     runs = run_table(backend, args.scenes, seed=args.seed, iterations=args.iterations,
-                     tilt_offset_deg=args.tilt_offset, progress=lambda line: print(line, flush=True))
+                     tilt_offset_deg=args.tilt_offset, positions=positions,
+                     progress=lambda line: print(line, flush=True))
     record = {"schema": 1, "date": time.strftime("%Y-%m-%d %H:%M:%S %z"), "command": command.strip(),
-              "seed": args.seed, "iterations": args.iterations, "machine": machine(backend),
+              "seed": args.seed, "positions": positions, "iterations": args.iterations, "machine": machine(backend),
               "seconds": time.perf_counter() - begin, "runs": runs}
     return save_record(record, name, args.records, HERE / "records" / "reconstruction", table_markdown)
 

@@ -168,8 +168,11 @@ def check(state: State, path: Path) -> None:
 @app.command()
 @click.argument("name")
 @click.option("--out", required=True, type=click.Path(path_type=Path), help="Scene file to write (.toml).")
+@click.option("--positions", default=None,
+              help="Sonar positions around the target, distinct letters of S, N, E, W, eight rolls at each "
+                   "[default: the scene's own, SN for the corals, SNEW for the table].")
 @click.pass_obj
-def scene(state: State, name: str, out: Path) -> None:
+def scene(state: State, name: str, out: Path, positions: str | None) -> None:
     """Write the built-in scene NAME (coral-one, coral-two or table) as a scene file, to edit
     and simulate."""
     from .dataset import save_scene
@@ -177,7 +180,7 @@ def scene(state: State, name: str, out: Path) -> None:
 
     if out.suffix != ".toml":
         raise InputError("must name a .toml file", field="--out", value=str(out))
-    manifest = builtin_scene(name)
+    manifest = builtin_scene(name, positions)
     save_scene(manifest, out)
     state.echo(f"wrote {out}: {name}, {len(manifest.rig.views)} views")
 

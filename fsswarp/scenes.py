@@ -44,12 +44,18 @@ _POSITIONS = {
 }
 
 
-def builtin_scene(name: str) -> Manifest:
-    """The scene manifest of a built-in target: ``coral-one``, ``coral-two`` or ``table``."""
+def builtin_scene(name: str, positions: str | None = None) -> Manifest:
+    """The scene manifest of a built-in target: ``coral-one``, ``coral-two`` or ``table``.
+
+    positions : the sonar positions around the target, distinct letters of ``SNEW`` (south,
+        north, east, west; eight rolls at each, the first position's first view the
+        reference); default the scene's own (DESIGN §11: ``SN`` for the corals, ``SNEW`` for
+        the table). The corals with ``SNEW`` see their south–north extent in azimuth too."""
     if name not in _SCENES:
         raise InputError(f"unknown built-in scene; choose one of {', '.join(BUILTIN_TARGETS)}",
                          field="scene", value=name)
-    depth, tilt_deg, depth0, tilt0_deg, positions = _SCENES[name]
+    depth, tilt_deg, depth0, tilt0_deg, own = _SCENES[name]
+    positions = own if positions is None else check_positions(positions)
     height = float(builtin_mesh(name).extents[2])
     centre = (0.0, STANDOFF_M, -(TOP_DEPTH_M + 0.5 * height))
     views = []
@@ -67,6 +73,16 @@ def builtin_scene(name: str) -> Manifest:
         truth=Truth(depth=depth, tilt=math.radians(tilt_deg)),
         target=Target(position=centre, builtin=name),
     )
+
+
+def check_positions(positions) -> str:
+    """``positions`` (a string of distinct letters of ``SNEW``, upper or lower case) in upper
+    case; InputError (field ``--positions``) otherwise."""
+    letters = positions.upper() if isinstance(positions, str) else None
+    if not letters or any(c not in _POSITIONS for c in letters) or len(set(letters)) != len(letters):
+        raise InputError("must be distinct letters of S, N, E, W (sonar positions south, north, east, west of the "
+                         "target), e.g. SN or SNEW", field="--positions", value=positions)
+    return letters
 
 
 def target_world_mesh(target: Target, *, base=None, file=None):

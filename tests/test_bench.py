@@ -242,6 +242,8 @@ def test_paper_table_runs_both_starts_and_renders_the_table(tmp_path, capsys):
         assert abs(pose["depth_m"] - 0.43) <= 0.005 and abs(pose["tilt_deg"] - 10.3) <= 0.2
         assert pose["E_mu_m"] < 0.2 * pose["E_mu_start_m"]
     assert text.count("| yes | ") == 2 and "with the true model in place of the reconstruction" in text
+    assert record["positions"] is None and "sonar positions" not in text
+    assert "seed 0; sonar positions SNEW; at most 0" in table.table_markdown({**record, "positions": "SNEW"}, "tiny")
     assert "### tiny" in capsys.readouterr().out
     rendered = _bench_module("report").report([], None, None, tmp_path, [tmp_path / "tiny.json"])
     assert "## Reconstruction: the paper's table" in rendered and "### tiny" in rendered
@@ -257,7 +259,8 @@ def test_paper_table_summary_judges_the_aims():
     assert s["E_V_change"] == pytest.approx(-0.125) and s["E_I_change"] == pytest.approx(-0.25)
 
 
-@pytest.mark.parametrize("args", [["--tilt-offset", "20"], ["--iterations", "-1"], ["--scenes", "nowhere"]])
+@pytest.mark.parametrize("args", [["--tilt-offset", "20"], ["--iterations", "-1"], ["--scenes", "nowhere"],
+                                  ["--positions", "SQ"]])
 def test_paper_table_bad_options_exit_2(args, tmp_path):
     table = _paper_table()
     try:
@@ -335,6 +338,8 @@ def test_identifiability_runs_every_start_and_renders_the_table(tmp_path, capsys
     assert carved["AIE"] > truth["AIE"] and carved["E_V"] > 0.1
     text = study.table_markdown(record, "tiny")
     assert f"| true shape | AIE | 0 | {truth['AIE']:.3f} | +0° |" in text and "#### coral-one" in text
+    assert record["positions"] is None and "sonar positions" not in text
+    assert "seed 0; sonar positions EW; 0 rounds" in study.table_markdown({**record, "positions": "EW"}, "tiny")
     assert "### tiny" in capsys.readouterr().out
     rendered = _bench_module("report").report([], None, tmp_path / "figs", tmp_path, [], [tmp_path / "tiny.json"])
     assert "## Reconstruction: where the images pin the tilt" in rendered and "### tiny" in rendered

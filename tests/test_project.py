@@ -62,6 +62,7 @@ def test_help_explains_every_command():
     (("check", "no/such/path"), "no/such/path"),
     (("scene", "reef", "--out", "x.toml"), "reef"),
     (("scene", "coral-one", "--out", "x.txt"), "x.txt"),
+    (("scene", "coral-one", "--positions", "SNX", "--out", "x.toml"), "--positions = 'SNX'"),
     (("--backend", "warp", "--device", "cuda:7", "info"), "cuda:7"),
     (("--backend", "opencl", "--device", "nosuchdevice", "info"), "nosuchdevice"),
     (("check", "/dev/null"), "is neither a regular file nor a folder"),

@@ -37,11 +37,12 @@ def test_target_sits_just_below_the_surface_ahead_of_the_sonar(name):
     assert mesh.is_watertight
 
 
-@pytest.mark.parametrize("name", ["coral-one", "coral-two", "table"])
-def test_object_ghost_and_mirror_fall_in_every_view(name):
+@pytest.mark.parametrize("name, positions", [("coral-one", None), ("coral-two", None), ("table", None),
+                                             ("coral-one", "SNEW"), ("coral-two", "WE")])
+def test_object_ghost_and_mirror_fall_in_every_view(name, positions):
     """Every vertex lies inside the window and apertures; its ghost and mirror returns land in
     the window; at roll 0 the mirror falls on the object, at ±67.5° it moves five beams or more."""
-    scene = builtin_scene(name)
+    scene = builtin_scene(name, positions)
     sonar, rig, truth = scene.sonar, scene.rig, scene.truth
     points = world_to_reference(target_world_mesh(scene.target).vertices, rig, truth.depth, truth.tilt)
     rot, t = rig.relative_poses(truth.depth, truth.tilt)
@@ -60,6 +61,36 @@ def test_object_ghost_and_mirror_fall_in_every_view(name):
             assert shift < 0.3
         if abs(roll) == 67.5:
             assert shift > 1.5   # five 0.3° beams
+
+
+def test_positions_put_a_scene_on_another_rig(tmp_path):
+    """``positions`` sets the sonar positions (eight rolls each, in the order given); the
+    scene's own views come first and unchanged with SNEW, and every view looks at the
+    target's centre (azimuth 0 at zero roll)."""
+    own, four = builtin_scene("coral-one"), builtin_scene("coral-one", "snew")
+    assert [v.name[0] for v in four.rig.views] == [c for c in "SNEW" for _ in range(8)]
+    assert four.rig.views[:16] == own.rig.views and four.target == own.target and four.truth == own.truth
+    assert builtin_scene("table", "SNEW") == builtin_scene("table")
+    west = builtin_scene("coral-two", "WS")
+    assert west.rig.views[west.rig.reference].name == "Wm90" and len(west.rig.views) == 16
+    truth = four.truth
+    centre = world_to_reference(np.array([four.target.position]), four.rig, truth.depth, truth.tilt)
+    rot, t = four.rig.relative_poses(truth.depth, truth.tilt)
+    for m, view in enumerate(four.rig.views):
+        if view.roll == 0:
+            _, theta, _ = to_polar(to_view(centre, rot[m], t[m]))
+            assert abs(math.degrees(theta[0])) < 1e-6, view.name
+    assert load_scene(save_scene(four, tmp_path / "four.toml")) == four
+
+
+@pytest.mark.parametrize("positions", ["", "SX", "SS", "S N", 5, None])
+def test_bad_positions_are_one_line(positions):
+    if positions is None:  # None means the scene's own
+        assert builtin_scene("coral-one", positions) == builtin_scene("coral-one")
+        return
+    with pytest.raises(InputError, match="--positions") as err:
+        builtin_scene("coral-one", positions)
+    assert "\n" not in str(err.value)
 
 
 def test_scene_file_round_trip(tmp_path):
