@@ -378,7 +378,7 @@ def test_gpu_runner_names_every_run_it_knows_and_refuses_others_with_exit_2(tmp_
     script = (Path(__file__).resolve().parents[1] / "bench" / "device" / "gpu.sh").read_text()
     listed = set(re.findall(r"^#   bash bench/device/gpu\.sh (\w+)", script, re.M))
     handled = set(re.findall(r"^  (\w+)\)$", script, re.M))
-    assert listed == handled == {"tests", "table", "study", "bench", "ab", "profile", "demo"}
+    assert listed == handled == {"tests", "table", "study", "bench", "ab", "profile", "demo", "batch"}
     for args, message in ((["nowhere"], "unknown run 'nowhere'"), ([], "name a run"),
                           (["table", "h100"], "table needs NAME and at least one SCENE")):
         done = _gpu_runner(tmp_path, *args)
@@ -435,3 +435,28 @@ def test_demo_wall_alternates_the_settings_after_a_warm_up(monkeypatch, capsys):
     out = capsys.readouterr().out
     assert "figures in the command's process: median 32.0 s (30.0-34.0)" in out
     assert "figures in figure processes: median 21.0 s (20.0-22.0)" in out and out.rstrip().endswith("ratio 0.66")
+
+
+def test_batch_throughput_runs_commands_at_once_and_they_agree(coral_one, tmp_path):
+    """bench/batch_throughput.py: two reconstructions started together both write result.json,
+    with the same values (determinism), and the wall time covers both."""
+    batch = _bench_module("batch_throughput")
+    wall, results = batch.run_batch(coral_one.root, [tmp_path / "a", tmp_path / "b"], 0, ["--backend", "opencl"])
+    assert wall > 0 and len(results) == 2
+    assert batch.agreed(results[0]) == batch.agreed(results[1])
+    assert results[0]["history"][0]["E_I"] == 1.0 and results[0]["best_iteration"] == 0
+    with pytest.raises(RuntimeError, match="exited 2"):
+        batch.run_batch(tmp_path / "nowhere", [tmp_path / "c"], 0, ["--backend", "opencl"])
+
+
+def test_batch_throughput_table_reports_seconds_per_reconstruction():
+    text = _bench_module("batch_throughput").table_markdown({1: [10.0, 12.0], 4: [20.0, 22.0, 30.0]})
+    assert "| 1 | 11.0 s (10.0–12.0) | 2 | 11.00 s | 1.00 |" in text
+    assert "| 4 | 22.0 s (20.0–30.0) | 3 | 5.50 s | 2.00 |" in text
+
+
+@pytest.mark.parametrize("args", [["--jobs", "0"], ["--rounds", "0"], ["--iterations", "-1"], ["--jobs", "65"]])
+def test_batch_throughput_bad_options_exit_2(args, capsys):
+    assert _bench_module("batch_throughput").main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("bench/batch_throughput.py: error:") and "\n" not in err

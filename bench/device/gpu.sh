@@ -9,6 +9,7 @@
 #   bash bench/device/gpu.sh ab BEFORE AFTER [ARGS] bench/ab_reconstruct.py on Warp CUDA
 #   bash bench/device/gpu.sh profile [ARGS]         bench/loop_profile.py on Warp CUDA
 #   bash bench/device/gpu.sh demo [ARGS]            bench/demo_wall.py (the whole demo) on Warp CUDA
+#   bash bench/device/gpu.sh batch [ARGS]           bench/batch_throughput.py (reconstructions at once) on Warp CUDA
 #
 # Records land in $OUT (the device tool brings them back), as under bench/records/: copy
 # $OUT/reconstruction/NAME.json (table) and $OUT/identifiability/NAME.json (study) to the same
@@ -22,7 +23,7 @@ export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}
 out=${OUT:?OUT must name the folder that comes back}
 command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,driver_version --format=csv,noheader
 fail() { echo "bench/device/gpu.sh: error: $1" >&2; exit 2; }
-[ $# -gt 0 ] || fail "name a run: tests, table, study, bench, ab, profile or demo"
+[ $# -gt 0 ] || fail "name a run: tests, table, study, bench, ab, profile, demo or batch"
 what=$1
 shift
 case "$what" in
@@ -52,6 +53,8 @@ case "$what" in
     python bench/loop_profile.py --backend warp --device cuda:0 "$@" ;;
   demo)
     python bench/demo_wall.py "$@" -- --backend warp --device cuda:0 ;;
+  batch)
+    python bench/batch_throughput.py "$@" -- --backend warp --device cuda:0 ;;
   *)
-    fail "unknown run '$what' (tests, table, study, bench, ab, profile or demo)" ;;
+    fail "unknown run '$what' (tests, table, study, bench, ab, profile, demo or batch)" ;;
 esac
