@@ -101,8 +101,8 @@ def main(argv: list[str] | None = None) -> int:
                     return 1
                 walls[jobs].append(wall)
                 print(f"round {round_ + 1}: {jobs} at once: {wall:.1f} s ({wall / jobs:.2f} s each)", flush=True)
-    print(f"{args.scene}, seed {args.seed}, {args.iterations} iterations, options {' '.join(args.options) or '(none)'}; "
-          f"{os.cpu_count()} logical CPUs; the same result.json in every run: D {reference['depth_m']:.4f} m, "
+    print(f"{args.scene}, seed {args.seed}, {args.iterations} iterations, "
+          f"options {' '.join(args.options) or '(none)'}; {os.cpu_count()} logical CPUs; the same result.json in every run: D {reference['depth_m']:.4f} m, "
           f"tilt {reference['tilt_deg']:.3f} deg")
     print(table_markdown(walls))
     return 0

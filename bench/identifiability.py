@@ -3,10 +3,11 @@
     python bench/identifiability.py [--name NAME] [--backend B] [--device D] [--scenes ...]
                                     [--positions LETTERS] [--tilts DEG ...] [--rounds R] [--seed S]
 
-For every scene: simulate it (noisy, ``--seed``; at ``--positions``, default its own), then for every tilt error δ of ``--tilts``
-put the sonar at β = β_true + δ and at the depth D(β) that keeps the true object's centroid
-at its true depth below the surface (:func:`valley_depth`: the valley along which the ghost
-and mirror stay put, ΔD ≈ 3.5 cm per degree at 2 m). There, three starting shapes are
+For every scene: simulate it (noisy, ``--seed``; at ``--positions``, default its own), then
+for every tilt error δ of ``--tilts`` put the sonar at β = β_true + δ and at the depth D(β)
+that keeps the true object's centroid at its true depth below the surface
+(:func:`valley_depth`: the valley along which the ghost and mirror stay put, ΔD ≈ 3.5 cm per
+degree at 2 m). There, three starting shapes are
 refined for ``--rounds`` rounds of the loop's shape step (3 updates each,
 ``ReconstructSettings().refine``):
 
@@ -135,8 +136,8 @@ def table_markdown(record: dict, name: str) -> str:
     (start, metric) at the start (round 0) and after the last round."""
     tilts, rounds = record["tilts_deg"], record["rounds"]
     lines = paper_table.record_header(record, name) + [
-        f"- noisy images, seed {record['seed']}{paper_table.rig_note(record)}; {rounds} rounds of the loop's shape step (3 updates each) "
-        f"at every point; whole command {record['seconds']:.0f} s", ""]
+        f"- noisy images, seed {record['seed']}{paper_table.rig_note(record)}; {rounds} rounds of the loop's "
+        f"shape step (3 updates each) at every point; whole command {record['seconds']:.0f} s", ""]
     header = "| start | value | round | " + " | ".join(f"{t:+g}°" for t in tilts) + " | lowest at |"
     rule = "|---|---|---|" + "---|" * len(tilts) + "---|"
     for scene, result in record["scenes"].items():

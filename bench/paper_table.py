@@ -37,7 +37,8 @@ AIM_DEPTH_M, AIM_TILT_DEG, AIM_EV_DROP, AIM_EI_DROP = 0.005, 0.2, 0.16, 0.20
 def run_table(backend, scenes, *, seed: int, iterations: int, tilt_offset_deg: float, positions: str | None = None,
               progress=print) -> list[dict]:
     """One run dict per (scene, start) of the built-in ``scenes`` (at ``positions``, default
-    their own): the starts, the truth, the final estimate, the history (DESIGN §12's keys), the wall times of the simulation and the reconstruction, and
+    their own): the starts, the truth, the final estimate, the history (DESIGN §12's keys),
+    the wall times of the simulation and the reconstruction, and
     ``true_model_pose``: the estimate of the pose step alone with the true model from the same
     start (D, β, E_mu at the start and at the estimate, seconds)."""
     from fsswarp.pose import estimate_pose
