@@ -77,3 +77,13 @@ def test_user_mistakes_exit_2_with_one_line(tmp_path, args, needle):
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and needle in lines[0] and "Traceback" not in done.stderr
     assert list(tmp_path.iterdir()) == []
+
+
+def test_scene_positions_writes_the_scene_on_that_rig(tmp_path):
+    done = run_cli("scene", "coral-one", "--positions", "ew", "--out", "rig.toml", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert "coral-one, 16 views" in done.stdout
+    from fsswarp.dataset import load_scene
+
+    names = [view.name for view in load_scene(tmp_path / "rig.toml").rig.views]
+    assert names[0] == "Em90" and names[8] == "Wm90" and len(names) == 16
