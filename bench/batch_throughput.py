@@ -75,12 +75,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--iterations", type=int, default=10)
     parser.add_argument("options", nargs="*", help="global fsswarp options, e.g. --backend warp --device cuda:0")
     args = parser.parse_args(argv)
-    bad = [(name, value) for name, value, lowest in (("--rounds", args.rounds, 1), ("--seed", args.seed, 0),
-                                                     ("--iterations", args.iterations, 0))
-           if value < lowest] + [("--jobs", n) for n in args.jobs if not 1 <= n <= 64]
-    if bad:
-        name, value = bad[0]
-        print(f"bench/batch_throughput.py: error: {name} = {value}: out of range", file=sys.stderr)
+    from fsswarp.errors import InputError, check_integer
+
+    try:
+        for name, lowest in (("rounds", 1), ("seed", 0), ("iterations", 0)):
+            check_integer(f"--{name}", getattr(args, name), lowest)
+        for jobs in args.jobs:
+            if not 1 <= jobs <= 64:
+                raise InputError("must be in [1, 64]", field="--jobs", value=jobs)
+    except InputError as err:
+        print(f"bench/batch_throughput.py: error: {err}", file=sys.stderr)
         return 2
     walls: dict[int, list[float]] = {n: [] for n in args.jobs}
     with tempfile.TemporaryDirectory() as folder:
@@ -102,8 +106,8 @@ def main(argv: list[str] | None = None) -> int:
                 walls[jobs].append(wall)
                 print(f"round {round_ + 1}: {jobs} at once: {wall:.1f} s ({wall / jobs:.2f} s each)", flush=True)
     print(f"{args.scene}, seed {args.seed}, {args.iterations} iterations, "
-          f"options {' '.join(args.options) or '(none)'}; {os.cpu_count()} logical CPUs; the same result.json in every run: D {reference['depth_m']:.4f} m, "
-          f"tilt {reference['tilt_deg']:.3f} deg")
+          f"options {' '.join(args.options) or '(none)'}; {os.cpu_count()} logical CPUs; "
+          f"the same result.json in every run: D {reference['depth_m']:.4f} m, tilt {reference['tilt_deg']:.3f} deg")
     print(table_markdown(walls))
     return 0
 

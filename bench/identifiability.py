@@ -200,7 +200,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         backend = get_backend(args.backend or "auto", args.device)
         check_integer("--seed", args.seed, 0)
-        positions = None if args.positions is None else check_positions(args.positions)
+        positions = check_positions(args.positions)
         check_integer("--rounds", args.rounds, 0)
         bad = [t for t in args.tilts if not (math.isfinite(t) and abs(t) <= 5)]
         if bad:

@@ -217,7 +217,7 @@ def main(argv: list[str] | None = None) -> int:
         backend = get_backend(args.backend or "auto", args.device)
         for name in ("seed", "iterations"):
             check_integer(f"--{name}", getattr(args, name), 0)
-        positions = None if args.positions is None else check_positions(args.positions)
+        positions = check_positions(args.positions)
         if not (math.isfinite(args.tilt_offset) and 0 < args.tilt_offset < 10):
             raise InputError("must be in (0, 10) degrees", field="--tilt-offset", value=args.tilt_offset)
     except InputError as err:

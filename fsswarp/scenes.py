@@ -55,7 +55,7 @@ def builtin_scene(name: str, positions: str | None = None) -> Manifest:
         raise InputError(f"unknown built-in scene; choose one of {', '.join(BUILTIN_TARGETS)}",
                          field="scene", value=name)
     depth, tilt_deg, depth0, tilt0_deg, own = _SCENES[name]
-    positions = own if positions is None else check_positions(positions)
+    positions = check_positions(positions) or own
     height = float(builtin_mesh(name).extents[2])
     centre = (0.0, STANDOFF_M, -(TOP_DEPTH_M + 0.5 * height))
     views = []
@@ -75,9 +75,11 @@ def builtin_scene(name: str, positions: str | None = None) -> Manifest:
     )
 
 
-def check_positions(positions) -> str:
+def check_positions(positions) -> str | None:
     """``positions`` (a string of distinct letters of ``SNEW``, upper or lower case) in upper
-    case; InputError (field ``--positions``) otherwise."""
+    case, None for None (a scene's own); InputError (field ``--positions``) otherwise."""
+    if positions is None:
+        return None
     letters = positions.upper() if isinstance(positions, str) else None
     if not letters or any(c not in _POSITIONS for c in letters) or len(set(letters)) != len(letters):
         raise InputError("must be distinct letters of S, N, E, W (sonar positions south, north, east, west of the "
