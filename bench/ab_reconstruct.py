@@ -8,7 +8,7 @@ OpenCL backend), e.g. ``git archive REV fsswarp kernels | tar -x -C DIR``. The s
 simulated once (noisy, seed 0) with AFTER; then each tree reconstructs it from the measured
 start once without iterations (to fill the kernel caches) and ``--rounds`` times in
 alternation, each run in its own process with the tree first on ``PYTHONPATH``. Prints one
-Markdown table: per tree the median, min and max seconds of ``fsswarp.reconstruct`` (the
+Markdown table: per tree the median, min and max seconds of ``fsswarp.reconstruction`` (the
 process start and the dataset load are not timed), the final D, β and E_I (the trees should
 agree), and AFTER's median over BEFORE's. Timings taken one after the other drift with the
 machine's load; alternating rounds put that drift into both columns alike.
@@ -30,7 +30,7 @@ import json, sys, time
 import fsswarp
 from fsswarp.backends import get_backend
 from fsswarp.dataset import load_dataset
-from fsswarp.reconstruct import ReconstructSettings, reconstruct
+from fsswarp.reconstruction import ReconstructSettings, reconstruct
 dataset = load_dataset(sys.argv[1])
 backend = get_backend(sys.argv[2], sys.argv[3] or None)
 start = time.perf_counter()

@@ -17,7 +17,7 @@ refined for ``--rounds`` rounds of the loop's shape step (3 updates each,
 - ``true shape, contours only``: the truth mesh, refined by the object contours alone
   (no mirror, no overshoot term), which leave the true shape nearly in place at the truth.
 
-After every round it records AIE, ACE, E_mu and E_V (``fsswarp.reconstruct.image_errors``,
+After every round it records AIE, ACE, E_mu and E_V (``fsswarp.reconstruction.image_errors``,
 ``fsswarp.pose.pose_objective``, ``fsswarp.metrics.compare``). A shape free to move that
 matches the images equally well at every δ means the images cannot tell the tilt; the tilt
 of the lowest value says which β the images prefer for that family of shapes. Writes
@@ -75,7 +75,7 @@ def state(model, dataset, depth: float, tilt: float, truth, backend) -> dict:
     """AIE, ACE (m), E_mu (m) and E_V of ``model`` at (depth m, tilt rad)."""
     from fsswarp.metrics import compare
     from fsswarp.pose import PoseWarning, pose_objective
-    from fsswarp.reconstruct import image_errors
+    from fsswarp.reconstruction import image_errors
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PoseWarning)  # a view that does not see the model gets no CE
@@ -89,8 +89,8 @@ def run_scene(dataset, backend, *, tilts_deg, rounds: int, progress=print) -> di
     simulated dataset (module docstring)."""
     import dataclasses
 
-    from fsswarp.carve import carve
-    from fsswarp.reconstruct import ReconstructSettings
+    from fsswarp.carving import carve
+    from fsswarp.reconstruction import ReconstructSettings
     from fsswarp.refine import refine_shape
 
     truth_info = dataset.manifest.truth
@@ -195,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
     from fsswarp.backends import get_backend
     from fsswarp.errors import InputError, check_integer
     from fsswarp.scenes import builtin_scene, check_positions
-    from fsswarp.simulate import simulate
+    from fsswarp.simulation import simulate
 
     try:
         backend = get_backend(args.backend or "auto", args.device)

@@ -29,14 +29,14 @@ WRAPPED = (
     ("fsswarp.pose", None, ("estimate_pose", "_polish", "patch_motions")),
     ("fsswarp.refine", None, ("refine_shape",)),
     ("fsswarp.refine", "_Membrane", ("solve",)),
-    ("fsswarp.carve", None, ("carve", "voxel_mesh")),
-    ("fsswarp.reconstruct", None, ("_image_errors", "_complete")),
+    ("fsswarp.carving", None, ("carve", "voxel_mesh")),
+    ("fsswarp.reconstruction", None, ("_image_errors", "_complete")),
 )
 BACKEND_METHODS = ("render_device", "contour_cost", "icp_runs", "frontal_faces", "load_mesh", "device_distances",
                    "carve")
 #: Functions that other modules import by name: those modules get the wrapper too.
-REBOUND = {"estimate_pose": ("fsswarp.reconstruct",), "refine_shape": ("fsswarp.reconstruct",),
-           "carve": ("fsswarp.reconstruct",)}
+REBOUND = {"estimate_pose": ("fsswarp.reconstruction",), "refine_shape": ("fsswarp.reconstruction",),
+           "carve": ("fsswarp.reconstruction",)}
 
 
 class CallTimes:
@@ -111,8 +111,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     from fsswarp.backends import get_backend
     from fsswarp.errors import InputError, check_integer
-    from fsswarp.reconstruct import ReconstructSettings, reconstruct
-    from fsswarp.simulate import simulate
+    from fsswarp.reconstruction import ReconstructSettings, reconstruct
+    from fsswarp.simulation import simulate
 
     try:
         backend = get_backend(args.backend or "auto", args.device)

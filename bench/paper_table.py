@@ -4,7 +4,7 @@ one command:
     python bench/paper_table.py [--name NAME] [--backend B] [--device D] [--scenes ...]
                                 [--positions LETTERS] [--seed S] [--iterations T] [--tilt-offset DEG]
 
-For every scene: simulate it (noisy, ``--seed``), then run ``fsswarp.reconstruct`` from two
+For every scene: simulate it (noisy, ``--seed``), then run ``fsswarp.reconstruction`` from two
 starts: the scene's measured D0 and β0 (3–5 cm and 0.6–1° off the truth, the paper's sensor
 class), and β0 ``--tilt-offset`` degrees (default 2) off the truth, on the side of the measured
 error, with the same D0 (``--positions SNEW`` puts the scenes on another rig, as
@@ -42,9 +42,9 @@ def run_table(backend, scenes, *, seed: int, iterations: int, tilt_offset_deg: f
     ``true_model_pose``: the estimate of the pose step alone with the true model from the same
     start (D, β, E_mu at the start and at the estimate, seconds)."""
     from fsswarp.pose import estimate_pose
-    from fsswarp.reconstruct import ReconstructSettings, reconstruct
+    from fsswarp.reconstruction import ReconstructSettings, reconstruct
     from fsswarp.scenes import builtin_scene
-    from fsswarp.simulate import simulate
+    from fsswarp.simulation import simulate
 
     runs = []
     settings = ReconstructSettings(iterations=iterations)

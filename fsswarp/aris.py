@@ -16,7 +16,7 @@ Conventions of the images returned here (DESIGN §2):
   ``θ_b = −centre[N−1−b]``. A sonar mounted upside down mirrors the image: give it roll 180°.
 - Intensity: a sample s (0–255) is s·80/255 dB; the image holds the linear amplitude relative
   to the 80 dB full scale, ``10^((dB − 80)/20)``, float32 in [1e-4, 1]. This is the inverse of
-  ``fsswarp.render.log_compress(image, dynamic_range_db=80, peak=1)``, so the project's
+  ``fsswarp.rendering.log_compress(image, dynamic_range_db=80, peak=1)``, so the project's
   20·log10 figures and 8-bit compression show the file's own dB values.
 - Range: row B lies at ``WindowStart + B·SampleLength`` with WindowStart =
   SampleStartDelay·1e-6·SoundSpeed/2 and SampleLength = SamplePeriod·1e-6·SoundSpeed/2; the

@@ -21,7 +21,7 @@ carving                   one carve launch over an N³ grid of a 0.3 m cube    v
 pose                      the (D, β) grid surrogate of coral-one (true        cells 8² → 128²
                           model, 16 views): every cell × view rendered and    (× 16 views)
                           reduced on the device, only the costs read back
-reconstruction            ``fsswarp.reconstruct.reconstruct`` of simulated    iterations (1)
+reconstruction            ``fsswarp.reconstruction.reconstruct`` of simulated    iterations (1)
                           coral-one (seed 0): carve, mesh, pose and shape
                           steps, metrics against the truth
 ========================  ==================================================  =====================
@@ -38,7 +38,7 @@ max; the reconstruction has no warm-up. Repeats stop early, keeping at least one
 next would pass the per-point budget.
 
 Peers in the same run: Embree (trimesh + embreex, all CPU threads) casts the ray sets on the
-CPU; ``fsswarp.carve.carve_reference`` (NumPy, float64) carves the smaller grids; on a CUDA
+CPU; ``fsswarp.carving.carve_reference`` (NumPy, float64) carves the smaller grids; on a CUDA
 GPU, CuPy carves by projecting every voxel centre into every view and looking the mask up
 (``carve_array_module``: the obvious array-library method, a point test instead of the
 kernels' bounding-sphere box test). A peer that is not installed is recorded as unavailable.
@@ -633,7 +633,7 @@ def synthesis(backend, view_counts: Sequence[int], *, profiles: dict, repeat: in
 def carve_scene(backend):
     """coral-one's 16 views at the true depth and tilt: (sonar, feasible masks (16, bins, beams)
     bool from the noise-free object layer, rotations, translations, the target's centre (3,))."""
-    from .render import RenderSettings, render
+    from .rendering import RenderSettings, render
     from .rig import world_to_reference
     from .scenes import builtin_scene, target_world_mesh
     from .segment import from_highlight
@@ -751,8 +751,8 @@ def carving(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3, b
 
 def numpy_carving(sides: Sequence[int], *, profiles: dict, scene, repeat: int = 3, budget: float = 20.0,
                   progress: Progress | None = None) -> list[dict]:
-    """``fsswarp.carve.carve_reference`` (NumPy, float64) on the grids of ``carving``."""
-    from .carve import carve_reference
+    """``fsswarp.carving.carve_reference`` (NumPy, float64) on the grids of ``carving``."""
+    from .carving import carve_reference
 
     peer = Peer("numpy", "cpu")
     sonar, masks, rot, t, centre = scene
@@ -852,7 +852,7 @@ def pose_grid(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3,
     from .dataset import Dataset
     from .pose import PoseProblem, PoseSettings
     from .rig import Rig
-    from .simulate import simulate
+    from .simulation import simulate
 
     launch_bytes = launch_bytes or (16 << 30 if backend.is_gpu else 2 << 30)
     profile = profiles[_key(backend)]
@@ -917,9 +917,9 @@ def reconstruction(backend, settings: Sequence[tuple[int, int]], *, profiles: di
                    budget: float = 20.0, progress: Progress | None = None) -> list[dict]:
     """``reconstruct`` of simulated coral-one for each (iterations, resolution) in ``settings``,
     no warm-up; repeats stop at the budget (at least one run)."""
-    from .reconstruct import ReconstructSettings
-    from .reconstruct import reconstruct as run
-    from .simulate import simulate
+    from .reconstruction import ReconstructSettings
+    from .reconstruction import reconstruct as run
+    from .simulation import simulate
 
     profile = profiles[_key(backend)]
     base = _base("reconstruction", "reconstruct", "end to end", backend, "iterations")

@@ -200,8 +200,8 @@ def simulate(state: State, scene_name: str, out: Path, seed: int, samples, no_no
     import time
 
     from .figures import draw_here
-    from .render import RenderSettings
-    from .simulate import simulate as run
+    from .rendering import RenderSettings
+    from .simulation import simulate as run
 
     settings = RenderSettings(samples=tuple(samples))
     backend = state.get_backend()
@@ -261,8 +261,8 @@ def render(state: State, model: Path, dataset_dir: Path, out: Path, depth, tilt,
     from .atomic import check_output_folder, output_folder
     from .dataset import load_manifest
     from .figures import layers_figure
-    from .render import LAYERS, RenderSettings
-    from .render import render as run
+    from .rendering import LAYERS, RenderSettings
+    from .rendering import render as run
     from .rig import with_rolls
 
     manifest = load_manifest(dataset_dir)
@@ -367,8 +367,8 @@ def carve(state: State, dataset_dir: Path, out: Path, depth, tilt, resolution: i
     import numpy as np
 
     from .atomic import check_output_folder, output_folder
-    from .carve import CarveSettings
-    from .carve import carve as run
+    from .carving import CarveSettings
+    from .carving import carve as run
     from .dataset import load_dataset
     from .figures import carve_figure
     from .metrics import compare
@@ -440,7 +440,7 @@ def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, pat
     OUT/result.json and OUT/figures/."""
     from .atomic import check_output_folder
     from .dataset import load_dataset
-    from .reconstruct import ReconstructSettings
+    from .reconstruction import ReconstructSettings
 
     dataset = load_dataset(dataset_dir)
     check_output_folder(out, marker=MARKERS["reconstruct"])
@@ -553,8 +553,8 @@ def demo(state: State, scene_name: str, out: Path, seed: int, iterations: int) -
     import time
 
     from .atomic import output_folder
-    from .reconstruct import ReconstructSettings
-    from .simulate import simulate as run_simulation
+    from .reconstruction import ReconstructSettings
+    from .simulation import simulate as run_simulation
 
     backend = state.get_backend()
     start = time.perf_counter()
@@ -584,7 +584,7 @@ def run_reconstruction(state: State, dataset, out: Path, settings, drawer, *, de
     from .atomic import output_folder
     from .figures import carve_figure, contours_figure, history_figure, pose_figure
     from .pose import PoseWarning, view_contours
-    from .reconstruct import reconstruct as run
+    from .reconstruction import reconstruct as run
 
     backend = state.get_backend()
     state.echo(f"reconstructing {len(dataset.images)} views ({backend.name} on {backend.device})")
@@ -651,7 +651,7 @@ def enhance(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt
     that MODEL does not project into are skipped with a warning; none at all is an error."""
     from .atomic import check_output_folder
     from .dataset import load_dataset
-    from .enhance import check_ghost_sigma
+    from .enhancement import check_ghost_sigma
 
     dataset = load_dataset(dataset_dir)
     mesh = load_mesh_file(model, "--model")
@@ -668,7 +668,7 @@ def enhance(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt
                     ghost_sigma=tuple(ghost_sigma))
 
 
-#: The comparison figures of run_enhancement: file name and group of fsswarp.enhance.comparison_views.
+#: The comparison figures of run_enhancement: file name and group of fsswarp.enhancement.comparison_views.
 COMPARISON_FIGURES = {"views_optimized.png": "optimized", "views_heldout.png": "held-out"}
 
 
@@ -680,7 +680,7 @@ def run_enhancement(state: State, dataset, mesh, model_name: str, depth: float, 
     group with no view gets none), the figures drawn by ``drawer`` (a
     ``fsswarp.figures.FigureDrawer``). ``initial``: (mesh, name) of the initial model, rendered at the
     measured depth and tilt for the figures' "initial synthetic" column; ``ghost_sigma``: see
-    fsswarp.enhance.enhance_view. ``shown``, ``dataset_label``:
+    fsswarp.enhancement.enhance_view. ``shown``, ``dataset_label``:
     the names of OUT and of the dataset's folder in messages and enhance.json, when they are
     temporary folders."""
     import time
@@ -689,10 +689,10 @@ def run_enhancement(state: State, dataset, mesh, model_name: str, depth: float, 
     import tifffile
 
     from .atomic import output_folder
-    from .enhance import comparison_views, match_level, render_model, score
-    from .enhance import enhance as run
+    from .enhancement import comparison_views, match_level, render_model, score
+    from .enhancement import enhance as run
     from .figures import comparison_figure, enhance_figure
-    from .render import LAYERS
+    from .rendering import LAYERS
 
     start = time.perf_counter()
     backend = state.get_backend()

@@ -296,7 +296,7 @@ def enhance_figure(images: dict[str, np.ndarray], results: dict, sonar: SonarSpe
     """Save a PNG grid, one row per view: data | ghost-free (enhanced) | isolated ghost |
     regions (object, ghost, mirror, overlap), beam-bin images in dB below the data's peak.
 
-    images : {view: (bins, beams) linear data}; results : {view: fsswarp.enhance.EnhancedView}."""
+    images : {view: (bins, beams) linear data}; results : {view: fsswarp.enhancement.EnhancedView}."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -336,7 +336,7 @@ def comparison_figure(images: dict[str, np.ndarray], enhanced: dict[str, np.ndar
     zoomed on the synthetic returns (x across, y ahead, metres).
 
     Every dict is {view: (bins, beams) linear image}, keyed like ``images``; the synthetic
-    images should already be scaled to the data's level (fsswarp.enhance.match_level). One
+    images should already be scaled to the data's level (fsswarp.enhancement.match_level). One
     colour scale per row: dB below the row's data peak, down to ``floor_db``."""
     import matplotlib
 

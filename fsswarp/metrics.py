@@ -284,7 +284,7 @@ def _check_mesh(name: str, mesh) -> None:
 
 
 def serve_compare() -> None:
-    """The loop of a ``compare`` worker process (fsswarp.reconstruct's truth metrics): from
+    """The loop of a ``compare`` worker process (fsswarp.reconstruction's truth metrics): from
     stdin, pickled objects, the truth mesh first, then (mesh, part) requests; to stdout, one
     pickled ``compare_part(mesh, truth, part)`` (or the exception it raised) per request, in
     order; returns at end of input. Anything the code prints goes to stderr, so that stdout

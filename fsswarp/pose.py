@@ -85,7 +85,7 @@ from .dataset import MANIFEST_NAME
 from .errors import InputError, check_integer, is_integer
 from .icp import CONTOUR_TOL, icp_many
 from .motion import patch_motions, view_errors
-from .render import RenderSettings, check_mesh
+from .rendering import RenderSettings, check_mesh
 from .segment import SegmentSettings, memoized, normalized, segment
 from .rig import check_depth_tilt
 from .surface import mirror_points, surface_in_reference, surface_in_views
@@ -703,7 +703,7 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
     levels : grid levels (>= 1), each in one launch; the polish follows (``settings.polish``)
     progress : called with one line per step
     problem : a PoseProblem of ``model`` and ``dataset`` located at (depth0, tilt0) with
-        ``settings`` and this backend, to go on with instead of building it (fsswarp.reconstruct
+        ``settings`` and this backend, to go on with instead of building it (fsswarp.reconstruction
         hands over the one of its last record); its counters restart, and it is relocated
     Returns a PoseResult; the estimate moves from (depth0, tilt0) only where E_mu falls.
     """

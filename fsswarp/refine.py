@@ -71,7 +71,7 @@ import numpy as np
 from .errors import InputError, check_integer, is_integer
 from .motion import image_jacobian, truncated_lstsq
 from .pose import PoseProblem, PoseSettings, PoseWarning
-from .render import check_mesh, is_watertight, signed_volume
+from .rendering import check_mesh, is_watertight, signed_volume
 from .surface import surface_in_reference
 
 #: Share of the step that the first rings of neighbours of a held vertex take (module
@@ -146,7 +146,7 @@ class RefineResult:
     ace_before, ace_after : their means (ACE, eq. 9); steps : one RefineStep per update
     mean_displacement : mean vertex displacement (m) over all updates; seconds : wall time
     problem : the PoseProblem of ``mesh`` at (depth, tilt) with ``settings.pose`` that found
-        ce_after (fsswarp.reconstruct goes on with it instead of building it again)
+        ce_after (fsswarp.reconstruction goes on with it instead of building it again)
     """
 
     mesh: object

@@ -2,7 +2,7 @@
 
 The highlight is every echo that stands out of the water's noise: object, ghost and mirror
 alike (the ghost falls behind the object in the same beams, inside the feasible region; the
-mirror world above the surface is removed by the carving, fsswarp/carve.py). Steps, for a
+mirror world above the surface is removed by the carving, fsswarp/carving.py). Steps, for a
 (bins, beams) linear image I:
 
 0. Isolated spikes (hot pixels) are clipped: in an image with a noise floor (median > 0), a

@@ -1,8 +1,8 @@
 /* carve.cl -- voxel space carving against every view's feasible mask (DESIGN §6).
  *
  * Purpose: for voxel p (a cube of side h, centre c_p, circumradius r = h·√3/2) and every view
- * v, whether v sees the voxel and whether v rejects it (the rule: fsswarp/carve.py's module
- * docstring; the float64 oracle: fsswarp.carve.carve_reference). With c_p seen at
+ * v, whether v sees the voxel and whether v rejects it (the rule: fsswarp/carving.py's module
+ * docstring; the float64 oracle: fsswarp.carving.carve_reference). With c_p seen at
  * (θ, φ, R) (sonar.h) and ρ = hypot(X, Y):
  *   seen      the voxel's bounding sphere lies wholly in the window: r < ρ,
  *             |φ| + asin(r/R) <= W_φ, and the box

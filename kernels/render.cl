@@ -1,6 +1,6 @@
 /* render.cl -- noise-free multipath sonar layers of many views in one launch (DESIGN §3-4).
  *
- * The algorithm is the docstring of fsswarp/render.py, step by step, in float32; the Warp
+ * The algorithm is the docstring of fsswarp/rendering.py, step by step, in float32; the Warp
  * kernel and the float64 oracle (tests/oracle_render.py) implement the same steps.
  *
  * Arguments:

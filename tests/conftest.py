@@ -74,7 +74,7 @@ def wp_device(request) -> str:
 def coral_one(tmp_path_factory):
     """coral-one simulated once per session with noise (seed 1, default render settings, the
     OpenCL backend when present): the loaded Dataset (its ``root`` is the folder)."""
-    from fsswarp.simulate import simulate
+    from fsswarp.simulation import simulate
 
     rows = [r for r in _rows() if r["backend"] == "opencl" and r["kind"] == "cpu" and r["available"]]
     backend = get_backend("opencl", rows[0]["index"]) if rows else get_backend()

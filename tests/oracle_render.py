@@ -1,4 +1,4 @@
-"""Float64 NumPy oracle of sonar image synthesis: the algorithm of ``fsswarp/render.py``'s
+"""Float64 NumPy oracle of sonar image synthesis: the algorithm of ``fsswarp/rendering.py``'s
 docstring, written independently of the kernels.
 
 Ray casts go through trimesh's intersector (Embree through embreex when it imports, else

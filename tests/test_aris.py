@@ -23,7 +23,7 @@ from fsswarp.aris import (ArisWarning, beam_table, import_aris, linear_intensity
 from fsswarp.cli import main
 from fsswarp.dataset import load_dataset
 from fsswarp.errors import InputError
-from fsswarp.render import log_compress
+from fsswarp.rendering import log_compress
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "aris"
@@ -305,7 +305,7 @@ def test_an_import_and_a_simulation_never_replace_each_other(tmp_path):
     """import-aris replaces only an earlier import (its aris.json), simulate only an earlier
     simulation (its truth model): a recording is never lost to a simulation with swapped
     arguments, nor a simulation to an import; each refuses before its work."""
-    from fsswarp.simulate import simulate
+    from fsswarp.simulation import simulate
 
     path = write(tmp_path, synthetic(frames=1))
     imported = tmp_path / "imported"

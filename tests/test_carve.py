@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from fsswarp.carve import (CarveSettings, CarveWarning, carve, carve_masks, carve_reference, common_region,
+from fsswarp.carving import (CarveSettings, CarveWarning, carve, carve_masks, carve_reference, common_region,
                            voxel_mesh, _Carver)
 from fsswarp.errors import InputError
 from fsswarp.metrics import inside_grid

@@ -1,4 +1,4 @@
-"""Ghost removal by the LUT method and ghost isolation (fsswarp/enhance.py) on simulated coral-one.
+"""Ghost removal by the LUT method and ghost isolation (fsswarp/enhancement.py) on simulated coral-one.
 
 Like with like: the data carry 4-look speckle (mean 1) and an exponential floor, so the MAE
 reference is the object-only data's expectation, true object + floor mean (``score``). The
@@ -20,9 +20,9 @@ import pytest
 import trimesh
 
 from fsswarp.cli import main
-from fsswarp.enhance import comparison_views, enhance, enhance_view, match_level, score
+from fsswarp.enhancement import comparison_views, enhance, enhance_view, match_level, score
 from fsswarp.errors import InputError
-from fsswarp.render import LAYERS, RenderWarning
+from fsswarp.rendering import LAYERS, RenderWarning
 
 
 @pytest.fixture(scope="module")
@@ -67,7 +67,7 @@ def test_despeckled_ghost_reaches_the_aim(coral_one, truth_model, enhanced):
 
 
 def test_recorded_ghost_is_recovered(coral_one, enhanced):
-    # the simulator's speckle draw, the first draw of add_noise (fsswarp/simulate.py, seed 1)
+    # the simulator's speckle draw, the first draw of add_noise (fsswarp/simulation.py, seed 1)
     correlations = []
     for index, (view, result) in enumerate(enhanced.items()):
         ghost = coral_one.truth_layer(view, "ghost").astype(np.float64)
@@ -194,7 +194,7 @@ def test_cli_bad_input(coral_one, tmp_path, capsys):
         assert not bad.exists() and not list(tmp_path.glob(".bad.*"))
 
 
-@pytest.mark.filterwarnings("always::fsswarp.render.RenderWarning")  # main prints it
+@pytest.mark.filterwarnings("always::fsswarp.rendering.RenderWarning")  # main prints it
 def test_cli_skips_views_the_model_misses(coral_one, tmp_path, capsys):
     # moved 0.4 m sideways, the model leaves the fan at roll -90 but not at roll 0
     aside = _moved(coral_one, tmp_path, "aside.ply", [0.4, 0.0, 0.0])

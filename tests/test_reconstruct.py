@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import trimesh
 
-import fsswarp.reconstruct as reconstruct_module
-from fsswarp.carve import carve
+import fsswarp.reconstruction as reconstruct_module
+from fsswarp.carving import carve
 from fsswarp.errors import InputError
 from fsswarp.metrics import compare
-from fsswarp.reconstruct import ReconstructSettings, image_errors, reconstruct
+from fsswarp.reconstruction import ReconstructSettings, image_errors, reconstruct
 from fsswarp.refine import RefineSettings, refine_shape
 
 HISTORY_KEYS = {"iteration", "depth_m", "tilt_deg", "E_mu", "AIE", "ACE", "E_I", "E_V", "chamfer_m", "fscore"}
@@ -415,7 +415,7 @@ def test_the_image_errors_read_the_located_problem_s_layers(coral_one, monkeypat
     everything is when the render settings differ from the problem's or it is located elsewhere."""
     from fsswarp.backends import get_backend
     from fsswarp.pose import PoseProblem
-    from fsswarp.render import RenderSettings, render
+    from fsswarp.rendering import RenderSettings, render
 
     truth = coral_one.manifest.truth
     model = trimesh.load(coral_one.truth_model_path, process=False)

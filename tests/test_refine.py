@@ -9,7 +9,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from fsswarp.backends import get_backend
-from fsswarp.carve import carve
+from fsswarp.carving import carve
 from fsswarp.errors import InputError
 from fsswarp.metrics import compare
 from fsswarp.refine import RefineSettings, _graph_laplacian, _Membrane, _last_echo_rows, refine_shape, smoothed_rows
@@ -195,7 +195,7 @@ def test_a_step_that_turns_the_mesh_inside_out_or_an_open_mesh_is_refused():
     import trimesh
 
     from fsswarp.refine import _apply
-    from fsswarp.render import signed_volume
+    from fsswarp.rendering import signed_volume
 
     sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
     box = trimesh.creation.box(extents=(0.3, 0.2, 0.1))

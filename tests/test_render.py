@@ -1,4 +1,4 @@
-"""Sonar image synthesis (fsswarp/render.py's algorithm): the float64 oracle against closed forms,
+"""Sonar image synthesis (fsswarp/rendering.py's algorithm): the float64 oracle against closed forms,
 then every backend against the closed forms, the oracle and each other.
 
 Closed-form scene: a sphere (icosphere, 4 subdivisions, radius 0.1 m) 2 m ahead of a level
@@ -462,7 +462,7 @@ class _Counted(trimesh.Trimesh):
 
 
 def test_check_mesh_judges_each_topology_once():
-    from fsswarp.render import RenderWarning, check_mesh, is_watertight
+    from fsswarp.rendering import RenderWarning, check_mesh, is_watertight
 
     sphere = trimesh.creation.icosphere(subdivisions=2)
     closed = _Counted(sphere.vertices, sphere.faces, process=False)

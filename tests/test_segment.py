@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from fsswarp.errors import InputError
-from fsswarp.render import add_noise
+from fsswarp.rendering import add_noise
 from fsswarp.pose import detection_threshold
 from fsswarp.segment import SPIKE_RATIO, SegmentSettings, SegmentWarning, clip_spikes, from_highlight, segment
 from fsswarp.surface import COMPONENTS

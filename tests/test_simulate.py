@@ -10,9 +10,9 @@ import tifffile
 import trimesh
 
 from fsswarp.dataset import save_scene
-from fsswarp.render import LAYERS, RenderSettings, RenderWarning, log_compress
+from fsswarp.rendering import LAYERS, RenderSettings, RenderWarning, log_compress
 from fsswarp.scenes import builtin_scene
-from fsswarp.simulate import simulate
+from fsswarp.simulation import simulate
 
 FAST = RenderSettings(samples=(1, 16))
 

@@ -176,8 +176,8 @@ class Backend(abc.ABC):
         image); it rejects it when it sees it and its feasible mask is empty in that box.
         Views are taken in order and the first rejection ends a voxel's loop: ``rejected`` is
         1 when a view rejects the voxel, else 0; ``seen`` counts the views that see it up to
-        and including that view (all of them for a voxel no view rejects). fsswarp/carve.py
-        explains the rule and why it is conservative; ``fsswarp.carve.carve_reference`` is
+        and including that view (all of them for a voxel no view rejects). fsswarp/carving.py
+        explains the rule and why it is conservative; ``fsswarp.carving.carve_reference`` is
         the float64 oracle.
         Float32 on the device: decisions differ from the oracle only where a bound lies
         within float32 rounding of a half-index boundary or of the elevation edge.
@@ -294,7 +294,7 @@ class Backend(abc.ABC):
 
     def render(self, mesh, sonar: SonarSpec, rotations, translations, plane_normals, plane_offsets,
                samples: tuple[int, int], *, gamma: float, surface_reflection: float) -> np.ndarray:
-        """Noise-free multipath layers of N views, one launch (the contract of fsswarp.render).
+        """Noise-free multipath layers of N views, one launch (the contract of fsswarp.rendering).
 
         rotations (N, 3, 3), translations (N, 3): view poses (``P_ref = R @ P_view + t``);
         plane_normals (N, 3), plane_offsets (N,): the surface ``n·P = d`` in each VIEW frame.
@@ -361,7 +361,7 @@ class Backend(abc.ABC):
                 translations: np.ndarray, plane_normals: np.ndarray, plane_offsets: np.ndarray,
                 k_theta: int, k_phi: int, gamma: float, surface_reflection: float,
                 first_rows: np.ndarray, rows: int) -> "DeviceLayers":
-        """Kernel launch of ``render_device`` (the algorithm: fsswarp/render.py's docstring);
+        """Kernel launch of ``render_device`` (the algorithm: fsswarp/rendering.py's docstring);
         beam_widths: (beams,) float32 Δθ_b; first_rows (N,) int32 and rows R: view n keeps
         the bins first_rows[n] <= B < first_rows[n] + R (zeros and bins for full layers),
         valid. Returns the (N, 4, R, beams) float32 layers, complete, on the device (the

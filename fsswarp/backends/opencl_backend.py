@@ -25,7 +25,7 @@ from . import (FRONTAL_EPSILON, FRONTAL_MAX_DISTANCE, FRONTAL_VISIBLE, Backend, 
                _OpenCLDevice)
 from .bvh import FlatBVH, build_bvh
 
-#: ε (m) of the leg tests of render (fsswarp/render.py).
+#: ε (m) of the leg tests of render (fsswarp/rendering.py).
 RENDER_EPSILON = 1e-4
 #: Longest ray of render (m).
 RENDER_MAX_DISTANCE = 1e6

@@ -118,7 +118,7 @@ def project_points(points: wp.array(dtype=wp.vec3), rotations: wp.array(dtype=wp
         inside_out[v, p] = wp.uint8(0)
 
 
-# --- ray casting and image synthesis (fsswarp/render.py documents the algorithm) -------------
+# --- ray casting and image synthesis (fsswarp/rendering.py documents the algorithm) -------------
 _EPS = wp.constant(1.0e-4)  # ε of the leg tests and of the mirror2 ray start (m)
 _FAR = wp.constant(1.0e30)  # "no limit" for a ray cast
 _FIXED = wp.constant(16777216.0)  # 2^24: fixed-point scale of the accumulator

@@ -80,13 +80,13 @@ from typing import Callable
 
 import numpy as np
 
-from .carve import CarveSettings, carve
+from .carving import CarveSettings, carve
 from .errors import InputError, check_integer
 from .metrics import combine
 from .motion import average_contour_error, average_intensity_error
 from .pose import PoseProblem, PoseSettings, PoseWarning, check_uncertainties, estimate_pose
 from .refine import RefineSettings, refine_shape
-from .render import RenderSettings, render, with_total
+from .rendering import RenderSettings, render, with_total
 from .rig import check_depth_tilt
 
 

@@ -11,7 +11,7 @@ import trimesh
 from .atomic import check_output_folder
 from .dataset import TRUTH_MODEL, Dataset, Manifest, Truth, load_dataset, load_scene, save_dataset
 from .errors import InputError, check_integer
-from .render import LAYERS, RenderSettings, add_noise, render
+from .rendering import LAYERS, RenderSettings, add_noise, render
 from .rig import world_to_reference
 from .scenes import builtin_scene, target_world_mesh
 from .targets import BUILTIN_TARGETS

@@ -42,7 +42,7 @@ import numpy as np
 from scipy import ndimage
 
 from .errors import InputError
-from .render import LAYERS, RenderSettings, RenderWarning, render
+from .rendering import LAYERS, RenderSettings, RenderWarning, render
 
 _DB_FLOOR = 1e-30
 #: Largest despeckle σ (pixels) of the isolated ghost (``--ghost-sigma``).
@@ -243,7 +243,7 @@ def score(dataset, results: dict[str, EnhancedView], *, threshold: float = 1e-3,
     Overlap: pixels where the true object and the true ghost both reach ``threshold`` × the
     true total's peak. Like with like: the data carry speckle of mean 1 and an additive
     exponential floor of mean ``background`` × the 99th percentile of the non-zero true total
-    (fsswarp.render.add_noise), so the reference is the object-only data's expectation, true
+    (fsswarp.rendering.add_noise), so the reference is the object-only data's expectation, true
     object + floor mean. Returns {view: {"overlap_pixels", "mae_raw", "mae_enhanced",
     "mae_reduction", "ghost_corr"}}; the MAE entries are None for views without overlap;
     ``ghost_corr`` is Pearson's r of the isolated and the true ghost over the true ghost region."""

@@ -60,7 +60,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import InputError, check_integer, is_integer
-from .render import signed_volume
+from .rendering import signed_volume
 from .rig import check_depth_tilt, to_view
 from .segment import Segmentation, SegmentSettings, segment
 from .sonar import SonarSpec, from_polar, to_polar
