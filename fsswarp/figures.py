@@ -387,7 +387,7 @@ def figure_workers() -> int:
     process may use, at most 4."""
     import os
 
-    from .backends import usable_cpus
+    from .system import usable_cpus
     from .errors import InputError
 
     value = os.environ.get("FSSWARP_FIGURE_WORKERS", "").strip()

@@ -21,7 +21,7 @@ import sys
 import numpy as np
 import pytest
 
-import fsswarp.backends as backends
+from fsswarp.backends import select
 from fsswarp.backends import describe_backends, get_backend
 from fsswarp.errors import InputError
 from fsswarp.rig import rotation_x, rotation_y, rotation_z, to_view
@@ -296,7 +296,7 @@ def test_missing_package(monkeypatch, package, name, hint):
     """A missing package is an InputError naming the option and the install command, and a
     row of describe_backends (which never raises)."""
     monkeypatch.setitem(sys.modules, package, None)  # import raises ImportError
-    monkeypatch.setattr(backends, "_CACHE", {})
+    monkeypatch.setattr(select, "_CACHE", {})
     with pytest.raises(InputError) as info:
         get_backend(name)
     message = str(info.value)
@@ -312,7 +312,7 @@ def test_missing_package(monkeypatch, package, name, hint):
 def test_no_opencl_platform(monkeypatch):
     cl = pytest.importorskip("pyopencl")
     monkeypatch.setattr(cl, "get_platforms", lambda: [])
-    monkeypatch.setattr(backends, "_CACHE", {})
+    monkeypatch.setattr(select, "_CACHE", {})
     with pytest.raises(InputError, match=r"^--backend = 'opencl': no OpenCL platform found.*fsswarp\[pocl\]"):
         get_backend("opencl")
     rows = [r for r in describe_backends() if r["backend"] == "opencl"]

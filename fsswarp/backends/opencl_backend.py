@@ -21,8 +21,8 @@ import numpy as np
 import pyopencl as cl
 from pyopencl.tools import first_arg_dependent_memoize
 
-from . import (FRONTAL_EPSILON, FRONTAL_MAX_DISTANCE, FRONTAL_VISIBLE, Backend, DeviceLayers, SonarConstants,
-               _OpenCLDevice)
+from .base import FRONTAL_EPSILON, FRONTAL_MAX_DISTANCE, FRONTAL_VISIBLE, Backend, DeviceLayers, SonarConstants
+from .select import _OpenCLDevice
 from .bvh import FlatBVH, build_bvh
 
 #: ε (m) of the leg tests of render (fsswarp/rendering.py).

@@ -13,7 +13,8 @@ import math
 import numpy as np
 import warp as wp
 
-from . import FRONTAL_EPSILON, FRONTAL_MAX_DISTANCE, FRONTAL_VISIBLE, Backend, DeviceLayers, SonarConstants, _warp
+from .base import FRONTAL_EPSILON, FRONTAL_MAX_DISTANCE, FRONTAL_VISIBLE, Backend, DeviceLayers, SonarConstants
+from .select import _warp
 from .bvh import triangle_bounds
 
 # No contraction of a*b + c into fma: the watertight ray-triangle test relies on a shared edge

@@ -1,0 +1,683 @@
+"""The kernel interface: ``Backend`` and the device-side results it hands out.
+
+``Backend`` is the interface every kernel family goes through; ``WarpBackend``
+(``warp_backend.py``, NVIDIA Warp on "cpu" or "cuda:N") and ``OpenCLBackend``
+(``opencl_backend.py``, OpenCL C from the top-level ``kernels/``) implement it.
+
+The public methods of ``Backend`` validate their inputs (``ValueError`` / ``TypeError``
+quoting the bad value) and convert them to contiguous float32 arrays; the private ``_name``
+methods that subclasses implement receive clean arrays and never validate. All kernels compute
+in float32 on the device, except the ICP runs (``icp_runs``), in float64.
+
+Adding a kernel family: a public method here (validation, conversion, the documented
+contract) calling an abstract ``_method`` that both backends implement, the Warp kernel,
+the OpenCL kernel in ``kernels/<family>.cl`` (geometry shared through ``kernels/sonar.h``),
+and a NumPy oracle test in ``tests/test_backends.py``.
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from ..errors import is_integer
+from ..sonar import SonarSpec
+
+#: ε (m) past the surface from which ``frontal_faces`` casts a reflected ray, as render's legs.
+FRONTAL_EPSILON = 1e-4
+#: ``frontal_faces``: a mirror patch counts as seen directly from the sonar when the first hit
+#: toward it lies within this distance (m) of it.
+FRONTAL_VISIBLE = 2e-3
+#: Longest ray of ``frontal_faces`` (m), as ``cast_rays``' default.
+FRONTAL_MAX_DISTANCE = 1e6
+
+
+@dataclass(frozen=True)
+class SonarConstants:
+    """The float32 constants of one sonar, as every kernel receives them.
+
+    beam_table : (2, beams) float32 when ``use_table``, else a (2, 1) zero dummy (OpenCL
+        has no zero-sized buffers). Row 0: the beam centres c_i (rad). Row 1: the inverse
+        spacing 1 / (c_{i+1} − c_i) of the segment starting at beam i, the last entry
+        repeating the outer spacing for extrapolation. Inverses are rounded once from float64:
+        a float32 difference of float32 centres would lose ~1e-6 of the spacing, which far
+        extrapolation (hundreds of beams for points behind the sonar) magnifies past 1e-4
+        of an index, and kernels need no division (GPU division is not correctly rounded).
+    beam_scale = (beams − 1) / (2 W_θ) and inv_range_step = 1 / δR, likewise rounded once.
+    """
+
+    beams: int
+    bins: int
+    use_table: int
+    beam_table: np.ndarray
+    half_azimuth: float
+    beam_scale: float
+    range_min: float
+    inv_range_step: float
+    half_elevation: float
+
+    @classmethod
+    def of(cls, sonar: SonarSpec) -> "SonarConstants":
+        f32 = lambda x: float(np.float32(x))  # noqa: E731 - the float32 value, as a Python float
+        if sonar.beam_angles is None:
+            table = np.zeros((2, 1), np.float32)
+        else:
+            centres = np.asarray(sonar.beam_angles, np.float64)
+            inverse = 1.0 / np.diff(centres)
+            table = np.ascontiguousarray([centres, np.append(inverse, inverse[-1])], np.float32)
+        return cls(beams=int(sonar.beams), bins=int(sonar.bins),
+                   use_table=int(sonar.beam_angles is not None), beam_table=table,
+                   half_azimuth=f32(sonar.half_azimuth),
+                   beam_scale=f32((sonar.beams - 1) / sonar.azimuth_fov),
+                   range_min=f32(sonar.range_min), inv_range_step=f32(1.0 / sonar.range_step),
+                   half_elevation=f32(sonar.half_elevation))
+
+
+class Backend(abc.ABC):
+    """A device that runs fsswarp's kernels.
+
+    name : "warp" or "opencl"
+    device : the device, e.g. "cpu" or "cuda:0" (Warp), "<platform>: <device name>" (OpenCL)
+    is_gpu : whether the device is a GPU
+    has_float64 : whether its kernels can compute in float64 (``icp_runs`` needs it)
+    """
+
+    name: str
+    device: str
+    is_gpu: bool
+    has_float64: bool
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} {self.name} on {self.device!r}>"
+
+    # --- projection (voxel carving) -----------------------------------------------------------
+    def project(self, points, rotations, translations, sonar: SonarSpec):
+        """Nearest beam and bin of every point in every view.
+
+        points : (P, 3) float
+            Points in the reference frame (m).
+        rotations : (V, 3, 3) float, translations : (V, 3) float
+            View poses, ``P_ref = R @ P_view + t``; a point is seen at ``Rᵀ (P_ref − t)``.
+        sonar : SonarSpec
+
+        Returns ``(beam, bin, inside)``: (V, P) int32 nearest column and row, by the rule of
+        ``SonarSpec.beam_bin`` (floor(coordinate + 0.5); with a beam-angle table the
+        fractional beam interpolates linearly between beam centres and extrapolates with the
+        outer spacing), clamped to ±2^30 for points absurdly far away; and (V, P) bool
+        ``inside``: the return lands in the image (0 <= beam < beams, 0 <= bin < bins) and its
+        elevation lies in the aperture (|φ| <= W_φ).
+
+        Computed in float32 on the device: results differ from the float64 NumPy rule
+        (``to_view``, ``to_polar``, ``SonarSpec.beam_bin``, ``SonarSpec.in_elevation``) only
+        for points that float32 cannot place: within about 1e-4 of an index (or two float32
+        ulps of θ or R, whichever is larger; at 3 m one ulp of R is 6e-5 of a 3.9 mm bin) of
+        a half-index boundary, or within ~1e-6 rad of the elevation edge. Backends agree
+        with each other on the same terms.
+        """
+        pts = _real_array("points", points, ("P", 3))
+        rot, trans = _view_poses(rotations, translations, sonar)
+        if pts.shape[0] >= 2**31 - 2**10:
+            raise ValueError(f"too many points for one launch ({pts.shape[0]}); split them")
+        n_views, n_points = rot.shape[0], pts.shape[0]
+        if n_views == 0 or n_points == 0:
+            empty = np.zeros((n_views, n_points), np.int32)
+            return empty, empty.copy(), np.zeros((n_views, n_points), bool)
+        beam, bin_, inside = self._project(pts, rot, trans, SonarConstants.of(sonar))
+        return beam, bin_, inside != 0
+
+    @abc.abstractmethod
+    def _project(self, points: np.ndarray, rotations: np.ndarray, translations: np.ndarray,
+                 sonar: SonarConstants) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Kernel launch of ``project``: clean float32 C-contiguous (P, 3), (V, 3, 3), (V, 3)
+        arrays with P, V >= 1. Returns (V, P) int32 beam, int32 bin, uint8 inside (0 or 1)."""
+
+    def carve(self, masks, rotations, translations, sonar: SonarSpec, voxel_size: float, *,
+              origin=None, shape=None, centres=None):
+        """Space carving: how many views see each voxel and how many reject it (DESIGN §6).
+
+        masks : (V, bins, beams) bool or integer, nonzero = the view's feasible region
+        rotations : (V, 3, 3) float, translations : (V, 3) float
+            View poses, ``P_ref = R @ P_view + t`` (V <= 255).
+        sonar : SonarSpec
+        voxel_size : h (m), the side of every voxel (a cube)
+        origin (3,) float and shape (nx, ny, nz) : a regular grid, voxel (i, j, k) centred
+            at ``origin + h·(i, j, k)`` (computed in float32), flattened in C order; or
+        centres : (P, 3) float, explicit voxel centres (the fine levels of coarse-to-fine)
+
+        Returns ``(seen, rejected)``, (P,) uint8. A view sees a voxel when its window holds
+        the whole voxel (its bounding sphere inside the elevation aperture, and the box of
+        beams and bins it projects into, by the rounding rule of ``project``, inside the
+        image); it rejects it when it sees it and its feasible mask is empty in that box.
+        Views are taken in order and the first rejection ends a voxel's loop: ``rejected`` is
+        1 when a view rejects the voxel, else 0; ``seen`` counts the views that see it up to
+        and including that view (all of them for a voxel no view rejects). fsswarp/carving.py
+        explains the rule and why it is conservative; ``fsswarp.carving.carve_reference`` is
+        the float64 oracle.
+        Float32 on the device: decisions differ from the oracle only where a bound lies
+        within float32 rounding of a half-index boundary or of the elevation edge.
+        """
+        rot, trans = _view_poses(rotations, translations, sonar)
+        feasible = np.asarray(masks)
+        if feasible.dtype.kind not in "biu":
+            raise TypeError(f"masks must be bool or integer, got dtype {feasible.dtype}")
+        if feasible.shape != (rot.shape[0], sonar.bins, sonar.beams):
+            raise ValueError(f"masks must have shape (V, bins, beams) = ({rot.shape[0]}, {sonar.bins}, "
+                             f"{sonar.beams}), got {feasible.shape}")
+        if rot.shape[0] > 255:
+            raise ValueError(f"at most 255 views per launch (uint8 counts), got {rot.shape[0]}")
+        size = float(voxel_size) if isinstance(voxel_size, (int, float, np.number)) else np.nan
+        if not (np.isfinite(np.float32(size)) and np.float32(size) > 0):
+            raise ValueError(f"voxel_size must be a finite number > 0, got {voxel_size!r}")
+        grid = origin is not None or shape is not None
+        if grid == (centres is not None) or (grid and (origin is None or shape is None)):
+            raise ValueError("give either origin and shape (a grid) or centres")
+        if centres is not None:
+            points = _real_array("centres", centres, ("P", 3))
+            n_voxels, start, dims = points.shape[0], None, None
+        else:
+            start = _real_array("origin", np.asarray(origin).reshape(-1), (3,))
+            dims = tuple(shape) if isinstance(shape, (tuple, list, np.ndarray)) else ()
+            if len(dims) != 3 or any(not is_integer(n) or n < 0
+                                     for n in dims):
+                raise ValueError(f"shape must be three integers >= 0, got {shape!r}")
+            dims = tuple(int(n) for n in dims)
+            n_voxels, points = dims[0] * dims[1] * dims[2], None
+        if n_voxels >= 2**31 - 2**10:
+            raise ValueError(f"too many voxels for one launch ({n_voxels}); split them")
+        if n_voxels == 0 or rot.shape[0] == 0:
+            return np.zeros(n_voxels, np.uint8), np.zeros(n_voxels, np.uint8)
+        integral = np.zeros((rot.shape[0], sonar.bins + 1, sonar.beams + 1), np.int32)
+        np.cumsum(np.cumsum(feasible != 0, axis=1, dtype=np.int32), axis=2, out=integral[:, 1:, 1:])
+        radius = float(np.float32(size * np.sqrt(3.0) / 2.0))
+        return self._carve(integral, rot, trans, SonarConstants.of(sonar), float(np.float32(size)), radius,
+                           start, dims, points)
+
+    @abc.abstractmethod
+    def _carve(self, integral: np.ndarray, rotations: np.ndarray, translations: np.ndarray,
+               sonar: SonarConstants, voxel_size: float, radius: float, origin: np.ndarray | None,
+               shape: tuple[int, int, int] | None, centres: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """Kernel launch of ``carve``: integral (V, bins + 1, beams + 1) int32 summed-area
+        tables of the masks, clean float32 poses, the float32 voxel size and circumradius,
+        and either a grid (origin (3,) float32, shape) or centres (P, 3) float32, P, V >= 1.
+        Returns (P,) uint8 seen and rejected counts."""
+
+
+    # --- ray casting and image synthesis ------------------------------------------------------
+    def load_mesh(self, vertices, faces) -> Any:
+        """Upload a triangle mesh once for many launches; returns an opaque handle.
+
+        vertices : (Nv, 3) float, faces : (Nf, 3) int, indices into vertices (Nf >= 1)
+        The handle keeps the device copy (Warp: ``wp.Mesh``; OpenCL: a flattened BVH)."""
+        verts = _real_array("vertices", vertices, ("Nv", 3))
+        tris = np.asarray(faces)
+        if tris.ndim != 2 or tris.shape[1] != 3 or tris.shape[0] == 0 or tris.dtype.kind not in "iu":
+            raise ValueError(f"faces must be a non-empty (Nf, 3) integer array, got {tris.shape} {tris.dtype}")
+        if tris.min() < 0 or tris.max() >= verts.shape[0]:
+            raise ValueError(f"faces index vertices 0..{verts.shape[0] - 1}, got {tris.min()}..{tris.max()}")
+        return self._load_mesh(verts, np.ascontiguousarray(tris, dtype=np.int32))
+
+    def cast_rays(self, mesh, origins, directions, max_distance: float = 1e6):
+        """First hit of every ray: ``(distance, face)``, (R,) float32 and (R,) int32.
+
+        origins : (R, 3) float, directions : (R, 3) float unit vectors
+        A ray that hits nothing within ``max_distance`` gives distance inf and face -1.
+        Watertight: a ray through a shared edge or vertex never leaks through the mesh."""
+        org = _real_array("origins", origins, ("R", 3))
+        dirs = _real_array("directions", directions, ("R", 3))
+        if org.shape != dirs.shape:
+            raise ValueError(f"origins and directions must have the same shape, got {org.shape} and {dirs.shape}")
+        if org.shape[0] == 0:
+            return np.zeros(0, np.float32), np.zeros(0, np.int32)
+        return self._cast_rays(mesh, org, dirs, float(max_distance))
+
+    def frontal_faces(self, mesh, sonar: SonarSpec, rotations, translations, plane_normals, plane_offsets,
+                      views, azimuths, rays: int, *, mirror: bool) -> np.ndarray:
+        """Face of the frontal patch of every beam, -1 where none (the patches that E_mu and
+        shape refinement move, fsswarp/pose.py): over the beam's ``rays`` elevation rays
+        φ_j = −W_φ + (j + ½) · 2W_φ / rays, the face seen at the shortest range.
+
+        mirror False: a ray's first hit before it meets the surface, at its distance.
+        mirror True: a ray that meets the surface at Q (s = d / (n·u), before any hit) is
+        reflected there; its first hit P, cast from ε = FRONTAL_EPSILON past Q, counts when P
+        lies in the fan (|elevation| <= W_φ, |azimuth| <= W_θ) and the first hit from the sonar
+        toward P is not nearer than |P| − FRONTAL_VISIBLE; it is seen at (|P| + s + |P − Q|) / 2.
+
+        rotations (V, 3, 3), translations (V, 3) : view poses (``P_ref = R @ P_view + t``);
+        plane_normals (V, 3), plane_offsets (V,) : the surface ``n·P = d`` in each view frame;
+        views (B,) int in [0, V) and azimuths (B,) float (rad) : the beams; rays >= 1.
+        Returns (B,) int32. One thread per ray, float32; the host keeps each beam's nearest (the
+        first of equal ranges): where two rays' ranges tie within rounding, another ray's face
+        may win than in float64."""
+        _check_sonar(sonar)
+        rot, trans, normals, offsets = _view_planes(rotations, translations, plane_normals, plane_offsets)
+        theta = _real_array("azimuths", np.asarray(azimuths).reshape(-1), ("B",))
+        index = _view_index("views", views, rot.shape[0])
+        if index.shape != theta.shape:
+            raise ValueError(f"views must be ({theta.shape[0]},) like azimuths, got {index.shape}")
+        if not is_integer(rays) or rays < 1:
+            raise ValueError(f"rays must be a positive integer, got {rays!r}")
+        if theta.shape[0] == 0:
+            return np.zeros(0, np.int32)
+        if theta.shape[0] * rays >= 2**31 - 2**10:
+            raise ValueError(f"too many rays for one launch ({theta.shape[0]} beams x {rays}); split them")
+        ranges, faces = self._frontal_rays(mesh, SonarConstants.of(sonar), rot, trans, normals, offsets, index,
+                                           theta, int(rays), bool(mirror))
+        nearest = np.argmin(ranges, axis=1)  # the first of equal ranges
+        beams = np.arange(len(nearest))
+        return np.where(np.isfinite(ranges[beams, nearest]), faces[beams, nearest], -1).astype(np.int32)
+
+    def render(self, mesh, sonar: SonarSpec, rotations, translations, plane_normals, plane_offsets,
+               samples: tuple[int, int], *, gamma: float, surface_reflection: float) -> np.ndarray:
+        """Noise-free multipath layers of N views, one launch (the contract of fsswarp.rendering).
+
+        rotations (N, 3, 3), translations (N, 3): view poses (``P_ref = R @ P_view + t``);
+        plane_normals (N, 3), plane_offsets (N,): the surface ``n·P = d`` in each VIEW frame.
+        samples = (K_θ, K_φ) sub-rays per beam. Returns (N, 4, bins, beams) float32: the
+        layers object, ghost, mirror, mirror2 (``fsswarp.surface.COMPONENTS``)."""
+        return self.render_device(mesh, sonar, rotations, translations, plane_normals, plane_offsets,
+                                  samples, gamma=gamma, surface_reflection=surface_reflection).numpy()
+
+    def render_device(self, mesh, sonar: SonarSpec, rotations, translations, plane_normals,
+                      plane_offsets, samples: tuple[int, int], *, gamma: float,
+                      surface_reflection: float, rows=None) -> "DeviceLayers":
+        """``render`` with the layers left on the device (for kernels that consume them there,
+        and for timing the synthesis without the read-back). Returns once the layers are
+        complete; ``.numpy()`` copies them to the host.
+
+        rows : None (default), the full (N, 4, bins, beams) layers; or ``(first, count)``, a
+            band of rows per view: first (N,) integers, count an integer R >= 1, with
+            0 <= first[n] and first[n] + R <= bins. View n then renders only the bins
+            first[n] <= B < first[n] + R, into layers of shape (N, 4, R, beams) whose row k
+            is the image's row first[n] + k; returns landing outside the band are dropped.
+            Every pixel of the band equals, bit for bit, the same pixel of the full layers
+            (fixed-point integer accumulation: a pixel's value does not depend on which other
+            pixels are rendered), and less memory is filled, converted and allocated.
+            ``contour_cost`` consumes banded layers. The result's ``first_rows`` is the (N,)
+            int array first (None for full layers); ``.numpy()`` copies the band as it is,
+            (N, 4, R, beams).
+        """
+        rot, trans, normals, offsets = _view_planes(rotations, translations, plane_normals, plane_offsets)
+        k_theta, k_phi = (int(k) for k in samples)
+        if k_theta < 1 or k_phi < 1:
+            raise ValueError(f"samples must be two positive counts, got {tuple(samples)}")
+        n_views = rot.shape[0]
+        first, count = _row_bands(rows, n_views, sonar.bins)
+        if n_views * 4 * count * sonar.beams >= 2**31:
+            raise ValueError(f"{n_views} views of {count} x {sonar.beams} exceed one launch's "
+                             f"2^31 pixels; split the batch")
+        if n_views == 0:
+            return HostLayers(np.zeros((0, 4, count, sonar.beams), np.float32),
+                              None if rows is None else first)
+        layers = self._render(mesh, SonarConstants.of(sonar), _beam_widths(sonar), rot, trans, normals,
+                              offsets, k_theta, k_phi, float(gamma),
+                              float(surface_reflection), first, count)
+        layers.first_rows = None if rows is None else first.copy()
+        return layers
+
+    @abc.abstractmethod
+    def _load_mesh(self, vertices: np.ndarray, faces: np.ndarray) -> Any:
+        """Device copy of a clean (Nv, 3) float32 / (Nf, 3) int32 mesh."""
+
+    @abc.abstractmethod
+    def _cast_rays(self, mesh, origins: np.ndarray, directions: np.ndarray, max_distance: float):
+        """Kernel launch of ``cast_rays``; returns (R,) float32 distance (inf: no hit), (R,) int32 face."""
+
+    @abc.abstractmethod
+    def _frontal_rays(self, mesh, sonar: SonarConstants, rotations: np.ndarray, translations: np.ndarray,
+                      plane_normals: np.ndarray, plane_offsets: np.ndarray, views: np.ndarray,
+                      azimuths: np.ndarray, rays: int, mirror: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Kernel launch of ``frontal_faces``, one thread per ray: clean float32 (V, 3, 3), (V, 3),
+        (V, 3), (V,) arrays, (B,) int32 views in range and (B,) float32 azimuths, B >= 1. Returns
+        every ray's (B, rays) float32 range (inf: none) and int32 face (-1: none)."""
+
+    @abc.abstractmethod
+    def _render(self, mesh, sonar: SonarConstants, beam_widths: np.ndarray, rotations: np.ndarray,
+                translations: np.ndarray, plane_normals: np.ndarray, plane_offsets: np.ndarray,
+                k_theta: int, k_phi: int, gamma: float, surface_reflection: float,
+                first_rows: np.ndarray, rows: int) -> "DeviceLayers":
+        """Kernel launch of ``render_device`` (the algorithm: fsswarp/rendering.py's docstring);
+        beam_widths: (beams,) float32 Δθ_b; first_rows (N,) int32 and rows R: view n keeps
+        the bins first_rows[n] <= B < first_rows[n] + R (zeros and bins for full layers),
+        valid. Returns the (N, 4, R, beams) float32 layers, complete, on the device (the
+        caller sets ``first_rows``)."""
+
+    # --- frontal contours and their distance to the data's (the (D, β) grid search) ----------
+    def contour_cost(self, layers, view_index, thresholds, windows, masks, distances, shifts,
+                     smoothing, cap: float = math.inf) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Frontal contours of N synthetic views and their distances to the data's contours
+        (the grid surrogate of fsswarp/pose.py; kernels/pose.cl states the rule exactly).
+
+        layers : (N, 4, bins, beams) float32, a ``DeviceLayers`` of this backend's
+            ``render_device`` (read where it lies) or a host array (full layers); or banded
+            layers, a ``DeviceLayers`` of shape (N, 4, R, beams) whose ``first_rows`` (N,)
+            places row k of pair n at image row first_rows[n] + k (``render_device(...,
+            rows=...)``; ``HostLayers(array, first_rows)`` on the host). The band of pair n
+            must hold every row its window reads, [max(lo − rB, 0), min(hi + rB, bins)) of
+            its view's window [lo, hi), else ValueError; the results are then bit for bit
+            those of the full layers (the smoothing clamps rows to the image, not the band)
+        view_index : (N,) int, the data view 0 <= v < V that pair n is compared with
+        thresholds : (V, bins) float, the data view's detection threshold of every row
+        windows : (V, 2) int, rows [lo, hi) scanned, 0 <= lo < hi <= bins
+        masks : (V, 2, beams) bool, beams where the object (0) and mirror (1) contours count
+        distances : (V, 2, bins, beams) float >= 0, each pixel's distance (m) to the data's
+            object and mirror contour; or a ``DeviceDistances`` of this backend's
+            ``device_distances`` (checked and uploaded once for many calls)
+        shifts : (S,) float, range shifts (rows) at which the distances are read
+        smoothing : (range_weights (2 rB + 1,), beam_weights (2 rb + 1,)) float, odd lengths
+        cap : > 0 (m), the distances read as min(distance, cap) in float32 (a pose step reads
+            one upload of the maps at several caps); default none
+
+        Returns ``(contours, sums, counts)``: (N, 2, beams) float32 fractional row of the first
+        threshold crossing of the smoothed object + ghost (0) and mirror + double-bounce (1)
+        layers, -1 where none; (N, 2, S) float32 sums of the distances over the contour
+        points; (N, 2) int32 their counts. Float32 on the device, summed in beam order.
+        """
+        thr = _real_array("thresholds", thresholds, ("V", "bins"))
+        if isinstance(distances, DeviceDistances):
+            if distances.backend is not self:
+                raise ValueError(f"distances were uploaded by {distances.backend!r}, not by this backend")
+            dist = distances
+        else:
+            dist = self.device_distances(distances)
+        n_views, bins, beams = thr.shape[0], thr.shape[1], dist.shape[3]
+        if dist.shape[0] != n_views or dist.shape[2] != bins:
+            raise ValueError(f"distances must have shape (V, 2, bins, beams) = ({n_views}, 2, {bins}, "
+                             f"beams) like thresholds, got {dist.shape}")
+        mask = np.asarray(masks)
+        if mask.dtype != np.bool_ or mask.shape != (n_views, 2, beams):
+            raise ValueError(f"masks must be a bool array of shape ({n_views}, 2, {beams}), got "
+                             f"{mask.dtype} {mask.shape}")
+        win = np.asarray(windows)
+        if win.dtype.kind not in "iu" or win.shape != (n_views, 2) or np.any(win[:, 0] < 0) \
+                or np.any(win[:, 1] > bins) or np.any(win[:, 0] >= win[:, 1]):
+            raise ValueError(f"windows must be ({n_views}, 2) integers with 0 <= lo < hi <= {bins}, got {win!r}")
+        index = _view_index("view_index", view_index, n_views)
+        steps = _real_array("shifts", shifts, ("S",))
+        if steps.shape[0] == 0:
+            raise ValueError("shifts must hold at least one shift")
+        if not (isinstance(cap, (int, float)) and cap > 0):  # NaN fails too
+            raise ValueError(f"cap must be a distance > 0 (m), got {cap!r}")
+        weights = [_real_array(name, w, ("K",)) for name, w in zip(("range weights", "beam weights"),
+                                                                      smoothing)]
+        if len(smoothing) != 2 or any(w.shape[0] % 2 == 0 for w in weights):
+            raise ValueError("smoothing must be two 1-D weight arrays of odd lengths")
+        if not isinstance(layers, DeviceLayers):
+            layers = HostLayers(_real_array("layers", layers, ("N", 4, bins, beams)))
+        first = getattr(layers, "first_rows", None)
+        shape = tuple(layers.shape)
+        if first is None:
+            if shape != (index.shape[0], 4, bins, beams):
+                raise ValueError(f"layers must have shape (N, 4, bins, beams) = ({index.shape[0]}, 4, {bins}, "
+                                 f"{beams}), got {shape}")
+            first = np.zeros(index.shape[0], np.int32)
+        else:
+            if len(shape) != 4 or shape[0] != index.shape[0] or shape[1] != 4 or shape[3] != beams:
+                raise ValueError(f"banded layers must have shape (N, 4, R, beams) = ({index.shape[0]}, 4, R, "
+                                 f"{beams}), got {shape}")
+            first, _ = _row_bands((first, shape[2]), index.shape[0], bins)
+            need_lo, need_hi = rows_read(win[index], weights[0].shape[0], bins)
+            bad = np.flatnonzero((first > need_lo) | (first + shape[2] < need_hi))
+            if bad.size:
+                n = int(bad[0])
+                raise ValueError(f"the band of pair {n}, rows [{first[n]}, {first[n] + shape[2]}), misses rows "
+                                 f"its window needs, [{need_lo[n]}, {need_hi[n]}) (window {tuple(win[index[n]])} "
+                                 f"of view {index[n]}, ± {(weights[0].shape[0] - 1) // 2} rows of smoothing)")
+        n_pairs, n_shifts = index.shape[0], steps.shape[0]
+        if n_pairs == 0:
+            return (np.zeros((0, 2, beams), np.float32), np.zeros((0, 2, n_shifts), np.float32),
+                    np.zeros((0, 2), np.int32))
+        return self._contour_cost(layers, first, index, thr,
+                                  np.ascontiguousarray(win, np.int32), np.ascontiguousarray(mask, np.uint8),
+                                  weights[0], weights[1], dist, float(cap), steps)
+
+    @abc.abstractmethod
+    def _contour_cost(self, layers: "DeviceLayers", first_rows: np.ndarray, view_index: np.ndarray,
+                      thresholds: np.ndarray, windows: np.ndarray, masks: np.ndarray,
+                      range_weights: np.ndarray, beam_weights: np.ndarray, distances: "DeviceDistances",
+                      cap: float, shifts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Kernel launches of ``contour_cost``: layers a DeviceLayers of this backend or any
+        other (read back with ``.numpy()``), (N, 4, R, beams), with first_rows (N,) int32 the
+        image row of each pair's row 0 (zeros and R = bins for full layers; every band holds
+        the rows its window reads), distances this backend's, clean C-contiguous int32 /
+        float32 / uint8 arrays, N >= 1.
+        Returns (N, 2, beams) float32 contours, (N, 2, S) float32 sums, (N, 2) int32 counts."""
+
+    def device_distances(self, distances) -> "DeviceDistances":
+        """``contour_cost``'s distance maps, (V, 2, bins, beams) float >= 0, checked and
+        uploaded once for many calls (a pose step reads the same maps in every E_mu: 3.9 MB
+        for coral-one's 10 views)."""
+        dist = _real_array("distances", distances, ("V", 2, "bins", "beams"))
+        if np.any(dist < 0):
+            raise ValueError("distances must be >= 0")
+        return DeviceDistances(self, self._upload(dist), dist.shape)
+
+    @abc.abstractmethod
+    def _upload(self, array: np.ndarray) -> Any:
+        """A device copy of a C-contiguous float32 array (Warp: ``wp.array``; OpenCL: a
+        read-only buffer)."""
+
+    # --- IRLS-ICP of 2-D contours (fsswarp/icp.py), float64 ------------------------------------
+    def icp_runs(self, source_x, source_y, target_x, target_y, runs, angles, translations, floors, step_tols,
+                 *, max_iterations: int, max_distance: float, tuning: float) -> "ICPRuns":
+        """R IRLS-ICP runs of fsswarp/icp.py, one thread each, in float64: every iteration
+        matches each moved source point to its nearest target (brute force; the first of
+        equal distances), weighs the pairs with Cauchy weights at the robust scale
+        σ = max(median distance / √(2 ln 2), floor), solves the weighted Procrustes problem
+        from the original points, and stops when no point moves more than the run's step
+        tolerance, when the weights sum to 0, or after ``max_iterations``.
+
+        source_x, source_y (F,) : every run's source points, run after run (a run's own copy);
+        target_x, target_y (M,) : the targets; runs (R, 3) int : each run's first target, its
+            number of targets (>= 1) and of source points (>= 1), the sources' first point
+            being the sum of the earlier runs' counts
+        angles (R,), translations (R, 2) : each run's start transform ``p -> rot(angle) p + t``
+        floors (R,) > 0 : the floors of σ; step_tols (R,) >= 0 : the tolerances (plane units)
+        max_distance : pairs farther than this (> 0; inf: none) get weight 0 and distance inf
+        tuning : the Cauchy constant c > 0
+        Returns an ICPRuns. Needs a device with float64 (``has_float64``)."""
+        sx, sy, tx, ty = (_real_array(name, value, ("F",), np.float64) for name, value in (
+            ("source_x", source_x), ("source_y", source_y), ("target_x", target_x), ("target_y", target_y)))
+        table = np.asarray(runs)
+        if table.dtype.kind not in "iu" or table.ndim != 2 or table.shape[1] != 3:
+            raise ValueError(f"runs must be an (R, 3) integer array, got {table.dtype} {table.shape}")
+        n_runs = table.shape[0]
+        if sx.shape != sy.shape or tx.shape != ty.shape:
+            raise ValueError("source_x/source_y and target_x/target_y must have equal lengths")
+        if n_runs and (table[:, 1:].min() < 1 or table[:, 0].min() < 0
+                       or (table[:, 0] + table[:, 1]).max() > tx.shape[0]):
+            raise ValueError(f"runs must name targets within 0..{tx.shape[0]} and count >= 1 targets and sources")
+        if int(table[:, 2].sum()) != sx.shape[0]:
+            raise ValueError(f"the runs' source counts sum to {int(table[:, 2].sum())}, not to the "
+                             f"{sx.shape[0]} source points")
+        angle = _real_array("angles", angles, (n_runs,), np.float64)
+        move = _real_array("translations", translations, (n_runs, 2), np.float64)
+        floor = _real_array("floors", floors, (n_runs,), np.float64)
+        tol = _real_array("step_tols", step_tols, (n_runs,), np.float64)
+        if np.any(floor <= 0) or np.any(tol < 0):
+            raise ValueError("floors must be > 0 and step_tols >= 0")
+        if not (is_integer(max_iterations) and max_iterations >= 1):
+            raise ValueError(f"max_iterations must be an integer >= 1, got {max_iterations!r}")
+        if not (max_distance > 0 and math.isfinite(tuning) and tuning > 0):
+            raise ValueError(f"max_distance and tuning must be > 0, got {max_distance!r}, {tuning!r}")
+        if not self.has_float64:
+            raise RuntimeError(f"{self!r} has no float64 (cl_khr_fp64): run the ICP on the host")
+        if n_runs == 0:
+            return ICPRuns(np.zeros(0), np.zeros((0, 2)), np.zeros(0, np.int32), np.zeros(0, bool),
+                           np.zeros((0, 2)), np.zeros(0, np.int32), np.zeros(0))
+        first = np.ascontiguousarray(np.cumsum(table[:, 2]) - table[:, 2], np.int32)
+        info = np.ascontiguousarray(np.column_stack([first, table]), np.int32)  # (R, 4)
+        angle, move, iterations, converged, moved_x, moved_y, nearest, dist = self._icp_runs(
+            sx, sy, tx, ty, info, angle, move, floor, tol, int(max_iterations), float(max_distance), float(tuning))
+        return ICPRuns(angle, move, iterations, converged.astype(bool), np.column_stack([moved_x, moved_y]),
+                       nearest, np.where(dist >= 0.0, dist, np.inf))
+
+    @abc.abstractmethod
+    def _icp_runs(self, source_x: np.ndarray, source_y: np.ndarray, target_x: np.ndarray, target_y: np.ndarray,
+                  runs: np.ndarray, angles: np.ndarray, translations: np.ndarray, floors: np.ndarray,
+                  step_tols: np.ndarray, max_iterations: int, max_distance: float, tuning: float) -> tuple:
+        """Kernel launch of ``icp_runs``: clean C-contiguous float64 arrays, runs (R, 4) int32
+        (first source point, first target, targets, source points), R >= 1. Returns the final
+        (R,) angles and (R, 2) translations, the (R,) int32 iterations and converged (0/1), and
+        per source point (F,) its moved x and y, its nearest target (int32) and its distance
+        to it (-1 where not usable)."""
+
+
+class ICPRuns(NamedTuple):
+    """What ``Backend.icp_runs`` leaves: per run, the final ``angles`` (R,) and
+    ``translations`` (R, 2), ``iterations`` (R,) run and whether it ``converged`` (R,); per
+    source point (run after run), its ``moved`` position (F, 2), its ``nearest`` target (F,)
+    (an index into the targets) and ``distances`` (F,) to it after the last move (inf beyond
+    ``max_distance``)."""
+
+    angles: np.ndarray
+    translations: np.ndarray
+    iterations: np.ndarray
+    converged: np.ndarray
+    moved: np.ndarray
+    nearest: np.ndarray
+    distances: np.ndarray
+
+
+class DeviceLayers(abc.ABC):
+    """Rendered layers in a backend's device memory; ``shape`` = (N, 4, bins, beams) float32,
+    or (N, 4, R, beams) for a band of rows per view (``render_device(..., rows=...)``).
+
+    first_rows : None for full layers; for banded ones the (N,) int array of the image row
+        that each view's row 0 holds (row k of view n is image row first_rows[n] + k).
+    """
+
+    shape: tuple[int, int, int, int]
+    first_rows: np.ndarray | None = None
+
+    @abc.abstractmethod
+    def numpy(self) -> np.ndarray:
+        """A host copy of ``shape`` float32 (for banded layers the band as it is)."""
+
+
+class DeviceDistances:
+    """Distance maps in a backend's device memory (``Backend.device_distances``): ``shape``
+    (V, 2, bins, beams) float32, checked once; ``data`` the backend's device copy."""
+
+    def __init__(self, backend: Backend, data: Any, shape: tuple[int, int, int, int]):
+        self.backend = backend
+        self.data = data
+        self.shape = tuple(shape)
+
+
+class HostLayers(DeviceLayers):
+    """Layers already on the host (an empty batch; or host layers given to ``contour_cost``,
+    with ``first_rows`` for banded ones)."""
+
+    def __init__(self, array: np.ndarray, first_rows: np.ndarray | None = None):
+        self.array = array
+        self.shape = array.shape
+        self.first_rows = None if first_rows is None else np.asarray(first_rows)
+
+    def numpy(self) -> np.ndarray:
+        return self.array
+
+
+def rows_read(windows, range_taps: int, bins: int) -> tuple[np.ndarray, np.ndarray]:
+    """The image rows [lo, hi) that ``contour_cost`` reads for (N, 2) windows [lo, hi) with a
+    range smoothing of ``range_taps`` (odd) taps: each window widened by the smoothing's
+    radius, clipped to the image [0, bins). Returns (N,) lo and (N,) hi, int64; a band of
+    rows that holds them gives the full layers' results (``render_device``'s ``rows``)."""
+    windows = np.asarray(windows, np.int64)
+    radius = (range_taps - 1) // 2
+    return np.maximum(windows[:, 0] - radius, 0), np.minimum(windows[:, 1] + radius, bins)
+
+
+def _row_bands(rows, n_views: int, bins: int) -> tuple[np.ndarray, int]:
+    """(first (N,) int32, count) of ``render_device``'s ``rows`` (None: zeros and bins), or raise."""
+    if rows is None:
+        return np.zeros(n_views, np.int32), int(bins)
+    try:
+        first, count = rows
+    except (TypeError, ValueError):
+        raise ValueError(f"rows must be None or (first (N,) ints, count), got {rows!r}") from None
+    first = np.asarray(first)
+    if first.dtype.kind not in "iu" or first.shape != (n_views,):
+        raise ValueError(f"rows: first must be a ({n_views},) integer array, got {first.dtype} {first.shape}")
+    if not is_integer(count) or not 1 <= count <= bins:
+        raise ValueError(f"rows: count must be an integer in [1, {bins}], got {count!r}")
+    count = int(count)
+    if first.size and (first.min() < 0 or first.max() > bins - count):
+        raise ValueError(f"rows: every band [first, first + {count}) must lie in [0, {bins}), got first "
+                         f"{first.min()}..{first.max()}")
+    return np.ascontiguousarray(first, np.int32), count
+
+
+def _beam_widths(sonar: SonarSpec) -> np.ndarray:
+    """(beams,) float32 azimuth width Δθ_b of every beam: the spacing of the centres (central
+    differences inside, one-sided at the outer beams)."""
+    c = np.asarray(sonar.beam_centres, np.float64)
+    return np.gradient(c).astype(np.float32)
+
+
+def _view_poses(rotations, translations, sonar) -> tuple[np.ndarray, np.ndarray]:
+    """(V, 3, 3) and (V, 3) float32 view poses of the same V views, with ``sonar`` a SonarSpec,
+    or raise."""
+    rot = _real_array("rotations", rotations, ("V", 3, 3))
+    trans = _real_array("translations", translations, ("V", 3))
+    if rot.shape[0] != trans.shape[0]:
+        raise ValueError(f"rotations and translations must describe the same views, got "
+                         f"{rot.shape[0]} rotations and {trans.shape[0]} translations")
+    _check_sonar(sonar)
+    return rot, trans
+
+
+def _check_sonar(sonar) -> None:
+    if not isinstance(sonar, SonarSpec):
+        raise TypeError(f"sonar must be a fsswarp.sonar.SonarSpec, got {type(sonar).__name__}")
+
+
+def _view_planes(rotations, translations, plane_normals, plane_offsets):
+    """(N, 3, 3), (N, 3), (N, 3) and (N,) float32 poses and surface planes of the same N views
+    (``render_device``, ``frontal_faces``), or raise."""
+    rot = _real_array("rotations", rotations, ("N", 3, 3))
+    trans = _real_array("translations", translations, ("N", 3))
+    normals = _real_array("plane_normals", plane_normals, ("N", 3))
+    offsets = _real_array("plane_offsets", np.asarray(plane_offsets).reshape(-1, 1), ("N", 1))
+    if not (rot.shape[0] == trans.shape[0] == normals.shape[0] == offsets.shape[0]):
+        raise ValueError("rotations, translations, plane_normals and plane_offsets must describe "
+                         f"the same views, got {rot.shape[0]}, {trans.shape[0]}, {normals.shape[0]}, "
+                         f"{offsets.shape[0]}")
+    return rot, trans, normals, np.ascontiguousarray(offsets[:, 0])
+
+
+def _view_index(name: str, value, n_views: int) -> np.ndarray:
+    """(K,) int32 indices of views 0 <= v < n_views, or raise."""
+    index = np.asarray(value)
+    if index.dtype.kind not in "iu" or index.ndim != 1 or (index.size and (index.min() < 0
+                                                                         or index.max() >= n_views)):
+        raise ValueError(f"{name} must be a 1-D integer array of views 0..{n_views - 1}")
+    return np.ascontiguousarray(index, np.int32)
+
+
+def _real_array(name: str, value: Any, shape: tuple, dtype=np.float32) -> np.ndarray:
+    """``value`` as a C-contiguous finite array of ``dtype`` (float32 or float64) and ``shape``
+    (a letter = any length), or raise."""
+    try:
+        array = np.asarray(value)
+    except (ValueError, TypeError) as err:  # ragged nested lists
+        raise ValueError(f"{name} must be an array of shape {_shape_text(shape)}: {err}") from None
+    if array.dtype.kind not in "fiu":
+        raise TypeError(f"{name} must hold real numbers, got dtype {array.dtype}")
+    if array.ndim != len(shape) or any(isinstance(s, int) and s != n for s, n in zip(shape, array.shape)):
+        raise ValueError(f"{name} must have shape {_shape_text(shape)}, got {array.shape}")
+    with np.errstate(over="ignore"):  # too large for float32: reported as inf below
+        array = np.ascontiguousarray(array, dtype=dtype)
+    finite = np.isfinite(array)
+    if not finite.all():
+        bad = np.argwhere(~finite)[0]
+        raise ValueError(f"{name} must be finite in {array.dtype.name}, got {array[tuple(bad)]} at index "
+                         f"{tuple(int(i) for i in bad)}")
+    return array
+
+
+def _shape_text(shape: tuple) -> str:
+    return "(" + ", ".join(str(s) for s in shape) + ")"

@@ -1,0 +1,337 @@
+"""Backend selection and discovery: ``get_backend``, ``describe_backends`` (``fsswarp info``).
+
+Warp is initialized quietly on first use; OpenCL devices are listed over every platform and
+resolved from ``--device`` (an index or a substring of "<platform>: <device name>"). Importing
+this module imports neither ``warp`` nor ``pyopencl``; a backend imports its package when it
+is first asked for.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import sys
+import tempfile
+import threading
+from dataclasses import dataclass
+from typing import Any
+
+from ..errors import InputError
+from ..system import host_memory
+from .base import Backend
+
+#: Values of ``--backend``.
+BACKEND_NAMES = ("auto", "warp", "opencl")
+#: How to install what is missing.
+INSTALL_WARP = "pip install warp-lang"
+INSTALL_OPENCL = 'pip install "fsswarp[pocl]"'  # pyopencl with PoCL, a CPU OpenCL runtime
+
+_WARP_DEVICE = re.compile(r"^(cpu|cuda(:\d+)?)$")
+
+
+_CACHE: dict[tuple, Backend] = {}
+_LOCK = threading.RLock()
+
+
+def get_backend(name: str = "auto", device: str | int | None = None) -> Backend:
+    """The backend ``name`` on ``device``, created once per (backend, device) and cached.
+
+    name : "auto", "warp" or "opencl" (``--backend``)
+        auto: Warp on CUDA when a CUDA GPU is present, else OpenCL on a CPU device (PoCL
+        first), else Warp on the CPU. With a ``device``, auto sends "cpu", "cuda" and "cuda:N"
+        to Warp and anything else to OpenCL.
+    device : (``--device``)
+        warp: "cpu", "cuda" (the current CUDA device) or "cuda:N"; default "cuda:0" when a
+        GPU is present, else "cpu".
+        opencl: a case-insensitive substring of "<platform>: <device name>" (the first
+        match wins), or an index into the list of ``describe_backends()`` (``index``);
+        default the first CPU device (PoCL first), else the first device.
+
+    Raises ``InputError`` (field "--backend" or "--device") naming the value, what is
+    available and how to install what is missing.
+    """
+    if not isinstance(name, str) or name.strip().lower() not in BACKEND_NAMES:
+        raise InputError("unknown backend; choose one of " + ", ".join(BACKEND_NAMES),
+                         field="--backend", value=name)
+    name = name.strip().lower()
+    if isinstance(device, bool) or not (device is None or isinstance(device, (str, int))):
+        raise InputError("must be a device name or index", field="--device", value=device)
+    if isinstance(device, str):
+        device = device.strip() or None
+    with _LOCK:
+        if name == "auto":
+            name, device = _auto_choice(device)
+        if name == "warp":
+            key = ("warp", _resolve_warp_device(device))
+        else:
+            key = ("opencl", _resolve_opencl_device(device).index)
+        backend = _CACHE.get(key)
+        if backend is None:
+            backend = _CACHE[key] = _create(key)
+        return backend
+
+
+def _create(key: tuple) -> Backend:
+    if key[0] == "warp":
+        from .warp_backend import WarpBackend
+
+        return WarpBackend(key[1])
+    from .opencl_backend import OpenCLBackend
+
+    return OpenCLBackend(_opencl_devices()[0][key[1]])
+
+
+def _auto_choice(device) -> tuple[str, Any]:
+    """(backend name, device) that ``auto`` picks; ``device`` only decides the backend."""
+    if device is not None:
+        if isinstance(device, str) and _WARP_DEVICE.match(device.lower()):
+            return "warp", device
+        return "opencl", device
+    wp, _ = _warp()
+    if wp is not None and wp.is_cuda_available():
+        return "warp", "cuda:0"
+    found, _ = _opencl_devices()
+    cpu = _default_opencl(found, cpu_only=True)
+    if cpu is not None:
+        return "opencl", cpu.index
+    if wp is not None:
+        return "warp", "cpu"
+    raise InputError(f"no backend is available: install Warp ({INSTALL_WARP}) or an OpenCL "
+                     f"runtime ({INSTALL_OPENCL})", field="--backend", value="auto")
+
+
+# --- Warp devices ------------------------------------------------------------------------------
+_WARP_STATE: dict[str, Any] = {}
+
+
+def _warp():
+    """(warp module, None) initialized quietly, or (None, why it is unavailable)."""
+    try:
+        import warp as wp
+    except ImportError as err:
+        return None, f"warp-lang is not installed ({err})"
+    if "init" not in _WARP_STATE:
+        _WARP_STATE["init"] = _init_warp(wp)
+    return wp, None
+
+
+def _init_warp(wp) -> str:
+    """wp.init() without its banner; returns what the native library printed to stderr
+    (on a machine without a CUDA driver: "Could not find or load the NVIDIA CUDA driver")."""
+    if hasattr(wp, "LOG_WARNING"):  # the banner and "Module ... loaded" lines are LOG_INFO
+        wp.config.log_level = max(getattr(wp.config, "log_level", 0), wp.LOG_WARNING)
+    else:  # older Warp
+        wp.config.quiet = True
+    with _captured_stderr_fd() as captured:
+        wp.init()
+    return " ".join(line.strip() for line in "".join(captured).splitlines() if line.strip())
+
+
+@contextlib.contextmanager
+def _captured_stderr_fd():
+    """Redirect file descriptor 2 (where native libraries print) into a temporary file; the
+    yielded list holds the text once the block ends."""
+    captured: list[str] = []
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError, AttributeError):
+        yield captured
+        return
+    with tempfile.TemporaryFile(mode="w+b") as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield captured
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            captured.append(tmp.read().decode("utf-8", "replace"))
+
+
+def _warp_note() -> str:
+    """Why Warp sees no CUDA device, from what its init printed."""
+    text = _WARP_STATE.get("init", "")
+    if "Could not find or load the NVIDIA CUDA driver" in text:
+        return "no CUDA GPU found (no NVIDIA CUDA driver)"
+    text = text.replace("Warp CUDA warning: ", "").strip()
+    return f"no CUDA GPU found ({text})" if text else "no CUDA GPU found"
+
+
+def _resolve_warp_device(device) -> str:
+    """Canonical Warp device alias ("cpu", "cuda:N") for ``device``, or InputError."""
+    wp, why = _warp()
+    if wp is None:
+        raise InputError(f"{why}; install it with {INSTALL_WARP}", field="--backend", value="warp")
+    aliases = [str(d.alias) for d in wp.get_devices()]
+    if device is None:
+        return "cuda:0" if wp.is_cuda_available() else "cpu"
+    text = str(device).lower()
+    if not _WARP_DEVICE.match(text):
+        raise InputError(f"not a Warp device (cpu, cuda or cuda:N); available: {', '.join(aliases)}",
+                         field="--device", value=device)
+    if text == "cuda":
+        if not wp.is_cuda_available():
+            raise InputError(f"{_warp_note()}; available: {', '.join(aliases)}",
+                             field="--device", value=device)
+        return str(wp.get_device("cuda").alias)
+    if text not in aliases:
+        note = "" if wp.is_cuda_available() else f"; {_warp_note()}"
+        raise InputError(f"no such Warp device{note}; available: {', '.join(aliases)}",
+                         field="--device", value=device)
+    return text
+
+
+# --- OpenCL devices ---------------------------------------------------------------------------
+@dataclass(frozen=True)
+class _OpenCLDevice:
+    index: int
+    label: str  # "<platform>: <device name>"
+    platform: Any  # pyopencl.Platform
+    device: Any  # pyopencl.Device
+    is_gpu: bool
+    is_cpu: bool
+    is_pocl: bool
+
+
+def _opencl_devices() -> tuple[list[_OpenCLDevice], str | None]:
+    """Every OpenCL device of every platform, and why there are none (else None). Never raises."""
+    try:
+        import pyopencl as cl
+    except ImportError as err:
+        return [], f"pyopencl is not installed ({err})"
+    try:
+        platforms = cl.get_platforms()
+    except cl.Error as err:
+        return [], f"no OpenCL platform found ({_one_line(err)})"
+    found = []
+    for platform in platforms:
+        try:
+            devices = platform.get_devices()
+        except cl.Error:
+            continue
+        for device in devices:
+            found.append((platform, device))
+    if not found:
+        return [], "no OpenCL device found" if platforms else "no OpenCL platform found"
+    labels = [f"{p.name.strip()}: {d.name.strip()}" for p, d in found]
+    result = []
+    for i, ((platform, device), label) in enumerate(zip(found, labels)):
+        if labels.count(label) > 1:
+            label = f"{label} #{labels[:i].count(label)}"
+        pocl = "portable computing language" in platform.name.lower() or "pocl" in platform.name.lower()
+        result.append(_OpenCLDevice(i, label, platform, device, bool(device.type & cl.device_type.GPU),
+                                    bool(device.type & cl.device_type.CPU), pocl))
+    return result, None
+
+
+def _default_opencl(found: list[_OpenCLDevice], *, cpu_only: bool) -> _OpenCLDevice | None:
+    """First PoCL CPU device, else the first CPU device, else (unless cpu_only) the first."""
+    for want in (lambda d: d.is_cpu and d.is_pocl, lambda d: d.is_cpu, lambda d: not cpu_only):
+        for d in found:
+            if want(d):
+                return d
+    return None
+
+
+def _resolve_opencl_device(device) -> _OpenCLDevice:
+    found, why = _opencl_devices()
+    if not found:
+        missing = why.startswith("pyopencl")
+        raise InputError(f"{why}; install {'pyopencl with ' if missing else ''}a CPU OpenCL "
+                         f"runtime with {INSTALL_OPENCL}, or a GPU vendor's OpenCL driver",
+                         field="--backend", value="opencl")
+    available = "available: " + ", ".join(f"{d.index} = {d.label!r}" for d in found)
+    if device is None:
+        return _default_opencl(found, cpu_only=False)
+    if isinstance(device, int) or (isinstance(device, str) and device.isdigit()):
+        index = int(device)
+        if 0 <= index < len(found):
+            return found[index]
+        raise InputError(f"no OpenCL device of that index; {available}", field="--device",
+                         value=device)
+    for d in found:
+        if device.lower() in d.label.lower() or (d.is_pocl and device.lower() == "pocl"):
+            return d
+    raise InputError(f"no OpenCL device matches; {available}", field="--device", value=device)
+
+
+def _one_line(err: BaseException) -> str:
+    return " ".join(str(err).split())
+
+
+# --- fsswarp info ----------------------------------------------------------------------------
+def describe_backends() -> list[dict]:
+    """Every device of every backend found here, for ``fsswarp info``. Never raises.
+
+    One dict per device, and one per thing that is missing, all with the same keys:
+    backend ("warp" | "opencl"), device (the ``--device`` value naming it, None for a missing
+    thing), index (OpenCL: its index for ``--device``, else None), name, platform, kind
+    ("cpu" | "gpu" | None), version, driver, compute_units, memory_bytes, available (bool),
+    auto (whether ``--backend auto`` picks it) and note (why something is missing and how to
+    install it, else "").
+    """
+    rows: list[dict] = []
+
+    def row(**fields) -> None:
+        base = dict(backend=None, device=None, index=None, name=None, platform=None, kind=None,
+                    version=None, driver=None, compute_units=None, memory_bytes=None,
+                    available=True, auto=False, note="")
+        base.update(fields)
+        rows.append(base)
+
+    try:
+        wp, why = _warp()
+    except Exception as err:  # noqa: BLE001 - a broken install is reported, not raised
+        wp, why = None, f"warp failed to initialize ({_one_line(err)})"
+    if wp is None:
+        row(backend="warp", available=False, note=f"{why}; install it with {INSTALL_WARP}")
+    else:
+        for d in wp.get_devices():
+            if d.is_cuda:
+                driver = getattr(wp, "get_cuda_driver_version", lambda: None)()
+                row(backend="warp", device=str(d.alias), name=d.name, platform=f"Warp {wp.__version__}",
+                    kind="gpu", version=f"sm_{d.arch}", driver=_cuda_version(driver),
+                    compute_units=int(d.sm_count), memory_bytes=int(d.total_memory))
+            else:
+                row(backend="warp", device=str(d.alias), name=d.name, platform=f"Warp {wp.__version__}",
+                    kind="cpu", compute_units=os.cpu_count(), memory_bytes=host_memory())
+        if not wp.is_cuda_available():
+            row(backend="warp", device="cuda", kind="gpu", available=False, note=_warp_note())
+
+    found, why = _opencl_devices()
+    for d in found:
+        try:
+            row(backend="opencl", device=d.label, index=d.index, name=d.device.name.strip(),
+                platform=d.platform.name.strip(), kind="gpu" if d.is_gpu else "cpu" if d.is_cpu else None,
+                version=d.device.version.strip(), driver=d.device.driver_version.strip(),
+                compute_units=int(d.device.max_compute_units), memory_bytes=int(d.device.global_mem_size))
+        except Exception as err:  # noqa: BLE001 - a broken driver is reported, not raised
+            row(backend="opencl", device=d.label, index=d.index, available=False, note=_one_line(err))
+    if why is not None:
+        row(backend="opencl", available=False,
+            note=f"{why}; for a CPU OpenCL runtime: {INSTALL_OPENCL}")
+    elif not any(d.is_cpu for d in found):
+        row(backend="opencl", kind="cpu", available=False,
+            note=f"no CPU OpenCL device; for one: {INSTALL_OPENCL}")
+
+    try:
+        pick = _auto_choice(None)
+    except Exception:  # noqa: BLE001 - nothing available: no row is marked
+        pick = None
+    if pick is not None:
+        for r in rows:
+            if r["available"] and r["backend"] == pick[0] and (
+                    r["device"] == pick[1] if pick[0] == "warp" else r["index"] == pick[1]):
+                r["auto"] = True
+                break
+    return rows
+
+
+def _cuda_version(version) -> str | None:
+    if isinstance(version, tuple):
+        return "CUDA " + ".".join(str(v) for v in version)
+    if isinstance(version, int) and version > 0:  # e.g. 12040
+        return f"CUDA {version // 1000}.{version % 1000 // 10}"
+    return None
