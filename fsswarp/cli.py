@@ -371,7 +371,7 @@ def carve(state: State, dataset_dir: Path, out: Path, depth, tilt, resolution: i
     from .carving import carve as run
     from .dataset import load_dataset
     from .figures import carve_figure
-    from .metrics import compare
+    from .outputs import carve_record, write_carve
 
     start = time.perf_counter()
     dataset = load_dataset(dataset_dir)
@@ -390,35 +390,19 @@ def carve(state: State, dataset_dir: Path, out: Path, depth, tilt, resolution: i
                f"({'given' if given else 'measured'}); {voxels.kept} voxels of "
                f"{voxels.voxel_size * 1e3:.3g} mm kept; mesh {len(mesh.faces)} triangles, "
                f"{mesh.volume * 1e6:.4g} cm3")
-    timings = {"load_s": loaded, **result.timings}
-    metrics = None
-    if truth is not None:
-        begin = time.perf_counter()
-        metrics = compare(mesh, truth)
-        timings["metrics_s"] = time.perf_counter() - begin
+    record = carve_record(dataset_dir, dataset, result, resolution=resolution, given=given, load_s=loaded,
+                          truth=truth)
+    metrics = record["metrics"]
+    if metrics is not None:
         state.echo(f"  vs truth: E_V {metrics['E_V']:.3f}, true volume kept {metrics['truth_volume_kept']:.3f}, "
                    f"Chamfer {metrics['chamfer_m'] * 1e3:.2f} mm, F-score {metrics['fscore']:.3f} "
                    f"(tau {metrics['tau_m'] * 1e3:.2f} mm)")
-    record = {
-        "dataset": str(dataset_dir), "depth_m": result.depth, "tilt_deg": math.degrees(result.tilt),
-        "depth_tilt_source": "given" if given else "measured", "views": list(result.views),
-        "views_left_out": [n for n in dataset.rig.names if n not in result.views],
-        "resolution": resolution,
-        "grid": {"origin_m": voxels.origin.tolist(), "voxel_size_m": voxels.voxel_size,
-                 "shape": list(voxels.occupancy.shape), "domain_m": voxels.domain.tolist(),
-                 "origin_is": "centre of voxel (0, 0, 0)"},
-        "voxels_kept": voxels.kept, "voxels_tested": voxels.tested,
-        "mesh": {"faces": len(mesh.faces), "vertices": len(mesh.vertices), "volume_m3": float(mesh.volume),
-                 "watertight": bool(mesh.is_watertight)},
-        "backend": result.backend, "device": result.device, "timings_s": timings, "metrics": metrics,
-    }
     with output_folder(out, marker=MARKERS["carve"]) as tmp:
-        mesh.export(tmp / "carved.ply")
+        write_carve(tmp, result, record)
         carve_figure(mesh, tmp / "carve.png", truth=truth,
                      title=f"{dataset_dir.name}: carved (D = {result.depth:.3f} m, tilt = "
                            f"{math.degrees(result.tilt):.2f} deg)" + (" over the truth" if truth is not None else ""))
-        (tmp / "carve.json").write_text(json.dumps(record, indent=2))
-    state.echo(f"wrote {out}: carved.ply, carve.json, carve.png ({sum(timings.values()):.2f} s)")
+    state.echo(f"wrote {out}: carved.ply, carve.json, carve.png ({sum(record['timings_s'].values()):.2f} s)")
 
 
 @app.command()
@@ -472,9 +456,10 @@ def pose(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt, l
     then a BOBYQA polish on E_mu; the estimate is kept only where E_mu falls. OUT/pose.json,
     OUT/pose.png (the grid levels) and OUT/contours.png (per view, the data's contours and
     the model's at the estimate and at the start)."""
-    from .atomic import check_output_folder, json_number, output_folder
+    from .atomic import check_output_folder, output_folder
     from .dataset import load_dataset
     from .figures import contours_figure, pose_figure
+    from .outputs import pose_record, write_pose
     from .pose import PoseWarning, check_uncertainties, estimate_pose, view_contours
     from .rig import check_depth_tilt
 
@@ -508,17 +493,10 @@ def pose(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt, l
                       f"{bounds[0]:.4g} m, tilt0 +- {math.degrees(bounds[1]):.4g} deg): the truth may lie beyond it; "
                       "start nearer (--depth/--tilt) or search wider (--depth-range/--tilt-range)", PoseWarning,
                       stacklevel=2)
-    left_out = [v.name for v in dataset.rig.views if v.optimize and v.name not in result.views]
-    record = {"dataset": str(dataset_dir), "model": str(model), **result.summary(),
-              "start_source": "given" if given else "measured", "views_left_out": left_out,
-              "view_mu_m": {name: dict(zip(("estimate", "start"), map(json_number, c["mu"])))
-                            for name, c in contours.items()},
-              "backend": backend.name, "device": backend.device}
+    record = pose_record(dataset_dir, model, dataset, result, contours, given=given, backend=backend)
+    left_out = record["views_left_out"]
     truth = dataset.manifest.truth
     if truth is not None:
-        record["truth"] = {"depth_m": truth.depth, "tilt_deg": math.degrees(truth.tilt),
-                           "depth_error_m": result.depth - truth.depth,
-                           "tilt_error_deg": math.degrees(result.tilt - truth.tilt)}
         state.echo(f"  vs truth: D {1e3 * (result.depth - truth.depth):+.1f} mm, tilt "
                    f"{math.degrees(result.tilt - truth.tilt):+.3f} deg (from {1e3 * (result.depth0 - truth.depth):+.1f}"
                    f" mm, {math.degrees(result.tilt0 - truth.tilt):+.3f} deg)")
@@ -531,7 +509,7 @@ def pose(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt, l
              title=f"{dataset_dir.name}: frontal contours of the data and of {model.name} at the estimate "
                    f"(D {result.depth:.4f} m, tilt {math.degrees(result.tilt):.3f} deg) and at the start "
                    f"(D {result.depth0:.4f} m, tilt {math.degrees(result.tilt0):.3f} deg)")
-        (tmp / "pose.json").write_text(json.dumps(record, indent=2))
+        write_pose(tmp, record)
     state.echo(f"wrote {out}: D {result.depth:.4f} m, tilt {math.degrees(result.tilt):.3f} deg "
                f"({'moved' if result.accepted else 'kept: E_mu did not fall'}), pose.json, pose.png, contours.png "
                f"({result.seconds:.1f} s)")
@@ -583,6 +561,7 @@ def run_reconstruction(state: State, dataset, out: Path, settings, drawer, *, de
     temporary folder); returns the ReconstructResult."""
     from .atomic import output_folder
     from .figures import carve_figure, contours_figure, history_figure, pose_figure
+    from .outputs import write_reconstruction
     from .pose import PoseWarning, view_contours
     from .reconstruction import reconstruct as run
 
@@ -597,8 +576,7 @@ def run_reconstruction(state: State, dataset, out: Path, settings, drawer, *, de
         contours = view_contours(result.model, dataset, result.depth, result.tilt, settings=settings.pose,
                                  backend=backend)
     with output_folder(out, marker=MARKERS["reconstruct"]) as tmp, drawer.batch() as draw:
-        result.model.export(tmp / "model.ply")
-        result.carved.export(tmp / "carved.ply")
+        write_reconstruction(tmp, result)
         draw(carve_figure, result.carved, tmp / "figures" / "carved.png", truth=truth_mesh,
              title="carved model (iteration 0)")
         draw(carve_figure, result.model, tmp / "figures" / "model.png", truth=truth_mesh, label="final",
@@ -616,7 +594,6 @@ def run_reconstruction(state: State, dataset, out: Path, settings, drawer, *, de
             draw(pose_figure, result.pose_steps[0], tmp / "figures" / "pose.png",
                  truth=None if truth is None else (truth.depth, truth.tilt),
                  title="first pose step: the (D, tilt) grid search around the measured values")
-        (tmp / "result.json").write_text(json.dumps(result.summary(), indent=2))
     best = result.history[result.best_iteration]
     state.echo(f"wrote {shown or out}: D {result.depth:.4f} m, tilt {math.degrees(result.tilt):.3f} deg, E_I "
                f"{best['E_I']:.3f} (iteration {result.best_iteration} of {result.iterations}, "
@@ -668,16 +645,12 @@ def enhance(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt
                     ghost_sigma=tuple(ghost_sigma))
 
 
-#: The comparison figures of run_enhancement: file name and group of fsswarp.enhancement.comparison_views.
-COMPARISON_FIGURES = {"views_optimized.png": "optimized", "views_heldout.png": "held-out"}
-
-
 def run_enhancement(state: State, dataset, mesh, model_name: str, depth: float, tilt: float, out: Path, drawer, *,
                     views=None, source: str, initial=None, ghost_sigma=(0.0, 0.0), shown: Path | None = None,
                     dataset_label: Path | None = None) -> None:
     """Enhance ``dataset``'s views with ``mesh`` at (depth m, tilt rad) and write OUT/<view>_enhanced.tiff,
     <view>_ghost.tiff, enhance.json, enhance.png and the comparison figures (COMPARISON_FIGURES; a
-    group with no view gets none), the figures drawn by ``drawer`` (a
+    group with no view gets none; ``fsswarp.outputs``), the figures drawn by ``drawer`` (a
     ``fsswarp.figures.FigureDrawer``). ``initial``: (mesh, name) of the initial model, rendered at the
     measured depth and tilt for the figures' "initial synthetic" column; ``ghost_sigma``: see
     fsswarp.enhancement.enhance_view. ``shown``, ``dataset_label``:
@@ -686,12 +659,13 @@ def run_enhancement(state: State, dataset, mesh, model_name: str, depth: float, 
     import time
 
     import numpy as np
-    import tifffile
 
     from .atomic import output_folder
-    from .enhancement import comparison_views, match_level, render_model, score
+    from .enhancement import comparison_views, match_level, render_model
     from .enhancement import enhance as run
     from .figures import comparison_figure, enhance_figure
+    from .outputs import (COMPARISON_FIGURES, comparison_figures, enhancement_record, enhancement_scores,
+                          write_enhancement)
     from .rendering import LAYERS
 
     start = time.perf_counter()
@@ -707,9 +681,7 @@ def run_enhancement(state: State, dataset, mesh, model_name: str, depth: float, 
     if initial is not None:
         initial_layers = render_model(initial[0], dataset, surface.depth, surface.tilt,
                                       groups["optimized"] + groups["held-out"], backend=backend, model_name=initial[1])
-    has_truth = dataset.root is not None and all((dataset.root / "truth" / f"{n}_object.tiff").is_file()
-                                                 for n in results)
-    scores = score(dataset, results) if has_truth else None
+    scores = enhancement_scores(dataset, results)
     if scores is not None:
         reductions = [s["mae_reduction"] for s in scores.values() if s["mae_reduction"] is not None]
         correlations = [s["ghost_corr"] for s in scores.values() if s["ghost_corr"] is not None]
@@ -719,24 +691,14 @@ def run_enhancement(state: State, dataset, mesh, model_name: str, depth: float, 
         if correlations:
             state.echo(f"  isolated ghost vs true ghost: Pearson r {np.mean(correlations):.3f} "
                        f"(mean; min {min(correlations):.3f})")
-    columns = ["data", "ghost-free data"] + (["initial synthetic"] if initial is not None else []) + ["optimized synthetic"]
-    figures = {file: {"views": groups[group], "columns": columns}
-               for file, group in COMPARISON_FIGURES.items() if groups[group]}
+    figures = comparison_figures(groups, initial=initial is not None)
     label = (dataset_label or dataset.root).name
-    record = {"dataset": str(dataset_label or dataset.root), "model": model_name, "depth_m": depth,
-              "tilt_deg": math.degrees(tilt),
-              "depth_tilt_source": source,
-              "initial_model": None if initial is None else {"model": initial[1], "depth_m": surface.depth,
-                                                             "tilt_deg": math.degrees(surface.tilt)},
-              "views": {name: result.summary() for name, result in results.items()},
-              "ghost_sigma": list(ghost_sigma), "views_skipped": [n for n in requested if n not in results],
-              "figures": figures,
-              "scores": scores, "backend": backend.name, "device": backend.device,
-              "seconds": time.perf_counter() - start}
+    record = enhancement_record(dataset, results, model_name=model_name, depth=depth, tilt=tilt, source=source,
+                                requested=requested, initial_name=None if initial is None else initial[1],
+                                ghost_sigma=ghost_sigma, scores=scores, figures=figures, backend=backend,
+                                seconds=time.perf_counter() - start, dataset_label=dataset_label)
     with output_folder(out, marker=MARKERS["enhance"]) as tmp, drawer.batch() as draw:
-        for name, result in results.items():
-            tifffile.imwrite(tmp / f"{name}_enhanced.tiff", result.enhanced, compression="zlib")
-            tifffile.imwrite(tmp / f"{name}_ghost.tiff", result.ghost, compression="zlib")
+        write_enhancement(tmp, results, record)
         first = list(results)[:6]
         draw(enhance_figure, {n: dataset.images[n] for n in first}, {n: results[n] for n in first}, dataset.sonar,
              tmp / "enhance.png", title=f"{label}: ghost removal with {model_name}"
@@ -758,7 +720,6 @@ def run_enhancement(state: State, dataset, mesh, model_name: str, depth: float, 
                        + f"optimized synthetic: {model_name} at D = {depth:.3f} m, tilt "
                          f"{math.degrees(tilt):.2f} deg ({source})\nsynthetic: total layer, scaled to "
                          "the data's mean over its returns")
-        (tmp / "enhance.json").write_text(json.dumps(record, indent=2))
     state.echo(f"wrote {shown or out}: {len(results)} views, enhance.json, enhance.png"
                + "".join(f", {file}" for file in figures) + f" ({time.perf_counter() - start:.1f} s)")
 
