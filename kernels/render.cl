@@ -30,7 +30,10 @@
 #include "sonar.h"
 #include "bvh.h"
 
-#define FSS_FIXED 16777216.0f
+/* FSS_FIXED (2^24, the accumulator's fixed-point 1) comes from the host's build options. */
+#ifndef FSS_FIXED
+#error "build with -DFSS_FIXED=... (fsswarp.backends.constants.opencl_defines)"
+#endif
 
 typedef struct {
     __global const float *beam_table;

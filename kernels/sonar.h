@@ -18,8 +18,11 @@
 
 #pragma OPENCL FP_CONTRACT OFF
 
-/* Indices are clamped to ±2^30 before conversion so that far-away points cannot overflow. */
-#define FSS_INDEX_LIMIT 1073741824.0f
+/* FSS_INDEX_LIMIT (±2^30, indices are clamped to it before conversion so that far-away points
+ * cannot overflow) comes from the host's build options (fsswarp/backends/constants.py). */
+#ifndef FSS_INDEX_LIMIT
+#error "build with -DFSS_INDEX_LIMIT=... (fsswarp.backends.constants.opencl_defines)"
+#endif
 
 /* P_view = Rᵀ (p − t). rot: 9 floats, R row-major; trans: 3 floats. */
 float3 fss_to_view(float3 p, __global const float *rot, __global const float *trans)

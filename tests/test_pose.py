@@ -151,7 +151,7 @@ def _oracle_frontal_faces(mesh, sonar, rot, t, n, d, theta, rays: int, mirror: b
     the fan and visible from the sonar)."""
     from oracle_render import first_hits, make_intersector
 
-    from fsswarp.backends import FRONTAL_EPSILON as EPSILON, FRONTAL_VISIBLE as VISIBLE
+    from fsswarp.backends import RAY_EPSILON as EPSILON, FRONTAL_VISIBLE as VISIBLE
 
     hits = make_intersector(mesh)
     phi = -sonar.half_elevation + (np.arange(rays) + 0.5) / rays * sonar.elevation_fov

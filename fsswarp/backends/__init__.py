@@ -9,10 +9,10 @@ Importing this package imports neither ``warp`` nor ``pyopencl``; a backend impo
 package when it is first asked for.
 """
 
-from .base import (FRONTAL_EPSILON, FRONTAL_MAX_DISTANCE, FRONTAL_VISIBLE, Backend, DeviceDistances,
-                   DeviceLayers, HostLayers, ICPRuns, SonarConstants, rows_read)
+from .base import Backend, DeviceDistances, DeviceLayers, HostLayers, ICPRuns, SonarConstants, rows_read
+from .constants import FRONTAL_VISIBLE, MAX_DISTANCE, RAY_EPSILON
 from .select import BACKEND_NAMES, INSTALL_OPENCL, INSTALL_WARP, describe_backends, get_backend
 
 __all__ = ["Backend", "DeviceLayers", "HostLayers", "DeviceDistances", "ICPRuns", "SonarConstants",
            "get_backend", "describe_backends", "rows_read", "BACKEND_NAMES", "INSTALL_WARP", "INSTALL_OPENCL",
-           "FRONTAL_EPSILON", "FRONTAL_VISIBLE", "FRONTAL_MAX_DISTANCE"]
+           "RAY_EPSILON", "FRONTAL_VISIBLE", "MAX_DISTANCE"]

@@ -26,14 +26,8 @@ import numpy as np
 
 from ..errors import is_integer
 from ..sonar import SonarSpec
+from .constants import MAX_DISTANCE
 
-#: ε (m) past the surface from which ``frontal_faces`` casts a reflected ray, as render's legs.
-FRONTAL_EPSILON = 1e-4
-#: ``frontal_faces``: a mirror patch counts as seen directly from the sonar when the first hit
-#: toward it lies within this distance (m) of it.
-FRONTAL_VISIBLE = 2e-3
-#: Longest ray of ``frontal_faces`` (m), as ``cast_rays``' default.
-FRONTAL_MAX_DISTANCE = 1e6
 
 
 @dataclass(frozen=True)
@@ -220,7 +214,7 @@ class Backend(abc.ABC):
             raise ValueError(f"faces index vertices 0..{verts.shape[0] - 1}, got {tris.min()}..{tris.max()}")
         return self._load_mesh(verts, np.ascontiguousarray(tris, dtype=np.int32))
 
-    def cast_rays(self, mesh, origins, directions, max_distance: float = 1e6):
+    def cast_rays(self, mesh, origins, directions, max_distance: float = MAX_DISTANCE):
         """First hit of every ray: ``(distance, face)``, (R,) float32 and (R,) int32.
 
         origins : (R, 3) float, directions : (R, 3) float unit vectors
@@ -242,7 +236,7 @@ class Backend(abc.ABC):
 
         mirror False: a ray's first hit before it meets the surface, at its distance.
         mirror True: a ray that meets the surface at Q (s = d / (n·u), before any hit) is
-        reflected there; its first hit P, cast from ε = FRONTAL_EPSILON past Q, counts when P
+        reflected there; its first hit P, cast from ε = RAY_EPSILON past Q, counts when P
         lies in the fan (|elevation| <= W_φ, |azimuth| <= W_θ) and the first hit from the sonar
         toward P is not nearer than |P| − FRONTAL_VISIBLE; it is seen at (|P| + s + |P − Q|) / 2.
 

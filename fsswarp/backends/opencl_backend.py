@@ -21,17 +21,14 @@ import numpy as np
 import pyopencl as cl
 from pyopencl.tools import first_arg_dependent_memoize
 
-from .base import FRONTAL_EPSILON, FRONTAL_MAX_DISTANCE, FRONTAL_VISIBLE, Backend, DeviceLayers, SonarConstants
+from .base import Backend, DeviceLayers, SonarConstants
+from .constants import FRONTAL_VISIBLE, MAX_DISTANCE, RAY_EPSILON, opencl_defines
 from .select import _OpenCLDevice
 from .bvh import FlatBVH, build_bvh
 
-#: ε (m) of the leg tests of render (fsswarp/rendering.py).
-RENDER_EPSILON = 1e-4
-#: Longest ray of render (m).
-RENDER_MAX_DISTANCE = 1e6
-
-#: Options of every build. No fast-math: results must match the Warp backend.
-BUILD_OPTIONS: tuple[str, ...] = ()
+#: Options of every build: the shared constants (``constants.opencl_defines``). No fast-math:
+#: results must match the Warp backend.
+BUILD_OPTIONS: tuple[str, ...] = opencl_defines()
 #: Work-group size the global size of a launch is rounded up to.
 GROUP = 64
 
@@ -224,7 +221,7 @@ class OpenCLBackend(Backend):
                 self._input(translations), self._input(plane_normals), self._input(plane_offsets),
                 self._input(views), self._input(azimuths), np.int32(n_items), np.int32(rays),
                 np.int32(mirror), np.float32(sonar.half_azimuth), np.float32(sonar.half_elevation),
-                np.float32(FRONTAL_EPSILON), np.float32(FRONTAL_VISIBLE), np.float32(FRONTAL_MAX_DISTANCE),
+                np.float32(RAY_EPSILON), np.float32(FRONTAL_VISIBLE), np.float32(MAX_DISTANCE),
                 rng_buf, face_buf)
             cl.enqueue_copy(self.queue, rng, rng_buf, is_blocking=False)
             cl.enqueue_copy(self.queue, face, face_buf, is_blocking=False)
@@ -260,8 +257,8 @@ class OpenCLBackend(Backend):
                 np.float32(sonar.half_azimuth), np.float32(sonar.beam_scale),
                 np.float32(sonar.range_min), np.float32(sonar.inv_range_step),
                 np.float32(sonar.half_elevation), np.int32(k_theta), np.int32(k_phi), weight,
-                np.float32(gamma), np.float32(surface_reflection), np.float32(RENDER_EPSILON),
-                np.float32(RENDER_MAX_DISTANCE), self._input(first_rows), np.int32(rows), acc_buf)
+                np.float32(gamma), np.float32(surface_reflection), np.float32(RAY_EPSILON),
+                np.float32(MAX_DISTANCE), self._input(first_rows), np.int32(rows), acc_buf)
             self._fixed_kernel(self.queue, (-(-size // GROUP) * GROUP,), None, acc_buf, layers_buf,
                                np.int32(size))
             self.queue.finish()

@@ -13,7 +13,8 @@ import math
 import numpy as np
 import warp as wp
 
-from .base import FRONTAL_EPSILON, FRONTAL_MAX_DISTANCE, FRONTAL_VISIBLE, Backend, DeviceLayers, SonarConstants
+from .base import Backend, DeviceLayers, SonarConstants
+from .constants import FIXED_SCALE, FRONTAL_VISIBLE, INDEX_LIMIT, MAX_DISTANCE, RAY_EPSILON, WARP_FAR
 from .select import _warp
 from .bvh import triangle_bounds
 
@@ -24,7 +25,7 @@ from .bvh import triangle_bounds
 # half the time (3.4 s against 7.1 s for the CPU with an empty kernel cache, here).
 wp.set_module_options({"fuse_fp": False, "enable_backward": False})
 
-_INDEX_LIMIT = wp.constant(1073741824.0)  # ±2^30: far-away points cannot overflow int32
+_INDEX_LIMIT = wp.constant(INDEX_LIMIT)
 #: ``WarpBackend._constant``: inputs up to this size are kept on the device for reuse ...
 CONSTANT_BYTES = 1 << 18
 #: ... and this many of them (at most 16 MiB).
@@ -120,9 +121,9 @@ def project_points(points: wp.array(dtype=wp.vec3), rotations: wp.array(dtype=wp
 
 
 # --- ray casting and image synthesis (fsswarp/rendering.py documents the algorithm) -------------
-_EPS = wp.constant(1.0e-4)  # ε of the leg tests and of the mirror2 ray start (m)
-_FAR = wp.constant(1.0e30)  # "no limit" for a ray cast
-_FIXED = wp.constant(16777216.0)  # 2^24: fixed-point scale of the accumulator
+_EPS = wp.constant(RAY_EPSILON)
+_FAR = wp.constant(WARP_FAR)
+_FIXED = wp.constant(FIXED_SCALE)
 
 
 @wp.func
@@ -613,7 +614,7 @@ class WarpBackend(Backend):
             face = wp.empty(n_rays, dtype=wp.int32)
             wp.launch(cast_rays_kernel, dim=n_rays,
                       inputs=[mesh.id, mesh.points, mesh.indices, self._array(origins, wp.vec3), self._array(directions, wp.vec3),
-                              float(np.float32(min(max_distance, 1.0e30)))],
+                              float(np.float32(min(max_distance, WARP_FAR)))],
                       outputs=[distance, face])
             wp.synchronize_device(self._device)
             return distance.numpy(), face.numpy()
@@ -630,8 +631,8 @@ class WarpBackend(Backend):
                               self._array(translations, wp.vec3), self._array(plane_normals, wp.vec3),
                               self._array(plane_offsets, float), self._constant(views, wp.int32),
                               self._array(azimuths, float), int(mirror), sonar.half_azimuth,
-                              sonar.half_elevation, float(np.float32(FRONTAL_EPSILON)),
-                              float(np.float32(FRONTAL_VISIBLE)), float(np.float32(FRONTAL_MAX_DISTANCE))],
+                              sonar.half_elevation, float(np.float32(RAY_EPSILON)),
+                              float(np.float32(FRONTAL_VISIBLE)), float(np.float32(MAX_DISTANCE))],
                       outputs=[rng, face])
             wp.synchronize_device(self._device)
             return rng.numpy(), face.numpy()

@@ -1,0 +1,29 @@
+"""Numeric constants that the kernels of both backends share, each defined once here.
+
+Lengths in metres. The Warp kernels take them as ``wp.constant``; the OpenCL kernels receive
+them as kernel arguments (ray lengths) or as ``-D`` build options (``opencl_defines``).
+"""
+
+from __future__ import annotations
+
+#: ε (m): a ray leaving a surface starts this far past it (render's mirror2 leg and
+#: ``frontal_faces``' reflected ray), and render's leg tests stop this short of their end.
+RAY_EPSILON = 1e-4
+#: ``frontal_faces``: a mirror patch counts as seen directly from the sonar when the first hit
+#: toward it lies within this distance (m) of it.
+FRONTAL_VISIBLE = 2e-3
+#: "No limit" (m): the longest ray of ``cast_rays`` (its default), of ``frontal_faces`` and of
+#: the OpenCL render.
+MAX_DISTANCE = 1e6
+#: The Warp kernels' bound on a ray (m): ``cast_rays`` clamps ``max_distance`` to it (the BVH
+#: query takes no infinity), and the Warp render's "no limit".
+WARP_FAR = 1e30
+#: Indices are clamped to ±2^30 before conversion to int32, so far-away points cannot overflow.
+INDEX_LIMIT = 1073741824.0
+#: Fixed-point scale of render's integer accumulator: 2^24 = 1.
+FIXED_SCALE = 16777216.0
+
+
+def opencl_defines() -> tuple[str, ...]:
+    """``-D`` build options that define ``FSS_INDEX_LIMIT`` and ``FSS_FIXED`` (float literals)."""
+    return (f"-DFSS_INDEX_LIMIT={INDEX_LIMIT!r}f", f"-DFSS_FIXED={FIXED_SCALE!r}f")
