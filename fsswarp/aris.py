@@ -1,31 +1,24 @@
 """Sound Metrics ARIS recordings (.aris) as fsswarp beam-bin images and datasets.
 
-File layout (Sound Metrics' ARIS file SDK): a 1024-byte file header, then frames; a frame is
-a 1024-byte frame header and ``BeamCount × SamplesPerBeam`` uint8 samples stored
-[sample][beam]. Both headers start with the version word 0x05464444 (little endian). Frames
-are counted from the file size (the header's FrameCount is only reported); a partial frame at
-the end is ignored with an :class:`ArisWarning`. The file is memory-mapped and frames are read
-on demand; every size is checked against the file size before anything is read or allocated.
+:func:`open_aris` memory-maps a recording (``.frame_count``, ``.frame_header(i)``,
+``.frame_image(i)``: (bins, beams) float32, ``.sonar_spec(elevation_fov_deg=...)``);
+:func:`import_aris` writes selected frames as a dataset folder with ``aris.json`` (source and
+sensor values); :func:`read_poses` reads the CSV pose file (``frame,x_m,y_m,heading_deg,
+roll_deg[,depth_offset_m,tilt_offset_deg]``).
 
-Conventions of the images returned here (DESIGN §2):
+File layout (Sound Metrics' ARIS file SDK): a 1024-byte file header, then frames of a
+1024-byte frame header and ``BeamCount × SamplesPerBeam`` uint8 samples stored [sample][beam];
+both headers start with the version word 0x05464444. Frames are counted from the file size; a
+partial last frame is skipped with an :class:`ArisWarning`. Every size is checked against the
+file size before anything is read.
 
-- Beam order: in ARIS files beam 0 is the right-most beam and beams are numbered right to
-  left; fsswarp's column b grows with azimuth θ toward +X (right). So column b holds ARIS
-  beam ``N−1−b`` (column 0 is the left-most beam), and the SDK's beam-angle tables, whose
-  beam 0 has the most negative angle (negative = right in the SDK), become
-  ``θ_b = −centre[N−1−b]``. A sonar mounted upside down mirrors the image: give it roll 180°.
-- Intensity: a sample s (0–255) is s·80/255 dB; the image holds the linear amplitude relative
-  to the 80 dB full scale, ``10^((dB − 80)/20)``, float32 in [1e-4, 1]. This is the inverse of
-  ``fsswarp.rendering.log_compress(image, dynamic_range_db=80, peak=1)``, so the project's
-  20·log10 figures and 8-bit compression show the file's own dB values.
-- Range: row B lies at ``WindowStart + B·SampleLength`` with WindowStart =
-  SampleStartDelay·1e-6·SoundSpeed/2 and SampleLength = SamplePeriod·1e-6·SoundSpeed/2; the
-  stored WindowStart/WindowLength floats are reported beside the computed values.
-- Azimuth field of view: last − first beam-centre angle of the table (as ``SonarSpec`` requires);
-  the edge-to-edge aperture is reported separately.
-- Elevation aperture: not in the file. Default 14° (Sound Metrics' figure for the ARIS 1200,
-  1800 and 3000 standard lenses); no confirmed figure for the telephoto lens was found, so it
-  also defaults to 14°: pass the lens's value.
+Conventions of the images (DESIGN §2): column b holds ARIS beam N−1−b, so θ_b =
+−centre[N−1−b] of the SDK's beam-angle table (``fsswarp/data/aris/``); a sample s (0–255) is
+s·80/255 dB and the image holds the linear amplitude ``10^((dB − 80)/20)`` in [1e-4, 1] (the
+inverse of ``fsswarp.rendering.log_compress(image, dynamic_range_db=80, peak=1)``); row B lies
+at ``WindowStart + B·SampleLength`` (m) computed from SampleStartDelay, SamplePeriod (µs) and
+SoundSpeed (m/s); the azimuth field of view is the span of the beam centres (deg). The elevation
+aperture is not in the file: default 14°. docs/formats.md describes the import in full.
 """
 
 from __future__ import annotations

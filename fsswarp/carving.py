@@ -1,53 +1,27 @@
 """Voxel space carving (paper §2.2, DESIGN §6): feasible masks -> voxels -> the closed mesh S0.
 
-The rule (kernels/carve.cl, ``Backend.carve``; :func:`carve_reference` is the float64 oracle).
-A voxel is a cube of side h centred at c, r = h·√3/2 its circumradius. In view m, with c
-seen at (θ, φ, R) and ρ = R cos φ:
+:func:`carve` segments the views of a dataset (``fsswarp.segment``), carves, and meshes:
+it returns a :class:`CarveResult` (mesh, voxels, segmentation, timings). :func:`carve_masks`
+carves given feasible masks; :func:`carve_reference` is the float64 NumPy oracle of the kernel
+(``Backend.carve``: kernels/carve.cl and its Warp twin); :func:`voxel_mesh` meshes the voxels.
 
-- m *sees* the voxel when the cube's bounding sphere lies wholly in m's window: r < ρ,
-  |φ| + asin(r/R) <= W_φ, and the box of beams [beam(θ − asin(r/ρ)), beam(θ + asin(r/ρ))]
-  × bins [bin(R − r), bin(R + r)] (nearest indices, the rule of ``Backend.project``) lies
-  inside the image;
-- m *rejects* it when it sees it and that box holds no feasible pixel (a summed-area table
-  of the mask answers in four reads).
+The rule. A voxel is a cube of side h (m) centred at c. A view *sees* it when the cube's
+bounding sphere lies wholly in its window, and *rejects* it when the box of beams and bins the
+sphere projects into holds no feasible pixel (a summed-area table answers in four reads). A
+voxel is kept when at least ``min_views`` views see it, none rejects it, and it does not lie
+wholly above the estimated sea surface plus ``surface_margin``.
 
-The box holds the pixel of every point of the cube, so the test covers the whole voxel, not
-its centre: a voxel holding any point whose return the segmentation marks feasible in every
-view is never removed. That makes carving conservative at any voxel size (no dilation of the
-masks by the projected voxel size is needed: the sphere's box is that dilation, exact per
-voxel), and makes coarse-to-fine exact: a child cube lies in its parent's sphere, so a view
-that sees and rejects the parent sees and rejects every child. The cost is a looser fit by
-up to about r. Only a view that sees the whole voxel may judge it: a voxel straddling the
-edge of a window is not judged by that view, and a voxel that fewer than ``min_views``
-views see is removed (so the unjudged slabs along the edges of the common region go too;
-this rule is not monotone, and coarse-to-fine may drop there a voxel that a full fine grid
-would keep, far from any object that lies inside every view's window).
+Grid. Pass 1 carves the region every view sees (reference frame, below the surface, ∩ an
+optional ``box``, (2, 3) m) at ``domain_resolution`` voxels along its longest side; pass 2
+carves the box of the survivors' major components coarse-to-fine, from at most ``coarse``
+voxels across to the finest voxel, the box's longest side / ``resolution``.
 
-A voxel is kept when at least ``min_views`` views see it, no view rejects it, and it does not
-lie wholly above the estimated sea surface plus ``surface_margin``. The last rule is needed:
-the mirror world above the surface is consistent with every view (a mirrored point's mirror
-and double-bounce returns land in the beam of its mirror image, at or before its range), so
-carving alone keeps a mirror copy of the object above the surface.
+Mesh. Holes filled, components under 1% of the largest dropped, marching cubes (scikit-image,
+Lewiner) at ``MC_LEVEL``, Taubin smoothing (``smooth`` iterations), and decimation to at most
+``faces`` triangles by manifold3d's ``simplify``: a closed, outward-oriented, watertight
+trimesh in the reference frame of (depth m, tilt rad).
 
-Grid. The domain is the region that every view sees (sampled from the view frusta in the
-reference frame), below the surface, intersected with an optional user box. Pass 1 carves the
-domain at ``domain_resolution`` voxels along its longest side; the box of the survivors'
-major components (those holding at least 1% of the largest's voxels), grown by one voxel, is
-the carving box. Pass 2 carves that box coarse-to-fine: a first full grid of at most
-``coarse`` voxels along its longest side, then at each finer level only the children of kept
-voxels that have a removed voxel (or the grid's edge) among their 26 neighbours; children of
-interior voxels are kept untested (this can keep a voxel that a full fine grid would carve,
-never the reverse). The finest voxel is the box's longest side / ``resolution``.
-
-Mesh. Holes in the kept set are filled (the outer boundary only), components under 1% of
-the largest are dropped, the grid is padded with empty voxels so the surface closes, and
-marching cubes (scikit-image, Lewiner) at ``MC_LEVEL`` (just under 1/2) gives a closed,
-outward-oriented, watertight mesh. Taubin smoothing (``smooth`` iterations) follows, then
-decimation to at most ``faces`` triangles by manifold3d's ``simplify`` (edge collapses that
-keep a closed 2-manifold, with the smallest tolerance, at most two voxels, that reaches the
-count). Quadric decimation (trimesh + fast-simplification) was tried first and left
-non-manifold edges on carved meshes (75,692 -> 20,000 faces on coral-one: not watertight),
-so it is not used.
+Masks: view name -> (bins, beams) bool. Why each rule: docs/decisions.md ("Space carving").
 """
 
 from __future__ import annotations

@@ -1,36 +1,27 @@
 """Ghost removal by the LUT method and ghost isolation (paper §2.6, Figure 5; DESIGN §10).
 
-Our reading of §2.6, for one view with data image I (linear, (bins, beams)) and the layers of
-the model rendered at (D, β):
+:func:`enhance` renders a model at (depth m, tilt rad) and runs :func:`enhance_view` on every
+view: ``{view name: EnhancedView}`` with the ghost-free image ``enhanced``, the isolated
+``ghost`` (both (bins, beams) float32, the data's linear units), the synthetic total layer,
+the (bins, beams) bool object, ghost and mirror regions, and the LUT, (2, levels) float64 dB.
 
-1. The synthetic log object image ``L_0 = 10 log10(object layer)`` (dB).
-2. Regions from the synthetic layers: a layer "covers" a pixel where it is at least
-   ``threshold`` times the synthetic total's peak; the regions are dilated by ``dilate``
-   pixels (a model or pose slightly off still covers its returns). Object region O; ghost
-   region G; mirror region M (mirror and mirror2).
-3. The object region splits into the overlap ``O ∩ (G ∪ M)`` and the non-overlap part N.
-   ``L_0`` is normalized with the mean and standard deviation of ``L_0`` over N:
-   ``L̂ = (L_0 − mean_N) / std_N`` (zero mean, unit variance over N; the same affine map is
-   applied over the overlap).
-4. The mean and standard deviation (Ī, σ_I) of the data in dB over N give
-   ``L = σ_I L̂ + Ī``: the synthetic object in the data's log scale.
-5. The LUT maps ``L`` to the data's dB values by matching their histograms over N: the
-   q-quantile of L over N goes to the q-quantile of the data over N (``levels`` quantiles,
-   linear between them; beyond the table's ends a slope-1 continuation of step 4's map).
-   "What is matched with what": the scaled synthetic object over N (source) with the measured
-   data over N (target), where the data holds the object only.
-6. Over the overlap, ``L`` (the same scaling) goes through the LUT: the estimated object-only
-   data there. Fused, the enhanced image is the data over N, the LUT estimate over the
-   overlap, the data's background level over the ghost- and mirror-only regions (G ∪ M minus
-   O), and the data elsewhere.
+Per view, with data image I (linear) and the layers rendered at (D, β):
 
-Ghost isolation (Figure 5c–e): over G, ``ghost = max(I − enhanced, 0)`` (the data with the
-object estimate discounted in the overlap, and with the background level discounted in the
-ghost-only part) times the ghost's share of the synthetic multipath (ghost / (ghost + mirror
-+ mirror2)); zero elsewhere; optionally despeckled (``ghost_sigma``). Everything returned is linear, in the data's units.
+1. L_0 = 10 log10(object layer), the synthetic log object image (dB).
+2. Regions: where a layer reaches ``threshold`` of the synthetic peak, dilated by ``dilate``
+   pixels: object O, ghost G, mirror M (mirror + mirror2).
+3. O splits into the overlap O ∩ (G ∪ M) and the rest, N; L_0 is normalized over N.
+4. Rescaled to the data's dB mean and spread over N: L, the object in the data's log scale.
+5. The LUT maps L to the data's dB values by matching their ``levels``-quantile histograms over N.
+6. Over the overlap the LUT's output replaces the data; ghost- and mirror-only pixels take the
+   data's background level; elsewhere the data stays.
 
-For figures like the paper's Figures 10–14, ``comparison_views`` picks the views to show
-(optimized and held-out) and ``match_level`` scales a synthetic image to the data's level.
+Ghost: over G, max(I − enhanced, 0) times the synthetic ghost's share of the synthetic
+multipath, optionally despeckled (``ghost_sigma``, pixels). Views where the model does not
+project, or leaves too few object pixels for the LUT, are skipped with a warning.
+:func:`comparison_views` picks the views of figures like the paper's Figures 10–14;
+:func:`match_level` scales a synthetic image to the data's level; :func:`score` compares with
+the truth layers of simulated data. docs/method.md has our reading of §2.6 in full.
 """
 
 from __future__ import annotations

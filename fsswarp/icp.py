@@ -1,50 +1,22 @@
 """IRLS-ICP of 2-D contours: the rigid motion that aligns a synthetic contour with the data's
 (paper §2.4, eq. 5; DESIGN §7).
 
-Plane: contours are (N, 2) points in a metric 2-D plane. The engine uses the fan plane of
-paper eq. (3), ``(x, y) = R (sin θ, cos θ)`` in metres (``fsswarp.sonar.fan_xy``): both axes
-are metres, so distances, the in-plane rotation and CE are well defined, while (θ, R) mixes
-radians and metres. Any other metric plane works alike.
+Contours are (n, 2) float64 points in a metric plane; the engine uses the fan plane of paper
+eq. (3), ``(x, y) = R (sin θ, cos θ)`` in metres (``fsswarp.sonar.fan_xy``).
 
-Method (iteratively reweighted least squares, refs [46, 47] of the paper): every iteration
-matches each transformed source point to its nearest target point (``scipy.spatial.cKDTree``;
-unequal, unmatched sets, several source points may share one target point), weighs the pairs
-with Cauchy weights ``w = 1 / (1 + (r / (c σ))²)``, c = 2.3849 (95 % Gaussian efficiency), on
-the residual distances r with the robust scale ``σ = median(r) / √(2 ln 2)`` (the median
-absolute residual, made consistent for the distance of a 2-D Gaussian error of per-axis σ,
-which is Rayleigh), and solves the weighted Procrustes problem for the whole rotation and
-translation from the original source in closed form. It stops when no transformed source point
-moves more than ``tol`` × the source's RMS radius between iterations.
+:func:`icp` (source, target) returns an :class:`ICPResult`: the rotation (2, 2) and
+translation (2,), the inlier pairs, every source point's 2-D motion (n, 2) m, and CE (eq. 5),
+the mean inlier distance after alignment (m). Each iteration matches every transformed source
+point to its nearest target point (unequal, unmatched sets), weighs the pairs with Cauchy
+weights on a median-based robust scale, and solves the weighted Procrustes problem in closed
+form. It runs from three starts (the identity and ±``START_ANGLE`` rad about the source's
+centroid) and keeps the run with the smallest robust scale. Inliers lie within ``gate`` robust
+scales (and ``max_distance``, if given).
 
-Starts: nearest-neighbour matching is local, and a contour with a stretch the other lacks plus
-false highlights can hold a wrong minimum a few degrees from the truth (a probe found one at
-0.064 rad from a start at the true angle). ICP therefore runs from three deterministic starts,
-the identity and rotations by ``±START_ANGLE`` (0.05 rad) about the source's centroid, and keeps
-the run with the smallest final robust scale σ (the median residual: outliers and unmatched
-stretches do not move it); ties go to the earlier start, so exact matches return the identity.
-
-Batches: ``icp_many`` runs many pairs in lockstep over padded arrays, one vectorised
-reweighting and Procrustes step per iteration for all of their runs still iterating, and one
-k-d tree for all of them (each pair's targets in a plane of their own, far from the others').
-A point keeps the nearest target of its last query while it stays within half the gap to the
-second nearest (less 1e-9 of it, far above rounding) of where it queried, so that only the
-points that leave it query the tree again, all at once; the distances are computed as the tree
-computes them, and a tie (to 1e-9) goes to the target that a query for the nearest alone
-gives. Each pair gets ``icp``'s result for it alone up to rounding, and ``icp`` is the batch of
-one.
-
-On a device: ``icp_many(..., backend=B)`` runs the same iterations on B's device, one thread
-per run in float64 (``Backend.icp_runs``; Warp and OpenCL kernels), matching by brute force over
-the run's targets with the same rooms, and the median by selection. The host sets the runs up
-and picks each pair's run as above; the results are the host's up to rounding (the first of
-exactly equal nearest targets wins, where the k-d tree may pick another). ``PoseProblem.align``
-uses it whenever the backend has float64 (every Warp device; OpenCL devices with cl_khr_fp64):
-for coral-one's 19 contour pairs of one E_mu it takes 2.1 ms on Warp's CPU device and 3.5 ms on
-PoCL here, against 5.7–10 ms on the host.
-
-Inliers: after the last iteration a pair (i, k(i)) is an inlier when ``r ≤ gate · σ``
-(default 3σ) and, if given, ``r ≤ max_distance``. CE (eq. 5) is the mean distance of the
-inlier pairs after alignment.
+:func:`icp_many` runs many pairs in lockstep over padded arrays, each with ``icp``'s result for
+that pair up to rounding; with ``backend=`` it runs the iterations on the device, one thread
+per run in float64 (``Backend.icp_runs``: kernels/icp.cl and its Warp twin).
+:func:`contour_error` is CE of two point sets. Why three starts and the scale: docs/decisions.md.
 """
 
 from __future__ import annotations

@@ -1,39 +1,25 @@
 """Sonar image synthesis: object, ghost, mirror and double-bounce mirror layers (DESIGN §3–4).
 
-The algorithm, which both backends' kernels implement exactly (float32), and the float64
-oracle in ``tests/oracle_render.py`` mirrors:
+:func:`render` renders a mesh (trimesh, reference frame) at a rig's poses for (depth m, tilt
+rad) and returns ``{view name: (5, bins, beams) float32}``, the layers in the order of
+``LAYERS``: object, ghost, mirror, mirror2 and total (= the sum of the four). The kernels run
+on a backend (``Backend.render``: kernels/render.cl and its Warp twin);
+``tests/oracle_render.py`` is their float64 oracle. :func:`render_views` renders given view
+poses, (N, 3, 3) rotations and (N, 3) translations, with the surface planes in the view frames,
+(N, 3) unit normals and (N,) offsets in m.
 
-Inputs per view: pose (R, t) with ``P_ref = R @ P_view + t``; the surface ``n·P = d`` in the
-view frame (unit n into the air, d > 0: the sonar is below it); the mesh in the reference
-frame. All ray casts run in the reference frame: origin ``t``, direction ``R @ u``.
+Image formation, per beam b: K_θ × K_φ sub-rays (``RenderSettings.samples``, default
+(2, 64)) across the beam's width and the elevation aperture, each of weight 1/(K_θ K_φ). A
+sub-ray's first hit at range r with incidence cosine c deposits c^γ (object) at (b, bin(r));
+its path via the sea surface deposits r_s · (c · c_in)^(γ/2) as ghost at (b, bin((r + q)/2))
+and as mirror at (beam(θ(P')), bin((r + q)/2)), P' the mirror image of the hit and q = |P'|;
+a sub-ray that meets the surface first deposits r_s² · c2^γ as mirror2 after its reflected leg.
+Defaults γ = 1, r_s = 0.9. Deposits are summed in fixed point (2^24 per unit) with integer
+atomics, so layers do not depend on the order of the threads. docs/method.md gives every step.
 
-1. Sub-rays. For beam b and i < K_θ, j < K_φ:
-   ``θ = θ_b + ((i + 0.5)/K_θ − 0.5)·Δθ_b`` (Δθ_b: the beam's width, the spacing of the
-   centres), ``φ = −W_φ + (j + 0.5)/K_φ · 2W_φ``; ``u = (cosφ sinθ, cosφ cosθ, sinφ)``
-   (view frame). Every sub-ray weighs ``1/(K_θ K_φ)``.
-2. Direct leg. First mesh hit at distance ``r`` (inf if none), triangle normal N turned to face
-   the ray (``u·N < 0``), ``c = −u·N``. The ray meets the surface at ``s = d/(n·u)`` when
-   ``n·u > 0`` (else s = inf). A hit counts only when ``r < s``.
-3. Hit (``r < s``), P = r·u (view frame):
-   - object: amplitude ``c^γ`` at (b, bin(r)).
-   - surface path: O' = 2d·n (mirrored sonar), ``q = |P − O'|`` (= |P'|, P' = mirror of P),
-     reflection point ``Q = O' + λ (P − O')`` with ``λ = d / (2d − n·P)``. It counts when
-     Q lies in front (Q_y > 0), its direction lies inside the fan (beam coordinate of
-     θ(Q) in [−0.5, beams − 0.5) and |φ(Q)| ≤ W_φ), the leg O→Q is clear (no hit closer than
-     |Q| − ε), the leg Q→P is clear (the first hit from Q toward P lies at ≥ |P − Q| − ε,
-     ε = 1e-4 m), and the incoming cosine ``c_in = −w·N > 0`` with w = (P − Q)/|P − Q|.
-     Amplitude ``a_s = r_s · (c · c_in)^(γ/2)``:
-       ghost  at (b, bin((r + q)/2));
-       mirror at (beam(θ(P')), bin((r + q)/2)), P' = P − 2(n·P − d) n.
-4. Surface first (``s < r``, s finite), mirror2: Q = s·u, reflected direction
-   ``u' = u − 2(u·n) n``; first hit from Q along u' at distance r2 (from ε), normal N2 facing
-   it, ``c2 = −u'·N2``; amplitude ``r_s² · c2^γ`` at (b, bin(s + r2)).
-5. bin(R) = floor((R − R_min)/δR + 0.5), beam(θ) = floor(beam coordinate + 0.5); a return
-   outside the image is dropped. Accumulation: each deposit adds
-   ``int(amplitude · weight · 2^24 + 0.5)`` with an integer atomic to an int32 accumulator,
-   so the sum does not depend on the order of the threads; layers = accumulator / 2^24.
-
-``total`` = object + ghost + mirror + mirror2. Default γ = 1, r_s = 0.9, (K_θ, K_φ) = (2, 64).
+:func:`add_noise` draws the simulator's noise (Gamma speckle of ``looks``, an exponential
+floor at ``background`` of the 99th-percentile echo); :func:`log_compress` maps an image to dB
+for figures.
 """
 
 from __future__ import annotations

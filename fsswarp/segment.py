@@ -1,60 +1,25 @@
 """Segmentation of beam-bin images: object highlight, feasible region, shadow, frontal contour.
 
-The highlight is every echo that stands out of the water's noise: object, ghost and mirror
-alike (the ghost falls behind the object in the same beams, inside the feasible region; the
-mirror world above the surface is removed by the carving, fsswarp/carving.py). Steps, for a
-(bins, beams) linear image I:
+:func:`segment` takes a (bins, beams) linear image and returns a :class:`Segmentation` of
+(bins, beams) bool masks (highlight, feasible, shadow) and the frontal contour, (beams,) int:
+per beam the first highlight bin, -1 where the beam holds none. The highlight is every echo
+that stands out of the water's noise: object, ghost and mirror alike.
 
-0. Isolated spikes (hot pixels) are clipped: in an image with a noise floor (median > 0), a
-   pixel above ``SPIKE_RATIO`` (40) times the largest of its 8 neighbours takes that value.
-   Without it, one hot pixel in the background of a coral-one view at 2× the view's peak
-   added a 16-pixel blob of its own, at 5× it shrank the object's highlight from 446 to 406
-   pixels and at 20× it took the spread floor of step 2 so high that only its own blob was
-   left: the object was lost, and the carving then failed with "every voxel was carved
-   away". Sonar echoes are never one pixel alone (the pulse spans range bins and the beams
-   overlap): in the built-in scenes' noisy images no pixel exceeds 18.7 times its
-   neighbours, so nothing there is clipped. Noise-free synthetic images (median 0) are left
-   as they are: an echo of a small facet may stand 130 times above its neighbours there.
-1. Background level per range row: the row's median over the beams divided by ln 2 (the
-   median of an exponential background is ln 2 times its mean), smoothed along range by a
-   running median of ``background_rows`` rows; x = I / level is the image in units of the
-   local background mean (range-dependent gain cancels).
-2. x is smoothed by a Gaussian of (``sigma_bins``, ``sigma_beams``) pixels; the smoothed
-   image's median m and robust spread s = 1.4826 · MAD (floored at 1% of its peak above m,
-   so noise-free images threshold at a fraction of their peak) give a hysteresis
-   threshold: pixels above m + ``high``·s seed the highlight, which grows through
-   8-connected pixels above m + ``low``·s.
-3. Highlight blobs of fewer than ``min_pixels`` pixels are dropped (speckle).
+Steps (``SegmentSettings`` holds every constant):
 
-Why the linear image and not its logarithm: the logarithm of an exponential background has
-a wide lower tail (std 1.28 in log units), which inflates the spread; thin returns one pixel
-wide (the table's edges seen at ±90° roll) then fall below any safe threshold. Averaging the
-linear image is the matched filter for the background-normalised echo.
+0. :func:`clip_spikes`: in an image with a noise floor (median > 0), a pixel above
+   ``SPIKE_RATIO`` times the largest of its 8 neighbours takes that value.
+1. :func:`normalized`: the image divided by its background level per range row (the row's
+   median over the beams / ln 2, smoothed along range over ``background_rows`` rows).
+2. A Gaussian of (``sigma_bins``, ``sigma_beams``) pixels; hysteresis at median + ``high``
+   (seeds) and + ``low`` (growth) robust standard deviations (1.4826 · MAD, floored at 1% of
+   the peak above the median).
+3. Blobs under ``min_pixels`` pixels are dropped.
 
 Feasible region (DESIGN §6): along each beam, every bin from the first highlight to the end of
-the window. Conservative margin: a beam's feasible region starts no later than that of any
-beam within ``dilate_beams`` of it (faint beams at the object's azimuthal edges are missed
-more often than bright ones). Shadow: the feasible pixels that are not highlight. Frontal
-contour: per beam the first highlight bin, -1 where the beam holds none.
-
-Thresholds. The smoothed background is far from Gaussian (a smoothed exponential): 17
-pixels of a 512 × 96 noise image exceed 6 robust standard deviations, 0.1 exceed 10. So
-seeds need ``high`` = 10 (a blob in 2 of 40 pure-noise images), while growth at ``low`` = 2
-reaches the faint edges of the object that carving must not lose. On the simulated scenes
-(noise: Gamma speckle of 4 looks, exponential background at 5% of the 99th-percentile echo)
-the feasible region holds 98.8% (coral-one), 98.9% (coral-two) and 99.3% (table) of the true
-object pixels on average, and the frontal contour lies 1-2 bins in front of the true one
-(median; tests/test_segment.py prints the numbers).
-
-Memo. The same image is often segmented more than once (the carving and the pose step
-segment the same data views; tests and scripts repeat calls). :func:`memoized` keeps the last
-``MEMO_SIZE`` results of :func:`segment` and ``fsswarp.pose.detection_threshold`` by image
-content (a BLAKE2 digest of its bytes, shape and type) and settings, and makes their arrays
-read-only so that no caller can change a kept result. A memo hit gives the same warning as a
-first call. The reconstruction loop, which needs every data view's highlight and threshold at
-each of its ~45 pose problems per coral-one run, keeps them on the dataset instead
-(``Dataset.derived``): the digest of a 512 × 96 image cost 0.5 ms here and 1.2 ms on the GPU
-machine's host, 650 times per run.
+the window, started no later than that of any beam within ``dilate_beams``. Shadow: the
+feasible pixels that are not highlight. :func:`memoized` keeps the last ``MEMO_SIZE`` results
+by image content, read-only (Memo). Why these thresholds: docs/decisions.md ("Segmentation").
 """
 
 from __future__ import annotations
