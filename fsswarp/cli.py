@@ -107,7 +107,7 @@ def bench(state: State, out: Path, quick: bool, families: str, budget: float, re
     beside its physical limit: OUT/bench.json, OUT/bench.md and OUT/<family>.png."""
     import time
 
-    from . import bench as suite
+    from . import benchmark as suite
     from .atomic import check_output_folder, output_folder
     from .backends import describe_backends, get_backend
 

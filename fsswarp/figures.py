@@ -1,4 +1,9 @@
-"""Figures for people: layers of synthetic views as beam-bin and fan images.
+"""Figures for people, as PNG files: synthetic layers (``layers_figure``), fan images
+(``fan_figure``), a mesh over the truth (``carve_figure``), the pose grid levels
+(``pose_figure``), frontal contours per view (``contours_figure``), a reconstruction's history
+(``history_figure``) and ghost removal (``enhance_figure``, ``comparison_figure``).
+``FigureDrawer`` draws them in child processes while a command goes on
+(``FSSWARP_FIGURE_WORKERS``; the files are the same byte for byte either way).
 
 Figures read results; nothing in the pipeline imports this module.
 """
