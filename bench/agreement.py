@@ -38,7 +38,7 @@ def label(backend) -> str:
 
 
 def coral_layers(backend):
-    from fsswarp.bench import coral_batch
+    from fsswarp.benchmark import coral_batch
 
     sonar, mesh, rot, t, n, d = coral_batch(16)
     handle = backend.load_mesh(mesh.vertices, mesh.faces)

@@ -27,7 +27,7 @@ def report(records: list[Path], notes: Path | None, figures: Path | None, base: 
     """The Markdown of RESULTS.md; writes the figures under ``figures`` (links relative to ``base``).
     ``tables``: records of ``bench/paper_table.py`` (the reconstruction table, first);
     ``studies``: records of ``bench/identifiability.py`` (after it)."""
-    from fsswarp.bench import FAMILIES, machine_markdown, markdown, plot_family, slowest
+    from fsswarp.benchmark import FAMILIES, machine_markdown, markdown, plot_family, slowest
 
     runs = [(path.stem, load_run(path)) for path in records]  # every record checked before anything is drawn
     lines = ["# Benchmark results", "",
@@ -36,7 +36,7 @@ def report(records: list[Path], notes: Path | None, figures: Path | None, base: 
              "by hand. To record: on a CPU machine `fsswarp bench --out bench-cpu` and copy "
              "`bench-cpu/bench.json` to `bench/records/<machine>.json`; on the GPU machine "
              "`bash bench/device/gpu.sh bench` (its `bench-*/bench.json` likewise). Method, operation counts "
-             "and peak figures: the docstring of `fsswarp/bench.py`. Every figure: median of the timed runs "
+             "and peak figures: `docs/benchmarks.md`. Every figure: median of the timed runs "
              "after a warm-up, (min–max), the number of runs; the limit is the lower bound on the time "
              "(memory: bytes over bandwidth; compute: minimal operations over the peak rate; link: host "
              "transfers of an end-to-end GPU figure) and the fraction is limit / median (1 = at the limit).",

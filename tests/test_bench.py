@@ -1,4 +1,4 @@
-"""The benchmark suite (fsswarp/bench.py, ``fsswarp bench``, bench/report.py) at tiny sizes:
+"""The benchmark suite (fsswarp/benchmark/, ``fsswarp bench``, bench/report.py) at tiny sizes:
 record structure and arithmetic, the budget's skip rule, the command line and the report.
 No assertion depends on how fast anything runs."""
 
@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fsswarp import bench
+from fsswarp.benchmark import families, harness
 from fsswarp.cli import main
 
 from conftest import backend_for
@@ -47,7 +47,7 @@ def check_record(r: dict) -> None:
 
 @pytest.fixture(scope="module")
 def carve_scene():
-    return bench.carve_scene(backend_for("opencl-cpu") if _has("opencl-cpu") else backend_for("warp-cpu"))
+    return families.carve_scene(backend_for("opencl-cpu") if _has("opencl-cpu") else backend_for("warp-cpu"))
 
 
 def _has(label: str) -> bool:
@@ -61,16 +61,16 @@ def _has(label: str) -> bool:
 @pytest.mark.parametrize("label", ["warp-cpu", "opencl-cpu"])
 def test_every_family_gives_consistent_records(label, carve_scene):
     backend = backend_for(label)
-    peer = bench.Peer("numpy", "cpu")
-    profiles = bench.probe_machine([backend, peer], quick=True)["profiles"]
+    peer = families.NUMPY
+    profiles = harness.probe_machine([backend, peer], quick=True)["profiles"]
     common = dict(profiles=profiles, repeat=2, budget=30.0)
-    records = (bench.raycast(backend, (1,), rays=2048, **common)
-               + bench.synthesis(backend, (1, 2), samples=(1, 4), **common)
-               + bench.carving(backend, (8,), scene=carve_scene, **common)
-               + bench.pose_grid(backend, (2,), **common)
-               + bench.reconstruction(backend, ((0, 16),), **common)
-               + bench.numpy_carving((6,), scene=carve_scene, **common))
-    assert {r["family"] for r in records} == set(bench.FAMILIES)
+    records = (families.raycast(backend, (1,), rays=2048, **common)
+               + families.synthesis(backend, (1, 2), samples=(1, 4), **common)
+               + families.carving(backend, (8,), scene=carve_scene, **common)
+               + families.pose_grid(backend, (2,), **common)
+               + families.reconstruction(backend, ((0, 16),), **common)
+               + families.numpy_carving((6,), scene=carve_scene, **common))
+    assert {r["family"] for r in records} == set(families.FAMILIES)
     assert {(r["family"], r["mode"]) for r in records if r["backend"] == backend.name} >= {
         ("raycast", "resident"), ("raycast", "end to end"), ("synthesis", "resident"), ("carving", "resident"),
         ("pose", "end to end"), ("pose", "resident"), ("reconstruction", "end to end")}
@@ -84,9 +84,9 @@ def test_every_family_gives_consistent_records(label, carve_scene):
 
 
 def test_embree_peer_is_timed_or_unavailable():
-    peer = bench.Peer("embree", "cpu")
-    profiles = bench.probe_machine([peer], quick=True)["profiles"]
-    records = bench.embree_raycast((1,), profiles=profiles, repeat=1, rays=1024)
+    peer = families.EMBREE
+    profiles = harness.probe_machine([peer], quick=True)["profiles"]
+    records = families.embree_raycast((1,), profiles=profiles, repeat=1, rays=1024)
     assert len(records) == 1
     if records[0]["skipped"] is None:
         check_record(records[0])
@@ -96,11 +96,11 @@ def test_embree_peer_is_timed_or_unavailable():
 
 def test_array_module_carving_runs_on_numpy(carve_scene):
     sonar, masks, rot, t, centre = carve_scene
-    h, origin = bench._grid(centre, 8)
-    keep = bench.carve_array_module(np, masks, rot, t, sonar, h, origin, 8, chunk=100)
+    h, origin = families.carving_grid(centre, 8)
+    keep = families.carve_array_module(np, masks, rot, t, sonar, h, origin, 8, chunk=100)
     assert keep.shape == (512,) and keep.dtype == bool
     assert keep.any() and not keep.all()
-    np.testing.assert_array_equal(keep, bench.carve_array_module(np, masks, rot, t, sonar, h, origin, 8))
+    np.testing.assert_array_equal(keep, families.carve_array_module(np, masks, rot, t, sonar, h, origin, 8))
 
 
 class FakeClock:
@@ -119,11 +119,11 @@ def test_measure_stops_repeating_at_the_budget_but_keeps_one_run():
     def call():
         clock.now += 4.0
 
-    timing = bench.measure(call, 5, budget=10.0, clock=clock)
+    timing = harness.measure(call, 5, budget=10.0, clock=clock)
     assert timing["repeat"] == 1 and timing["median_s"] == 4.0 and timing["timed_s"] == 8.0  # warm-up + 1
-    timing = bench.measure(call, 3, budget=100.0, clock=clock)
+    timing = harness.measure(call, 3, budget=100.0, clock=clock)
     assert timing["repeat"] == 3 and timing["min_s"] == timing["max_s"] == 4.0
-    timing = bench.measure(call, 3, warmup=0, budget=1.0, clock=clock)
+    timing = harness.measure(call, 3, warmup=0, budget=1.0, clock=clock)
     assert timing["repeat"] == 1
 
 
@@ -141,7 +141,7 @@ def test_sweep_skips_points_projected_past_the_budget():
         return [{"x": x, "skipped": {"projected_s": projected}}]
 
     points = [(1, 1, 1), (2, 2, 2), (4, 4, 4), (8, 8, 8), (3, 3, 3)]
-    records = bench.sweep(points, run_point, skipped, budget=10.0, clock=clock)
+    records = harness.sweep(points, run_point, skipped, budget=10.0, clock=clock)
     # 1 took 1 + 2 s; 2 is projected at 2 + 4 = 6 s and runs (1 + 4 s); 4 is projected at
     # 2 + 8 = 10 s (not past the budget) and runs (1 + 8 s); 8 at 2 + 16 = 18 s is skipped,
     # and so is every later point, even a smaller one

@@ -1,0 +1,650 @@
+"""The five benchmark families of ``fsswarp bench``: what each one launches, at which sizes,
+and its minimal operations and bytes (the physical limit; docs/benchmarks.md).
+
+- ``raycast``: ``Backend.cast_rays`` of a fixed ray set on icospheres (sweep: triangles);
+  peer ``embree_raycast``.
+- ``synthesis``: ``Backend.render`` / ``render_device`` of coral-one views (sweep: views).
+- ``carving``: one carve launch over an N³ grid × 16 views (sweep: voxels); peers
+  ``numpy_carving`` (``carve_reference``) and ``array_carving`` (CuPy point projection).
+- ``pose_grid``: the (D, β) grid surrogate of coral-one (sweep: cells).
+- ``reconstruction``: ``fsswarp.reconstruction.reconstruct`` of simulated coral-one.
+
+Each takes a backend, the swept sizes, the limit profiles of ``probe_machine`` and returns
+records (``timed_record`` / ``skipped_record``). ``run_suite`` runs the families and peers
+on every backend. Lengths in metres, times in seconds; poses ``P_ref = R @ P_view + t`` with
+rotations (N, 3, 3) and translations (N, 3) float.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+import time
+from collections.abc import Sequence
+
+import numpy as np
+
+from ..errors import InputError
+from .harness import (CupyPeer, Peer, Progress, measure, physical_limit, probe_machine, profile_key, record_base,
+                      say, skipped_record, sweep, timed_record, unavailable_record)
+
+FAMILIES = ("raycast", "synthesis", "carving", "pose", "reconstruction")
+#: Swept values per family: icosphere subdivisions, views, voxels per side, cells per side,
+#: (iterations, carving resolution).
+FULL_SIZES = {"raycast": (3, 4, 5, 6, 7, 8), "synthesis": (1, 4, 16, 64, 256), "carving": (64, 128, 256, 512),
+              "pose": (8, 16, 32, 64, 128), "reconstruction": ((1, 128),)}
+QUICK_SIZES = {"raycast": (2, 3), "synthesis": (1, 2), "carving": (16, 24), "pose": (2, 3),
+               "reconstruction": ((0, 24),)}
+
+NODE_OPS = 44
+TRIANGLE_OPS = 40
+RAY_SETUP_OPS = 60
+HIT_OPS = 140
+CARVE_OPS = 100
+CONTOUR_OPS = 2
+LEAF_TRIANGLES = 4
+RAY_IN_BYTES, RAY_OUT_BYTES, TRIANGLE_BYTES = 24, 8, 36
+
+#: The peers: Embree on every logical CPU, the NumPy reference and CuPy on one thread or GPU.
+EMBREE = Peer("embree", "cpu", cores=os.cpu_count() or 1)
+NUMPY = Peer("numpy", "cpu")
+CUPY = CupyPeer()
+PEERS = (EMBREE, NUMPY, CUPY)
+
+
+def _tree_depth(triangles: int) -> int:
+    return max(0, math.ceil(math.log2(max(1.0, triangles / LEAF_TRIANGLES))))
+
+
+def _cast_ops(hits: int, misses: int, triangles: int) -> float:
+    return hits * (_tree_depth(triangles) * NODE_OPS + TRIANGLE_OPS) + misses * NODE_OPS
+
+
+# --- ray casting -------------------------------------------------------------------------------
+def icosphere(level: int):
+    """trimesh icosphere of radius 0.5 m at the origin (20·4^level faces)."""
+    import trimesh
+
+    return trimesh.creation.icosphere(subdivisions=level, radius=0.5)
+
+
+def sphere_rays(count: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(origins, directions) (count, 3) float32: rays from (0, −2, 0) through uniform points of
+    the disc of radius 0.6 m in the plane y = 0 (25/36 of them hit a sphere of radius 0.5)."""
+    rng = np.random.default_rng(seed)
+    radius = 0.6 * np.sqrt(rng.random(count))
+    angle = 2 * np.pi * rng.random(count)
+    target = np.stack([radius * np.cos(angle), np.zeros(count), radius * np.sin(angle)], -1)
+    origins = np.tile(np.array([0.0, -2.0, 0.0]), (count, 1))
+    dirs = target - origins
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    return origins.astype(np.float32), dirs.astype(np.float32)
+
+
+def _resident_cast(backend, handle, origins: np.ndarray, dirs: np.ndarray):
+    """A call that launches the cast kernel on rays already on the device and waits."""
+    n = origins.shape[0]
+    if backend.name == "warp":
+        import warp as wp
+
+        from ..backends.warp_backend import cast_rays_kernel
+
+        device = wp.get_device(backend.device)
+        org, dir_ = (wp.array(a, dtype=wp.vec3, device=device) for a in (origins, dirs))
+        distance, face = wp.empty(n, dtype=float, device=device), wp.empty(n, dtype=wp.int32, device=device)
+
+        def call():
+            wp.launch(cast_rays_kernel, dim=n, inputs=[handle.id, handle.points, handle.indices, org, dir_, 1.0e6],
+                      outputs=[distance, face], device=device)
+            wp.synchronize_device(device)
+        return call
+    import pyopencl as cl
+
+    from ..backends.opencl_backend import GROUP
+
+    org, dir_ = backend._input(origins), backend._input(dirs)
+    distance = cl.Buffer(backend.context, cl.mem_flags.WRITE_ONLY, size=4 * n)
+    face = cl.Buffer(backend.context, cl.mem_flags.WRITE_ONLY, size=4 * n)
+
+    def call():
+        with backend._lock:
+            backend._cast_kernel(backend.queue, (-(-n // GROUP) * GROUP,), None, handle.nodes, handle.children,
+                                 handle.triangles, handle.face_index, org, dir_, np.int32(n), np.float32(1.0e6),
+                                 distance, face)
+            backend.queue.finish()
+    return call
+
+
+def _ray_count(who) -> int:
+    return 1 << (22 if who.is_gpu else 18)
+
+
+def _triangle_points(levels: Sequence[int], rays: int) -> list[tuple]:
+    faces = [20 * 4**level for level in levels]
+    return [(level, f, rays * math.log2(f)) for level, f in zip(levels, faces)]
+
+
+def raycast(backend, levels: Sequence[int], *, profiles: dict, repeat: int = 3, budget: float = 20.0,
+            rays: int | None = None, progress: Progress | None = None) -> list[dict]:
+    """Ray casting on icospheres of 20·4^level triangles (``levels``), the same ray set at
+    every size: "end to end" (``Backend.cast_rays``) and "resident" (the kernel alone)."""
+    rays = rays or _ray_count(backend)
+    origins, dirs = sphere_rays(rays)
+    profile = profiles[profile_key(backend)]
+    link = profile.get("link_up_Bps") is not None
+    bases = {mode: record_base("raycast", "cast_rays", mode, backend, "triangles")
+             for mode in ("end to end", "resident")}
+
+    def run_point(level):
+        mesh = icosphere(level)
+        faces = len(mesh.faces)
+        handle = backend.load_mesh(mesh.vertices, mesh.faces)
+        distance, _ = backend.cast_rays(handle, origins, dirs)
+        hits = int(np.isfinite(distance).sum())
+        ops = _cast_ops(hits, rays - hits, faces)
+        moved = rays * (RAY_IN_BYTES + RAY_OUT_BYTES) + faces * TRIANGLE_BYTES
+        size = {"triangles": faces, "rays": rays, "hits": hits}
+        out = []
+        for mode, call in (("end to end", lambda: backend.cast_rays(handle, origins, dirs)),
+                           ("resident", _resident_cast(backend, handle, origins, dirs))):
+            timing = measure(call, repeat, budget=budget)
+            up, down = (rays * RAY_IN_BYTES, rays * RAY_OUT_BYTES) if link and mode == "end to end" else (0, 0)
+            out.append(timed_record(bases[mode], faces, timing, rays, "rays", size=size,
+                                    limit=physical_limit(profile, bytes_moved=moved, ops=ops, up=up, down=down)))
+            say(progress, out[-1])
+        return out
+
+    def skipped(level, projected):
+        return [skipped_record(b, 20 * 4**level, projected, budget) for b in bases.values()]
+
+    return sweep(_triangle_points(levels, rays), run_point, skipped, budget=budget)
+
+
+def embree_raycast(levels: Sequence[int], *, profiles: dict, repeat: int = 3, budget: float = 20.0,
+                   rays: int | None = None, progress: Progress | None = None) -> list[dict]:
+    """Embree (trimesh + embreex) on the ray sets of ``raycast`` on a CPU; one record per
+    level, or one "unavailable" record when embreex is missing."""
+    peer = EMBREE
+    base = record_base("raycast", "intersects_first (trimesh + embreex)", "end to end", peer, "triangles")
+    try:
+        from trimesh.ray.ray_pyembree import RayMeshIntersector
+    except ImportError as err:
+        return [unavailable_record(base, str(err))]
+    rays = rays or _ray_count(peer)
+    origins, dirs = sphere_rays(rays)
+    profile = profiles[profile_key(peer)]
+
+    def run_point(level):
+        mesh = icosphere(level)
+        faces = len(mesh.faces)
+        intersector = RayMeshIntersector(mesh)
+        hits = int((intersector.intersects_first(origins, dirs) >= 0).sum())
+        timing = measure(lambda: intersector.intersects_first(origins, dirs), repeat, budget=budget)
+        record = timed_record(base, faces, timing, rays, "rays", size={"triangles": faces, "rays": rays, "hits": hits},
+                              limit=physical_limit(profile, bytes_moved=rays * (RAY_IN_BYTES + RAY_OUT_BYTES)
+                                                   + faces * TRIANGLE_BYTES, ops=_cast_ops(hits, rays - hits, faces)))
+        say(progress, record)
+        return [record]
+
+    return sweep(_triangle_points(levels, rays), run_point,
+                 lambda level, p: [skipped_record(base, 20 * 4**level, p, budget)], budget=budget)
+
+
+# --- image synthesis ---------------------------------------------------------------------------
+def coral_batch(n_views: int):
+    """coral-one at its true depth and tilt, ``n_views`` views (its 16 poses repeated with
+    0.01 rad more roll per round): (sonar, mesh in the reference frame, rotations (N, 3, 3),
+    translations (N, 3), plane normals (N, 3), plane offsets (N,))."""
+    from ..rig import Rig, View, world_to_reference
+    from ..scenes import builtin_scene, target_world_mesh
+    from ..surface import surface_in_views
+
+    scene = builtin_scene("coral-one")
+    truth, base = scene.truth, scene.rig.views
+    views = tuple(View(f"v{k}", base[k % len(base)].position, base[k % len(base)].heading,
+                       base[k % len(base)].roll + 0.01 * (k // len(base))) for k in range(n_views))
+    rig = Rig(views)
+    mesh = target_world_mesh(scene.target)
+    mesh.vertices = world_to_reference(mesh.vertices, scene.rig, truth.depth, truth.tilt)
+    rot, t = rig.relative_poses(truth.depth, truth.tilt)
+    n, d = surface_in_views(rig, truth.depth, truth.tilt)
+    return scene.sonar, mesh, rot, t, n, d
+
+
+def render_ops(backend, sonar, mesh, rot, t, n, d, samples) -> np.ndarray:
+    """(N,) minimal operations of rendering each view (docs/benchmarks.md), from the measured
+    hits of its primary sub-rays."""
+    from ..backends import _beam_widths
+
+    kt, kp = samples
+    widths = _beam_widths(sonar).astype(np.float64)
+    i = (np.arange(kt) + 0.5) / kt - 0.5
+    j = (np.arange(kp) + 0.5) / kp
+    theta = (sonar.beam_centres[:, None] + i[None, :] * widths[:, None]).reshape(-1, 1)
+    phi = (-sonar.half_elevation + j * sonar.elevation_fov)[None, :]
+    theta, phi = np.broadcast_arrays(theta, phi)
+    u = np.stack([np.cos(phi) * np.sin(theta), np.cos(phi) * np.cos(theta), np.sin(phi)], -1).reshape(-1, 3)
+    handle = backend.load_mesh(mesh.vertices, mesh.faces)
+    per_ray = len(u)
+    depth = _tree_depth(len(mesh.faces))
+    ops = np.empty(len(rot))
+    for v in range(len(rot)):
+        r, _ = backend.cast_rays(handle, np.repeat(t[v:v + 1], per_ray, axis=0), u @ rot[v].T.astype(np.float64))
+        towards = u @ n[v]
+        s = np.where(towards > 0, d[v] / np.where(towards > 0, towards, 1.0), np.inf)
+        hit = r < s
+        surface_first = np.isfinite(s) & (s < r)
+        ops[v] = (per_ray * RAY_SETUP_OPS + hit.sum() * (depth * NODE_OPS + TRIANGLE_OPS + HIT_OPS + 2 * NODE_OPS)
+                  + (~hit).sum() * NODE_OPS + surface_first.sum() * NODE_OPS)
+    return ops
+
+
+def synthesis(backend, view_counts: Sequence[int], *, profiles: dict, repeat: int = 3, budget: float = 20.0,
+              samples: tuple[int, int] = (2, 64), progress: Progress | None = None) -> list[dict]:
+    """Image synthesis of N views in one launch (``view_counts``): "resident"
+    (``render_device``) and "end to end" (``render``, with the read-back of the layers)."""
+    sonar, mesh, rot, t, n, d = coral_batch(max(view_counts))
+    base_ops = render_ops(backend, sonar, mesh, rot[:16], t[:16], n[:16], d[:16], samples)
+    handle = backend.load_mesh(mesh.vertices, mesh.faces)
+    profile = profiles[profile_key(backend)]
+    link = profile.get("link_up_Bps") is not None
+    layer_bytes = 4 * sonar.bins * sonar.beams * 4
+    rays_per_view = sonar.beams * samples[0] * samples[1]
+    kernels = {"resident": ("render_device", backend.render_device), "end to end": ("render", backend.render)}
+    bases = {m: record_base("synthesis", k, m, backend, "views") for m, (k, _) in kernels.items()}
+
+    def run_point(views):
+        args = (handle, sonar, rot[:views], t[:views], n[:views], d[:views], samples)
+        ops = float(sum(base_ops[k % len(base_ops)] for k in range(views)))
+        out = []
+        for mode, (_, method) in kernels.items():
+            timing = measure(lambda: method(*args, gamma=1.0, surface_reflection=0.9), repeat,  # noqa: B023
+                             budget=budget)
+            down = views * layer_bytes if link and mode == "end to end" else 0
+            out.append(timed_record(bases[mode], views, timing, views, "views",
+                                    size={"views": views, "triangles": len(mesh.faces), "samples": list(samples),
+                                          "bins": sonar.bins, "beams": sonar.beams},
+                                    rates={"primary rays": views * rays_per_view},
+                                    limit=physical_limit(profile, bytes_moved=views * layer_bytes
+                                                         + len(mesh.faces) * TRIANGLE_BYTES, ops=ops, down=down)))
+            say(progress, out[-1])
+        return out
+
+    return sweep([(v, v, v) for v in view_counts], run_point,
+                 lambda v, p: [skipped_record(b, v, p, budget) for b in bases.values()], budget=budget)
+
+
+# --- carving -----------------------------------------------------------------------------------
+def carve_scene(backend):
+    """coral-one's 16 views at the true depth and tilt: (sonar, feasible masks (16, bins, beams)
+    bool from the noise-free object layer, rotations, translations, the target's centre (3,))."""
+    from ..rendering import RenderSettings, render
+    from ..rig import world_to_reference
+    from ..scenes import builtin_scene, target_world_mesh
+    from ..segment import from_highlight
+
+    manifest = builtin_scene("coral-one")
+    truth = manifest.truth
+    mesh = target_world_mesh(manifest.target)
+    mesh.vertices = world_to_reference(mesh.vertices, manifest.rig, truth.depth, truth.tilt)
+    views = render(mesh, manifest.sonar, manifest.rig, truth.depth, truth.tilt, settings=RenderSettings(),
+                   backend=backend)
+    masks = np.stack([from_highlight(stack[0] > 0).feasible for stack in views.values()])
+    rot, t = manifest.rig.relative_poses(truth.depth, truth.tilt)
+    return manifest.sonar, masks, rot, t, mesh.bounds.mean(axis=0)
+
+
+def carving_grid(centre, side: int) -> tuple[float, np.ndarray]:
+    """(voxel size h, origin (3,) float32) of the side³ grid of a 0.3 m cube centred at ``centre``."""
+    h = 0.3 / side
+    return h, (np.asarray(centre) - 0.15 + 0.5 * h).astype(np.float32)
+
+
+def _tests_per_voxel(backend, masks, rot, t, sonar, h, origin, side, sample=4096, seed=0) -> float:
+    """Mean number of views a voxel's loop tests (it ends at the first rejection), measured on
+    ``sample`` seeded voxels of the grid, one view at a time."""
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, side, size=(min(sample, side**3), 3))
+    centres = origin + np.float32(h) * idx.astype(np.float32)
+    rejected = np.stack([backend.carve(masks[v:v + 1], rot[v:v + 1], t[v:v + 1], sonar, h, centres=centres)[1]
+                         for v in range(len(rot))])
+    first = np.where(rejected.any(axis=0), rejected.argmax(axis=0) + 1, len(rot))
+    return float(first.mean())
+
+
+def _resident_carve(backend, masks, rot, t, sonar, h, origin, side):
+    """A call that launches the carve-grid kernel on tables already on the device and waits."""
+    from ..backends import SonarConstants
+
+    consts = SonarConstants.of(sonar)
+    integral = np.zeros((len(rot), sonar.bins + 1, sonar.beams + 1), np.int32)
+    np.cumsum(np.cumsum(masks != 0, axis=1, dtype=np.int32), axis=2, out=integral[:, 1:, 1:])
+    rot32, t32 = np.ascontiguousarray(rot, np.float32), np.ascontiguousarray(t, np.float32)
+    radius = float(np.float32(h * np.sqrt(3.0) / 2.0))
+    h32 = float(np.float32(h))
+    n = side**3
+    scalars = (consts.use_table, consts.beams, consts.bins, consts.half_azimuth, consts.beam_scale,
+               consts.range_min, consts.inv_range_step, consts.half_elevation, radius)
+    if backend.name == "warp":
+        import warp as wp
+
+        from ..backends.warp_backend import carve_grid
+
+        device = wp.get_device(backend.device)
+        arrays = [wp.array(rot32, dtype=wp.mat33, device=device), wp.array(t32, dtype=wp.vec3, device=device),
+                  wp.array(integral, dtype=wp.int32, device=device),
+                  wp.array(consts.beam_table, dtype=float, device=device)]
+        seen, rejected = (wp.empty(n, dtype=wp.uint8, device=device) for _ in range(2))
+
+        def call():
+            wp.launch(carve_grid, dim=n, inputs=[wp.vec3(*(float(x) for x in origin)), h32, side, side, *arrays,
+                                                 *scalars], outputs=[seen, rejected], device=device)
+            wp.synchronize_device(device)
+        return call
+    import pyopencl as cl
+
+    from ..backends.opencl_backend import GROUP
+
+    inputs = [backend._input(a) for a in (np.ascontiguousarray(origin, np.float32), rot32, t32, integral,
+                                          consts.beam_table)]
+    seen, rejected = (cl.Buffer(backend.context, cl.mem_flags.WRITE_ONLY, size=n) for _ in range(2))
+    types = (np.int32, np.int32, np.int32, np.float32, np.float32, np.float32, np.float32, np.float32, np.float32)
+
+    def call():
+        with backend._lock:
+            backend._carve_grid_kernel(backend.queue, (-(-n // GROUP) * GROUP,), None, inputs[0], np.float32(h32),
+                                       *(np.int32(side) for _ in range(3)), np.int32(n), inputs[1], inputs[2],
+                                       inputs[3], np.int32(len(rot)), inputs[4],
+                                       *(ty(v) for ty, v in zip(types, scalars)), seen, rejected)
+            backend.queue.finish()
+    return call
+
+
+def _carve_limit(profile, sonar, views, side, tests, *, end_to_end: bool) -> dict:
+    tables = views * (sonar.bins + 1) * (sonar.beams + 1) * 4
+    link = profile.get("link_up_Bps") is not None and end_to_end
+    return physical_limit(profile, bytes_moved=2 * side**3 + tables, ops=side**3 * tests * CARVE_OPS,
+                          up=tables if link else 0, down=2 * side**3 if link else 0)
+
+
+def carving(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3, budget: float = 20.0,
+            scene=None, progress: Progress | None = None) -> list[dict]:
+    """One carve launch over side³ voxels × 16 views (``sides``): "end to end"
+    (``Backend.carve``) and "resident" (the kernel alone)."""
+    sonar, masks, rot, t, centre = scene or carve_scene(backend)
+    views = len(rot)
+    profile = profiles[profile_key(backend)]
+    bases = {m: record_base("carving", "carve", m, backend, "voxels") for m in ("end to end", "resident")}
+
+    def run_point(side):
+        h, origin = carving_grid(centre, side)
+        tests = _tests_per_voxel(backend, masks, rot, t, sonar, h, origin, side)
+        calls = {"end to end": lambda: backend.carve(masks, rot, t, sonar, h, origin=origin, shape=(side,) * 3),
+                 "resident": _resident_carve(backend, masks, rot, t, sonar, h, origin, side)}
+        out = []
+        for mode, call in calls.items():
+            timing = measure(call, repeat, budget=budget)
+            out.append(timed_record(bases[mode], side**3, timing, side**3 * views, "voxel-views",
+                                    size={"voxels": side**3, "side": side, "views": views, "tests_per_voxel": tests},
+                                    limit=_carve_limit(profile, sonar, views, side, tests,
+                                                       end_to_end=mode == "end to end")))
+            say(progress, out[-1])
+        return out
+
+    return sweep([(s, s**3, s**3) for s in sides], run_point,
+                 lambda s, p: [skipped_record(b, s**3, p, budget) for b in bases.values()], budget=budget)
+
+
+def numpy_carving(sides: Sequence[int], *, profiles: dict, scene, repeat: int = 3, budget: float = 20.0,
+                  progress: Progress | None = None) -> list[dict]:
+    """``fsswarp.carving.carve_reference`` (NumPy, float64) on the grids of ``carving``."""
+    from ..carving import carve_reference
+
+    peer = NUMPY
+    sonar, masks, rot, t, centre = scene
+    views = len(rot)
+    base = record_base("carving", "carve_reference (float64)", "end to end", peer, "voxels")
+    profile = profiles[profile_key(peer)]
+
+    def run_point(side):
+        h, origin = carving_grid(centre, side)
+        seen, rejected = carve_reference(masks, rot, t, sonar, h, origin=origin, shape=(side,) * 3)
+        timing = measure(lambda: carve_reference(masks, rot, t, sonar, h, origin=origin, shape=(side,) * 3), repeat,
+                         budget=budget)
+        # the reference also stops at the first rejection: its tests per voxel come from its own result
+        tests = float(np.where(rejected > 0, np.minimum(seen, views), views).mean())
+        record = timed_record(base, side**3, timing, side**3 * views, "voxel-views",
+                              size={"voxels": side**3, "side": side, "views": views, "tests_per_voxel": tests},
+                              limit=_carve_limit(profile, sonar, views, side, tests, end_to_end=False))
+        say(progress, record)
+        return [record]
+
+    return sweep([(s, s**3, s**3) for s in sides], run_point,
+                 lambda s, p: [skipped_record(base, s**3, p, budget)], budget=budget)
+
+
+def carve_array_module(xp, masks, rot, t, sonar, h: float, origin, side: int, chunk: int = 1 << 22):
+    """Point carving with an array module (NumPy or CuPy): every voxel centre projected into
+    every view, its nearest pixel looked up in the mask. Returns (side³,) bool, kept by every
+    view that sees the centre. A plain-array baseline, not the kernels' bounding-sphere rule."""
+    masks = xp.asarray(masks)
+    rot, t = xp.asarray(rot, dtype=xp.float32), xp.asarray(t, dtype=xp.float32)
+    ox, oy, oz = (float(v) for v in origin)
+    centres_axis = xp.arange(side, dtype=xp.float32) * xp.float32(h)
+    keep = xp.ones(side**3, dtype=bool)
+    scale = xp.float32((sonar.beams - 1) / sonar.azimuth_fov)
+    for start in range(0, side**3, chunk):
+        p = xp.arange(start, min(start + chunk, side**3))
+        pts = xp.stack([ox + centres_axis[p // (side * side)], oy + centres_axis[(p // side) % side],
+                        oz + centres_axis[p % side]], -1)
+        for v in range(rot.shape[0]):
+            q = (pts - t[v]) @ rot[v]
+            r = xp.sqrt((q * q).sum(axis=1))
+            beam = xp.floor((xp.arctan2(q[:, 0], q[:, 1]) + xp.float32(sonar.half_azimuth)) * scale + 0.5)
+            row = xp.floor((r - xp.float32(sonar.range_min)) / xp.float32(sonar.range_step) + 0.5)
+            inside = ((beam >= 0) & (beam < sonar.beams) & (row >= 0) & (row < sonar.bins)
+                      & (xp.abs(xp.arcsin(q[:, 2] / xp.maximum(r, 1e-12))) <= sonar.half_elevation))
+            hit = masks[v, xp.clip(row, 0, sonar.bins - 1).astype(xp.int32),
+                        xp.clip(beam, 0, sonar.beams - 1).astype(xp.int32)]
+            keep[start:start + len(p)] &= ~inside | hit
+    return keep
+
+
+def array_carving(sides: Sequence[int], *, profiles: dict, scene, repeat: int = 3, budget: float = 20.0,
+                  progress: Progress | None = None) -> list[dict]:
+    """CuPy point carving (``carve_array_module``) on the grids of ``carving``, on the current
+    CUDA device; one "unavailable" record without CuPy or a GPU."""
+    peer = CUPY
+    base = record_base("carving", "point projection (CuPy)", "resident", peer, "voxels")
+    try:
+        import cupy
+
+        cupy.cuda.runtime.getDeviceCount()
+    except Exception as err:  # noqa: BLE001 - ImportError or no CUDA device
+        return [unavailable_record(base, " ".join(str(err).split()))]
+    sonar, masks, rot, t, centre = scene
+    views = len(rot)
+    profile = profiles[profile_key(peer)]
+
+    def run_point(side):
+        h, origin = carving_grid(centre, side)
+
+        def call():
+            carve_array_module(cupy, masks, rot, t, sonar, h, origin, side)
+            cupy.cuda.runtime.deviceSynchronize()
+
+        timing = measure(call, repeat, budget=budget)
+        record = timed_record(base, side**3, timing, side**3 * views, "voxel-views",
+                              size={"voxels": side**3, "side": side, "views": views, "tests_per_voxel": views},
+                              limit=_carve_limit(profile, sonar, views, side, views, end_to_end=False))
+        say(progress, record)
+        return [record]
+
+    return sweep([(s, s**3, s**3) for s in sides], run_point,
+                 lambda s, p: [skipped_record(base, s**3, p, budget)], budget=budget)
+
+
+# --- pose grid ---------------------------------------------------------------------------------
+def pose_grid(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3, budget: float = 20.0,
+              launch_bytes: int | None = None, progress: Progress | None = None) -> list[dict]:
+    """The (D, β) grid surrogate over side² cells × 16 views (``sides``): "end to end"
+    (``PoseProblem.surrogate``: render + contour cost per launch, costs read back) and
+    "resident" (``Backend.contour_cost`` alone on layers already rendered, where they fit in
+    one launch of ``launch_bytes``: default 16 GiB on a GPU, 2 GiB on a CPU)."""
+    import dataclasses
+
+    import trimesh
+
+    from ..dataset import Dataset
+    from ..pose import PoseProblem, PoseSettings
+    from ..rig import Rig
+    from ..simulation import simulate
+
+    launch_bytes = launch_bytes or (16 << 30 if backend.is_gpu else 2 << 30)
+    profile = profiles[profile_key(backend)]
+    link = profile.get("link_up_Bps") is not None
+    bases = {"end to end": record_base("pose", "surrogate (render + contour cost)", "end to end", backend, "cells"),
+             "resident": record_base("pose", "contour_cost", "resident", backend, "cells")}
+    with tempfile.TemporaryDirectory() as folder:
+        dataset = simulate("coral-one", f"{folder}/coral-one", seed=1, backend=backend)
+        rig = dataset.rig
+        every = Rig(tuple(dataclasses.replace(v, optimize=True) for v in rig.views), rig.reference)
+        dataset = Dataset(dataclasses.replace(dataset.manifest, rig=every), dataset.images, dataset.root)
+        model = trimesh.load(dataset.truth_model_path, process=False)
+        truth = dataset.manifest.truth
+        problem = PoseProblem(model, dataset, truth.depth, truth.tilt,
+                              settings=PoseSettings(launch_bytes=launch_bytes), backend=backend)
+    data, sonar, settings = problem.data, problem.sonar, problem.settings
+    views = len(data.views)
+    rot, t, n, d = problem.view_poses(data.views, np.array([truth.depth]), np.array([truth.tilt]))
+    per_pair = render_ops(backend, sonar, model, rot.reshape(-1, 3, 3), t.reshape(-1, 3), n.reshape(-1, 3),
+                          d.reshape(-1), settings.samples)
+    pixels = 4 * sonar.bins * sonar.beams
+    distance_bytes = data.distances.nbytes
+    mesh_bytes = len(model.faces) * TRIANGLE_BYTES
+
+    def cells(side):
+        return np.meshgrid(truth.depth + np.linspace(-0.05, 0.05, side),
+                           truth.tilt + np.radians(np.linspace(-2.0, 2.0, side)), indexing="ij")
+
+    def run_point(side):
+        depths, tilts = cells(side)
+        pairs = side * side * views
+        shifts = [problem.shift] if problem.shift is not None else problem.shifts
+        cost_bytes = pairs * 2 * len(shifts) * 4
+        size = {"cells": side * side, "side": side, "views": views, "pairs": pairs}
+        timing = measure(lambda: problem.surrogate(depths, tilts), repeat, budget=budget)
+        out = [timed_record(bases["end to end"], side * side, timing, pairs, "cell-views", size=size,
+                            limit=physical_limit(profile, bytes_moved=distance_bytes + mesh_bytes + cost_bytes,
+                                                 ops=side * side * float(per_pair.sum()) + pairs * pixels * CONTOUR_OPS,
+                                                 up=distance_bytes if link else 0, down=cost_bytes if link else 0))]
+        say(progress, out[-1])
+        if pairs * 8 * pixels > launch_bytes:
+            out.append(skipped_record(bases["resident"], side * side, 0.0, budget,
+                                      reason=f"layers of {pairs} pairs exceed one launch ({launch_bytes >> 20} MB)"))
+            return out
+        layers = problem.render_pairs(data.views, depths.ravel(), tilts.ravel(), settings.samples)
+        index = np.tile(np.arange(views), side * side)
+        capped = np.minimum(data.distances, np.float32(settings.cap))
+        timing = measure(lambda: backend.contour_cost(layers, index, data.threshold, data.windows, data.masks,
+                                                      capped, shifts, problem.smoothing), repeat, budget=budget)
+        out.append(timed_record(bases["resident"], side * side, timing, pairs, "cell-views", size=size,
+                                limit=physical_limit(profile, bytes_moved=pairs * pixels * 4 + distance_bytes
+                                                     + cost_bytes, ops=pairs * pixels * CONTOUR_OPS)))
+        say(progress, out[-1])
+        return out
+
+    return sweep([(s, s * s, s * s) for s in sides], run_point,
+                 lambda s, p: [skipped_record(b, s * s, p, budget) for b in bases.values()], budget=budget)
+
+
+# --- end-to-end reconstruction -----------------------------------------------------------------
+def reconstruction(backend, settings: Sequence[tuple[int, int]], *, profiles: dict, repeat: int = 3,
+                   budget: float = 20.0, progress: Progress | None = None) -> list[dict]:
+    """``reconstruct`` of simulated coral-one for each (iterations, resolution) in ``settings``,
+    no warm-up; repeats stop at the budget (at least one run)."""
+    from ..reconstruction import ReconstructSettings
+    from ..reconstruction import reconstruct as run
+    from ..simulation import simulate
+
+    profile = profiles[profile_key(backend)]
+    base = record_base("reconstruction", "reconstruct", "end to end", backend, "iterations")
+    out = []
+    with tempfile.TemporaryDirectory() as folder:
+        dataset = simulate("coral-one", f"{folder}/coral-one", seed=0, backend=backend)
+        sonar = dataset.sonar
+        views = len(dataset.images)
+        scene = coral_batch(views)
+        ops = float(render_ops(backend, *scene, (2, 64)).sum()) + 96**3 * CARVE_OPS
+        image_bytes = views * sonar.bins * sonar.beams * 4
+        for iterations, resolution in settings:
+            chosen = ReconstructSettings(iterations=iterations, resolution=resolution)
+            timing = measure(lambda: run(dataset, settings=chosen, backend=backend), repeat,  # noqa: B023
+                             warmup=0, budget=budget)
+            out.append(timed_record(base, iterations, timing, views, "views",
+                                    size={"iterations": iterations, "resolution": resolution, "views": views},
+                                    limit=physical_limit(profile, bytes_moved=image_bytes, ops=ops)))
+            say(progress, out[-1])
+    return out
+
+
+# --- the suite ---------------------------------------------------------------------------------
+def check_options(families: Sequence[str], budget: float) -> None:
+    """InputError naming ``--families`` or ``--budget`` when one is bad."""
+    unknown = [f for f in families if f not in FAMILIES]
+    if unknown or not families:
+        raise InputError(f"unknown family; choose from {', '.join(FAMILIES)}", field="--families",
+                         value=",".join(unknown))
+    if not (math.isfinite(budget) and budget > 0):
+        raise InputError("must be a number of seconds > 0", field="--budget", value=budget)
+
+
+def run_suite(backends: Sequence, families: Sequence[str] = FAMILIES, *, quick: bool = False, budget: float = 20.0,
+              repeat: int = 3, peers: bool = True, command: str = "", progress: Progress | None = None) -> dict:
+    """Run ``families`` on ``backends`` (and the peers) and return the run:
+    {schema, date, command, quick, budget_s, repeat, machine, records}."""
+    check_options(families, budget)
+    sizes = QUICK_SIZES if quick else FULL_SIZES
+    echo = progress or (lambda line: None)
+    want_cupy = peers and "carving" in families and any(b.is_gpu for b in backends) and _has_cupy()
+    participants = list(backends) + ([EMBREE, NUMPY] if peers else []) + ([CUPY] if want_cupy else [])
+    echo("measuring memory bandwidths")
+    machine = probe_machine(participants, quick=quick)
+    profiles = machine["profiles"]
+    records: list[dict] = []
+    common = dict(profiles=profiles, repeat=repeat, budget=budget, progress=echo)
+    for family in families:
+        echo(f"{family}:")
+        scene = None
+        for backend in backends:
+            if family == "raycast":
+                records += raycast(backend, sizes["raycast"], **common)
+            elif family == "synthesis":
+                records += synthesis(backend, sizes["synthesis"], **common)
+            elif family == "carving":
+                scene = scene or carve_scene(backend)
+                records += carving(backend, sizes["carving"], scene=scene, **common)
+            elif family == "pose":
+                records += pose_grid(backend, sizes["pose"], **common)
+            else:
+                records += reconstruction(backend, sizes["reconstruction"], **common)
+        if peers and family == "raycast":
+            records += embree_raycast(sizes["raycast"], **common)
+        if peers and family == "carving":
+            scene = scene or carve_scene(backends[0])
+            records += numpy_carving(sizes["carving"][:2], scene=scene, **common)
+            if any(b.is_gpu for b in backends):  # an "unavailable" record when CuPy is missing
+                records += array_carving(sizes["carving"], scene=scene, **common)
+    return {"schema": 1, "date": time.strftime("%Y-%m-%d %H:%M:%S %z"), "command": command, "quick": quick,
+            "budget_s": budget, "repeat": repeat, "machine": machine, "records": records}
+
+
+def _has_cupy() -> bool:
+    try:
+        import cupy
+
+        return cupy.cuda.runtime.getDeviceCount() > 0
+    except Exception:  # noqa: BLE001 - ImportError or no CUDA device
+        return False
+
