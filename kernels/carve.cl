@@ -24,8 +24,7 @@
  *   integral      (V, bins + 1, beams + 1) int  summed-area table of the feasible masks:
  *                 element [v][B][b] = number of feasible pixels in rows < B, columns < b
  *   n_views       V
- *   beam_table, use_table, beams, bins, half_azimuth, beam_scale, range_min, inv_range_step,
- *   half_elevation: the sonar, as in project.cl
+ *   beam_table, sonar: the sonar, as in project.cl
  *   radius        r = h·√3/2 (m), rounded once on the host
  *   seen_out      (P,) uchar  number of views that see the voxel, counted in view order up to
  *                 and including the first view that rejects it (every view when none does)
@@ -39,8 +38,7 @@
 /* 0: view does not see the voxel (wholly); 1: sees and keeps it; 2: sees and rejects it. */
 int fss_carve_test(float3 c, __global const float *rot, __global const float *trans,
                    __global const int *integral, __global const float *beam_table,
-                   int use_table, int beams, int bins, float half_azimuth, float beam_scale,
-                   float range_min, float inv_range_step, float half_elevation, float radius)
+                   fss_sonar sonar, float radius)
 {
     const float3 q = fss_to_view(c, rot, trans);
     const float rho = sqrt(q.x * q.x + q.y * q.y);
@@ -50,18 +48,16 @@ int fss_carve_test(float3 c, __global const float *rot, __global const float *tr
     const float phi = fss_elevation(q);
     const float r = fss_range(q);
     const float d_phi = asin(radius / r);
-    if (!(fabs(phi) + d_phi <= half_elevation))
+    if (!(fabs(phi) + d_phi <= sonar.half_elevation))
         return 0;
     const float d_theta = asin(radius / rho);
-    const int b_lo = fss_nearest_index(fss_beam_coordinate(theta - d_theta, use_table, beam_table,
-                                                           beams, half_azimuth, beam_scale));
-    const int b_hi = fss_nearest_index(fss_beam_coordinate(theta + d_theta, use_table, beam_table,
-                                                           beams, half_azimuth, beam_scale));
-    const int B_lo = fss_nearest_index(fss_bin_coordinate(r - radius, range_min, inv_range_step));
-    const int B_hi = fss_nearest_index(fss_bin_coordinate(r + radius, range_min, inv_range_step));
-    if (b_lo < 0 || b_hi >= beams || B_lo < 0 || B_hi >= bins)
+    const int b_lo = fss_nearest_index(fss_beam_coordinate(theta - d_theta, sonar, beam_table));
+    const int b_hi = fss_nearest_index(fss_beam_coordinate(theta + d_theta, sonar, beam_table));
+    const int B_lo = fss_nearest_index(fss_bin_coordinate(r - radius, sonar));
+    const int B_hi = fss_nearest_index(fss_bin_coordinate(r + radius, sonar));
+    if (b_lo < 0 || b_hi >= sonar.beams || B_lo < 0 || B_hi >= sonar.bins)
         return 0;
-    const int row = beams + 1;
+    const int row = sonar.beams + 1;
     const int count = integral[(B_hi + 1) * row + b_hi + 1] - integral[B_lo * row + b_hi + 1]
                       - integral[(B_hi + 1) * row + b_lo] + integral[B_lo * row + b_lo];
     return count == 0 ? 2 : 1;
@@ -69,19 +65,15 @@ int fss_carve_test(float3 c, __global const float *rot, __global const float *tr
 
 void fss_carve_voxel(float3 c, int p, __global const float *rotations,
                      __global const float *translations, __global const int *integral,
-                     int n_views, __global const float *beam_table, int use_table, int beams,
-                     int bins, float half_azimuth, float beam_scale, float range_min,
-                     float inv_range_step, float half_elevation, float radius,
+                     int n_views, __global const float *beam_table, fss_sonar sonar, float radius,
                      __global uchar *seen_out, __global uchar *rejected_out)
 {
-    const size_t plane = (size_t)(bins + 1) * (size_t)(beams + 1);
+    const size_t plane = (size_t)(sonar.bins + 1) * (size_t)(sonar.beams + 1);
     int seen = 0;
     int rejected = 0;
     for (int v = 0; v < n_views; ++v) {
         const int test = fss_carve_test(c, rotations + 9 * v, translations + 3 * v,
-                                        integral + plane * (size_t)v, beam_table, use_table,
-                                        beams, bins, half_azimuth, beam_scale, range_min,
-                                        inv_range_step, half_elevation, radius);
+                                        integral + plane * (size_t)v, beam_table, sonar, radius);
         seen += test > 0;
         if (test == 2) {
             rejected = 1;
@@ -103,14 +95,7 @@ __kernel void carve_grid(__global const float *origin,
                          __global const int *integral,
                          const int n_views,
                          __global const float *beam_table,
-                         const int use_table,
-                         const int beams,
-                         const int bins,
-                         const float half_azimuth,
-                         const float beam_scale,
-                         const float range_min,
-                         const float inv_range_step,
-                         const float half_elevation,
+                         const fss_sonar sonar,
                          const float radius,
                          __global uchar *seen_out,
                          __global uchar *rejected_out)
@@ -123,9 +108,8 @@ __kernel void carve_grid(__global const float *origin,
     const int i = p / (nz * ny);
     const float3 c = (float3)(origin[0] + voxel_size * (float)i, origin[1] + voxel_size * (float)j,
                               origin[2] + voxel_size * (float)k);
-    fss_carve_voxel(c, p, rotations, translations, integral, n_views, beam_table, use_table,
-                    beams, bins, half_azimuth, beam_scale, range_min, inv_range_step,
-                    half_elevation, radius, seen_out, rejected_out);
+    fss_carve_voxel(c, p, rotations, translations, integral, n_views, beam_table, sonar, radius,
+                    seen_out, rejected_out);
 }
 
 __kernel void carve_points(__global const float *centres,
@@ -135,14 +119,7 @@ __kernel void carve_points(__global const float *centres,
                            __global const int *integral,
                            const int n_views,
                            __global const float *beam_table,
-                           const int use_table,
-                           const int beams,
-                           const int bins,
-                           const float half_azimuth,
-                           const float beam_scale,
-                           const float range_min,
-                           const float inv_range_step,
-                           const float half_elevation,
+                           const fss_sonar sonar,
                            const float radius,
                            __global uchar *seen_out,
                            __global uchar *rejected_out)
@@ -151,6 +128,5 @@ __kernel void carve_points(__global const float *centres,
     if (p >= n_voxels)
         return;
     fss_carve_voxel(vload3(p, centres), p, rotations, translations, integral, n_views, beam_table,
-                    use_table, beams, bins, half_azimuth, beam_scale, range_min, inv_range_step,
-                    half_elevation, radius, seen_out, rejected_out);
+                    sonar, radius, seen_out, rejected_out);
 }

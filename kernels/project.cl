@@ -11,12 +11,8 @@
  *   translations  (V, 3) float   t_v (m)
  *   beam_table    (2, beams) float  beam centres (rad) and inverse spacings (1/rad) when
  *                                use_table != 0 (see sonar.h), else a two-element dummy
- *   use_table     0: linear beams, else the angle table
+ *   sonar         the sonar's scalars (fss_sonar, sonar.h)
  *   n_points      P
- *   beams, bins   image columns and rows
- *   half_azimuth  W_θ (rad); beam_scale = (beams − 1) / (2 W_θ)   (linear beams only)
- *   range_min     R_min (m); inv_range_step = 1 / δR (1/m)
- *   half_elevation  W_φ (rad)
  *   beam_out, bin_out  (V, P) int    nearest beam and bin (clamped to ±2^30)
  *   inside_out    (V, P) uchar  1 when inside the image and the elevation aperture, else 0
  *
@@ -30,15 +26,8 @@ __kernel void project_points(__global const float *points,
                              __global const float *rotations,
                              __global const float *translations,
                              __global const float *beam_table,
-                             const int use_table,
+                             const fss_sonar sonar,
                              const int n_points,
-                             const int beams,
-                             const int bins,
-                             const float half_azimuth,
-                             const float beam_scale,
-                             const float range_min,
-                             const float inv_range_step,
-                             const float half_elevation,
                              __global int *beam_out,
                              __global int *bin_out,
                              __global uchar *inside_out)
@@ -54,9 +43,10 @@ __kernel void project_points(__global const float *points,
     const float r = fss_range(q);
 
     const int b = fss_nearest_index(
-        fss_beam_coordinate(theta, use_table, beam_table, beams, half_azimuth, beam_scale));
-    const int B = fss_nearest_index(fss_bin_coordinate(r, range_min, inv_range_step));
-    const int inside = b >= 0 && b < beams && B >= 0 && B < bins && fabs(phi) <= half_elevation;
+        fss_beam_coordinate(theta, sonar, beam_table));
+    const int B = fss_nearest_index(fss_bin_coordinate(r, sonar));
+    const int inside = b >= 0 && b < sonar.beams && B >= 0 && B < sonar.bins
+                       && fabs(phi) <= sonar.half_elevation;
 
     const size_t o = (size_t)v * (size_t)n_points + (size_t)p;
     beam_out[o] = b;

@@ -11,8 +11,7 @@
  *   plane_offsets (N,) float       d_v > 0: the surface n·P = d (view frame)
  *   beam_centres  (beams,) float   θ_b (rad)
  *   beam_widths   (beams,) float   Δθ_b (rad)
- *   beam_table, use_table, half_azimuth, beam_scale: the beam coordinate (sonar.h)
- *   beams, range_min, inv_range_step, half_elevation: the image (sonar.h)
+ *   beam_table, sonar: the beam coordinate and the image (fss_sonar, sonar.h)
  *   k_theta, k_phi   sub-rays per beam; weight = 1 / (k_theta k_phi) (float32)
  *   gamma, surface_reflection   γ and r_s
  *   epsilon       ε (m) of the leg tests, max_distance: the longest ray
@@ -35,22 +34,16 @@
 #error "build with -DFSS_FIXED=... (fsswarp.backends.constants.opencl_defines)"
 #endif
 
-typedef struct {
-    __global const float *beam_table;
-    int use_table, beams, bins;
-    float half_azimuth, beam_scale, range_min, inv_range_step;
-} fss_image;
-
 /* Add the return at (range, beam) to view v's band: first image row `first`, R = rows. */
 void fss_deposit(__global int *acc, int v, int layer, int beam, float range, float amplitude,
-                 float weight, int beams, int first, int rows, float range_min, float inv_range_step)
+                 float weight, fss_sonar sonar, int first, int rows)
 {
-    const int bin = fss_nearest_index(fss_bin_coordinate(range, range_min, inv_range_step)) - first;
-    if (beam < 0 || beam >= beams || bin < 0 || bin >= rows)
+    const int bin = fss_nearest_index(fss_bin_coordinate(range, sonar)) - first;
+    if (beam < 0 || beam >= sonar.beams || bin < 0 || bin >= rows)
         return;
     const int value = (int)(amplitude * weight * FSS_FIXED + 0.5f);
     if (value != 0)
-        atomic_add(acc + ((v * 4 + layer) * rows + bin) * beams + beam, value);
+        atomic_add(acc + ((v * 4 + layer) * rows + bin) * sonar.beams + beam, value);
 }
 
 /* R q (view-frame direction to reference frame). */
@@ -88,13 +81,7 @@ __kernel void render_views(__global const float4 *nodes,
                            __global const float *beam_centres,
                            __global const float *beam_widths,
                            __global const float *beam_table,
-                           const int use_table,
-                           const int beams,
-                           const float half_azimuth,
-                           const float beam_scale,
-                           const float range_min,
-                           const float inv_range_step,
-                           const float half_elevation,
+                           const fss_sonar sonar,
                            const int k_theta,
                            const int k_phi,
                            const float weight,
@@ -121,7 +108,7 @@ __kernel void render_views(__global const float4 *nodes,
 
     /* 1. sub-ray */
     const float theta = beam_centres[b] + (((float)i + 0.5f) / (float)k_theta - 0.5f) * beam_widths[b];
-    const float phi = -half_elevation + ((float)j + 0.5f) / (float)k_phi * (2.0f * half_elevation);
+    const float phi = -sonar.half_elevation + ((float)j + 0.5f) / (float)k_phi * (2.0f * sonar.half_elevation);
     const float cp = cos(phi);
     const float3 u = (float3)(cp * sin(theta), cp * cos(theta), sin(phi));
     const float3 u_ref = fss_rotate(rot, u);
@@ -141,7 +128,7 @@ __kernel void render_views(__global const float4 *nodes,
             un = -un;
         }
         const float c = -un;
-        fss_deposit(acc, v, 0, b, r, pow(c, gamma), weight, beams, first, rows, range_min, inv_range_step);
+        fss_deposit(acc, v, 0, b, r, pow(c, gamma), weight, sonar, first, rows);
 
         const float3 P = r * u;
         const float3 O2 = (2.0f * d) * n;
@@ -152,11 +139,10 @@ __kernel void render_views(__global const float4 *nodes,
         const float3 Q = O2 + lambda * PO;
         if (!(Q.y > 0.0f))
             return;
-        const float bq = fss_beam_coordinate(fss_azimuth(Q), use_table, beam_table, beams,
-                                             half_azimuth, beam_scale);
-        if (!(bq >= -0.5f && bq < (float)beams - 0.5f))
+        const float bq = fss_beam_coordinate(fss_azimuth(Q), sonar, beam_table);
+        if (!(bq >= -0.5f && bq < (float)sonar.beams - 0.5f))
             return;
-        if (!(fabs(fss_elevation(Q)) <= half_elevation))
+        if (!(fabs(fss_elevation(Q)) <= sonar.half_elevation))
             return;
         /* leg O -> Q clear */
         const float qlen = fss_range(Q);
@@ -179,12 +165,10 @@ __kernel void render_views(__global const float4 *nodes,
             return;
         const float a_s = surface_reflection * pow(c * c_in, 0.5f * gamma);
         const float R_s = (r + q) * 0.5f;
-        fss_deposit(acc, v, 1, b, R_s, a_s, weight, beams, first, rows, range_min, inv_range_step);
+        fss_deposit(acc, v, 1, b, R_s, a_s, weight, sonar, first, rows);
         const float3 Pm = P - (2.0f * (nP - d)) * n;
-        const int bm = fss_nearest_index(fss_beam_coordinate(fss_azimuth(Pm), use_table,
-                                                             beam_table, beams, half_azimuth,
-                                                             beam_scale));
-        fss_deposit(acc, v, 2, bm, R_s, a_s, weight, beams, first, rows, range_min, inv_range_step);
+        const int bm = fss_nearest_index(fss_beam_coordinate(fss_azimuth(Pm), sonar, beam_table));
+        fss_deposit(acc, v, 2, bm, R_s, a_s, weight, sonar, first, rows);
     } else if (s_surf < r && s_surf < INFINITY) {
         /* 4. surface first: mirror2 */
         const float3 Q = s_surf * u;
@@ -198,7 +182,7 @@ __kernel void render_views(__global const float4 *nodes,
             return;
         const float c2 = fabs(fss_dot(u2_ref, fss_tri_normal(tris, tri2)));
         fss_deposit(acc, v, 3, b, s_surf + r2, surface_reflection * surface_reflection * pow(c2, gamma),
-                    weight, beams, first, rows, range_min, inv_range_step);
+                    weight, sonar, first, rows);
     }
 }
 
@@ -226,8 +210,7 @@ __kernel void frontal_rays(__global const float4 *nodes,
                            const int n_items,
                            const int rays,
                            const int mirror,
-                           const float half_azimuth,
-                           const float half_elevation,
+                           const fss_sonar sonar,
                            const float epsilon,
                            const float visible,
                            const float max_distance,
@@ -245,7 +228,7 @@ __kernel void frontal_rays(__global const float4 *nodes,
     const float3 n = vload3(v, plane_normals);
     const float d = plane_offsets[v];
     const float theta = azimuths[i];
-    const float phi = -half_elevation + ((float)j + 0.5f) / (float)rays * (2.0f * half_elevation);
+    const float phi = -sonar.half_elevation + ((float)j + 0.5f) / (float)rays * (2.0f * sonar.half_elevation);
     const float cp = cos(phi);
     const float3 u = (float3)(cp * sin(theta), cp * cos(theta), sin(phi));
     const float up = fss_dot(u, n);
@@ -271,7 +254,7 @@ __kernel void frontal_rays(__global const float4 *nodes,
             int blocker;
             const float back = fss_bvh_intersect(nodes, children, tris, t, fss_rotate(rot, p / length), 0.0f,
                                                  max_distance, &blocker);
-            if (fabs(fss_elevation(p)) <= half_elevation && fabs(fss_azimuth(p)) <= half_azimuth
+            if (fabs(fss_elevation(p)) <= sonar.half_elevation && fabs(fss_azimuth(p)) <= sonar.half_azimuth
                 && back >= length - visible) {
                 range = 0.5f * (length + s + r2);
                 found = leg;

@@ -24,6 +24,25 @@
 #error "build with -DFSS_INDEX_LIMIT=... (fsswarp.backends.constants.opencl_defines)"
 #endif
 
+/* The scalars of one sonar, one kernel argument (fsswarp.backends.base.SonarConstants; the
+ * host's numpy dtype SONAR_DTYPE and the Warp struct KernelSonar list the same fields in the
+ * same order: 3 ints and 5 floats, 32 bytes, no padding).
+ *   use_table     0: linear beams, else the angle table
+ *   beams, bins   image columns and rows
+ *   half_azimuth  W_θ (rad); beam_scale = (beams − 1) / (2 W_θ)   (linear beams only)
+ *   range_min     R_min (m); inv_range_step = 1 / δR (1/m)
+ *   half_elevation  W_φ (rad) */
+typedef struct {
+    int use_table;
+    int beams;
+    int bins;
+    float half_azimuth;
+    float beam_scale;
+    float range_min;
+    float inv_range_step;
+    float half_elevation;
+} fss_sonar;
+
 /* P_view = Rᵀ (p − t). rot: 9 floats, R row-major; trans: 3 floats. */
 float3 fss_to_view(float3 p, __global const float *rot, __global const float *trans)
 {
@@ -61,14 +80,13 @@ float fss_elevation(float3 q)
  * outer one). Linear interpolation between neighbouring centres, extrapolated beyond the
  * outer beams with the outer spacing (numpy.interp inside, SonarSpec.beam_coordinate
  * outside). */
-float fss_beam_coordinate(float theta, int use_table, __global const float *table, int beams,
-                          float half_azimuth, float beam_scale)
+float fss_beam_coordinate(float theta, fss_sonar sonar, __global const float *table)
 {
-    if (use_table == 0)
-        return (theta + half_azimuth) * beam_scale;
+    if (sonar.use_table == 0)
+        return (theta + sonar.half_azimuth) * sonar.beam_scale;
     __global const float *centre = table;
-    __global const float *inverse = table + beams;
-    const int last = beams - 1;
+    __global const float *inverse = table + sonar.beams;
+    const int last = sonar.beams - 1;
     if (theta < centre[0])
         return (theta - centre[0]) * inverse[0];
     if (theta > centre[last])
@@ -86,9 +104,9 @@ float fss_beam_coordinate(float theta, int use_table, __global const float *tabl
 }
 
 /* Fractional row index of range r (m): (r − R_min) / δR, with inv_range_step = 1 / δR. */
-float fss_bin_coordinate(float r, float range_min, float inv_range_step)
+float fss_bin_coordinate(float r, fss_sonar sonar)
 {
-    return (r - range_min) * inv_range_step;
+    return (r - sonar.range_min) * sonar.inv_range_step;
 }
 
 /* Nearest integer index of a fractional coordinate: floor(c + 0.5), clamped to ±2^30. */

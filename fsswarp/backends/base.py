@@ -30,6 +30,13 @@ from .constants import MAX_DISTANCE
 
 
 
+#: ``SonarConstants``' scalars as one kernel argument: the layout of ``fss_sonar`` (kernels/sonar.h)
+#: and the fields of the Warp struct ``KernelSonar``, in this order (32 bytes, no padding).
+SONAR_DTYPE = np.dtype([("use_table", np.int32), ("beams", np.int32), ("bins", np.int32),
+                        ("half_azimuth", np.float32), ("beam_scale", np.float32), ("range_min", np.float32),
+                        ("inv_range_step", np.float32), ("half_elevation", np.float32)])
+
+
 @dataclass(frozen=True)
 class SonarConstants:
     """The float32 constants of one sonar, as every kernel receives them.
@@ -53,6 +60,10 @@ class SonarConstants:
     range_min: float
     inv_range_step: float
     half_elevation: float
+
+    def record(self) -> np.void:
+        """The scalars as one ``SONAR_DTYPE`` record (an OpenCL ``fss_sonar`` argument)."""
+        return np.array(tuple(getattr(self, name) for name in SONAR_DTYPE.names), SONAR_DTYPE)[()]
 
     @classmethod
     def of(cls, sonar: SonarSpec) -> "SonarConstants":

@@ -154,10 +154,7 @@ class OpenCLBackend(Backend):
             self._project_kernel(
                 self.queue, global_size, None,
                 self._input(points), self._input(rotations), self._input(translations),
-                self._input(sonar.beam_table), np.int32(sonar.use_table), np.int32(n_points),
-                np.int32(sonar.beams), np.int32(sonar.bins), np.float32(sonar.half_azimuth),
-                np.float32(sonar.beam_scale), np.float32(sonar.range_min),
-                np.float32(sonar.inv_range_step), np.float32(sonar.half_elevation),
+                self._input(sonar.beam_table), sonar.record(), np.int32(n_points),
                 beam_buf, bin_buf, inside_buf)
             for host, buf in ((beam, beam_buf), (bin_, bin_buf), (inside, inside_buf)):
                 cl.enqueue_copy(self.queue, host, buf, is_blocking=False)
@@ -170,10 +167,8 @@ class OpenCLBackend(Backend):
         seen, seen_buf = self._output((n_voxels,), np.uint8)
         rejected, rejected_buf = self._output((n_voxels,), np.uint8)
         common = (np.int32(n_voxels), self._input(rotations), self._input(translations), self._input(integral),
-                  np.int32(rotations.shape[0]), self._input(sonar.beam_table), np.int32(sonar.use_table),
-                  np.int32(sonar.beams), np.int32(sonar.bins), np.float32(sonar.half_azimuth),
-                  np.float32(sonar.beam_scale), np.float32(sonar.range_min), np.float32(sonar.inv_range_step),
-                  np.float32(sonar.half_elevation), np.float32(radius), seen_buf, rejected_buf)
+                  np.int32(rotations.shape[0]), self._input(sonar.beam_table), sonar.record(),
+                  np.float32(radius), seen_buf, rejected_buf)
         global_size = (-(-n_voxels // GROUP) * GROUP,)
         with self._lock:
             if centres is not None:
@@ -220,8 +215,7 @@ class OpenCLBackend(Backend):
                 mesh.nodes, mesh.children, mesh.triangles, mesh.face_index, self._input(rotations),
                 self._input(translations), self._input(plane_normals), self._input(plane_offsets),
                 self._input(views), self._input(azimuths), np.int32(n_items), np.int32(rays),
-                np.int32(mirror), np.float32(sonar.half_azimuth), np.float32(sonar.half_elevation),
-                np.float32(RAY_EPSILON), np.float32(FRONTAL_VISIBLE), np.float32(MAX_DISTANCE),
+                np.int32(mirror), sonar.record(), np.float32(RAY_EPSILON), np.float32(FRONTAL_VISIBLE), np.float32(MAX_DISTANCE),
                 rng_buf, face_buf)
             cl.enqueue_copy(self.queue, rng, rng_buf, is_blocking=False)
             cl.enqueue_copy(self.queue, face, face_buf, is_blocking=False)
@@ -253,10 +247,7 @@ class OpenCLBackend(Backend):
                 self._input(rotations), self._input(translations), self._input(plane_normals),
                 self._input(plane_offsets), self._input(centres),
                 self._input(np.ascontiguousarray(beam_widths, np.float32)),
-                self._input(sonar.beam_table), np.int32(sonar.use_table), np.int32(sonar.beams),
-                np.float32(sonar.half_azimuth), np.float32(sonar.beam_scale),
-                np.float32(sonar.range_min), np.float32(sonar.inv_range_step),
-                np.float32(sonar.half_elevation), np.int32(k_theta), np.int32(k_phi), weight,
+                self._input(sonar.beam_table), sonar.record(), np.int32(k_theta), np.int32(k_phi), weight,
                 np.float32(gamma), np.float32(surface_reflection), np.float32(RAY_EPSILON),
                 np.float32(MAX_DISTANCE), self._input(first_rows), np.int32(rows), acc_buf)
             self._fixed_kernel(self.queue, (-(-size // GROUP) * GROUP,), None, acc_buf, layers_buf,

@@ -60,14 +60,36 @@ def elevation(q: wp.vec3):
     return wp.atan2(q[2], wp.sqrt(q[0] * q[0] + q[1] * q[1]))
 
 
+@wp.struct
+class KernelSonar:
+    """``SonarConstants`` without the beam table, as one kernel argument (``fss_sonar`` of
+    kernels/sonar.h, the same fields in the same order)."""
+
+    use_table: int
+    beams: int
+    bins: int
+    half_azimuth: float
+    beam_scale: float
+    range_min: float
+    inv_range_step: float
+    half_elevation: float
+
+
+def kernel_sonar(sonar: SonarConstants) -> KernelSonar:
+    """The Warp struct of ``sonar``'s scalars (float32 fields: the float32 values)."""
+    packed = KernelSonar()
+    for name in KernelSonar.vars:
+        setattr(packed, name, getattr(sonar, name))
+    return packed
+
+
 @wp.func
-def beam_coordinate(theta: float, use_table: int, table: wp.array2d(dtype=float), beams: int,
-                    half_azimuth: float, beam_scale: float):
+def beam_coordinate(theta: float, sonar: KernelSonar, table: wp.array2d(dtype=float)):
     """Fractional column of azimuth theta: linear, or interpolated in the angle table (row 0
     the centres, row 1 the inverse spacings) and extrapolated with the outer spacing."""
-    if use_table == 0:
-        return (theta + half_azimuth) * beam_scale
-    last = beams - 1
+    if sonar.use_table == 0:
+        return (theta + sonar.half_azimuth) * sonar.beam_scale
+    last = sonar.beams - 1
     if theta < table[0, 0]:
         return (theta - table[0, 0]) * table[1, 0]
     if theta > table[0, last]:
@@ -84,8 +106,8 @@ def beam_coordinate(theta: float, use_table: int, table: wp.array2d(dtype=float)
 
 
 @wp.func
-def bin_coordinate(r: float, range_min: float, inv_range_step: float):
-    return (r - range_min) * inv_range_step
+def bin_coordinate(r: float, sonar: KernelSonar):
+    return (r - sonar.range_min) * sonar.inv_range_step
 
 
 @wp.func
@@ -99,9 +121,7 @@ def nearest_index(c: float):
 @wp.kernel
 def project_points(points: wp.array(dtype=wp.vec3), rotations: wp.array(dtype=wp.mat33),
                    translations: wp.array(dtype=wp.vec3), beam_table: wp.array2d(dtype=float),
-                   use_table: int, beams: int, bins: int, half_azimuth: float, beam_scale: float,
-                   range_min: float, inv_range_step: float, half_elevation: float,
-                   beam_out: wp.array2d(dtype=wp.int32), bin_out: wp.array2d(dtype=wp.int32),
+                   sonar: KernelSonar, beam_out: wp.array2d(dtype=wp.int32), bin_out: wp.array2d(dtype=wp.int32),
                    inside_out: wp.array2d(dtype=wp.uint8)):
     """Thread (v, p): nearest beam and bin of point p in view v, and whether it lands in the
     image with |elevation| <= W_φ (kernels/project.cl documents the arguments)."""
@@ -110,11 +130,11 @@ def project_points(points: wp.array(dtype=wp.vec3), rotations: wp.array(dtype=wp
     theta = azimuth(q)
     phi = elevation(q)
     r = sonar_range(q)
-    b = nearest_index(beam_coordinate(theta, use_table, beam_table, beams, half_azimuth, beam_scale))
-    bb = nearest_index(bin_coordinate(r, range_min, inv_range_step))
+    b = nearest_index(beam_coordinate(theta, sonar, beam_table))
+    bb = nearest_index(bin_coordinate(r, sonar))
     beam_out[v, p] = b
     bin_out[v, p] = bb
-    if b >= 0 and b < beams and bb >= 0 and bb < bins and wp.abs(phi) <= half_elevation:
+    if b >= 0 and b < sonar.beams and bb >= 0 and bb < sonar.bins and wp.abs(phi) <= sonar.half_elevation:
         inside_out[v, p] = wp.uint8(1)
     else:
         inside_out[v, p] = wp.uint8(0)
@@ -278,7 +298,7 @@ def frontal_rays_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indice
                         rotations: wp.array(dtype=wp.mat33), translations: wp.array(dtype=wp.vec3),
                         plane_normals: wp.array(dtype=wp.vec3), plane_offsets: wp.array(dtype=float),
                         views: wp.array(dtype=wp.int32), azimuths: wp.array(dtype=float), mirror: int,
-                        half_azimuth: float, half_elevation: float, epsilon: float, visible: float,
+                        sonar: KernelSonar, epsilon: float, visible: float,
                         max_distance: float, range_out: wp.array2d(dtype=float),
                         face_out: wp.array2d(dtype=wp.int32)):
     """Thread (i, j): elevation ray j of beam i, its (mirror) range and face (Backend.frontal_faces;
@@ -291,7 +311,7 @@ def frontal_rays_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indice
     n = plane_normals[v]
     d = plane_offsets[v]
     theta = azimuths[i]
-    phi = -half_elevation + (float(j) + 0.5) / float(rays) * (2.0 * half_elevation)
+    phi = -sonar.half_elevation + (float(j) + 0.5) / float(rays) * (2.0 * sonar.half_elevation)
     cphi = wp.cos(phi)
     u = wp.vec3(cphi * wp.sin(theta), cphi * wp.cos(theta), wp.sin(phi))
     up = wp.dot(u, n)
@@ -314,7 +334,7 @@ def frontal_rays_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indice
             p = q + r2 * w
             length = wp.length(p)
             back = nearest_hit(mesh, points, indices, org, rot * (p / length), max_distance)
-            if (wp.abs(elevation(p)) <= half_elevation and wp.abs(azimuth(p)) <= half_azimuth
+            if (wp.abs(elevation(p)) <= sonar.half_elevation and wp.abs(azimuth(p)) <= sonar.half_azimuth
                     and back.t >= length - visible):
                 rng = 0.5 * (length + s + r2)
                 face = leg.face
@@ -328,9 +348,7 @@ def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
                   translations: wp.array(dtype=wp.vec3), plane_normals: wp.array(dtype=wp.vec3),
                   plane_offsets: wp.array(dtype=float), beam_centres: wp.array(dtype=float),
                   beam_widths: wp.array(dtype=float), beam_table: wp.array2d(dtype=float),
-                  use_table: int, beams: int, half_azimuth: float, beam_scale: float,
-                  range_min: float, inv_range_step: float, half_elevation: float,
-                  k_theta: int, k_phi: int, weight: float, gamma: float, surface_reflection: float,
+                  sonar: KernelSonar, k_theta: int, k_phi: int, weight: float, gamma: float, surface_reflection: float,
                   first_rows: wp.array(dtype=wp.int32), acc: wp.array4d(dtype=wp.int32)):
     """Thread (v, b, k): sub-ray (i, j) = divmod(k, K_φ) of beam b in view v; deposits its
     object, ghost, mirror and mirror2 returns into acc (N, 4, R, beams), view v's image row B
@@ -346,7 +364,7 @@ def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
 
     # 1. sub-ray direction (view frame)
     theta = beam_centres[b] + ((float(i) + 0.5) / float(k_theta) - 0.5) * beam_widths[b]
-    phi = -half_elevation + (float(j) + 0.5) / float(k_phi) * (2.0 * half_elevation)
+    phi = -sonar.half_elevation + (float(j) + 0.5) / float(k_phi) * (2.0 * sonar.half_elevation)
     cphi = wp.cos(phi)
     u = wp.vec3(cphi * wp.sin(theta), cphi * wp.cos(theta), wp.sin(phi))
 
@@ -363,8 +381,8 @@ def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
         r = hit.t
         nrm = facing_normal(points, indices, hit.face, rot, u)
         c = -wp.dot(u, nrm)
-        deposit(acc, v, 0, nearest_index(bin_coordinate(r, range_min, inv_range_step)), b,
-                wp.pow(c, gamma), weight, beams, first)
+        deposit(acc, v, 0, nearest_index(bin_coordinate(r, sonar)), b,
+                wp.pow(c, gamma), weight, sonar.beams, first)
         p = r * u
         o_m = (2.0 * d) * n
         q = wp.length(p - o_m)
@@ -372,8 +390,8 @@ def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
         lam = d / (2.0 * d - n_p)
         qq = o_m + lam * (p - o_m)
         if qq[1] > 0.0:
-            bq = beam_coordinate(azimuth(qq), use_table, beam_table, beams, half_azimuth, beam_scale)
-            if bq >= -0.5 and bq < float(beams) - 0.5 and wp.abs(elevation(qq)) <= half_elevation:
+            bq = beam_coordinate(azimuth(qq), sonar, beam_table)
+            if bq >= -0.5 and bq < float(sonar.beams) - 0.5 and wp.abs(elevation(qq)) <= sonar.half_elevation:
                 pq = p - qq
                 l_pq = wp.length(pq)
                 w = pq / l_pq
@@ -385,12 +403,11 @@ def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
                         leg2 = nearest_hit(mesh, points, indices, rot * qq + org, rot * w, l_pq - _EPS)
                         if leg2.face < 0:
                             a_s = surface_reflection * wp.pow(c * c_in, 0.5 * gamma)
-                            rb = nearest_index(bin_coordinate(0.5 * (r + q), range_min, inv_range_step))
-                            deposit(acc, v, 1, rb, b, a_s, weight, beams, first)
+                            rb = nearest_index(bin_coordinate(0.5 * (r + q), sonar))
+                            deposit(acc, v, 1, rb, b, a_s, weight, sonar.beams, first)
                             pm = p - (2.0 * (n_p - d)) * n
-                            mb = nearest_index(beam_coordinate(azimuth(pm), use_table, beam_table, beams,
-                                                               half_azimuth, beam_scale))
-                            deposit(acc, v, 2, rb, mb, a_s, weight, beams, first)
+                            mb = nearest_index(beam_coordinate(azimuth(pm), sonar, beam_table))
+                            deposit(acc, v, 2, rb, mb, a_s, weight, sonar.beams, first)
     elif has_surface:
         # 4. surface first: mirror2 along the reflected ray
         qs = s * u
@@ -401,8 +418,8 @@ def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
             r2 = _EPS + hit2.t
             nrm2 = facing_normal(points, indices, hit2.face, rot, u2)
             c2 = -wp.dot(u2, nrm2)
-            deposit(acc, v, 3, nearest_index(bin_coordinate(s + r2, range_min, inv_range_step)), b,
-                    surface_reflection * surface_reflection * wp.pow(c2, gamma), weight, beams, first)
+            deposit(acc, v, 3, nearest_index(bin_coordinate(s + r2, sonar)), b,
+                    surface_reflection * surface_reflection * wp.pow(c2, gamma), weight, sonar.beams, first)
 
 
 @wp.kernel
@@ -415,9 +432,7 @@ def fixed_to_float(acc: wp.array(dtype=wp.int32), layers: wp.array(dtype=float))
 # --- voxel space carving (kernels/carve.cl documents the rule and the arguments) -------------
 @wp.func
 def carve_test(c: wp.vec3, r: wp.mat33, t: wp.vec3, integral: wp.array3d(dtype=wp.int32), v: int,
-               beam_table: wp.array2d(dtype=float), use_table: int, beams: int, bins: int,
-               half_azimuth: float, beam_scale: float, range_min: float, inv_range_step: float,
-               half_elevation: float, radius: float):
+               beam_table: wp.array2d(dtype=float), sonar: KernelSonar, radius: float):
     """0: view v does not see the voxel at c (wholly); 1: sees and keeps it; 2: sees and rejects
     it (fss_carve_test of kernels/carve.cl, operation for operation)."""
     q = to_view(c, r, t)
@@ -428,14 +443,14 @@ def carve_test(c: wp.vec3, r: wp.mat33, t: wp.vec3, integral: wp.array3d(dtype=w
     phi = elevation(q)
     rng = sonar_range(q)
     d_phi = wp.asin(radius / rng)
-    if not (wp.abs(phi) + d_phi <= half_elevation):
+    if not (wp.abs(phi) + d_phi <= sonar.half_elevation):
         return 0
     d_theta = wp.asin(radius / rho)
-    b_lo = nearest_index(beam_coordinate(theta - d_theta, use_table, beam_table, beams, half_azimuth, beam_scale))
-    b_hi = nearest_index(beam_coordinate(theta + d_theta, use_table, beam_table, beams, half_azimuth, beam_scale))
-    bin_lo = nearest_index(bin_coordinate(rng - radius, range_min, inv_range_step))
-    bin_hi = nearest_index(bin_coordinate(rng + radius, range_min, inv_range_step))
-    if b_lo < 0 or b_hi >= beams or bin_lo < 0 or bin_hi >= bins:
+    b_lo = nearest_index(beam_coordinate(theta - d_theta, sonar, beam_table))
+    b_hi = nearest_index(beam_coordinate(theta + d_theta, sonar, beam_table))
+    bin_lo = nearest_index(bin_coordinate(rng - radius, sonar))
+    bin_hi = nearest_index(bin_coordinate(rng + radius, sonar))
+    if b_lo < 0 or b_hi >= sonar.beams or bin_lo < 0 or bin_hi >= sonar.bins:
         return 0
     count = (integral[v, bin_hi + 1, b_hi + 1] - integral[v, bin_lo, b_hi + 1]
              - integral[v, bin_hi + 1, b_lo] + integral[v, bin_lo, b_lo])
@@ -446,17 +461,14 @@ def carve_test(c: wp.vec3, r: wp.mat33, t: wp.vec3, integral: wp.array3d(dtype=w
 
 @wp.func
 def carve_voxel(c: wp.vec3, p: int, rotations: wp.array(dtype=wp.mat33), translations: wp.array(dtype=wp.vec3),
-                integral: wp.array3d(dtype=wp.int32), beam_table: wp.array2d(dtype=float), use_table: int,
-                beams: int, bins: int, half_azimuth: float, beam_scale: float, range_min: float,
-                inv_range_step: float, half_elevation: float, radius: float,
-                seen_out: wp.array(dtype=wp.uint8), rejected_out: wp.array(dtype=wp.uint8)):
+                integral: wp.array3d(dtype=wp.int32), beam_table: wp.array2d(dtype=float), sonar: KernelSonar,
+                radius: float, seen_out: wp.array(dtype=wp.uint8), rejected_out: wp.array(dtype=wp.uint8)):
     """Views that see the voxel at c up to the first that rejects it, and whether one does
     (written at p; the loop stops at the first rejection)."""
     seen = int(0)
     rejected = int(0)
     for v in range(rotations.shape[0]):
-        test = carve_test(c, rotations[v], translations[v], integral, v, beam_table, use_table, beams, bins,
-                          half_azimuth, beam_scale, range_min, inv_range_step, half_elevation, radius)
+        test = carve_test(c, rotations[v], translations[v], integral, v, beam_table, sonar, radius)
         if test > 0:
             seen += 1
         if test == 2:
@@ -469,9 +481,8 @@ def carve_voxel(c: wp.vec3, p: int, rotations: wp.array(dtype=wp.mat33), transla
 @wp.kernel
 def carve_grid(origin: wp.vec3, voxel_size: float, ny: int, nz: int, rotations: wp.array(dtype=wp.mat33),
                translations: wp.array(dtype=wp.vec3), integral: wp.array3d(dtype=wp.int32),
-               beam_table: wp.array2d(dtype=float), use_table: int, beams: int, bins: int,
-               half_azimuth: float, beam_scale: float, range_min: float, inv_range_step: float,
-               half_elevation: float, radius: float, seen_out: wp.array(dtype=wp.uint8),
+               beam_table: wp.array2d(dtype=float), sonar: KernelSonar, radius: float,
+               seen_out: wp.array(dtype=wp.uint8),
                rejected_out: wp.array(dtype=wp.uint8)):
     """Thread p = (i·ny + j)·nz + k: the voxel centred at origin + h·(i, j, k)."""
     p = wp.tid()
@@ -480,21 +491,18 @@ def carve_grid(origin: wp.vec3, voxel_size: float, ny: int, nz: int, rotations: 
     i = p // (nz * ny)
     c = wp.vec3(origin[0] + voxel_size * float(i), origin[1] + voxel_size * float(j),
                 origin[2] + voxel_size * float(k))
-    carve_voxel(c, p, rotations, translations, integral, beam_table, use_table, beams, bins, half_azimuth,
-                beam_scale, range_min, inv_range_step, half_elevation, radius, seen_out, rejected_out)
+    carve_voxel(c, p, rotations, translations, integral, beam_table, sonar, radius, seen_out, rejected_out)
 
 
 @wp.kernel
 def carve_points(centres: wp.array(dtype=wp.vec3), rotations: wp.array(dtype=wp.mat33),
                  translations: wp.array(dtype=wp.vec3), integral: wp.array3d(dtype=wp.int32),
-                 beam_table: wp.array2d(dtype=float), use_table: int, beams: int, bins: int,
-                 half_azimuth: float, beam_scale: float, range_min: float, inv_range_step: float,
-                 half_elevation: float, radius: float, seen_out: wp.array(dtype=wp.uint8),
+                 beam_table: wp.array2d(dtype=float), sonar: KernelSonar, radius: float,
+                 seen_out: wp.array(dtype=wp.uint8),
                  rejected_out: wp.array(dtype=wp.uint8)):
     """Thread p: the voxel centred at centres[p]."""
     p = wp.tid()
-    carve_voxel(centres[p], p, rotations, translations, integral, beam_table, use_table, beams, bins,
-                half_azimuth, beam_scale, range_min, inv_range_step, half_elevation, radius, seen_out,
+    carve_voxel(centres[p], p, rotations, translations, integral, beam_table, sonar, radius, seen_out,
                 rejected_out)
 
 
@@ -578,9 +586,7 @@ class WarpBackend(Backend):
             wp.launch(project_points, dim=(n_views, n_points),
                       inputs=[self._array(points, wp.vec3), self._array(rotations, wp.mat33),
                               self._array(translations, wp.vec3), self._constant(sonar.beam_table, float),
-                              sonar.use_table, sonar.beams, sonar.bins, sonar.half_azimuth,
-                              sonar.beam_scale, sonar.range_min, sonar.inv_range_step,
-                              sonar.half_elevation],
+                              kernel_sonar(sonar)],
                       outputs=[beam, bin_, inside])
             wp.synchronize_device(self._device)
             return beam.numpy(), bin_.numpy(), inside.numpy()
@@ -630,8 +636,8 @@ class WarpBackend(Backend):
                       inputs=[mesh.id, mesh.points, mesh.indices, self._array(rotations, wp.mat33),
                               self._array(translations, wp.vec3), self._array(plane_normals, wp.vec3),
                               self._array(plane_offsets, float), self._constant(views, wp.int32),
-                              self._array(azimuths, float), int(mirror), sonar.half_azimuth,
-                              sonar.half_elevation, float(np.float32(RAY_EPSILON)),
+                              self._array(azimuths, float), int(mirror), kernel_sonar(sonar),
+                              float(np.float32(RAY_EPSILON)),
                               float(np.float32(FRONTAL_VISIBLE)), float(np.float32(MAX_DISTANCE))],
                       outputs=[rng, face])
             wp.synchronize_device(self._device)
@@ -655,9 +661,7 @@ class WarpBackend(Backend):
                               self._array(translations, wp.vec3), self._array(plane_normals, wp.vec3),
                               self._array(plane_offsets, float), self._constant(centres, float),
                               self._constant(np.asarray(beam_widths, np.float32), float),
-                              self._constant(sonar.beam_table, float), sonar.use_table, sonar.beams,
-                              sonar.half_azimuth, sonar.beam_scale, sonar.range_min,
-                              sonar.inv_range_step, sonar.half_elevation, int(k_theta), int(k_phi),
+                              self._constant(sonar.beam_table, float), kernel_sonar(sonar), int(k_theta), int(k_phi),
                               weight, float(gamma), float(surface_reflection),
                               self._constant(first_rows, wp.int32)],
                       outputs=[acc])
@@ -674,9 +678,8 @@ class WarpBackend(Backend):
             seen = wp.empty(n_voxels, dtype=wp.uint8)
             rejected = wp.empty(n_voxels, dtype=wp.uint8)
             common = [self._array(rotations, wp.mat33), self._array(translations, wp.vec3),
-                      self._array(integral, wp.int32), self._constant(sonar.beam_table, float), sonar.use_table,
-                      sonar.beams, sonar.bins, sonar.half_azimuth, sonar.beam_scale, sonar.range_min,
-                      sonar.inv_range_step, sonar.half_elevation, radius]
+                      self._array(integral, wp.int32), self._constant(sonar.beam_table, float),
+                      kernel_sonar(sonar), radius]
             if centres is not None:
                 wp.launch(carve_points, dim=n_voxels, inputs=[self._array(centres, wp.vec3), *common],
                           outputs=[seen, rejected])
