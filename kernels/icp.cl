@@ -1,5 +1,5 @@
 /* icp.cl -- IRLS-ICP runs of 2-D contours, one work-item per run, in double (fsswarp/icp.py
- * explains the method; fsswarp/backends/warp_backend.py's icp_runs_kernel is the same, line by
+ * explains the method; fsswarp/backends/warp/icp.py's icp_runs_kernel is the same, line by
  * line). Needs cl_khr_fp64: the host builds it only on a device that has it.
  *
  * Run r: source points P_p = (sx[p], sy[p]) for p in [f, f + n), f = runs[r].x, n = runs[r].w;

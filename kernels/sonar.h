@@ -9,7 +9,7 @@
  *
  * Float32, OpenCL C 1.2. The host inlines this file into every program that includes it
  * (include paths are not portable across ICDs). The Warp kernels in
- * fsswarp/backends/warp_backend.py mirror these functions operation for operation; keep the
+ * fsswarp/backends/warp/sonar.py mirror these functions operation for operation; keep the
  * two in step (same order of operations, no contraction into fma) so that both backends
  * round alike.
  */

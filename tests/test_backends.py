@@ -225,7 +225,7 @@ def test_warp_reuses_an_input_upload_for_the_same_bytes(backend_for_label):
     used go first beyond ``CONSTANTS``."""
     import warp as wp
 
-    from fsswarp.backends import warp_backend
+    from fsswarp.backends.warp import backend as warp_backend
 
     backend = backend_for_label("warp-cpu")
     backend._constants.clear()
@@ -357,7 +357,7 @@ def test_import_does_not_import_warp_or_pyopencl():
 # --- OpenCL sources ----------------------------------------------------------------------------
 def test_kernel_sources_inline_our_headers():
     pytest.importorskip("pyopencl")
-    from fsswarp.backends.opencl_backend import kernel_dir, kernel_source
+    from fsswarp.backends.opencl import kernel_dir, kernel_source
 
     assert {"project.cl", "sonar.h"} <= {p.name for p in kernel_dir().iterdir()}
     source = kernel_source("project.cl")
@@ -368,7 +368,7 @@ def test_kernel_sources_inline_our_headers():
 
 def test_build_error_names_options_and_saved_source(backend_for_label):
     opencl = backend_for_label("opencl-cpu")
-    from fsswarp.backends.opencl_backend import KernelBuildError, build
+    from fsswarp.backends.opencl import KernelBuildError, build
 
     source = "__kernel void broken(__global float *x) { x[0] = undeclared_name; }\n"
     with pytest.raises(KernelBuildError) as info:
@@ -389,7 +389,7 @@ def test_build_log_of_a_successful_build_is_not_raised(backend_for_label):
     opencl = backend_for_label("opencl-cpu")
     import pyopencl as cl
 
-    from fsswarp.backends.opencl_backend import build
+    from fsswarp.backends.opencl import build
 
     source = "#warning fsswarp test: a log on success\n__kernel void fine(__global float *x) { x[0] = 1.0f; }\n"
     with pytest.warns(cl.CompilerWarning):

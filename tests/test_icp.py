@@ -375,7 +375,7 @@ def test_icp_runs_rejects_bad_input(backend, change, message):
 
 
 def test_the_opencl_kernel_s_constant_is_python_s():
-    from fsswarp.backends.opencl_backend import kernel_source
+    from fsswarp.backends.opencl import kernel_source
     from fsswarp.icp import RAYLEIGH_MEDIAN
 
     assert f"#define RAYLEIGH_MEDIAN {RAYLEIGH_MEDIAN!r} " in kernel_source("icp.cl")

@@ -1,8 +1,8 @@
 """The kernel interface: ``Backend`` and the device-side results it hands out.
 
 ``Backend`` is the interface every kernel family goes through; ``WarpBackend``
-(``warp_backend.py``, NVIDIA Warp on "cpu" or "cuda:N") and ``OpenCLBackend``
-(``opencl_backend.py``, OpenCL C from the top-level ``kernels/``) implement it.
+(``backends/warp/``, NVIDIA Warp on "cpu" or "cuda:N") and ``OpenCLBackend``
+(``backends/opencl/``, OpenCL C from the top-level ``kernels/``) implement it.
 
 The public methods of ``Backend`` validate their inputs (``ValueError`` / ``TypeError``
 quoting the bad value) and convert them to contiguous float32 arrays; the private ``_name``
@@ -10,9 +10,9 @@ methods that subclasses implement receive clean arrays and never validate. All k
 in float32 on the device, except the ICP runs (``icp_runs``), in float64.
 
 Adding a kernel family: a public method here (validation, conversion, the documented
-contract) calling an abstract ``_method`` that both backends implement, the Warp kernel,
-the OpenCL kernel in ``kernels/<family>.cl`` (geometry shared through ``kernels/sonar.h``),
-and a NumPy oracle test in ``tests/test_backends.py``.
+contract) calling an abstract ``_method`` that both backends implement, the Warp kernel in
+``backends/warp/<family>.py``, the OpenCL kernel in ``kernels/<family>.cl`` (geometry shared
+through ``kernels/sonar.h``), and a NumPy oracle test in ``tests/test_backends.py``.
 """
 
 from __future__ import annotations

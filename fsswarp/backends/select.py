@@ -74,10 +74,10 @@ def get_backend(name: str = "auto", device: str | int | None = None) -> Backend:
 
 def _create(key: tuple) -> Backend:
     if key[0] == "warp":
-        from .warp_backend import WarpBackend
+        from .warp import WarpBackend
 
         return WarpBackend(key[1])
-    from .opencl_backend import OpenCLBackend
+    from .opencl import OpenCLBackend
 
     return OpenCLBackend(_opencl_devices()[0][key[1]])
 

@@ -1,0 +1,260 @@
+"""``WarpBackend``: the Backend interface on one Warp device ("cpu", "cuda:N").
+
+Kernels live in this package's family modules (sonar geometry, project, raycast, render,
+carve, pose, icp) and compile once per process and device (Warp keeps the build in its
+kernel cache, ~/.cache/warp). Device layers are ``WarpLayers``, meshes ``WarpMesh`` handles.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from ..base import Backend, DeviceLayers, SonarConstants
+from ..bvh import triangle_bounds
+from ..constants import FRONTAL_VISIBLE, MAX_DISTANCE, RAY_EPSILON, WARP_FAR
+from ..select import _warp
+from .carve import carve_grid, carve_points
+from .icp import icp_runs_kernel
+from .pose import contour_cost_kernel, frontal_contour
+from .project import project_points
+from .raycast import cast_rays_kernel
+from .render import fixed_to_float, frontal_rays_kernel, render_kernel
+from .sonar import kernel_sonar
+
+#: ``WarpBackend._constant``: inputs up to this size are kept on the device for reuse ...
+CONSTANT_BYTES = 1 << 18
+#: ... and this many of them (at most 16 MiB).
+CONSTANTS = 64
+
+
+class WarpLayers(DeviceLayers):
+    """Rendered layers in a (N, 4, bins, beams) float32 ``wp.array`` (``.array``), or (N, 4,
+    R, beams) for bands of rows (``first_rows``)."""
+
+    def __init__(self, array: wp.array):
+        self.array = array
+        self.shape = tuple(array.shape)
+
+    def numpy(self) -> np.ndarray:
+        return self.array.numpy()
+
+
+class WarpMesh:
+    """Handle of a mesh uploaded to one Warp device: a ``wp.Bvh`` over the triangles' (padded)
+    boxes and the arrays (kept alive with it; the kernels read the triangles for the watertight
+    test and their geometric normals)."""
+
+    def __init__(self, bvh, points, indices, lowers, uppers, device):
+        self.bvh = bvh
+        self.points = points
+        self.indices = indices
+        self.lowers = lowers
+        self.uppers = uppers
+        self.device = device
+
+    @property
+    def id(self):
+        return self.bvh.id
+
+    def __repr__(self) -> str:
+        return (f"<warp mesh: {self.points.shape[0]} vertices, {self.indices.shape[0] // 3} faces "
+                f"on {self.device}>")
+
+
+class WarpBackend(Backend):
+    """Warp on one device ("cpu", "cuda:N"). Create through ``get_backend("warp", device)``."""
+
+    name = "warp"
+
+    def __init__(self, device: str):
+        _warp()  # initialized quietly
+        self._device = wp.get_device(device)
+        self.device = str(self._device.alias)
+        self.is_gpu = bool(self._device.is_cuda)
+        self.has_float64 = True
+        self._constants: dict[tuple, wp.array] = {}  # _constant's uploads, least recently used first
+
+    def _array(self, data: np.ndarray, dtype) -> wp.array:
+        return wp.array(data, dtype=dtype, device=self._device)
+
+    def _constant(self, data: np.ndarray, dtype) -> wp.array:
+        """``_array`` of a kernel input that no kernel writes, reused while the same bytes come
+        again: a pose step passes the same thresholds, windows, masks, weights and beam tables
+        to hundreds of launches, and each upload waits for its copy. Inputs above
+        ``CONSTANT_BYTES`` are uploaded each time; the last ``CONSTANTS`` are kept."""
+        data = np.ascontiguousarray(data)
+        if data.nbytes > CONSTANT_BYTES:
+            return self._array(data, dtype)
+        key = (dtype, data.shape, data.dtype.str, data.tobytes())
+        array = self._constants.pop(key, None)
+        if array is None:
+            array = self._array(data, dtype)
+            if len(self._constants) >= CONSTANTS:
+                self._constants.pop(next(iter(self._constants)))  # the least recently used
+        self._constants[key] = array
+        return array
+
+    def _upload(self, array: np.ndarray) -> wp.array:
+        return self._array(array, float)
+
+    def _project(self, points, rotations, translations, sonar: SonarConstants):
+        n_views, n_points = rotations.shape[0], points.shape[0]
+        with wp.ScopedDevice(self._device):
+            beam = wp.empty((n_views, n_points), dtype=wp.int32)
+            bin_ = wp.empty((n_views, n_points), dtype=wp.int32)
+            inside = wp.empty((n_views, n_points), dtype=wp.uint8)
+            wp.launch(project_points, dim=(n_views, n_points),
+                      inputs=[self._array(points, wp.vec3), self._array(rotations, wp.mat33),
+                              self._array(translations, wp.vec3), self._constant(sonar.beam_table, float),
+                              kernel_sonar(sonar)],
+                      outputs=[beam, bin_, inside])
+            wp.synchronize_device(self._device)
+            return beam.numpy(), bin_.numpy(), inside.numpy()
+
+    # --- ray casting and image synthesis ------------------------------------------------------
+    def _load_mesh(self, vertices, faces):
+        with wp.ScopedDevice(self._device):
+            points = self._array(vertices, wp.vec3)
+            indices = self._array(np.ascontiguousarray(faces.reshape(-1), dtype=np.int32), wp.int32)
+            lo, hi = triangle_bounds(np.asarray(vertices, np.float32), np.asarray(faces, np.int64).reshape(-1, 3))
+            # pad so boxes of axis-aligned triangles have volume (and rounding never loses one)
+            extent = float(np.max(np.abs(vertices))) if len(vertices) else 1.0
+            pad = np.float32(1.0e-6 * max(extent, 1.0e-12)) + 1.0e-6 * (hi - lo).max(axis=1, keepdims=True)
+            lowers = self._array(np.ascontiguousarray(lo - pad, np.float32), wp.vec3)
+            uppers = self._array(np.ascontiguousarray(hi + pad, np.float32), wp.vec3)
+            bvh = wp.Bvh(lowers, uppers)
+        return WarpMesh(bvh, points, indices, lowers, uppers, self.device)
+
+    def _check_mesh(self, mesh) -> "WarpMesh":
+        if not isinstance(mesh, WarpMesh):
+            raise TypeError(f"mesh must be a handle from this backend's load_mesh, got {type(mesh).__name__}")
+        if mesh.device != self.device:
+            raise ValueError(f"mesh was loaded on {mesh.device!r}, this backend runs on {self.device!r}")
+        return mesh
+
+    def _cast_rays(self, mesh, origins, directions, max_distance):
+        mesh = self._check_mesh(mesh)
+        n_rays = origins.shape[0]
+        with wp.ScopedDevice(self._device):
+            distance = wp.empty(n_rays, dtype=float)
+            face = wp.empty(n_rays, dtype=wp.int32)
+            wp.launch(cast_rays_kernel, dim=n_rays,
+                      inputs=[mesh.id, mesh.points, mesh.indices, self._array(origins, wp.vec3), self._array(directions, wp.vec3),
+                              float(np.float32(min(max_distance, WARP_FAR)))],
+                      outputs=[distance, face])
+            wp.synchronize_device(self._device)
+            return distance.numpy(), face.numpy()
+
+    def _frontal_rays(self, mesh, sonar: SonarConstants, rotations, translations, plane_normals, plane_offsets,
+                      views, azimuths, rays, mirror):
+        mesh = self._check_mesh(mesh)
+        shape = (views.shape[0], rays)
+        with wp.ScopedDevice(self._device):
+            rng = wp.empty(shape, dtype=float)
+            face = wp.empty(shape, dtype=wp.int32)
+            wp.launch(frontal_rays_kernel, dim=shape,
+                      inputs=[mesh.id, mesh.points, mesh.indices, self._array(rotations, wp.mat33),
+                              self._array(translations, wp.vec3), self._array(plane_normals, wp.vec3),
+                              self._array(plane_offsets, float), self._constant(views, wp.int32),
+                              self._array(azimuths, float), int(mirror), kernel_sonar(sonar),
+                              float(np.float32(RAY_EPSILON)),
+                              float(np.float32(FRONTAL_VISIBLE)), float(np.float32(MAX_DISTANCE))],
+                      outputs=[rng, face])
+            wp.synchronize_device(self._device)
+            return rng.numpy(), face.numpy()
+
+    def _render(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations,
+                plane_normals, plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, rows):
+        mesh = self._check_mesh(mesh)
+        n_views = rotations.shape[0]
+        if sonar.use_table:
+            centres = np.ascontiguousarray(sonar.beam_table[0], np.float32)
+        else:  # the centres of SonarSpec.beam_centres
+            half = float(sonar.half_azimuth)
+            centres = (-half + np.arange(sonar.beams) * (2.0 * half / max(sonar.beams - 1, 1))).astype(np.float32)
+        weight = float(np.float32(1.0 / (k_theta * k_phi)))
+        shape = (n_views, 4, rows, sonar.beams)
+        with wp.ScopedDevice(self._device):
+            acc = wp.zeros(shape, dtype=wp.int32)
+            wp.launch(render_kernel, dim=(n_views, sonar.beams, k_theta * k_phi),
+                      inputs=[mesh.id, mesh.points, mesh.indices, self._array(rotations, wp.mat33),
+                              self._array(translations, wp.vec3), self._array(plane_normals, wp.vec3),
+                              self._array(plane_offsets, float), self._constant(centres, float),
+                              self._constant(np.asarray(beam_widths, np.float32), float),
+                              self._constant(sonar.beam_table, float), kernel_sonar(sonar), int(k_theta), int(k_phi),
+                              weight, float(gamma), float(surface_reflection),
+                              self._constant(first_rows, wp.int32)],
+                      outputs=[acc])
+            layers = wp.empty(shape, dtype=float)
+            wp.launch(fixed_to_float, dim=acc.size, inputs=[acc.flatten()], outputs=[layers.flatten()])
+            wp.synchronize_device(self._device)
+            return WarpLayers(layers)
+
+    # --- voxel space carving -------------------------------------------------------------------
+    def _carve(self, integral, rotations, translations, sonar: SonarConstants, voxel_size, radius, origin,
+               shape, centres):
+        n_voxels = centres.shape[0] if centres is not None else shape[0] * shape[1] * shape[2]
+        with wp.ScopedDevice(self._device):
+            seen = wp.empty(n_voxels, dtype=wp.uint8)
+            rejected = wp.empty(n_voxels, dtype=wp.uint8)
+            common = [self._array(rotations, wp.mat33), self._array(translations, wp.vec3),
+                      self._array(integral, wp.int32), self._constant(sonar.beam_table, float),
+                      kernel_sonar(sonar), radius]
+            if centres is not None:
+                wp.launch(carve_points, dim=n_voxels, inputs=[self._array(centres, wp.vec3), *common],
+                          outputs=[seen, rejected])
+            else:
+                wp.launch(carve_grid, dim=n_voxels,
+                          inputs=[wp.vec3(*(float(x) for x in origin)), voxel_size, shape[1], shape[2], *common],
+                          outputs=[seen, rejected])
+            wp.synchronize_device(self._device)
+            return seen.numpy(), rejected.numpy()
+
+    # --- frontal contours and their distance to the data's (kernels after the class) ---------
+    def _contour_cost(self, layers, first_rows, view_index, thresholds, windows, masks, range_weights,
+                      beam_weights, distances, cap, shifts):
+        n_pairs, beams = view_index.shape[0], distances.shape[3]
+        with wp.ScopedDevice(self._device):
+            if isinstance(layers, WarpLayers) and layers.array.device == self._device:
+                stack = layers.array
+            else:
+                stack = self._array(np.ascontiguousarray(layers.numpy(), np.float32), float)
+            index = self._constant(view_index, wp.int32)
+            contour = wp.empty((n_pairs, 2, beams), dtype=float)
+            wp.launch(frontal_contour, dim=(n_pairs, 2, beams),
+                      inputs=[stack, self._constant(first_rows, wp.int32), index, self._constant(thresholds, float),
+                              self._constant(windows, wp.int32),
+                              self._constant(masks, wp.uint8), self._constant(range_weights, float),
+                              (range_weights.shape[0] - 1) // 2, self._constant(beam_weights, float),
+                              (beam_weights.shape[0] - 1) // 2],
+                      outputs=[contour])
+            sums = wp.empty((n_pairs, 2, shifts.shape[0]), dtype=float)
+            counts = wp.empty((n_pairs, 2), dtype=wp.int32)
+            wp.launch(contour_cost_kernel, dim=(n_pairs, 2, shifts.shape[0]),
+                      inputs=[contour, index, distances.data, float(np.float32(cap)), self._constant(shifts, float)],
+                      outputs=[sums, counts])
+            wp.synchronize_device(self._device)
+            return contour.numpy(), sums.numpy(), counts.numpy()
+
+    # --- IRLS-ICP runs (kernels after the class) ------------------------------------------------
+    def _icp_runs(self, source_x, source_y, target_x, target_y, runs, angles, translations, floors, step_tols,
+                  max_iterations, max_distance, tuning):
+        n_runs, n_points = runs.shape[0], source_x.shape[0]
+        with wp.ScopedDevice(self._device):
+            f64 = [self._array(a, wp.float64) for a in (source_x, source_y, target_x, target_y)]
+            angle = self._array(angles, wp.float64)
+            trans = self._array(translations, wp.float64)
+            iterations = wp.zeros(n_runs, dtype=wp.int32)
+            converged = wp.zeros(n_runs, dtype=wp.int32)
+            moved_x, moved_y, dist, anchor_x, anchor_y, room2, scratch = (
+                wp.empty(n_points, dtype=wp.float64) for _ in range(7))
+            nearest = wp.empty(n_points, dtype=wp.int32)
+            wp.launch(icp_runs_kernel, dim=n_runs,
+                      inputs=[*f64, self._array(runs, wp.int32), self._array(floors, wp.float64),
+                              self._array(step_tols, wp.float64), max_iterations, wp.float64(max_distance),
+                              wp.float64(tuning)],
+                      outputs=[angle, trans, iterations, converged, moved_x, moved_y, nearest, dist, anchor_x,
+                               anchor_y, room2, scratch])
+            wp.synchronize_device(self._device)
+            return tuple(a.numpy() for a in (angle, trans, iterations, converged, moved_x, moved_y, nearest, dist))

@@ -1,0 +1,82 @@
+"""Warp kernels of ``Backend.contour_cost``: frontal contours and their distances to the data's.
+
+kernels/pose.cl documents the rule. ``frontal_contour`` writes (N, 2, beams) float32 rows
+(-1: none); ``contour_cost_kernel`` (N, 2, S) float32 sums and (N, 2) int32 counts.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from .sonar import MODULE_OPTIONS
+
+wp.set_module_options(MODULE_OPTIONS)
+
+
+@wp.kernel
+def frontal_contour(layers: wp.array4d(dtype=float), first_rows: wp.array(dtype=wp.int32),
+                    view_index: wp.array(dtype=wp.int32),
+                    threshold: wp.array2d(dtype=float), window: wp.array2d(dtype=wp.int32),
+                    mask: wp.array3d(dtype=wp.uint8), w_range: wp.array(dtype=float), r_range: int,
+                    w_beam: wp.array(dtype=float), r_beam: int, contour: wp.array3d(dtype=float)):
+    """Thread (n, c, b): first threshold crossing of the smoothed component c of pair n in beam b.
+    layers (N, 4, R, beams): image row B of pair n at row B − first_rows[n] (full layers: zeros,
+    R = bins); rows clamp to the image, and the host guarantees the band holds every row read."""
+    n, c, b = wp.tid()
+    v = view_index[n]
+    bins = threshold.shape[1]
+    beams = layers.shape[3]
+    first = first_rows[n]
+    result = float(-1.0)
+    if mask[v, c, b] != wp.uint8(0):
+        lo = window[v, 0]
+        hi = window[v, 1]
+        previous = float(0.0)
+        row_index = int(lo)
+        while row_index < hi:
+            s = float(0.0)
+            for i in range(2 * r_range + 1):
+                bi = wp.clamp(row_index + i - r_range, 0, bins - 1) - first
+                row = float(0.0)
+                for j in range(2 * r_beam + 1):
+                    bj = wp.clamp(b + j - r_beam, 0, beams - 1)
+                    row += w_beam[j] * (layers[n, 2 * c, bi, bj] + layers[n, 2 * c + 1, bi, bj])
+                s += w_range[i] * row
+            f = s - threshold[v, row_index]
+            if f > 0.0:
+                if row_index == lo:
+                    result = float(lo)
+                else:
+                    result = float(row_index - 1) + previous / (previous - f)
+                row_index = hi
+            else:
+                previous = f
+                row_index += 1
+    contour[n, c, b] = result
+
+
+@wp.kernel
+def contour_cost_kernel(contour: wp.array3d(dtype=float), view_index: wp.array(dtype=wp.int32),
+                        dist: wp.array4d(dtype=float), cap: float, shifts: wp.array(dtype=float),
+                        sums: wp.array3d(dtype=float), counts: wp.array2d(dtype=wp.int32)):
+    """Thread (n, c, s): distances of pair n's contour c to the data's, read at shift s."""
+    n, c, s = wp.tid()
+    v = view_index[n]
+    bins = dist.shape[2]
+    beams = dist.shape[3]
+    shift = shifts[s]
+    last = float(bins - 1)
+    total = float(0.0)
+    count = int(0)
+    for b in range(beams):
+        x = contour[n, c, b]
+        if x >= 0.0:
+            y = wp.clamp(x + shift, 0.0, last)
+            b0 = int(wp.floor(y))
+            b1 = wp.min(b0 + 1, bins - 1)
+            t = y - float(b0)
+            total += (1.0 - t) * wp.min(dist[v, c, b0, b], cap) + t * wp.min(dist[v, c, b1, b], cap)
+            count += 1
+    sums[n, c, s] = total
+    if s == 0:
+        counts[n, c] = count

@@ -1,0 +1,185 @@
+"""Warp kernels of image synthesis (kernels/render.cl; fsswarp/rendering.py documents the algorithm).
+
+``render_kernel`` deposits every sub-ray's object, ghost, mirror and mirror2 returns into a
+fixed-point (N, 4, R, beams) int32 accumulator, ``fixed_to_float`` converts it to float32
+layers, and ``frontal_rays_kernel`` finds the frontal patch of beams (``Backend.frontal_faces``).
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from ..constants import FIXED_SCALE, RAY_EPSILON, WARP_FAR
+from .raycast import nearest_hit
+from .sonar import MODULE_OPTIONS, KernelSonar, azimuth, beam_coordinate, bin_coordinate, elevation, nearest_index
+
+_EPS = wp.constant(RAY_EPSILON)
+_FAR = wp.constant(WARP_FAR)
+_FIXED = wp.constant(FIXED_SCALE)
+
+wp.set_module_options(MODULE_OPTIONS)
+
+
+@wp.func
+def face_normal(points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), face: int):
+    """Unit geometric normal cross(v1 − v0, v2 − v0) of a triangle (reference frame)."""
+    v0 = points[indices[face * 3 + 0]]
+    v1 = points[indices[face * 3 + 1]]
+    v2 = points[indices[face * 3 + 2]]
+    return wp.normalize(wp.cross(v1 - v0, v2 - v0))
+
+
+@wp.func
+def facing_normal(points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), face: int,
+                  r: wp.mat33, u: wp.vec3):
+    """View-frame normal Rᵀ N of a face, turned against the view-frame direction u (u·N <= 0)."""
+    n = wp.transpose(r) * face_normal(points, indices, face)
+    if wp.dot(u, n) > 0.0:
+        n = -n
+    return n
+
+
+@wp.func
+def deposit(acc: wp.array4d(dtype=wp.int32), v: int, layer: int, bin_index: int, beam: int,
+            amplitude: float, weight: float, beams: int, first: int):
+    """Add int(amplitude · weight · 2^24 + 0.5) at (v, layer, bin − first, beam) if inside view
+    v's band of rows (acc.shape[2] rows from image row ``first``) and the image's beams."""
+    row = bin_index - first
+    if row >= 0 and row < acc.shape[2] and beam >= 0 and beam < beams:
+        wp.atomic_add(acc, v, layer, row, beam, int(amplitude * weight * _FIXED + 0.5))
+
+
+@wp.kernel
+def frontal_rays_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
+                        rotations: wp.array(dtype=wp.mat33), translations: wp.array(dtype=wp.vec3),
+                        plane_normals: wp.array(dtype=wp.vec3), plane_offsets: wp.array(dtype=float),
+                        views: wp.array(dtype=wp.int32), azimuths: wp.array(dtype=float), mirror: int,
+                        sonar: KernelSonar, epsilon: float, visible: float,
+                        max_distance: float, range_out: wp.array2d(dtype=float),
+                        face_out: wp.array2d(dtype=wp.int32)):
+    """Thread (i, j): elevation ray j of beam i, its (mirror) range and face (Backend.frontal_faces;
+    kernels/render.cl)."""
+    i, j = wp.tid()
+    rays = range_out.shape[1]
+    v = views[i]
+    rot = rotations[v]
+    org = translations[v]
+    n = plane_normals[v]
+    d = plane_offsets[v]
+    theta = azimuths[i]
+    phi = -sonar.half_elevation + (float(j) + 0.5) / float(rays) * (2.0 * sonar.half_elevation)
+    cphi = wp.cos(phi)
+    u = wp.vec3(cphi * wp.sin(theta), cphi * wp.cos(theta), wp.sin(phi))
+    up = wp.dot(u, n)
+    s = float(wp.inf)
+    if up > 0.0:
+        s = d / up
+    hit = nearest_hit(mesh, points, indices, org, rot * u, max_distance)
+    rng = float(wp.inf)
+    face = int(-1)
+    if mirror == 0:
+        if hit.t < s:
+            rng = hit.t
+            face = hit.face
+    elif s < hit.t:
+        q = s * u
+        w = u - (2.0 * up) * n
+        leg = nearest_hit(mesh, points, indices, rot * (q + epsilon * w) + org, rot * w, max_distance)
+        if leg.face >= 0:
+            r2 = leg.t + epsilon
+            p = q + r2 * w
+            length = wp.length(p)
+            back = nearest_hit(mesh, points, indices, org, rot * (p / length), max_distance)
+            if (wp.abs(elevation(p)) <= sonar.half_elevation and wp.abs(azimuth(p)) <= sonar.half_azimuth
+                    and back.t >= length - visible):
+                rng = 0.5 * (length + s + r2)
+                face = leg.face
+    range_out[i, j] = rng
+    face_out[i, j] = face
+
+
+@wp.kernel
+def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
+                  indices: wp.array(dtype=wp.int32), rotations: wp.array(dtype=wp.mat33),
+                  translations: wp.array(dtype=wp.vec3), plane_normals: wp.array(dtype=wp.vec3),
+                  plane_offsets: wp.array(dtype=float), beam_centres: wp.array(dtype=float),
+                  beam_widths: wp.array(dtype=float), beam_table: wp.array2d(dtype=float),
+                  sonar: KernelSonar, k_theta: int, k_phi: int, weight: float, gamma: float, surface_reflection: float,
+                  first_rows: wp.array(dtype=wp.int32), acc: wp.array4d(dtype=wp.int32)):
+    """Thread (v, b, k): sub-ray (i, j) = divmod(k, K_φ) of beam b in view v; deposits its
+    object, ghost, mirror and mirror2 returns into acc (N, 4, R, beams), view v's image row B
+    at row B − first_rows[v] when that lies in [0, R), else nowhere (kernels/render.cl)."""
+    v, b, k = wp.tid()
+    i = k // k_phi
+    j = k - i * k_phi
+    rot = rotations[v]
+    org = translations[v]
+    n = plane_normals[v]
+    d = plane_offsets[v]
+    first = first_rows[v]
+
+    # 1. sub-ray direction (view frame)
+    theta = beam_centres[b] + ((float(i) + 0.5) / float(k_theta) - 0.5) * beam_widths[b]
+    phi = -sonar.half_elevation + (float(j) + 0.5) / float(k_phi) * (2.0 * sonar.half_elevation)
+    cphi = wp.cos(phi)
+    u = wp.vec3(cphi * wp.sin(theta), cphi * wp.cos(theta), wp.sin(phi))
+
+    # 2. direct leg: surface at s, first mesh hit before it
+    nu = wp.dot(n, u)
+    s = _FAR
+    has_surface = False
+    if nu > 0.0:
+        s = d / nu
+        has_surface = True
+    hit = nearest_hit(mesh, points, indices, org, rot * u, wp.min(s, _FAR))
+    if hit.face >= 0:
+        # 3. hit before the surface
+        r = hit.t
+        nrm = facing_normal(points, indices, hit.face, rot, u)
+        c = -wp.dot(u, nrm)
+        deposit(acc, v, 0, nearest_index(bin_coordinate(r, sonar)), b,
+                wp.pow(c, gamma), weight, sonar.beams, first)
+        p = r * u
+        o_m = (2.0 * d) * n
+        q = wp.length(p - o_m)
+        n_p = wp.dot(n, p)
+        lam = d / (2.0 * d - n_p)
+        qq = o_m + lam * (p - o_m)
+        if qq[1] > 0.0:
+            bq = beam_coordinate(azimuth(qq), sonar, beam_table)
+            if bq >= -0.5 and bq < float(sonar.beams) - 0.5 and wp.abs(elevation(qq)) <= sonar.half_elevation:
+                pq = p - qq
+                l_pq = wp.length(pq)
+                w = pq / l_pq
+                c_in = -wp.dot(w, nrm)
+                if c_in > 0.0:
+                    l_q = wp.length(qq)
+                    leg1 = nearest_hit(mesh, points, indices, org, rot * (qq / l_q), l_q - _EPS)
+                    if leg1.face < 0:
+                        leg2 = nearest_hit(mesh, points, indices, rot * qq + org, rot * w, l_pq - _EPS)
+                        if leg2.face < 0:
+                            a_s = surface_reflection * wp.pow(c * c_in, 0.5 * gamma)
+                            rb = nearest_index(bin_coordinate(0.5 * (r + q), sonar))
+                            deposit(acc, v, 1, rb, b, a_s, weight, sonar.beams, first)
+                            pm = p - (2.0 * (n_p - d)) * n
+                            mb = nearest_index(beam_coordinate(azimuth(pm), sonar, beam_table))
+                            deposit(acc, v, 2, rb, mb, a_s, weight, sonar.beams, first)
+    elif has_surface:
+        # 4. surface first: mirror2 along the reflected ray
+        qs = s * u
+        u2 = u - (2.0 * nu) * n
+        dir2 = rot * u2
+        hit2 = nearest_hit(mesh, points, indices, rot * qs + org + _EPS * dir2, dir2, _FAR)
+        if hit2.face >= 0:
+            r2 = _EPS + hit2.t
+            nrm2 = facing_normal(points, indices, hit2.face, rot, u2)
+            c2 = -wp.dot(u2, nrm2)
+            deposit(acc, v, 3, nearest_index(bin_coordinate(s + r2, sonar)), b,
+                    surface_reflection * surface_reflection * wp.pow(c2, gamma), weight, sonar.beams, first)
+
+
+@wp.kernel
+def fixed_to_float(acc: wp.array(dtype=wp.int32), layers: wp.array(dtype=float)):
+    """Thread i: layers[i] = acc[i] / 2^24 (the accumulator's fixed point)."""
+    i = wp.tid()
+    layers[i] = float(acc[i]) * (1.0 / _FIXED)
