@@ -190,6 +190,15 @@ def carve(dataset, depth: float | None = None, tilt: float | None = None, *, res
                        segmentation=segmentation, timings=timings, backend=backend.name, device=backend.device)
 
 
+def check_box(box) -> np.ndarray:
+    """``box`` as (2, 3) float64 lower and upper corners (m), or InputError (field --box)."""
+    user = np.asarray(box, np.float64)
+    if user.shape != (2, 3) or not np.all(np.isfinite(user)) or np.any(user[1] <= user[0]):
+        raise InputError("must be finite lower and upper corners (x0 y0 z0 x1 y1 z1) with x0 < x1, "
+                         "y0 < y1, z0 < z1", field="--box", value=user.ravel().tolist())
+    return user
+
+
 def carve_masks(masks, rotations, translations, sonar: SonarSpec, *, resolution: int = 128, box=None,
                 plane=None, settings: CarveSettings = CarveSettings(), backend=None,
                 timings: dict | None = None, source=None) -> VoxelCarving:
@@ -212,10 +221,7 @@ def carve_masks(masks, rotations, translations, sonar: SonarSpec, *, resolution:
                          "views' positions, headings and the depth/tilt", file=source, field="views",
                          value=len(rotations))
     if box is not None:
-        user = np.asarray(box, np.float64)
-        if user.shape != (2, 3) or not np.all(np.isfinite(user)) or np.any(user[1] <= user[0]):
-            raise InputError("must be finite lower and upper corners (x0 y0 z0 x1 y1 z1) with x0 < x1, "
-                             "y0 < y1, z0 < z1", field="--box", value=user.ravel().tolist())
+        user = check_box(box)
         domain = np.stack([np.maximum(domain[0], user[0]), np.minimum(domain[1], user[1])])
         if np.any(domain[1] <= domain[0]):
             raise InputError("lies outside the region the views see in common", field="--box",

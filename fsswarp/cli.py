@@ -52,7 +52,18 @@ class State:
         return drawer
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+class CommandLine(click.Group):
+    """The ``fsswarp`` group: Ctrl-C ends a command as ``click.Abort``, which ``main`` reports
+    in one line (click would print a blank line before it)."""
+
+    def invoke(self, ctx: click.Context):
+        try:
+            return super().invoke(ctx)
+        except KeyboardInterrupt:
+            raise click.Abort() from None
+
+
+@click.group(cls=CommandLine, context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--backend", type=click.Choice(["auto", "warp", "opencl"]), default="auto", show_default=True,
               help="Kernel backend: 'auto' takes Warp on CUDA when a GPU is present, else OpenCL "
                    "(PoCL on CPU), else Warp on CPU.")
@@ -367,11 +378,12 @@ def carve(state: State, dataset_dir: Path, out: Path, depth, tilt, resolution: i
     import numpy as np
 
     from .atomic import check_output_folder, output_folder
-    from .carving import CarveSettings
+    from .carving import CarveSettings, check_box
     from .carving import carve as run
     from .dataset import load_dataset
     from .figures import carve_figure
     from .outputs import carve_record, write_carve
+    from .rig import check_depth_tilt
 
     start = time.perf_counter()
     dataset = load_dataset(dataset_dir)
@@ -380,10 +392,13 @@ def carve(state: State, dataset_dir: Path, out: Path, depth, tilt, resolution: i
     truth = dataset.truth_mesh()  # before the work: a bad truth model fails at once
     given = depth is not None or tilt is not None
     tilt = None if tilt is None else math.radians(tilt)
+    surface = dataset.manifest.surface
+    check_depth_tilt(surface.depth if depth is None else depth, surface.tilt if tilt is None else tilt)
+    box = None if box is None else check_box(np.reshape(box, (2, 3)))
     backend = state.get_backend()
     state.echo(f"carving {dataset_dir}: {len(dataset.images)} views, resolution {resolution} "
                f"({backend.name} on {backend.device})")
-    result = run(dataset, depth, tilt, resolution=resolution, box=None if box is None else np.reshape(box, (2, 3)),
+    result = run(dataset, depth, tilt, resolution=resolution, box=box,
                  settings=dataclasses.replace(CarveSettings(), faces=faces), backend=backend)
     voxels, mesh = result.voxels, result.mesh
     state.echo(f"  depth {result.depth:.4g} m, tilt {math.degrees(result.tilt):.4g} deg "
@@ -424,10 +439,15 @@ def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, pat
     OUT/result.json and OUT/figures/."""
     from .atomic import check_output_folder
     from .dataset import load_dataset
+    from .pose import check_uncertainties
     from .reconstruction import ReconstructSettings
+    from .rig import check_depth_tilt
 
     dataset = load_dataset(dataset_dir)
     check_output_folder(out, marker=MARKERS["reconstruct"])
+    surface = dataset.manifest.surface
+    check_depth_tilt(surface.depth if depth is None else depth, surface.tilt if tilt is None else math.radians(tilt))
+    check_uncertainties(dataset, surface.depth if depth is None else depth)
     run_reconstruction(state, dataset, out,
                        ReconstructSettings(iterations=iterations, patience=patience, resolution=resolution),
                        state.figure_drawer(), depth0=depth, tilt0=None if tilt is None else math.radians(tilt))
@@ -530,10 +550,13 @@ def demo(state: State, scene_name: str, out: Path, seed: int, iterations: int) -
     with the reconstruction: OUT/dataset, OUT/reconstruction, OUT/enhance, with figures."""
     import time
 
-    from .atomic import output_folder
+    from .atomic import check_output_folder, output_folder
     from .reconstruction import ReconstructSettings
+    from .simulation import check_scene
     from .simulation import simulate as run_simulation
 
+    check_output_folder(out, marker=MARKERS["demo"])
+    check_scene(scene_name)
     backend = state.get_backend()
     start = time.perf_counter()
     with output_folder(out, marker=MARKERS["demo"]) as tmp:
@@ -628,7 +651,8 @@ def enhance(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt
     that MODEL does not project into are skipped with a warning; none at all is an error."""
     from .atomic import check_output_folder
     from .dataset import load_dataset
-    from .enhancement import check_ghost_sigma
+    from .enhancement import check_ghost_sigma, check_views
+    from .rig import check_depth_tilt
 
     dataset = load_dataset(dataset_dir)
     mesh = load_mesh_file(model, "--model")
@@ -640,6 +664,8 @@ def enhance(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt
     given = depth is not None or tilt is not None
     depth = dataset.manifest.surface.depth if depth is None else depth
     tilt = dataset.manifest.surface.tilt if tilt is None else math.radians(tilt)
+    check_depth_tilt(depth, tilt)
+    check_views(dataset, list(view_names))
     run_enhancement(state, dataset, mesh, str(model), depth, tilt, out, state.figure_drawer(),
                     views=list(view_names) or None, source="given" if given else "measured", initial=initial,
                     ghost_sigma=tuple(ghost_sigma))

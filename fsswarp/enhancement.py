@@ -152,10 +152,7 @@ def enhance(dataset, model, depth: float, tilt: float, *, views=None, settings: 
         raise InputError("no views to enhance", field="views", value=names)
     if "ghost_sigma" in options:
         check_ghost_sigma(options["ghost_sigma"])
-    for name in names:
-        if name not in dataset.images:
-            raise InputError(f"no such view in the dataset (views: {', '.join(dataset.rig.names)})",
-                             field="view", value=name)
+    check_views(dataset, names)
     rendered = render_model(model, dataset, depth, tilt, names, settings=settings, backend=backend,
                             model_name=model_name)
     results, failures = {}, []
@@ -169,6 +166,14 @@ def enhance(dataset, model, depth: float, tilt: float, *, views=None, settings: 
     for err in failures:
         warnings.warn(f"{model_name}: {err}: skipped", RenderWarning, stacklevel=2)
     return results
+
+
+def check_views(dataset, names) -> None:
+    """InputError (field ``view``) naming the first of ``names`` that ``dataset`` lacks."""
+    for name in names:
+        if name not in dataset.images:
+            raise InputError(f"no such view in the dataset (views: {', '.join(dataset.rig.names)})",
+                             field="view", value=name)
 
 
 def render_model(model, dataset, depth: float, tilt: float, names, *, settings: RenderSettings = RenderSettings(),

@@ -436,7 +436,7 @@ class FigureDrawer:
                 self.pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
                                                 initializer=_start_figure_process)
                 for _ in range(self.workers):  # each submit with no idle process starts one
-                    self.pool.submit(int)
+                    self._submit(int)
             except OSError as err:  # e.g. no /dev/shm for the pool's semaphores in some containers
                 self.close()
                 self.pool = None
@@ -448,6 +448,18 @@ class FigureDrawer:
         if self.pool is not None:
             self.pool.shutdown(wait=True, cancel_futures=True)
 
+    def _submit(self, function, *args, **kwargs):
+        """``self.pool.submit`` with SIGINT blocked in this thread: a process that the submit
+        starts inherits the mask, so a Ctrl-C that comes before its initializer ignores SIGINT
+        reaches the command alone (no traceback from the child)."""
+        import signal
+
+        blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            return self.pool.submit(function, *args, **kwargs)
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
+
     @contextmanager
     def batch(self):
         """Yield ``draw(function, *args, **kwargs)``; wait for what it drew on leaving."""
@@ -456,7 +468,7 @@ class FigureDrawer:
             return
         futures = []
         try:
-            yield lambda function, *args, **kwargs: futures.append(self.pool.submit(function, *args, **kwargs))
+            yield lambda function, *args, **kwargs: futures.append(self._submit(function, *args, **kwargs))
         except BaseException:
             for future in futures:
                 future.cancel()

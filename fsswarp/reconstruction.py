@@ -386,7 +386,7 @@ class _TruthMetrics:
         path = [str(Path(__file__).resolve().parent.parent), os.environ.get("PYTHONPATH", "")]
         child = subprocess.Popen(
             [sys.executable, "-c", "from fsswarp.metrics import serve_compare; serve_compare()"],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, start_new_session=True,  # Ctrl-C: the parent's alone
             env=dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in path if p)))
         self.children.append(child)
         pickle.dump(self.mesh, child.stdin)

@@ -28,6 +28,15 @@ def resolve_scene(scene: str | Path) -> tuple[Manifest, Path | None]:
     return load_scene(path), path
 
 
+def check_scene(scene: str | Path | Manifest) -> tuple[Manifest, trimesh.Trimesh]:
+    """The manifest of ``scene`` (a built-in name, a scene file or a scene Manifest) and its
+    target mesh placed in the world frame, or InputError."""
+    manifest, file = (scene, None) if isinstance(scene, Manifest) else resolve_scene(scene)
+    if manifest.target is None or manifest.truth is None:
+        raise InputError("a scene needs [target] and [truth]", field="scene", value=str(scene))
+    return manifest, target_world_mesh(manifest.target, base=file.parent if file else None, file=file)
+
+
 def simulate(scene: str | Path | Manifest, out: str | Path, *, seed: int = 0,
              settings: RenderSettings = RenderSettings(), noise: bool = True, backend=None) -> Dataset:
     """Synthesize the dataset of ``scene`` (a built-in name, a scene file or a scene Manifest)
@@ -35,11 +44,8 @@ def simulate(scene: str | Path | Manifest, out: str | Path, *, seed: int = 0,
     reference frame of the true depth and tilt). Returns the saved Dataset."""
     check_integer("--seed", seed, 0)
     check_output_folder(out, marker=TRUTH_MODEL)  # before the rendering; a recording is never replaced
-    manifest, file = (scene, None) if isinstance(scene, Manifest) else resolve_scene(scene)
-    if manifest.target is None or manifest.truth is None:
-        raise InputError("a scene needs [target] and [truth]", field="scene", value=str(scene))
+    manifest, world = check_scene(scene)
     truth = manifest.truth
-    world = target_world_mesh(manifest.target, base=file.parent if file else None, file=file)
     model = trimesh.Trimesh(world_to_reference(world.vertices, manifest.rig, truth.depth, truth.tilt),
                             world.faces, process=False)
     views = render(model, manifest.sonar, manifest.rig, truth.depth, truth.tilt, settings=settings,

@@ -1,0 +1,161 @@
+"""The command line's contract (DESIGN §12): Ctrl-C, bad input before any output, the JSON
+files written by fsswarp.outputs and their fields documented in docs/formats.md."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from fsswarp.backends import describe_backends
+from fsswarp.cli import main
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def _backend_args() -> list[str]:
+    """--backend opencl where an OpenCL CPU device is present (as the coral_one fixture)."""
+    rows = [r for r in describe_backends() if r["backend"] == "opencl" and r["kind"] == "cpu" and r["available"]]
+    return ["--backend", "opencl", "--device", str(rows[0]["index"])] if rows else []
+
+
+# --- Ctrl-C ----------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("wait_for", ["reconstructing", "iteration 0: D"])
+def test_ctrl_c_prints_one_line_and_leaves_nothing(coral_one, tmp_path, wait_for):
+    """SIGINT to the whole process group (as a terminal's Ctrl-C) at the first progress line
+    (figure processes starting) or once the truth-metrics process works: exit 130, one line
+    on stderr, no traceback from any process, no output folder."""
+    out = tmp_path / "rec"
+    env = dict(os.environ, FSSWARP_FIGURE_WORKERS="1",
+               PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
+    child = subprocess.Popen([sys.executable, "-m", "fsswarp", *_backend_args(), "reconstruct", str(coral_one.root),
+                              "--out", str(out), "--resolution", "32", "--iterations", "3"],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                             env=env, cwd=tmp_path)
+    try:
+        lines = []
+        while not lines or (wait_for not in lines[-1] and lines[-1]):
+            lines.append(child.stdout.readline())
+        assert wait_for in lines[-1], (lines, child.communicate(timeout=60))
+        os.killpg(child.pid, signal.SIGINT)
+        stdout, stderr = child.communicate(timeout=120)
+    finally:
+        if child.poll() is None:
+            child.kill()
+    assert child.returncode == 130, stderr
+    assert stderr == "fsswarp: interrupted\n"
+    assert "Traceback" not in stdout
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+# --- nothing printed before the input is checked -----------------------------------------------
+
+BAD_OPTIONS = {
+    "carve depth": (["carve", "{data}", "--out", "{out}", "--depth", "-1"], "--depth = -1.0"),
+    "carve tilt": (["carve", "{data}", "--out", "{out}", "--tilt", "95"], "--tilt = 95.0"),
+    "carve box": (["carve", "{data}", "--out", "{out}", "--box", "1", "1", "1", "0", "0", "0"], "--box = "),
+    "reconstruct depth": (["reconstruct", "{data}", "--out", "{out}", "--depth", "-1"], "--depth = -1.0"),
+    "reconstruct tilt": (["reconstruct", "{data}", "--out", "{out}", "--tilt", "90"], "--tilt = 90.0"),
+    "enhance view": (["enhance", "{data}", "--model", "{truth}", "--out", "{out}", "--view", "nope"],
+                     "view = 'nope'"),
+    "enhance depth": (["enhance", "{data}", "--model", "{truth}", "--out", "{out}", "--depth", "0"],
+                      "--depth = 0.0"),
+    "pose tilt": (["pose", "{data}", "--model", "{truth}", "--out", "{out}", "--tilt", "-91"], "--tilt = -91.0"),
+    "demo scene": (["demo", "coral1", "--out", "{out}"], "SCENE = 'coral1'"),
+    "simulate scene": (["simulate", "coral1", "--out", "{out}"], "SCENE = 'coral1'"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_OPTIONS))
+def test_a_bad_option_prints_one_error_line_and_nothing_else(coral_one, tmp_path, capsys, case):
+    args, named = BAD_OPTIONS[case]
+    values = {"data": coral_one.root, "out": tmp_path / "out", "truth": coral_one.root / "truth" / "model.ply"}
+    code = main(_backend_args() + [a.format(**values) for a in args])
+    captured = capsys.readouterr()
+    assert code == 2
+    assert captured.out == ""
+    assert captured.err.count("\n") == 1 and captured.err.startswith("fsswarp: error: ") and named in captured.err
+    assert not (tmp_path / "out").exists()
+
+
+# --- the JSON outputs ----------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def outputs(coral_one, tmp_path_factory):
+    """carve.json, result.json, pose.json and enhance.json of small runs on coral-one
+    (truth present, so the truth-only fields are written): {file name: parsed record}."""
+    root = tmp_path_factory.mktemp("outputs")
+    data, truth = str(coral_one.root), str(coral_one.root / "truth" / "model.ply")
+    runs = {"carve.json": ["carve", data, "--out", root / "carve", "--resolution", "32"],
+            "result.json": ["reconstruct", data, "--out", root / "rec", "--resolution", "32", "--iterations", "1"],
+            "pose.json": ["pose", data, "--model", truth, "--out", root / "pose", "--levels", "1"],
+            "enhance.json": ["enhance", data, "--model", truth, "--out", root / "enhance",
+                             "--initial-model", root / "carve" / "carved.ply"]}
+    os.environ["FSSWARP_FIGURE_WORKERS"] = "0"
+    try:
+        records = {}
+        for file, args in runs.items():
+            assert main(["--quiet", *_backend_args(), *map(str, args)]) == 0, file
+            records[file] = json.loads((Path(args[args.index("--out") + 1]) / file).read_text())
+    finally:
+        del os.environ["FSSWARP_FIGURE_WORKERS"]
+    return records
+
+
+def json_keys(record, data_keys: set[str]) -> set[str]:
+    """Every key of ``record``, recursively, less the keys that are data (``data_keys``: view
+    names; figure file names)."""
+    found = set()
+    if isinstance(record, dict):
+        for key, value in record.items():
+            if key not in data_keys and not key.endswith(".png"):
+                found.add(key)
+            found |= json_keys(value, data_keys)
+    elif isinstance(record, list):
+        for value in record:
+            found |= json_keys(value, data_keys)
+    return found
+
+
+def test_every_json_field_is_documented(outputs, coral_one):
+    formats = (REPO / "docs" / "formats.md").read_text()
+    documented = set(re.findall(r"`([^`\s]+)`", formats))
+    for file, record in outputs.items():
+        missing = sorted(json_keys(record, set(coral_one.rig.names)) - documented)
+        assert not missing, f"{file}: fields not in docs/formats.md as `key`: {missing}"
+
+
+def test_the_library_writes_what_the_command_line_writes(outputs, coral_one, tmp_path):
+    """fsswarp.outputs from the Python API: the same carve.json as `fsswarp carve` but for the
+    times."""
+    import time
+
+    from fsswarp.carving import carve
+    from fsswarp.dataset import load_dataset
+    from fsswarp.outputs import carve_record, write_carve
+
+    start = time.perf_counter()
+    dataset = load_dataset(coral_one.root)
+    loaded = time.perf_counter() - start
+    backend = None
+    if _backend_args():
+        from fsswarp.backends import get_backend
+
+        backend = get_backend("opencl", int(_backend_args()[3]))
+    result = carve(dataset, resolution=32, backend=backend)
+    record = carve_record(str(coral_one.root), dataset, result, resolution=32, given=False, load_s=loaded,
+                          truth=dataset.truth_mesh())
+    write_carve(tmp_path, result, record)
+    written = json.loads((tmp_path / "carve.json").read_text())
+    expected = outputs["carve.json"]
+    for record in (written, expected):
+        record["timings_s"] = sorted(record["timings_s"])
+    assert written == expected
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["carve.json", "carved.ply"]
