@@ -24,9 +24,10 @@ from pathlib import Path
 
 #: (module, class name or None, function names) wrapped where the loop looks them up.
 WRAPPED = (
-    ("fsswarp.pose", "PoseProblem", ("__init__", "locate", "exact", "surrogate", "view_costs", "align",
-                                     "frontal_motions", "contour_errors", "_detection_shift", "_data_contours")),
-    ("fsswarp.pose", None, ("estimate_pose", "_polish", "patch_motions")),
+    ("fsswarp.compare", "ViewComparison", ("__init__", "use", "locate", "exact", "surrogate", "view_costs", "align",
+                                           "frontal_motions", "contour_errors", "_detection_shift", "_data_contours")),
+    ("fsswarp.compare", None, ("patch_motions",)),
+    ("fsswarp.pose", None, ("estimate_pose", "_polish")),
     ("fsswarp.refine", None, ("refine_shape",)),
     ("fsswarp.refine", "_Membrane", ("solve",)),
     ("fsswarp.carving", None, ("carve", "voxel_mesh")),

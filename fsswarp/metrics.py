@@ -1,19 +1,23 @@
-"""Model-accuracy metrics against a true mesh (paper §2.5, DESIGN §9).
+"""Every error measure of the paper (§2.4–2.5, eq. 6 and 8–12; DESIGN §7, §9). Lengths in m.
 
-- E_V (paper eq. 12): the non-common volume of two closed meshes over their union,
-  ``(V_a + V_b − 2 V_ab) / (V_a + V_b − V_ab)``, 0 for identical volumes, 1 for disjoint ones.
-  Volumes are exact, by mesh booleans (manifold3d) when both meshes are closed 2-manifolds,
-  else counted on a voxel grid (:func:`inside_grid`, ``grid`` samples along the longest side
-  of the pair's box).
-- Chamfer-L1: the mean of the two directed mean distances from ``samples`` points drawn
-  uniformly (area-weighted, seeded) on one surface to the other surface (exact
-  point-to-triangle distances), in metres.
-- F-score at τ: the harmonic mean of precision (the share of the estimate's sample points
-  within τ of the truth's surface) and recall (the share of the truth's points within τ of
-  the estimate's). τ defaults to ``TAU_FRACTION`` = 2% of the truth's bounding-box diagonal:
-  6.3 mm on coral-one (0.32 m diagonal), between the range bin (3.9 mm) and the beam spacing
-  at the target (10 mm at 2 m) of the default sonar, so the score measures what the sonar
-  resolves, on an object of any size.
+Model against a true mesh (both in the reference frame):
+
+- E_V (eq. 12, :func:`volume_error`): ``(V_a + V_b − 2 V_ab) / (V_a + V_b − V_ab)``, volumes
+  by mesh booleans (manifold3d) when both meshes are closed 2-manifolds, else on a voxel grid
+  (:func:`inside_grid`, ``grid`` samples along the pair's longest side);
+- Chamfer-L1 (:func:`chamfer`): the mean of the two directed mean distances from ``samples``
+  seeded surface points of one mesh to the other's surface (exact point-to-triangle);
+- F-score at τ (:func:`fscore`): precision and recall of those points within τ, by default
+  ``TAU_FRACTION`` of the truth's bounding-box diagonal; :func:`compare` gives them all.
+
+Pose error (eq. 6): μ_m per view from the 3-D motions (K, 3) of the frontal object and mirror
+patches (:func:`view_errors`), E_mu their mean (:func:`pose_error`).
+
+Images (eq. 8–11), over views stacked (M, bins, beams): IE and AIE (:func:`intensity_error`,
+:func:`average_intensity_error`) on the uncorrupted object regions Ω_m, ACE the mean of the
+views' CE (:func:`average_contour_error`), NAIE and NACE relative to iteration 0
+(:func:`normalized_errors`) and E_I = (NAIE + NACE) / 2 (:func:`image_error`). NaN stands for
+"no value" (a view without a region or a contour) and is left out of the means.
 """
 
 from __future__ import annotations
@@ -24,6 +28,8 @@ import os
 import numpy as np
 
 from .errors import InputError
+from .motion import check_plane
+from .surface import mirror_vectors
 
 #: τ of the F-score as a fraction of the truth's bounding-box diagonal.
 TAU_FRACTION = 0.02
@@ -268,6 +274,149 @@ def _point_triangle_distance(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
     if bad.any():
         distance[bad] = np.linalg.norm(p[bad, None, :] - tri[bad], axis=2).min(axis=1)
     return distance
+
+
+# --- the pose error E_mu (eq. 6) ------------------------------------------------------------------
+
+def view_errors(object_motion, object_frontal, *, mirror_motion=None, mirror_frontal=None,
+                normal=None) -> np.ndarray:
+    """μ^m of paper eq. (6) for every view: ``μ^m = (1/Z_m) Σ_z ‖V_z^O‖ + ‖V_z^M - Ṽ_z^M‖``.
+
+    V_z^O is the 3-D motion of object patch z (from the object contours), Ṽ_z^M the motion of
+    its mirror patch from the mirror contours, and V_z^M = H V_z^O, ``H = I - 2 n nᵀ``, the
+    object motion mapped onto the virtual mirror object across the sea surface. Z_m counts the
+    frontal patches of view m. The object and mirror sums run over their own frontal sets of
+    view m and each is divided by its own count: ``μ^m = mean_{z∈O_m} ‖V_z^O‖ +
+    mean_{z∈M_m} ‖H V_z^O - Ṽ_z^M‖``, which is eq. (6) when the sets agree; the mirror term is
+    0 in a view with no distinct mirror (M_m empty); μ^m is NaN when O_m is empty.
+
+    object_motion : (..., K, 3); object_frontal : (..., M, K) bool, patch z frontal in view m.
+    mirror_motion : (..., K, 3) Ṽ^M; mirror_frontal : (..., M, K) bool, the mirror patch of z
+        frontal in view m; normal : (..., 3) unit surface normal in the reference frame.
+    Motions of patches in no frontal set are ignored (may be NaN). Returns (..., M).
+    """
+    vo = np.asarray(object_motion, np.float64)
+    if vo.ndim < 2 or vo.shape[-1] != 3:
+        raise ValueError(f"object_motion must have shape (..., K, 3), got {vo.shape}")
+    fo = _mask("object_frontal", object_frontal, vo.shape[-2])
+    mirror = (mirror_motion, mirror_frontal, normal)
+    if any(x is None for x in mirror) and not all(x is None for x in mirror):
+        raise ValueError("mirror_motion, mirror_frontal and normal go together")
+    used = fo.any(axis=-2)
+    if mirror_motion is not None:
+        vm = np.asarray(mirror_motion, np.float64)
+        if vm.shape[-2:] != vo.shape[-2:]:
+            raise ValueError(f"mirror_motion must have shape (..., K, 3) like object_motion, got {vm.shape}")
+        fm = _mask("mirror_frontal", mirror_frontal, vo.shape[-2])
+        n, _ = check_plane((normal, 0.0))
+        used_m = fm.any(axis=-2)
+        if not np.all(np.isfinite(vm[np.broadcast_to(used_m, vm.shape[:-1])])):
+            raise ValueError("mirror_motion of frontal mirror patches holds non-finite values")
+        used = used | used_m
+    if not np.all(np.isfinite(vo[np.broadcast_to(used, vo.shape[:-1])])):
+        raise ValueError("object_motion of frontal patches holds non-finite values")
+
+    speed = np.linalg.norm(np.where(used[..., None], vo, 0.0), axis=-1)
+    mu = _masked_mean(speed, fo)
+    if mirror_motion is not None:
+        expected = mirror_vectors(np.where(used[..., None], vo, 0.0), n[..., None, :])
+        gap = np.linalg.norm(expected - np.where(used_m[..., None], vm, 0.0), axis=-1)
+        mu = mu + np.nan_to_num(_masked_mean(gap, fm), nan=0.0)
+    return mu
+
+
+def pose_error(object_motion, object_frontal, *, mirror_motion=None, mirror_frontal=None,
+               normal=None) -> np.ndarray:
+    """E_mu(D, β) of paper eq. (6): ``(1/M) Σ_m μ^m``, the mean of ``view_errors`` over the M
+    views with a defined μ^m (at least one frontal object patch); NaN if none.
+    Arguments as ``view_errors``; returns (...) (a 0-d array for unbatched inputs)."""
+    mu = view_errors(object_motion, object_frontal, mirror_motion=mirror_motion,
+                     mirror_frontal=mirror_frontal, normal=normal)
+    return _nanmean_last(mu)
+
+
+# --- image metrics (eq. 8–11) ----------------------------------------------------------------------
+
+def intensity_error(synthetic, data, region) -> np.ndarray:
+    """IE of paper eq. (8): ``(1/|Ω|) Σ_{(b,B)∈Ω} |Ĩ(b,B) - I(b,B)|``.
+
+    synthetic, data : (..., bins, beams) beam-bin images; region : (..., bins, beams) bool, Ω
+    (the uncorrupted object region of the synthetic view). Returns (...); NaN where Ω is empty.
+    Pixels outside Ω are ignored (may be NaN)."""
+    syn = np.asarray(synthetic, np.float64)
+    dat = np.asarray(data, np.float64)
+    if syn.ndim < 2 or syn.shape != dat.shape:
+        raise ValueError(f"synthetic {syn.shape} and data {dat.shape} must be images of one shape")
+    omega = np.asarray(region)
+    if omega.dtype != np.bool_ or omega.shape != syn.shape:
+        raise ValueError(f"region must be a bool array of shape {syn.shape}, got {omega.dtype} {omega.shape}")
+    diff = np.abs(np.where(omega, syn, 0.0) - np.where(omega, dat, 0.0))
+    if not np.all(np.isfinite(diff)):
+        raise ValueError("images hold non-finite values inside the region")
+    count = omega.sum(axis=(-2, -1))
+    return np.divide(diff.sum(axis=(-2, -1)), count, out=np.full(count.shape, np.nan), where=count > 0)
+
+
+def average_intensity_error(synthetic, data, regions) -> float:
+    """AIE of paper eq. (8): ``(1/M) Σ_m IE(Ĩ_m)`` over the M views, stacks (M, bins, beams)
+    as ``intensity_error``. Views with an empty Ω_m have no IE and are left out of the mean
+    (M counts the others); NaN if every Ω_m is empty."""
+    ie = intensity_error(synthetic, data, regions)
+    if ie.ndim != 1:
+        raise ValueError(f"expected stacks of shape (M, bins, beams), got {np.shape(synthetic)}")
+    return float(_nanmean_last(ie))
+
+
+def average_contour_error(contour_errors) -> float:
+    """ACE of paper eq. (9): ``(1/M) Σ_m CE(Ĩ_m)``, the mean of the views' CE (eq. 5,
+    ``ICPResult.error``), (M,). NaN entries (no inlier pair) are left out; NaN if all are."""
+    ce = np.asarray(contour_errors, np.float64)
+    if ce.ndim != 1 or np.any(np.isinf(ce)) or np.any(ce < 0):
+        raise ValueError("contour_errors must be a 1-D array of values >= 0 (or NaN)")
+    return float(_nanmean_last(ce))
+
+
+def normalized_errors(aie: float, ace: float, aie0: float, ace0: float) -> tuple[float, float]:
+    """(NAIE, NACE) of paper eq. (10): ``AIE^t / AIE^0`` and ``ACE^t / ACE^0``, the initial
+    values being those of the space-carving model (iteration 0). A NaN error (no view with a
+    value) gives NaN."""
+    values = [float(x) for x in (aie, ace, aie0, ace0)]
+    if not all(math.isnan(x) or (math.isfinite(x) and x >= 0) for x in values):
+        raise ValueError(f"errors must be finite and >= 0 (or NaN), got {values}")
+    if values[2] == 0 or values[3] == 0:
+        raise ValueError("initial errors AIE^0 and ACE^0 must be > 0 to normalize")
+    return values[0] / values[2], values[1] / values[3]
+
+
+def image_error(aie: float, ace: float, aie0: float, ace0: float) -> float:
+    """E_I of paper eq. (11): ``(NAIE + NACE) / 2`` (1 at iteration 0, falls as images agree),
+    computed as ``0.5 * (aie / aie0 + ace / ace0)``."""
+    naie, nace = normalized_errors(aie, ace, aie0, ace0)
+    return 0.5 * (naie + nace)
+
+
+
+# --- helpers of the image and pose metrics ----------------------------------------------------------
+
+def _masked_mean(values: np.ndarray, masks: np.ndarray) -> np.ndarray:
+    """(..., M) mean of (..., K) values over each of (..., M, K) masks; NaN for empty masks."""
+    total = np.einsum("...mk,...k->...m", masks.astype(np.float64), values)
+    count = masks.sum(axis=-1)
+    return np.divide(total, count, out=np.full(total.shape, np.nan), where=count > 0)
+
+
+def _nanmean_last(values: np.ndarray) -> np.ndarray:
+    ok = np.isfinite(values)
+    count = ok.sum(axis=-1)
+    total = np.where(ok, values, 0.0).sum(axis=-1)
+    return np.divide(total, count, out=np.full(count.shape, np.nan), where=count > 0)
+
+
+def _mask(name: str, value, k: int) -> np.ndarray:
+    mask = np.asarray(value)
+    if mask.dtype != np.bool_ or mask.ndim < 2 or mask.shape[-1] != k:
+        raise ValueError(f"{name} must be a bool array of shape (..., M, {k}), got {mask.dtype} {mask.shape}")
+    return mask
 
 
 def _fscore(d_et: np.ndarray, d_te: np.ndarray, tau: float) -> tuple[float, float, float]:

@@ -1,17 +1,20 @@
-"""From 2-D contour motions to 3-D patch motions, the pose error E_mu, and the image metrics
-(paper §2.4–2.5, eq. 6 and 8–11; DESIGN §7 and §9).
+"""From 2-D contour motions to 3-D patch motions (paper §2.4, eq. 6; DESIGN §7).
 
-Image planes (``plane``): ``"fan"`` — paper eq. (3), ``(x, y) = R (sin θ, cos θ)`` in metres,
-the plane ``fsswarp.icp`` aligns contours in (default: both axes metric); ``"polar"`` — (θ, R)
-in radians and metres. A 2-D motion is the displacement that moves a synthetic contour point
-onto the data (``ICPResult.motions``), so a 3-D motion is the displacement that moves a model
-patch centre toward the truth; the paper writes the opposite sign, ``Ṽ = P̃ - P``, which no
-norm in eq. (6) sees, and both mirror and object motions here share one sign.
+Image planes (``plane``): ``"fan"``, paper eq. (3), ``(x, y) = R (sin θ, cos θ)`` in metres,
+the plane ``fsswarp.icp`` aligns contours in (default); ``"polar"``, (θ, R) in radians and
+metres. A 2-D motion moves a synthetic contour point onto the data (``ICPResult.motions``), so
+a 3-D motion moves a model patch centre toward the truth (the paper's ``Ṽ = P̃ − P`` has the
+opposite sign, which no norm of eq. 6 sees); mirror and object motions share one sign.
 
-Elevation is lost in one view: a view's 2×3 Jacobian has the null direction ∂P/∂φ. The least
-squares over several views with different rolls (and positions) recovers all three components;
-where it cannot, the pseudo-inverse (truncated SVD, :func:`truncated_lstsq`) leaves the
-unobserved directions at zero motion (the minimum-norm solution) and reports the rank.
+- :func:`image_jacobian`: (..., 2, 3) derivative of a return's image coordinates with respect
+  to the 3-D point (object return, or the single-bounce mirror return of a virtual point);
+- :func:`patch_motions`: least-squares 3-D motions (..., K, 3) of K patch centres from their
+  2-D motions in V views;
+- :func:`truncated_lstsq`: the minimum-norm solve behind it. One view leaves elevation
+  unobserved (the Jacobian's null direction ∂P/∂φ); several views with different rolls
+  recover it, and directions still unobserved are left at zero motion.
+
+The error measures built on these motions (μ_m, E_mu) are in ``fsswarp.metrics``.
 """
 
 from __future__ import annotations
@@ -50,7 +53,7 @@ def image_jacobian(points, *, plane: str = "fan", surface=None) -> np.ndarray:
     d_theta = np.stack([y / rho2, -x / rho2, np.zeros_like(x)], axis=-1)
     d_rng = p / rng[..., None]
     if surface is not None:
-        normal, offset = _plane(surface)
+        normal, offset = check_plane(surface)
         q = mirror_points(p, normal, offset)
         q_rng = np.linalg.norm(q, axis=-1)
         d_rng = 0.5 * (d_rng + mirror_vectors(q / q_rng[..., None], normal))
@@ -126,7 +129,7 @@ def patch_motions(centres, motions, visible, rotations, translations, *, plane: 
     p_view = np.einsum("...kvi,...vij->...kvj", c[..., :, None, :] - t[..., None, :, :], rot)
     view_surface = None
     if surface is not None:
-        normal, offset = _plane(surface)
+        normal, offset = check_plane(surface)
         n_view = np.einsum("...vij,...i->...vj", rot, normal)
         d_view = offset[..., None] - np.einsum("...vi,...i->...v", t, normal)
         view_surface = (n_view[..., None, :, :], d_view[..., None, :])
@@ -153,10 +156,8 @@ def truncated_lstsq(a: np.ndarray, b: np.ndarray, rcond: float) -> tuple[np.ndar
     """(..., 3) minimum-norm least-squares solutions of the systems a δ = b, a (..., R, 3),
     b (..., R), with the directions whose singular value lies at or below ``rcond`` × the
     largest dropped, and their ranks (...,). The SVD of a comes from the eigen-decomposition
-    of the 3×3 normal matrix aᵀa (eigenvalues s², eigenvectors the right singular vectors):
-    2,000 (20, 3) systems took 3 ms this way on an H100's host, 8 ms by ``np.linalg.svd``.
-    The squaring costs a kept direction at most a factor 1/rcond² in rounding error: about
-    2e-12 relative at the default rcond 1e-2."""
+    of the 3×3 normal matrix aᵀa (eigenvalues s², eigenvectors the right singular vectors);
+    the squaring costs a kept direction at most a factor 1/rcond² in rounding error."""
     value, vector = np.linalg.eigh(np.einsum("...ri,...rj->...ij", a, a))  # ascending
     keep = value > rcond * rcond * value[..., -1:]
     inverse = np.divide(1.0, value, out=np.zeros_like(value), where=keep)
@@ -164,140 +165,9 @@ def truncated_lstsq(a: np.ndarray, b: np.ndarray, rcond: float) -> tuple[np.ndar
     return np.einsum("...ij,...j->...i", vector, along), keep.sum(axis=-1)
 
 
-# --- the pose error E_mu (eq. 6) ----------------------------------------------------------------
-
-def view_errors(object_motion, object_frontal, *, mirror_motion=None, mirror_frontal=None,
-                normal=None) -> np.ndarray:
-    """μ^m of paper eq. (6) for every view: ``μ^m = (1/Z_m) Σ_z ‖V_z^O‖ + ‖V_z^M - Ṽ_z^M‖``.
-
-    V_z^O is the 3-D motion of object patch z (from the object contours), Ṽ_z^M the motion of
-    its mirror patch from the mirror contours, and V_z^M = H V_z^O, ``H = I - 2 n nᵀ``, the
-    object motion mapped onto the virtual mirror object across the sea surface. Z_m counts the
-    frontal patches of view m. The object and mirror sums run over their own frontal sets of
-    view m and each is divided by its own count: ``μ^m = mean_{z∈O_m} ‖V_z^O‖ +
-    mean_{z∈M_m} ‖H V_z^O - Ṽ_z^M‖``, which is eq. (6) when the sets agree; the mirror term is
-    0 in a view with no distinct mirror (M_m empty); μ^m is NaN when O_m is empty.
-
-    object_motion : (..., K, 3); object_frontal : (..., M, K) bool, patch z frontal in view m.
-    mirror_motion : (..., K, 3) Ṽ^M; mirror_frontal : (..., M, K) bool, the mirror patch of z
-        frontal in view m; normal : (..., 3) unit surface normal in the reference frame.
-    Motions of patches in no frontal set are ignored (may be NaN). Returns (..., M).
-    """
-    vo = np.asarray(object_motion, np.float64)
-    if vo.ndim < 2 or vo.shape[-1] != 3:
-        raise ValueError(f"object_motion must have shape (..., K, 3), got {vo.shape}")
-    fo = _mask("object_frontal", object_frontal, vo.shape[-2])
-    mirror = (mirror_motion, mirror_frontal, normal)
-    if any(x is None for x in mirror) and not all(x is None for x in mirror):
-        raise ValueError("mirror_motion, mirror_frontal and normal go together")
-    used = fo.any(axis=-2)
-    if mirror_motion is not None:
-        vm = np.asarray(mirror_motion, np.float64)
-        if vm.shape[-2:] != vo.shape[-2:]:
-            raise ValueError(f"mirror_motion must have shape (..., K, 3) like object_motion, got {vm.shape}")
-        fm = _mask("mirror_frontal", mirror_frontal, vo.shape[-2])
-        n, _ = _plane((normal, 0.0))
-        used_m = fm.any(axis=-2)
-        if not np.all(np.isfinite(vm[np.broadcast_to(used_m, vm.shape[:-1])])):
-            raise ValueError("mirror_motion of frontal mirror patches holds non-finite values")
-        used = used | used_m
-    if not np.all(np.isfinite(vo[np.broadcast_to(used, vo.shape[:-1])])):
-        raise ValueError("object_motion of frontal patches holds non-finite values")
-
-    speed = np.linalg.norm(np.where(used[..., None], vo, 0.0), axis=-1)
-    mu = _masked_mean(speed, fo)
-    if mirror_motion is not None:
-        expected = mirror_vectors(np.where(used[..., None], vo, 0.0), n[..., None, :])
-        gap = np.linalg.norm(expected - np.where(used_m[..., None], vm, 0.0), axis=-1)
-        mu = mu + np.nan_to_num(_masked_mean(gap, fm), nan=0.0)
-    return mu
-
-
-def pose_error(object_motion, object_frontal, *, mirror_motion=None, mirror_frontal=None,
-               normal=None) -> np.ndarray:
-    """E_mu(D, β) of paper eq. (6): ``(1/M) Σ_m μ^m``, the mean of ``view_errors`` over the M
-    views with a defined μ^m (at least one frontal object patch); NaN if none.
-    Arguments as ``view_errors``; returns (...) (a 0-d array for unbatched inputs)."""
-    mu = view_errors(object_motion, object_frontal, mirror_motion=mirror_motion,
-                     mirror_frontal=mirror_frontal, normal=normal)
-    return _nanmean_last(mu)
-
-
-# --- image metrics (eq. 8–11) ----------------------------------------------------------------------
-
-def intensity_error(synthetic, data, region) -> np.ndarray:
-    """IE of paper eq. (8): ``(1/|Ω|) Σ_{(b,B)∈Ω} |Ĩ(b,B) - I(b,B)|``.
-
-    synthetic, data : (..., bins, beams) beam-bin images; region : (..., bins, beams) bool, Ω
-    (the uncorrupted object region of the synthetic view). Returns (...); NaN where Ω is empty.
-    Pixels outside Ω are ignored (may be NaN)."""
-    syn = np.asarray(synthetic, np.float64)
-    dat = np.asarray(data, np.float64)
-    if syn.ndim < 2 or syn.shape != dat.shape:
-        raise ValueError(f"synthetic {syn.shape} and data {dat.shape} must be images of one shape")
-    omega = np.asarray(region)
-    if omega.dtype != np.bool_ or omega.shape != syn.shape:
-        raise ValueError(f"region must be a bool array of shape {syn.shape}, got {omega.dtype} {omega.shape}")
-    diff = np.abs(np.where(omega, syn, 0.0) - np.where(omega, dat, 0.0))
-    if not np.all(np.isfinite(diff)):
-        raise ValueError("images hold non-finite values inside the region")
-    count = omega.sum(axis=(-2, -1))
-    return np.divide(diff.sum(axis=(-2, -1)), count, out=np.full(count.shape, np.nan), where=count > 0)
-
-
-def average_intensity_error(synthetic, data, regions) -> float:
-    """AIE of paper eq. (8): ``(1/M) Σ_m IE(Ĩ_m)`` over the M views, stacks (M, bins, beams)
-    as ``intensity_error``. Views with an empty Ω_m have no IE and are left out of the mean
-    (M counts the others); NaN if every Ω_m is empty."""
-    ie = intensity_error(synthetic, data, regions)
-    if ie.ndim != 1:
-        raise ValueError(f"expected stacks of shape (M, bins, beams), got {np.shape(synthetic)}")
-    return float(_nanmean_last(ie))
-
-
-def average_contour_error(contour_errors) -> float:
-    """ACE of paper eq. (9): ``(1/M) Σ_m CE(Ĩ_m)``, the mean of the views' CE (eq. 5,
-    ``ICPResult.error``), (M,). NaN entries (no inlier pair) are left out; NaN if all are."""
-    ce = np.asarray(contour_errors, np.float64)
-    if ce.ndim != 1 or np.any(np.isinf(ce)) or np.any(ce < 0):
-        raise ValueError("contour_errors must be a 1-D array of values >= 0 (or NaN)")
-    return float(_nanmean_last(ce))
-
-
-def normalized_errors(aie: float, ace: float, aie0: float, ace0: float) -> tuple[float, float]:
-    """(NAIE, NACE) of paper eq. (10): ``AIE^t / AIE^0`` and ``ACE^t / ACE^0``, the initial
-    values being those of the space-carving model (iteration 0)."""
-    values = [float(x) for x in (aie, ace, aie0, ace0)]
-    if not all(np.isfinite(x) and x >= 0 for x in values):
-        raise ValueError(f"errors must be finite and >= 0, got {values}")
-    if values[2] == 0 or values[3] == 0:
-        raise ValueError("initial errors AIE^0 and ACE^0 must be > 0 to normalize")
-    return values[0] / values[2], values[1] / values[3]
-
-
-def image_error(aie: float, ace: float, aie0: float, ace0: float) -> float:
-    """E_I of paper eq. (11): ``(NAIE + NACE) / 2`` (1 at iteration 0, falls as images agree)."""
-    naie, nace = normalized_errors(aie, ace, aie0, ace0)
-    return 0.5 * (naie + nace)
-
-
 # --- helpers --------------------------------------------------------------------------------
 
-def _masked_mean(values: np.ndarray, masks: np.ndarray) -> np.ndarray:
-    """(..., M) mean of (..., K) values over each of (..., M, K) masks; NaN for empty masks."""
-    total = np.einsum("...mk,...k->...m", masks.astype(np.float64), values)
-    count = masks.sum(axis=-1)
-    return np.divide(total, count, out=np.full(total.shape, np.nan), where=count > 0)
-
-
-def _nanmean_last(values: np.ndarray) -> np.ndarray:
-    ok = np.isfinite(values)
-    count = ok.sum(axis=-1)
-    total = np.where(ok, values, 0.0).sum(axis=-1)
-    return np.divide(total, count, out=np.full(count.shape, np.nan), where=count > 0)
-
-
-def _plane(surface) -> tuple[np.ndarray, np.ndarray]:
+def check_plane(surface) -> tuple[np.ndarray, np.ndarray]:
     """(normal (..., 3), offset (...)) of a plane, checked: finite, unit normals."""
     normal = _finite("surface normal", surface[0], last=3)
     offset = np.asarray(surface[1], np.float64)
@@ -306,13 +176,6 @@ def _plane(surface) -> tuple[np.ndarray, np.ndarray]:
     if not np.allclose(np.linalg.norm(normal, axis=-1), 1.0, rtol=0.0, atol=1e-9):
         raise ValueError("surface normal must be a unit vector")
     return normal, offset
-
-
-def _mask(name: str, value, k: int) -> np.ndarray:
-    mask = np.asarray(value)
-    if mask.dtype != np.bool_ or mask.ndim < 2 or mask.shape[-1] != k:
-        raise ValueError(f"{name} must be a bool array of shape (..., M, {k}), got {mask.dtype} {mask.shape}")
-    return mask
 
 
 def _finite(name: str, value, *, last: int) -> np.ndarray:

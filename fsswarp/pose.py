@@ -1,215 +1,44 @@
-"""Sonar depth D and tilt β from frontal contours (paper §2.4, eq. 6–7; DESIGN §2, §3, §7).
+"""Sonar depth D and tilt β from frontal contours (paper §2.4, eq. 7; DESIGN §7).
 
-Two objectives of (D, β) for a given model (reference frame) and dataset, over the views
-marked ``optimize``:
+:func:`estimate_pose` searches (D, β) for a given model (reference frame) against a dataset's
+views marked ``optimize``, with a ``fsswarp.compare.ViewComparison`` (its own, or the one the
+caller hands it):
 
-- E_mu, the paper's eq. (6), exact (:meth:`PoseProblem.exact`, :func:`pose_objective`). The
-  views are synthesized at (D, β); IRLS-ICP (``fsswarp.icp``) aligns each synthetic frontal
-  contour (object, and the distinct mirror blob) with the data's in the fan plane, giving the
-  2-D motion of every synthetic contour point; the frontal patch of a point is the triangle
-  whose echo (object) or single-bounce mirror echo (mirror, DESIGN §3) arrives first in that
-  beam, found by ray casting; ``fsswarp.motion.patch_motions`` turns the 2-D motions of the
-  views that see a patch into the 3-D motion of its centre (of its virtual mirror centre for
-  the mirror); ``fsswarp.motion.view_errors`` gives μ_m, and E_mu is their mean over the
-  views (``pose_error``). A mirror patch that is frontal in no view's object contour takes
-  the object motion of the nearest object-frontal patch.
-- The grid surrogate (:meth:`PoseProblem.surrogate`), for a whole grid of cells in one
-  ``Backend.render_device`` launch and one ``Backend.contour_cost`` launch: per cell and view,
-  the mean distance (m) of the synthetic object and mirror contour points to the data's
-  contour (a distance transform of the data's contour pixels, saturating at a cap), each data
-  point with no synthetic counterpart counting the cap; a view's cost is its object term plus
-  its mirror term, a cell's the mean over the views. It needs neither ICP nor ray casting, so
-  it runs on the device; on a 5 × 5 grid of 5 mm × 0.2° around the truth both objectives are
-  smallest at the truth (tests/test_pose.py).
+- a ``grid[0]`` × ``grid[1]`` grid of the comparison's surrogate over [D0 ± e_D] × [β0 ± e_β]
+  (m, rad), then ``levels − 1`` finer grids, each centred on the previous level's best cell and
+  spanning ± two of its cells (the spacing halves), every cell and view of a level in one
+  launch; the cap halves per level from ``cap`` to ``min_cap``, and the levels before the
+  finest use ``coarse_samples``. After each level the comparison is located at the new best
+  cell (data contours and detection shift found again);
+- a BOBYQA polish (nlopt) on E_mu (eq. 6, ``ViewComparison.exact``) in a frame fitted to the
+  finest level (a quadratic through its 5 × 5 best cells: ± ``POLISH_CELLS`` cells along its
+  valley, ± one across);
+- greedy acceptance: the estimate moves from (D0, β0) only if E_mu falls there.
 
-Contours. Data: the ``fsswarp.segment`` highlight, per beam its first row inside the view's
-range window. Synthetic: per beam the first crossing, interpolated between rows, of the data's
-detection threshold by the synthetic layers smoothed with the segmentation's Gaussian (object
-+ ghost for the object contour, mirror + double-bounce mirror for the mirror): where the
-expected data image would cross the threshold that segmented the data. The threshold of row
-B is ``(m + low·s − 1)·level(B)``, segmentation steps 1–2 (the background level, the smoothed
-image's median m and robust spread s) replayed by :func:`detection_threshold`. A plain "first
-non-zero row" contour sat 1.5–2 rows behind the data's, more in some views than in others.
-
-Detection bias. What remains is a range offset, ~0.4 row on the simulated scenes plus the 0.5
-row of the data's whole rows. It matters: a wrong tilt moves the object contours of the views
-away from the reference position (~2.4 mm per 0.2°) and could absorb it, while the object
-contours of the views at the reference position (same position, heading and offsets: the
-"anchor" views) depend on neither D nor β. The synthetic rows are therefore shifted by the
-shift of ``shifts`` (refined by a parabola) that best fits the anchor views' object contours,
-measured once per estimate. Without anchor views each cell takes its own best shift (a
-nuisance parameter shared by the views), which flattens the surrogate's valley.
-
-Mirror distinctness. The model is synthesized at the current estimate; a view's object span
-is the beams of its object + ghost contour there, widened by ``margin_beams``; its range
-window the rows of all its synthetic returns ± ``window``. The mirror beams are those beyond
-the object span on the side where the data's highlight has more beams in the window (the
-data decides: a start off by 5 cm and 2° can put the synthetic mirror on the wrong side). A
-view has a mirror term when the data has at least ``min_mirror_beams`` contour points there,
-and the synthetic mirror counts only in those beams: at rolls near 0 the mirror falls on the
-object and ghost, and the view keeps the object term only. The object moves little with
-(D, β) (not at all with D; in azimuth ~0.01° per 0.2° of tilt), the mirror a lot (in azimuth,
-at ±90° roll, ~0.27° per 5 mm of D and ~0.38° per 0.2° of tilt), so the mirror pins a
-combination of D and β (a valley along ~3.3 cm per degree) and the object contours of the
-views away from the reference position pin β along it.
-
-Search (:func:`estimate_pose`, eq. 7): a ``grid[0]`` × ``grid[1]`` grid over
-[D0 ± e_D] × [β0 ± e_β], then ``levels − 1`` finer grids, each centred on the previous
-level's best cell and spanning ± two of its cells (the spacing halves), every cell and view
-of a level in one launch; the cap halves per level from ``cap`` to ``min_cap`` (a coarse
-cell far from the truth still sees the mirror; a fine one weighs the valley's floor), and
-the levels before the finest render fewer sub-rays (``coarse_samples``). After
-each level the data contours and the detection shift are found again from the new
-estimate. Then nlopt's BOBYQA polishes on E_mu, in a frame fitted to the finest level (a
-quadratic through its 5 × 5 best cells: ± two cells along its valley, ± one across), since
-the finest grid's cells straddle the narrow valley and its best cell can lie a few mm and
-0.1° along it. The result is kept only if E_mu falls below its value at the start (greedy
-acceptance), both E_mu computed with the final data contours.
+:func:`check_uncertainties` gives the grid half-widths; :func:`pose_objective` is E_mu itself.
 """
 
 from __future__ import annotations
 
-import functools
 import math
 import time
 import warnings
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass
 from typing import Callable
 
 import nlopt
 import numpy as np
 
 from .atomic import json_number
-from .backends import rows_read
+from .compare import PoseSettings, PoseWarning, ViewComparison
 from .dataset import MANIFEST_NAME
-from .errors import InputError, check_integer, is_integer
-from .icp import CONTOUR_TOL, icp_many
-from .motion import patch_motions, view_errors
-from .rendering import RenderSettings, check_mesh
-from .segment import SegmentSettings, memoized, normalized, segment
+from .errors import InputError, check_integer
 from .rig import check_depth_tilt
-from .surface import mirror_points, surface_in_reference, surface_in_views
 
 #: Half-width of the polish box in cells of the finest grid level.
 POLISH_CELLS = 2
 #: Default grid half-widths in units of the manifest's depth and tilt uncertainties.
 BOUNDS_FACTOR = 1.2
-
-
-#: γ and surface reflection of every synthetic view of a pose problem: the renderer's defaults.
-ECHO = RenderSettings()
-
-
-class PoseWarning(UserWarning):
-    """A view left out of the pose estimation (the model is not seen in it)."""
-
-
-@dataclass(frozen=True)
-class PoseSettings:
-    """Options of the (D, β) estimation (the module docstring explains each).
-
-    samples : (K_θ, K_φ) sub-rays of the finest grid level's synthetic views; exact_samples :
-        those of E_mu and of the prediction that places windows and mirror beams. Both default
-        to the renderer's (2, 64): fewer sub-rays roughen the contours where the finest cells
-        differ by tenths of a mm
-    coarse_samples : those of the grid levels before the finest. Their cells are 2–4 times
-        wider and differ by mm; at (1, 32) their best cell was that of (2, 64) on all three
-        built-in scenes' carved models, and a level takes 0.43 of the time on PoCL
-        (bench/notes.md)
-    grid : (cells along D, cells along β) per level
-    cap, min_cap : distance (m) at which the surrogate's contour distances saturate: ``cap``
-        on the first grid level, halved per level down to ``min_cap`` (used by the detection
-        shift and E_mu)
-    margin_beams : beams added on each side of a predicted object span
-    min_mirror_beams : fewest mirror contour points for a view's mirror term
-    window : m added before and after the predicted returns to make a view's range window
-    shifts : candidate range shifts (rows) of the synthetic contours (the detection bias)
-    polish : nlopt evaluations of E_mu at most (0: no polish)
-    patch_rays : elevation rays per beam of the frontal-patch search
-    launch_bytes : most device memory (bytes) of one render launch's layers (2 × 16 B per
-        pixel); a larger grid level is split into several launches
-    segment : segmentation of the data
-    """
-
-    samples: tuple[int, int] = (2, 64)
-    coarse_samples: tuple[int, int] = (1, 32)
-    exact_samples: tuple[int, int] = (2, 64)
-    grid: tuple[int, int] = (9, 9)
-    cap: float = 0.05
-    min_cap: float = 0.015
-    margin_beams: int = 2
-    min_mirror_beams: int = 4
-    window: float = 0.1
-    shifts: tuple[float, ...] = tuple(0.5 + 0.1 * k for k in range(-20, 21))
-    polish: int = 30
-    patch_rays: int = 64
-    launch_bytes: int = 4 << 30
-    segment: SegmentSettings = field(default_factory=SegmentSettings)
-
-    def __post_init__(self) -> None:
-        for name in ("samples", "coarse_samples", "exact_samples", "grid"):
-            pair = getattr(self, name)
-            if len(pair) != 2 or not all(is_integer(k) and k >= 1 for k in pair):
-                raise InputError("must be two integers >= 1", field=f"pose.{name}", value=pair)
-        if min(self.grid) < 3:
-            raise InputError("needs at least 3 cells along each axis", field="pose.grid", value=self.grid)
-        for name in ("cap", "min_cap", "window"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise InputError("must be a finite number > 0 (m)", field=f"pose.{name}", value=value)
-        for name, lowest in (("margin_beams", 0), ("min_mirror_beams", 2), ("polish", 0), ("patch_rays", 1),
-                             ("launch_bytes", 1)):
-            check_integer(f"pose.{name}", getattr(self, name), lowest)
-        if len(self.shifts) == 0 or not all(math.isfinite(s) for s in self.shifts):
-            raise InputError("must be a non-empty list of finite shifts (rows)", field="pose.shifts",
-                             value=self.shifts)
-
-
-@dataclass(frozen=True)
-class DataContours:
-    """The data side of both objectives for the V views where the model is seen, found with
-    the model synthesized at the current estimate (``PoseProblem.locate``).
-
-    views : (V,) dataset view indices; names : their names
-    threshold : (V, bins) detection threshold per row; windows : (V, 2) rows [lo, hi)
-    masks : (V, 2, beams) bool beams of the object (0) and mirror (1) contours
-    rows : (V, 2, beams) int first highlight row of each contour, -1 where none
-    distances : (V, 2, bins, beams) float32 distance (m) to the contour, saturating at the
-        problem's ``reach``, max(cap, min_cap) (everywhere without a contour)
-    """
-
-    views: tuple[int, ...]
-    names: tuple[str, ...]
-    threshold: np.ndarray
-    windows: np.ndarray
-    masks: np.ndarray
-    rows: np.ndarray
-    distances: np.ndarray
-
-    @property
-    def counts(self) -> np.ndarray:
-        """(V, 2) number of data contour points."""
-        return (self.rows >= 0).sum(axis=-1)
-
-    @property
-    def mirror_views(self) -> tuple[str, ...]:
-        """Names of the views with a mirror term."""
-        return tuple(n for n, k in zip(self.names, self.counts[:, 1]) if k > 0)
-
-
-@dataclass(frozen=True)
-class ExactError:
-    """E_mu at one (D, β) and what it came from.
-
-    value : E_mu (m); per_view : (V,) μ_m (NaN: no object patch); shift : the detection-bias
-    shift used (rows); object_patches, mirror_patches : patches with a 3-D motion
-    """
-
-    value: float
-    per_view: np.ndarray
-    shift: float
-    object_patches: int
-    mirror_patches: int
 
 
 @dataclass(frozen=True)
@@ -287,412 +116,21 @@ class PoseResult:
                 "evaluations": dict(self.evaluations), "seconds": self.seconds}
 
 
-# --- the problem -----------------------------------------------------------------------------
-
-class PoseProblem:
-    """A model, a dataset and a backend, with the data contours found at (depth, tilt).
-
-    model : trimesh-like mesh in the reference frame; dataset : fsswarp.dataset.Dataset;
-    depth (m), tilt (rad) : the estimate that places windows and mirror beams.
-    Raises InputError when no view is marked optimize or the model is seen in none of them.
-    """
-
-    def __init__(self, model, dataset, depth: float, tilt: float, *, settings: PoseSettings = PoseSettings(),
-                 backend=None):
-        from .backends import get_backend
-
-        check_depth_tilt(depth, tilt)
-        vertices, faces = check_mesh(model, name="model")
-        self.dataset, self.settings = dataset, settings
-        self.sonar, self.rig = dataset.sonar, dataset.rig
-        self.backend = backend or get_backend()
-        self.mesh = self.backend.load_mesh(vertices, faces)
-        self.vertices, self.faces = vertices, faces
-        self.smoothing = (_gaussian(settings.segment.sigma_bins), _gaussian(settings.segment.sigma_beams))
-        self.shifts = np.asarray(settings.shifts, np.float64)
-        self.reach = max(settings.cap, settings.min_cap)
-        self.counters = {"grid_cells": 0, "surrogate_cells": 0, "exact": 0}
-        self.views = [i for i, v in enumerate(self.rig.views) if v.optimize]
-        if not self.views:
-            raise InputError("no view takes part in the optimization: every view has optimize = false",
-                             file=dataset.root, field="views.optimize", value=False)
-        self.highlight, self.threshold = dataset.derived(
-            ("pose views", tuple(self.views), settings.segment),
-            lambda: _view_highlights(dataset, self.views, settings.segment))
-        self._unseen: set[str] = set()
-        self._no_distances = self.backend.device_distances(  # locating reads the contours alone: any distances do
-            np.zeros((len(self.views), 2, self.sonar.bins, self.sonar.beams), np.float32))
-        self.locate(depth, tilt)
-
-    def locate(self, depth: float, tilt: float) -> None:
-        """Find the data contours (``data``), the anchor views and the detection shift
-        (``anchors``, ``shift``) with the model synthesized at (depth m, tilt rad), the current
-        estimate; ``estimate`` records it. The layers rendered there (exact samples) stay on
-        the device for the costs at the estimate; ``predicted`` reads them on first use."""
-        check_depth_tilt(depth, tilt)
-        self.data, self._layers, self._keep, self._predicted = self._data_contours(depth, tilt)
-        self._distances = self.backend.device_distances(self.data.distances)  # read at every cap
-        self.anchors, self.shift = self._detection_shift(depth, tilt)
-        self.estimate = (float(depth), float(tilt))
-
-    @property
-    def predicted(self) -> np.ndarray:
-        """(V, 4, bins, beams) float32 layers of the data views at the located estimate (exact
-        samples), read from the device on first use."""
-        if self._predicted is None:
-            self._predicted = self._layers.numpy()[self._keep]
-        return self._predicted
-
-    # --- data contours ---------------------------------------------------------------------
-    def _data_contours(self, depth: float, tilt: float):
-        """(DataContours of the views where the model is seen, the device layers synthesized at
-        (depth, tilt) of every view to optimize, the (V,) positions of the views seen among
-        them, their (V, 4, bins, beams) host copy or None). On a CPU device the host copy is
-        read, and the predicted contours are scanned from the row before the smoothing can
-        first see a return (every layer of a view is 0 above its first echo row, so no row there
-        crosses the threshold): the same contours as a scan from row 0, which a GPU does
-        instead, leaving the copy until ``predicted`` is read."""
-        sonar, st, views, highlight, threshold = self.sonar, self.settings, self.views, self.highlight, self.threshold
-        names = [self.rig.views[i].name for i in views]
-        every = np.ones((len(views), 2, sonar.beams), bool)
-        layers = self.render_pairs(views, np.array([depth]), np.array([tilt]), st.exact_samples)
-        predicted = None if self.backend.is_gpu else layers.numpy()
-        first = np.zeros(len(views), np.int64) if predicted is None else scan_start(predicted, len(self.smoothing[0]))
-        scan = np.stack([first, np.full(len(views), sonar.bins)], axis=1)
-        contour, _, _ = self.backend.contour_cost(layers, np.arange(len(views)), threshold, scan, every,
-                                                  self._no_distances, [0.0], self.smoothing)
-        seen = (contour[:, 0] >= 0).any(axis=1)
-        if not seen.any():
-            raise InputError(f"the model is seen in none of the views to optimize at depth {depth:.3f} m, tilt "
-                             f"{math.degrees(tilt):.2f} deg: it must be in the reference frame of the dataset",
-                             field="model", value=f"{len(self.faces)} faces")
-        unseen = {n for n, s in zip(names, seen) if not s} - self._unseen
-        if unseen:
-            self._unseen |= unseen
-            self.warn_unseen(unseen, depth, tilt, stacklevel=5)
-        keep = np.flatnonzero(seen)
-        beams = np.arange(sonar.beams)
-        pad = int(math.ceil(st.window / sonar.range_step))
-        windows, masks, rows = [], [], []
-        distances = np.empty((len(keep), 2, sonar.bins, sonar.beams), np.float32)
-        for i, k in enumerate(keep):
-            first = contour[k][contour[k] >= 0]
-            lo, hi = int(math.floor(first.min())) - pad, int(math.ceil(first.max())) + pad + 1
-            windows.append((max(lo, 0), min(hi, sonar.bins)))
-            span = np.flatnonzero(contour[k, 0] >= 0)
-            obj = (beams >= span.min() - st.margin_beams) & (beams <= span.max() + st.margin_beams)
-            hl = highlight[k][windows[-1][0]:windows[-1][1]]
-            first_row = np.where(hl.any(axis=0), hl.argmax(axis=0) + windows[-1][0], -1)
-            left, right = beams < span.min() - st.margin_beams, beams > span.max() + st.margin_beams
-            found = first_row >= 0
-            mir = left if np.sum(found & left) > np.sum(found & right) else right
-            if np.sum(found & mir) < st.min_mirror_beams:
-                mir = np.zeros_like(obj)
-            row = np.stack([np.where(obj, first_row, -1), np.where(mir, first_row, -1)])
-            masks.append(np.stack([obj, mir]))
-            rows.append(row)
-            for c, r in enumerate(row):
-                distances[i, c] = self._distance(r)
-        data = DataContours(tuple(views[k] for k in keep), tuple(names[k] for k in keep), threshold[keep],
-                            np.asarray(windows, np.int64), np.asarray(masks), np.asarray(rows),
-                            distances)
-        return data, layers, keep, None if predicted is None else predicted[keep]
-
-    def warn_unseen(self, names, depth: float, tilt: float, *, stacklevel: int = 2) -> None:
-        """PoseWarning that the model is not seen in the views ``names`` at (depth m, tilt rad)."""
-        warnings.warn(f"views {', '.join(sorted(names))}: the model is not seen in them at depth {depth:.3f} m, "
-                      f"tilt {math.degrees(tilt):.2f} deg; the pose estimation leaves them out", PoseWarning,
-                      stacklevel=stacklevel)
-
-    def _detection_shift(self, depth: float, tilt: float):
-        """(anchor view names, shift in rows or None): the views whose pose relative to the
-        reference depends neither on D nor on β (at the reference position), and the shift of
-        ``settings.shifts`` (refined by a parabola through its neighbours) that minimizes their
-        object term; None without anchor views (each cell then takes its own best shift), from
-        the located layers (``_located_costs``)."""
-        data = self.data
-        pose_a = self.rig.relative_poses(depth, tilt)
-        pose_b = self.rig.relative_poses(depth + 0.01, tilt + 0.01)
-        fixed = [k for k, v in enumerate(data.views)
-                 if all(np.allclose(a[v], b[v], rtol=0, atol=1e-12) for a, b in zip(pose_a, pose_b))]
-        if not fixed:
-            return (), None
-        _, sums, counts = self._located_costs(self.shifts, self.settings.min_cap)
-        sums, counts = sums[fixed], counts[fixed]
-        sums[:, 1], counts[:, 1] = 0.0, 0
-        counts_data = data.counts[fixed]
-        counts_data[:, 1] = 0
-        cost = _view_cost(sums[None], counts[None], counts_data, self.settings.min_cap)[0].mean(axis=0)
-        return tuple(data.names[k] for k in fixed), _parabola_minimum(self.shifts, cost)
-
-    def _located_costs(self, shifts, cap: float):
-        """``Backend.contour_cost`` (contours, sums, counts) of the data views' layers at the
-        located estimate, from the device layers of every view to optimize: every pair is
-        costed where it lies (a view left out against data view 0, then dropped) rather than
-        the data views' layers uploaded again; a pair's cost does not depend on the others."""
-        index = np.zeros(self._layers.shape[0], np.int64)  # each pair's data view
-        index[self._keep] = np.arange(len(self._keep))
-        data = self.data
-        found = self.backend.contour_cost(self._layers, index, data.threshold, data.windows, data.masks,
-                                          self._distances, shifts, self.smoothing, cap)
-        return tuple(a[self._keep] for a in found)
-
-    def _distance(self, rows: np.ndarray) -> np.ndarray:
-        """(bins, beams) distance (m) of every pixel to the contour pixels (row per beam), at
-        most ``reach``: the range axis in δR, the beam axis in arc length at the contour's
-        median range."""
-        sonar = self.sonar
-        beams = np.flatnonzero(rows >= 0)
-        arc = float(np.median(sonar.bin_range(rows[beams]))) * float(np.mean(np.diff(sonar.beam_centres))) \
-            if beams.size else 1.0
-        return _remembered_distance(np.ascontiguousarray(rows, np.int64).tobytes(), sonar.bins, sonar.range_step,
-                                    arc, self.reach)
-
-    # --- synthesis and the surrogate -------------------------------------------------------
-    def view_poses(self, views, depths: np.ndarray, tilts: np.ndarray):
-        """(G, V) poses and planes of cells (G,) in the dataset views ``views``."""
-        rot, t = self.rig.relative_poses(depths, tilts)
-        n, d = surface_in_views(self.rig, depths, tilts)
-        v = list(views)
-        return rot[:, v], t[:, v], n[:, v], d[:, v]
-
-    @property
-    def prediction_settings(self) -> RenderSettings:
-        """The render settings of ``predicted``: the exact samples, with ``ECHO``'s γ and
-        surface reflection."""
-        return replace(ECHO, samples=tuple(self.settings.exact_samples))
-
-    def render_pairs(self, views, depths: np.ndarray, tilts: np.ndarray, samples, rows=None):
-        """DeviceLayers (G·V, 4, bins, beams) of cells (G,) in the dataset views ``views``, or
-        bands of rows: ``rows`` as ``Backend.render_device`` takes them."""
-        rot, t, n, d = self.view_poses(views, depths, tilts)
-        if np.any(d <= 0):
-            raise InputError("the sonar must lie below the surface in every view", field="depth",
-                             value=float(np.min(depths)))
-        return self.backend.render_device(self.mesh, self.sonar, rot.reshape(-1, 3, 3), t.reshape(-1, 3),
-                                          n.reshape(-1, 3), d.reshape(-1), samples, gamma=ECHO.gamma,
-                                          surface_reflection=ECHO.surface_reflection, rows=rows)
-
-    def view_costs(self, depths: np.ndarray, tilts: np.ndarray, samples, cap: float):
-        """(G, V, S) surrogate view costs of cells (G,) at the detection shift (S = 1) or, without
-        one, at every candidate shift; and (G, V, 2, beams) synthetic contours. One launch unless
-        the layers would exceed ``settings.launch_bytes``.
-
-        Each pair renders only the band of rows its view's window reads (``render_device``'s
-        ``rows``): the window [lo, hi) ± the range smoothing's radius rB, clipped to the image,
-        R rows for every pair (the widest view's), started lower where it would pass the last
-        row; the contours and costs are those of full layers, bit for bit. One cell at the
-        located estimate with the exact samples reads the layers rendered there, on the device
-        (``_located_costs``; no render: the same pixels)."""
-        data, sonar = self.data, self.sonar
-        n_views = len(data.views)
-        need_lo, need_hi = rows_read(data.windows, len(self.smoothing[0]), sonar.bins)
-        rows = int(np.max(need_hi - need_lo))
-        first = np.minimum(need_lo, sonar.bins - rows)
-        per = max(1, self.settings.launch_bytes // (32 * rows * sonar.beams * n_views))
-        shifts = self.shifts if self.shift is None else [self.shift]
-        costs, contours = [], []
-        for start in range(0, len(depths), per):
-            cell_d, cell_t = depths[start:start + per], tilts[start:start + per]
-            if len(cell_d) == 1 and (float(cell_d[0]), float(cell_t[0])) == self.estimate \
-                    and tuple(samples) == tuple(self.settings.exact_samples):
-                contour, sums, counts = self._located_costs(shifts, cap)
-            else:
-                layers = self.render_pairs(data.views, cell_d, cell_t, samples,
-                                           rows=(np.tile(first, len(cell_d)), rows))
-                contour, sums, counts = self.backend.contour_cost(
-                    layers, np.tile(np.arange(n_views), len(cell_d)), data.threshold, data.windows, data.masks,
-                    self._distances, shifts, self.smoothing, cap)
-                del layers
-            g = len(cell_d)
-            costs.append(_view_cost(sums.reshape(g, n_views, 2, -1), counts.reshape(g, n_views, 2), data.counts, cap))
-            contours.append(contour.reshape(g, n_views, 2, -1))
-        self.counters["surrogate_cells"] += len(depths)
-        return np.concatenate(costs), np.concatenate(contours)
-
-    def surrogate(self, depths, tilts, *, cap: float | None = None, samples=None) -> np.ndarray:
-        """Surrogate cost (m) of cells: depths (m), tilts (rad) of one shape -> that shape, the
-        mean over the views of the object + mirror contour terms at the detection shift (or,
-        without anchor views, at the cell's best shift).
-        cap : saturation distance (default ``settings.cap``), at most ``reach``, max(cap,
-            min_cap), up to which the data's distances are kept; samples : default
-            ``settings.samples``."""
-        if cap is not None and not (isinstance(cap, (int, float)) and 0 < cap <= self.reach):
-            raise InputError(f"must be a distance in (0, {self.reach}] m", field="cap", value=cap)
-        depths, tilts = np.broadcast_arrays(np.asarray(depths, np.float64), np.asarray(tilts, np.float64))
-        costs, _ = self.view_costs(depths.reshape(-1), tilts.reshape(-1), samples or self.settings.samples,
-                                    self.settings.cap if cap is None else cap)
-        return costs.mean(axis=1).min(axis=-1).reshape(depths.shape)
-
-    # --- E_mu --------------------------------------------------------------------------------
-    def exact(self, depth: float, tilt: float) -> ExactError:
-        """E_mu (eq. 6) at (depth m, tilt rad), with its per-view μ_m."""
-        check_depth_tilt(depth, tilt)
-        self.counters["exact"] += 1
-        data = self.data
-        contour, shift = self.synthetic_contours(depth, tilt)
-        rot, t, n_view, d_view = (a[0] for a in self.view_poses(data.views, np.array([depth]), np.array([tilt])))
-        normal, offset = surface_in_reference(self.rig, depth, tilt)
-        n_views = len(data.views)
-        aligned = [(c, k, beams, result.motions) for c, k, beams, _, _, result in self.align(contour, shift)]
-        component, view, face, vectors = self.frontal_motions(rot, t, n_view, d_view, aligned)
-        if not np.any(component == 0):
-            return ExactError(math.nan, np.full(n_views, np.nan), shift, 0, 0)
-        faces = np.unique(face)
-        column = np.searchsorted(faces, face)
-        centres = self.vertices[self.faces[faces]].mean(axis=1)
-        fields = []
-        for c in (0, 1):  # the mean 2-D motion of each (face, view)
-            mine = component == c
-            sums, counts = np.zeros((len(faces), n_views, 2)), np.zeros((len(faces), n_views))
-            np.add.at(sums, (column[mine], view[mine]), vectors[mine])
-            np.add.at(counts, (column[mine], view[mine]), 1.0)
-            seen = counts > 0
-            fields.append((np.where(seen[..., None], sums / np.maximum(counts, 1.0)[..., None], np.nan), seen))
-        obj = patch_motions(centres, *fields[0], rot, t).motion
-        object_seen = fields[0][1].any(axis=1)
-        if not object_seen.all():  # mirror-only patches: the nearest object patch's motion
-            from scipy.spatial import cKDTree
-
-            _, nearest = cKDTree(centres[object_seen]).query(centres[~object_seen])
-            obj[~object_seen] = obj[object_seen][nearest]
-        mirror_seen = fields[1][1]
-        mirror = {}
-        if mirror_seen.any():
-            virtual = mirror_points(centres, normal, offset)
-            mir = patch_motions(virtual, *fields[1], rot, t, surface=(normal, offset)).motion
-            mirror = dict(mirror_motion=np.where(mirror_seen.any(axis=1)[:, None], mir, 0.0),
-                          mirror_frontal=mirror_seen.T, normal=normal)
-        per_view = view_errors(obj, fields[0][1].T, **mirror)
-        finite = per_view[np.isfinite(per_view)]
-        return ExactError(float(finite.mean()) if finite.size else math.nan, per_view, shift,
-                          int(object_seen.sum()), int(mirror_seen.any(axis=1).sum()))
-
-    def synthetic_contours(self, depth: float, tilt: float) -> tuple[np.ndarray, float]:
-        """The synthetic contours (V, 2, beams) (rows, -1: none) at (depth m, tilt rad) with the
-        exact samples, and the detection shift (rows) that aligns them with the data's: the
-        anchor views' or, without anchors, the candidate shift of least cost."""
-        costs, contours = self.view_costs(np.array([depth]), np.array([tilt]), self.settings.exact_samples,
-                                           self.settings.min_cap)
-        shift = self.shift if self.shift is not None else _parabola_minimum(self.shifts, costs[0].mean(axis=0))
-        return contours[0], float(shift)
-
-    def contour_errors(self, depth: float, tilt: float) -> np.ndarray:
-        """(V,) CE (m) of the views ``data.views``: the error of the ICP of the synthetic object
-        contour at (depth m, tilt rad) to the data's (paper eq. 9); NaN where a view has fewer
-        than two points in either."""
-        contour, shift = self.synthetic_contours(depth, tilt)
-        errors = np.full(len(self.data.views), math.nan)
-        for _, k, _, _, _, result in self.align(contour, shift, (0,)):
-            errors[k] = result.error
-        return errors
-
-    def align(self, contours: np.ndarray, shift: float, components=(0, 1)) -> list[tuple]:
-        """ICP of the synthetic contours (V, 2, beams) (rows, -1: none; the detection ``shift``
-        added) to the data's, in the fan plane, for every view and component with two points or
-        more in both, all in lockstep, on the backend's device when it has float64 (one
-        thread per run; else on the host): (component, view, beams, source (N, 2), goal (M, 2),
-        ICPResult) each."""
-        data, sonar = self.data, self.sonar
-        theta = sonar.beam_centres
-        requests = []
-        for c in components:
-            for k in range(len(data.views)):
-                beams = np.flatnonzero((contours[k, c] >= 0) & data.masks[k, c])
-                target = np.flatnonzero(data.rows[k, c] >= 0)
-                if len(beams) < 2 or len(target) < 2:
-                    continue
-                source = fan_points(theta[beams], sonar.bin_range(contours[k, c, beams] + shift))
-                goal = fan_points(theta[target], sonar.bin_range(data.rows[k, c, target]))
-                requests.append((c, k, beams, source, goal))
-        results = icp_many([(source, goal) for *_, source, goal in requests], tol=CONTOUR_TOL,
-                           backend=self.backend if self.backend.has_float64 else None)
-        return [request + (result,) for request, result in zip(requests, results)]
-
-    def frontal_motions(self, rot, t, n, d, motions):
-        """Every beam whose frontal patch is found, for ``motions``: (component k, view k, beams,
-        (beams, 2) 2-D motions) per contour; one ``frontal_faces`` call per component. Returns
-        (component (M,), view (M,), face (M,), 2-D motion (M, 2)), components in order, then
-        the contours' and beams' order. rot (V, 3, 3), t (V, 3), n (V, 3), d (V,) : every
-        view's pose and surface plane, indexed by k."""
-        theta = self.sonar.beam_centres
-        parts = [(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)))]
-        for c in (0, 1):
-            mine = [m for m in motions if m[0] == c]
-            v = [k for _, k, _, _ in mine]
-            found = self.frontal_faces(rot[v], t[v], n[v], d[v], [theta[beams] for _, _, beams, _ in mine],
-                                       mirror=c == 1)
-            for (_, k, _, vectors), faces in zip(mine, found):
-                ok = faces >= 0
-                size = int(ok.sum())
-                parts.append((np.full(size, c), np.full(size, k), faces[ok].astype(np.int64),
-                              np.asarray(vectors, np.float64)[ok]))
-        return tuple(np.concatenate(columns) for columns in zip(*parts))
-
-    def frontal_faces(self, rot, t, n, d, thetas, *, mirror: bool) -> list[np.ndarray]:
-        """Per view k: (len(thetas[k]),) face of the frontal patch of each beam azimuth, -1 where
-        none: the hit at the shortest range (object), or at the shortest mirror range
-        (|P| + |P'|)/2 over the beam's elevation rays that meet the surface first (mirror,
-        DESIGN §3); ``Backend.frontal_faces``, all views' beams in one launch.
-
-        rot (V, 3, 3), t (V, 3) : the views' poses; n (V, 3), d (V,) : their surface planes;
-        thetas : V arrays of beam azimuths (rad)."""
-        if not len(thetas):
-            return []
-        sizes = [len(theta) for theta in thetas]
-        views = np.repeat(np.arange(len(thetas)), sizes)
-        azimuths = np.concatenate([np.asarray(theta, np.float64) for theta in thetas])
-        found = self.backend.frontal_faces(self.mesh, self.sonar, rot, t, n, d, views, azimuths,
-                                           self.settings.patch_rays, mirror=mirror)
-        return np.split(found, np.cumsum(sizes)[:-1])
-
-
-def _view_highlights(dataset, views, settings: SegmentSettings):
-    """(read-only highlight masks (bins, beams) per view, read-only (V, bins) detection
-    thresholds) of the data images of the rig views ``views`` (indices)."""
-    names = [dataset.rig.views[i].name for i in views]
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # views without a highlight get no contour
-        highlight = [segment(dataset.images[n], settings, name=f"images/{n}").highlight for n in names]
-    threshold = np.stack([detection_threshold(dataset.images[n], settings) for n in names])
-    threshold.setflags(write=False)
-    return highlight, threshold
-
-
 # --- public functions --------------------------------------------------------------------------
 
 def pose_objective(model, dataset, depth: float, tilt: float, *, settings: PoseSettings = PoseSettings(),
                    backend=None) -> float:
     """E_mu (eq. 6, m) of ``model`` (reference frame) against ``dataset`` at (depth m, tilt rad),
     the data contours found at the same (depth, tilt)."""
-    return PoseProblem(model, dataset, depth, tilt, settings=settings, backend=backend).exact(depth, tilt).value
-
-
-def view_contours(model, dataset, depth: float, tilt: float, *, at=(), settings: PoseSettings = PoseSettings(),
-                  backend=None) -> dict[str, dict]:
-    """What E_mu compares, per view, for figures: ``model`` (reference frame) against
-    ``dataset`` with the data contours found at (depth m, tilt rad), the synthetic ones there
-    and at each (depth, tilt) of ``at``. Returns {view name: {"data": (2, beams) range (m) of
-    the data's object (0) and mirror (1) contour per beam, "synthetic": [(2, beams) ranges at
-    (depth, tilt), then at each of ``at``], "mu": [μ_m (m) at the same poses]}}, NaN where a
-    beam has no contour point (or a view no μ_m), for the views where the model is seen."""
-    problem = PoseProblem(model, dataset, depth, tilt, settings=settings, backend=backend)
-    data, sonar = problem.data, problem.sonar
-    out = {name: {"data": np.where(data.rows[k] >= 0, sonar.bin_range(data.rows[k]), np.nan),
-                  "synthetic": [], "mu": []} for k, name in enumerate(data.names)}
-    for pose in [(depth, tilt), *at]:
-        contours, shift = problem.synthetic_contours(*pose)
-        mu = problem.exact(*pose).per_view
-        for k, name in enumerate(data.names):
-            out[name]["synthetic"].append(np.where(contours[k] >= 0, sonar.bin_range(contours[k] + shift), np.nan))
-            out[name]["mu"].append(float(mu[k]))
-    return out
+    comparison = ViewComparison(dataset, settings=settings, backend=backend).use(model, depth, tilt)
+    return comparison.exact(depth, tilt).value
 
 
 def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float | None = None,
                   bounds: tuple[float, float] | None = None, levels: int = 3,
-                  settings: PoseSettings = PoseSettings(), backend=None,
-                  progress: Callable[[str], None] | None = None, problem: PoseProblem | None = None) -> PoseResult:
+                  settings: PoseSettings | None = None, backend=None,
+                  progress: Callable[[str], None] | None = None,
+                  comparison: ViewComparison | None = None) -> PoseResult:
     """Estimate the sonar depth D and tilt β (paper §2.4, eq. 7) for ``model`` (reference frame).
 
     depth0 (m), tilt0 (rad) : the start, default the dataset's measured values
@@ -701,10 +139,12 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
         ``tilt_sigma_deg``): 6 cm and 2.4° for the default 5 cm and 2°, so that a start at the
         edge of the stated uncertainty keeps the truth inside the grid, not on its edge
     levels : grid levels (>= 1), each in one launch; the polish follows (``settings.polish``)
+    settings : PoseSettings (default ``PoseSettings()``); backend : default ``get_backend()``
     progress : called with one line per step
-    problem : a PoseProblem of ``model`` and ``dataset`` located at (depth0, tilt0) with
-        ``settings`` and this backend, to go on with instead of building it (fsswarp.reconstruction
-        hands over the one of its last record); its counters restart, and it is relocated
+    comparison : a ViewComparison of ``dataset`` to search with (it carries the settings and the
+        backend, so give neither with it); default a new one. It is put to ``model`` at
+        (depth0, tilt0) (kept where it is there already, ``ViewComparison.use``), its counters
+        restart, and it is left located at the finest level's best cell
     Returns a PoseResult; the estimate moves from (depth0, tilt0) only where E_mu falls.
     """
     start = time.perf_counter()
@@ -720,15 +160,17 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
                          field="bounds", value=bounds)
     check_integer("levels", levels, 1)
     say = progress or (lambda line: None)
-    if problem is None:
-        problem = PoseProblem(model, dataset, depth0, tilt0, settings=settings, backend=backend)
-    else:
-        _check_handed_over(problem, model, dataset, depth0, tilt0, settings, backend)
-        problem.counters = dict.fromkeys(problem.counters, 0)
-        if problem._unseen:
-            problem.warn_unseen(problem._unseen, depth0, tilt0, stacklevel=3)
-    say(f"start: D {depth0:.4f} m, beta {math.degrees(tilt0):.3f} deg; {len(problem.data.views)} views, "
-        f"mirror term in {len(problem.data.mirror_views)}")
+    if comparison is None:
+        comparison = ViewComparison(dataset, settings=settings or PoseSettings(), backend=backend)
+    elif settings is not None or backend is not None:
+        raise ValueError("settings and backend come with the comparison: give either them or a comparison")
+    settings = comparison.settings
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PoseWarning)  # restart warns about the views left out
+        comparison.use(model, depth0, tilt0)
+    comparison.restart(stacklevel=3)
+    say(f"start: D {depth0:.4f} m, beta {math.degrees(tilt0):.3f} deg; {len(comparison.data.views)} views, "
+        f"mirror term in {len(comparison.data.mirror_views)}")
 
     lo = np.array([depth0 - e_d, tilt0 - e_b])
     hi = np.array([depth0 + e_d, tilt0 + e_b])
@@ -741,8 +183,8 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
         dd, tt = np.meshgrid(*axes, indexing="ij")
         cap = max(settings.cap / 2 ** level, settings.min_cap)
         samples = settings.samples if level == levels - 1 else settings.coarse_samples
-        costs = problem.surrogate(dd, tt, cap=cap, samples=samples)
-        problem.counters["grid_cells"] += costs.size
+        costs = comparison.surrogate(dd, tt, cap=cap, samples=samples)
+        comparison.counters["grid_cells"] += costs.size
         i, j = np.unravel_index(int(np.argmin(costs)), costs.shape)
         best = np.array([dd[i, j], tt[i, j]])
         found.append(GridLevel(axes[0], axes[1], costs, (float(best[0]), float(best[1]))))
@@ -751,11 +193,11 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
             f"{math.degrees(step[1]):.3f} deg, cap {cap * 1000:.0f} mm; best D {best[0]:.4f} m, beta "
             f"{math.degrees(best[1]):.3f} deg, cost {costs[i, j] * 1000:.3f} mm")
         half = 2 * step
-        problem.locate(*best)  # the data contours and the detection shift, seen from the new estimate
+        comparison.locate(*best)  # the data contours and the detection shift, seen from the new estimate
 
-    candidate, polish_error = _polish(problem, *_valley(found[-1], step), lo, hi, settings.polish)
+    candidate, polish_error = _polish(comparison, *_valley(found[-1], step), lo, hi, settings.polish)
     say(f"polish: D {candidate[0]:.4f} m, beta {math.degrees(candidate[1]):.3f} deg, E_mu {polish_error * 1000:.3f} mm")
-    before, after = problem.exact(depth0, tilt0).value, polish_error  # the polish evaluated the candidate
+    before, after = comparison.exact(depth0, tilt0).value, polish_error  # the polish evaluated the candidate
     accepted = bool(np.isfinite(after) and (not np.isfinite(before) or after < before))
     depth, tilt = (candidate if accepted else (depth0, tilt0))
     say(f"E_mu {before * 1000:.3f} mm at the start, {after * 1000:.3f} mm at the candidate: "
@@ -763,10 +205,10 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
     return PoseResult(depth=float(depth), tilt=float(tilt), depth0=depth0, tilt0=tilt0,
                       candidate=(float(candidate[0]), float(candidate[1])), accepted=accepted,
                       error_before=float(before), error_after=float(after if accepted else before),
-                      levels=tuple(found), polish_error=float(polish_error), shift=problem.shift,
-                      anchors=problem.anchors, evaluations=dict(problem.counters),
-                      seconds=time.perf_counter() - start, views=problem.data.names,
-                      mirror_views=problem.data.mirror_views)
+                      levels=tuple(found), polish_error=float(polish_error), shift=comparison.shift,
+                      anchors=comparison.anchors, evaluations=dict(comparison.counters),
+                      seconds=time.perf_counter() - start, views=comparison.data.names,
+                      mirror_views=comparison.data.mirror_views)
 
 
 # --- helpers -------------------------------------------------------------------------------
@@ -798,107 +240,6 @@ def check_uncertainties(dataset, depth0: float, *, depth_range: float | None = N
             default[1] if tilt_range is None else float(tilt_range))
 
 
-def _check_handed_over(problem: PoseProblem, model, dataset, depth: float, tilt: float, settings: PoseSettings,
-                       backend) -> None:
-    """ValueError unless ``problem`` is the PoseProblem that ``estimate_pose`` would build."""
-    vertices, faces = check_mesh(model, name="model")
-    same = (problem.dataset is dataset and problem.settings == settings and problem.estimate == (depth, tilt)
-            and (backend is None or problem.backend is backend) and np.array_equal(problem.vertices, vertices)
-            and np.array_equal(problem.faces, faces))
-    if not same:
-        raise ValueError("problem must be a PoseProblem of this model, dataset, settings and backend located "
-                         f"at depth0 {depth} m, tilt0 {tilt} rad")
-
-
-def detection_threshold(image, settings: SegmentSettings = SegmentSettings()) -> np.ndarray:
-    """(bins,) linear intensity at which the segmentation's hysteresis low threshold lies in
-    each row of a (bins, beams) image, less the background: ``(m + low·s − 1)·level(B)``
-    (``fsswarp.segment.normalized``, steps 0–2: the same clipped spikes, background level, median m
-    and spread s)."""
-    array = np.asarray(image, np.float64)
-    return memoized("detection_threshold", array, settings, lambda: _detection_threshold(array, settings))
-
-
-def _detection_threshold(array: np.ndarray, settings: SegmentSettings) -> np.ndarray:
-    level, _, centre, spread = normalized(array, settings)
-    return np.maximum(centre + settings.low * spread - 1.0, 0.0) * level
-
-
-def scan_start(layers: np.ndarray, taps: int) -> np.ndarray:
-    """(N,) the first row from which ``contour_cost`` must scan (N, 4, bins, beams) ``layers``,
-    smoothed along range over ``taps`` rows, to find every threshold crossing: the row before
-    the smoothing first reaches a return of any layer and beam (above it the smoothed image
-    is 0 and cannot exceed a threshold >= 0), at least 0, at most bins − 1."""
-    bins = layers.shape[2]
-    echo = layers.any(axis=(1, 3))  # (N, bins): rows holding a return
-    first = np.where(echo.any(axis=1), echo.argmax(axis=1), bins)
-    return np.clip(first - (taps - 1) // 2 - 1, 0, bins - 1)
-
-
-def contour_distance(rows: np.ndarray, bins: int, range_step: float, arc: float, reach: float) -> np.ndarray:
-    """(bins, beams) float32 distance (m) of every pixel to the contour pixels (row, beam) of
-    ``rows`` (beams,) (first row per beam, -1: none), saturating at ``reach`` (m): the range
-    axis in ``range_step``, the beam axis in ``arc`` (m). Exact below ``reach``, as scipy's
-    ``distance_transform_edt`` with that sampling, but only the contour pixels within
-    ``reach`` are visited (±reach/arc beams, ±reach/range_step rows)."""
-    n_beams = len(rows)
-    out = np.full((bins, n_beams), reach * reach)
-    beams = np.flatnonzero(rows >= 0)
-    if beams.size:
-        lo = max(int(rows[beams].min() - reach / range_step) - 1, 0)
-        hi = min(int(rows[beams].max() + reach / range_step) + 2, bins)
-        band = out[lo:hi]
-        dr = (np.arange(lo, hi)[:, None] - rows[beams][None, :]) * range_step  # (rows, contour points)
-        dr2 = dr * dr
-        for offset in range(-int(reach / arc), int(reach / arc) + 1):
-            target = beams + offset
-            inside = (target >= 0) & (target < n_beams)
-            cols = target[inside]
-            band[:, cols] = np.minimum(band[:, cols], dr2[:, inside] + (offset * arc) ** 2)
-    return np.sqrt(out).astype(np.float32)  # out starts at reach² and only falls
-
-
-@functools.lru_cache(maxsize=128)
-def _remembered_distance(rows: bytes, bins: int, range_step: float, arc: float, reach: float) -> np.ndarray:
-    """:func:`contour_distance` of the int64 ``rows`` bytes, read-only, for the 128 latest
-    arguments (25 MB of 512 × 96 maps): the loop locates its problems again and again on
-    data contours that rarely change (coral-one, 4 iterations: 660 maps, 50 of them distinct)."""
-    out = contour_distance(np.frombuffer(rows, np.int64), bins, range_step, arc, reach)
-    out.setflags(write=False)
-    return out
-
-
-def _gaussian(sigma: float) -> np.ndarray:
-    """scipy.ndimage.gaussian_filter's 1-D weights for ``sigma`` (truncate 4), (2r + 1,)."""
-    radius = int(4.0 * sigma + 0.5)
-    if radius == 0:
-        return np.ones(1)
-    x = np.arange(-radius, radius + 1)
-    w = np.exp(-0.5 * (x / sigma) ** 2)
-    return w / w.sum()
-
-
-def _parabola_minimum(x: np.ndarray, y: np.ndarray) -> float:
-    """Where the parabola through the smallest of the (S,) values ``y`` at uniform ``x`` and its
-    two neighbours is smallest (the end point itself at an end, or where flat)."""
-    i = int(np.argmin(y))
-    if i == 0 or i == len(y) - 1:
-        return float(x[i])
-    curvature = y[i - 1] - 2.0 * y[i] + y[i + 1]
-    if curvature <= 0:
-        return float(x[i])
-    return float(x[i] + 0.5 * (x[1] - x[0]) * (y[i - 1] - y[i + 1]) / curvature)
-
-
-def _view_cost(sums: np.ndarray, counts: np.ndarray, data_counts: np.ndarray, cap: float) -> np.ndarray:
-    """(G, V, S) object + mirror terms from (G, V, 2, S) sums, (G, V, 2) counts and the data's
-    (V, 2) counts: ``(Σ d + cap · max(0, n_data − n)) / max(n, n_data)``, 0 for empty terms."""
-    n = counts[..., None].astype(np.float64)
-    n_data = data_counts[None, :, :, None].astype(np.float64)
-    total = sums + cap * np.maximum(n_data - n, 0.0)
-    terms = np.divide(total, np.maximum(n, n_data), out=np.zeros(total.shape), where=np.maximum(n, n_data) > 0)
-    return terms.sum(axis=2)
-
 
 def _valley(level: GridLevel, step: np.ndarray):
     """The polish frame from a quadratic fitted (least squares) to the level's costs at the
@@ -926,19 +267,19 @@ def _valley(level: GridLevel, step: np.ndarray):
     return centre, np.stack([POLISH_CELLS * vectors[:, 0] * step, vectors[:, 1] * step], axis=1)
 
 
-def _polish(problem: PoseProblem, centre, axes, lo, hi, evaluations: int):
+def _polish(comparison: ViewComparison, centre, axes, lo, hi, evaluations: int):
     """BOBYQA (nlopt) on E_mu over ``centre + axes @ u``, u in [-1, 1]² (points clipped to the
     bounds ``lo``, ``hi``), from u = 0. Returns the best point seen and its E_mu."""
     def point(u):
         return np.clip(centre + axes @ np.asarray(u, np.float64), lo, hi)
 
-    start = problem.exact(*point((0.0, 0.0)))
+    start = comparison.exact(*point((0.0, 0.0)))
     seen = {"x": point((0.0, 0.0)), "f": start.value}
     if evaluations == 0 or not math.isfinite(start.value):
         return seen["x"], seen["f"]
     def objective(u, grad):
         x = point(u)
-        value = start.value if np.all(np.asarray(u) == 0.0) else problem.exact(x[0], x[1]).value
+        value = start.value if np.all(np.asarray(u) == 0.0) else comparison.exact(x[0], x[1]).value
         if value < seen["f"]:
             seen["x"], seen["f"] = x, value
         return value if math.isfinite(value) else 1.0  # 1 m: far worse than any E_mu seen
@@ -955,10 +296,3 @@ def _polish(problem: PoseProblem, centre, axes, lo, hi, evaluations: int):
     except nlopt.RoundoffLimited:
         pass
     return seen["x"], seen["f"]
-
-
-def fan_points(theta, rng) -> np.ndarray:
-    """(N, 2) fan-plane points R (sin θ, cos θ) (paper eq. 3)."""
-    return np.stack([rng * np.sin(theta), rng * np.cos(theta)], axis=1)
-
-

@@ -1,73 +1,27 @@
 """The unified optimization of the paper's Figure 3a (DESIGN §1): carve, then alternate pose
-and shape steps until the objective stops falling.
+and shape steps while the image error E_I falls. Lengths in m, angles in rad (degrees in the
+history), meshes in the reference frame.
 
-Iteration 0 carves the model S0 with the measured (D0, β0), from every view (the held-out
-views too: on coral-one, carving from the 10 optimized views alone left E_V at 0.59 against
-0.39 from all 16). Each later iteration t:
+Iteration 0 carves the model S0 at the measured (D0, β0) from every view and refines it
+there. Each later iteration t:
 
-1. pose step: ``fsswarp.pose.estimate_pose`` searches the (D, β) grid around the current
-   estimate for the current model and proposes the result only if E_mu falls (greedy;
-   otherwise D and β stay);
-2. shape step: the model is refined against the images with the views at the new (D, β)
-   (``fsswarp.refine.refine_shape``: contour and mirror-contour motions of frontal
-   triangles, an overshoot term that pulls the bloated carved surface in). The model is kept
-   in the reference frame, which the reference view observes directly whatever β is, so it
-   stays valid when the views move; it is not re-carved. Re-carving at every new (D, β)
-   threw the accumulated refinement away each iteration, and it brings no information about
-   the pose: along the D–β valley (ΔD ≈ 3.5 cm per degree of β), models re-carved and refined
-   at each point have the same E_mu within noise (README, "Reconstruction");
-3. record D, β, E_mu, AIE, ACE, E_I and, with a truth model, E_V, Chamfer and F-score.
+1. pose step (``fsswarp.pose.estimate_pose``): a (D, β) proposed only where E_mu falls;
+2. shape step (``fsswarp.refine.refine_shape``) at the proposed (D, β), then, if E_I did not
+   fall below its lowest, again at the previous (D, β);
+3. record D, β, E_mu, AIE, ACE, E_I and, with a truth model, E_V, Chamfer and F-score
+   (``fsswarp.metrics``; the truth metrics in child processes while the loop goes on).
 
-Before the first pose step the carved model is refined at (D0, β0) too: a carved model is
-too big, and E_mu's minimum for a too-big model lies away from the truth. A refused pose step
-(no grid point with a lower E_mu) keeps (D, β), and the shape step runs all the same: the
-paper's two modes alternate "as long as the objective error function diminishes" (§2.3).
-Stopping at the first refused pose step left the table at its carved model (E_I 1.0), where
-two more shape steps at the measured (D0, β0) bring E_I to 0.85. A proposed (D, β) is
-adopted only if it lowers the image error E_I below the lowest so far; if it does not, the
-shape step is tried again from the same model at the previous (D, β). When neither lowers
-E_I, the iteration still counts (it is recorded, and the next one goes on from its model at
-the previous (D, β)), but the loop stops after ``patience`` such iterations in a row, or at
-once when the shape step left the model unchanged at the same (D, β) (every update refused:
-the pose and shape steps are deterministic, so the next iterations would repeat it). The
-result is the iteration with the lowest E_I (``best_iteration``), so the objective only
-diminishes, as in the paper's Figure 3a. The patience is there because E_I can rise for an
-iteration while the shape goes on improving; it came in when E_I's CE still took the first
-row above 1% of the peak as the synthetic contour (below), which jittered: at coral-one's
-measured (D0, β0), ten updates took E_V steadily from 0.386 to 0.323, while E_I went 0.78,
-0.81, 0.79, 0.79, 0.77, 0.79, 0.80, 0.80, 0.75, and stopping at the first rise kept the
-model of the first update. A trial is judged by E_I alone; E_mu and the truth metrics
-are computed only for the trials recorded, the truth metrics in a child process while the
-loop goes on (their lines come when they are ready). It also
-stops after ``iterations``. E_I is the objective here because it is measurable and, in the
-paper, tracks the model error E_V; E_mu alone kept falling on coral-two while E_I rose from 0.71 to 0.98
-and E_V from 0.28 to 0.30 over three more iterations.
+The loop owns one ``fsswarp.compare.ViewComparison`` and hands it to both steps and to the
+metrics, so the layers and contours found for a model at a (D, β) serve all of them. It stops
+after ``iterations``, after ``patience`` iterations in a row without a new lowest E_I, or when
+a shape step leaves the model unchanged at the same (D, β); the result is the iteration with
+the lowest E_I.
 
-Image metrics (paper eq. 8–11), over the views marked ``optimize``, with the synthetic views
-of the model at the iteration's (D, β):
-
-- Ω_m, the uncorrupted object region: pixels of the synthetic object layer above 1% of its
-  peak where ghost, mirror and double-bounce together stay below 10% of the object there.
-- IE: data and synthetic total are each divided by their mean over Ω_m (the data's scale is
-  unknown), then IE = mean |Ĩ − I| over Ω_m; AIE is the mean over views.
-- CE: IRLS-ICP (``fsswarp.icp``) of the synthetic frontal object contour to the data's, in
-  the fan plane (m), found as the pose step and refinement find them
-  (``PoseProblem.contour_errors``): the data's by ``fsswarp.segment``, the synthetic one with
-  the same detector, the data's detection threshold on the smoothed synthetic view, plus the
-  common detection shift; ACE is the mean over views. The same detector on both images
-  matters: CE first took the synthetic contour as the first row of Ω_m (above 1% of the
-  object's peak), which lies ahead of a threshold crossing by an amount that depends on how
-  the echo rises, so it moved with the shape of the front and not with its place. At the true
-  (D, β), 16 refinement updates took coral-one's E_V from 0.322 to 0.236 and this CE from 3.46
-  to 2.28 mm, while that one went 2.34, 1.65 (update 2), then up to 2.08 mm, and the loop,
-  judging by it, kept early iterations. With this CE, E_I follows E_V: coral-one from its
-  measured start ran 10 iterations on an H100 with E_I falling 0.815 → 0.684 and E_V 0.337 →
-  0.300 (README, "The paper's table").
-- E_I = (AIE/AIE⁰ + ACE/ACE⁰)/2, 1 at iteration 0.
-
-Truth metrics compare the model with ``truth/model.ply`` in the reference frame: both are the
-object relative to the reference sonar, which the reference view observes directly whatever
-(D, β) is assumed.
+Image metrics, over the views marked ``optimize`` at the iteration's (D, β): Ω_m, the pixels
+of the synthetic object layer above 1% of its peak where ghost, mirror and double-bounce stay
+below 10% of the object; IE on Ω_m with data and synthetic totals each divided by their mean
+there; CE from the comparison's contours (``ViewComparison.contour_errors``);
+E_I = (AIE/AIE⁰ + ACE/ACE⁰)/2 (``fsswarp.metrics.image_error``).
 """
 
 from __future__ import annotations
@@ -81,10 +35,10 @@ from typing import Callable
 import numpy as np
 
 from .carving import CarveSettings, carve
-from .errors import InputError, check_integer
-from .metrics import combine
-from .motion import average_contour_error, average_intensity_error
-from .pose import PoseProblem, PoseSettings, PoseWarning, check_uncertainties, estimate_pose
+from .errors import check_integer
+from .compare import PoseSettings, PoseWarning, ViewComparison
+from .metrics import average_contour_error, average_intensity_error, combine, image_error
+from .pose import check_uncertainties, estimate_pose
 from .refine import RefineSettings, refine_shape
 from .rendering import RenderSettings, render, with_total
 from .rig import check_depth_tilt
@@ -165,24 +119,26 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
     backend = backend or get_backend()
     say = progress or (lambda line: None)
     start = time.perf_counter()
+    comparison = ViewComparison(dataset, settings=settings.pose, backend=backend)  # E_I, E_mu, the pose steps
+    shaping = comparison if settings.refine.pose == settings.pose else \
+        ViewComparison(dataset, settings=settings.refine.pose, backend=backend)  # the shape steps
     with _TruthMetrics(dataset.truth_mesh(), say) as truth:
         given = "given" if depth0 is not None or tilt0 is not None else "measured"
         say(f"iteration 0: carving at the {given} D0 = {depth:.4f} m, tilt0 = {math.degrees(tilt):.3f} deg")
         carved = carve(dataset, depth, tilt, resolution=settings.resolution, settings=settings.carve,
                        backend=backend).mesh
         kept = carved  # the model of the best iteration
-        first = _complete(*_record(0, kept, dataset, depth, tilt, settings, backend, None), kept, depth, tilt, truth)
-        working, problem = carved, None  # the model gone on with, and its PoseProblem (if it has one)
+        first = _complete(_record(0, kept, dataset, depth, tilt, settings, comparison, None), comparison, kept, depth,
+                          tilt, truth)
+        working = carved  # the model gone on with
         if settings.iterations:
-            refined = refine_shape(carved, dataset, depth, tilt, settings=settings.refine, backend=backend)
-            working, problem = refined.mesh, _shared(refined, settings)
+            working = refine_shape(carved, dataset, depth, tilt, settings=settings.refine, comparison=shaping).mesh
         history = [first]
         say(_line(first))
         best, best_pose, misses, converged = first, (depth, tilt), 0, False
         pose_steps = []
         for iteration in range(1, settings.iterations + 1):
-            pose = estimate_pose(working, dataset, depth0=depth, tilt0=tilt, settings=settings.pose,
-                                 backend=backend, problem=problem)
+            pose = estimate_pose(working, dataset, depth0=depth, tilt0=tilt, comparison=comparison)
             pose_steps.append(pose)
             if pose.accepted:
                 trials = [(pose.depth, pose.tilt), (depth, tilt)]
@@ -190,11 +146,9 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
                 trials = [(depth, tilt)]
                 say(f"iteration {iteration}: the pose step found no (D, tilt) with a lower E_mu; D and tilt stay")
             for depth_tried, tilt_tried in trials:
-                refined = refine_shape(working, dataset, depth_tried, tilt_tried, settings=settings.refine,
-                                       backend=backend)
-                trial = refined.mesh
-                entry, problem = _record(iteration, trial, dataset, depth_tried, tilt_tried, settings, backend, first,
-                                         _shared(refined, settings))
+                trial = refine_shape(working, dataset, depth_tried, tilt_tried, settings=settings.refine,
+                                     comparison=shaping).mesh
+                entry = _record(iteration, trial, dataset, depth_tried, tilt_tried, settings, comparison, first)
                 improved = entry["E_I"] < best["E_I"]
                 if improved:
                     break
@@ -208,7 +162,7 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
                 converged = True
                 break
             working, depth, tilt = trial, depth_tried, tilt_tried
-            history.append(_complete(entry, problem, trial, depth, tilt, truth))
+            history.append(_complete(entry, comparison, trial, depth, tilt, truth))
             say(_line(history[-1]))
             truth.collect(wait=False)
             if improved:
@@ -231,22 +185,19 @@ def image_errors(model, dataset, depth: float, tilt: float, *, settings: Reconst
                  backend=None) -> dict:
     """AIE and ACE (paper eq. 8–9, as the module docstring defines them) of ``model`` at
     (depth, tilt) over the dataset's optimized views: {"AIE", "ACE", "views": {name: {"CE"}}}."""
-    return _image_errors(model, dataset, depth, tilt, settings, backend)[0]
+    comparison = ViewComparison(dataset, settings=settings.pose, backend=backend)
+    return _image_errors(model, dataset, depth, tilt, settings, comparison)
 
 
-def _image_errors(model, dataset, depth: float, tilt: float, settings: ReconstructSettings, backend,
-                  problem: PoseProblem | None = None):
-    """(:func:`image_errors`' dict, the PoseProblem of ``model`` at (depth, tilt) that found
-    the contours of CE; E_mu and the next pose step reuse it). ``problem`` : that PoseProblem,
-    if the caller has it already."""
+def _image_errors(model, dataset, depth: float, tilt: float, settings: ReconstructSettings,
+                  comparison: ViewComparison) -> dict:
+    """:func:`image_errors`' dict, with ``comparison`` put to ``model`` at (depth, tilt) (kept
+    where it is there already), whose contours give CE; E_mu and the next pose step go on with it."""
     names = [v.name for v in dataset.rig.views if v.optimize]
-    if not names:
-        raise InputError("no view is marked optimize", file=dataset.root, field="views.optimize", value=False)
-    if problem is None:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", PoseWarning)  # a view without the model gets no CE
-            problem = PoseProblem(model, dataset, depth, tilt, settings=settings.pose, backend=backend)
-    views = _synthetic_views(model, dataset, depth, tilt, names, settings, backend, problem)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PoseWarning)  # a view without the model gets no CE
+        comparison.use(model, depth, tilt)
+    views = _synthetic_views(model, dataset, depth, tilt, names, settings, comparison)
     synthetic, data, regions = [], [], []
     for name in names:
         obj, ghost, mirror, mirror2, total = views[name]
@@ -257,55 +208,47 @@ def _image_errors(model, dataset, depth: float, tilt: float, settings: Reconstru
             data.append(image / max(image[region].mean(), 1e-30))
             regions.append(region)
     aie = average_intensity_error(np.stack(synthetic), np.stack(data), np.stack(regions)) if regions else math.nan
-    seen = dict(zip(problem.data.names, problem.contour_errors(depth, tilt)))
+    seen = dict(zip(comparison.data.names, comparison.contour_errors(depth, tilt)))
     errors = np.array([seen.get(name, math.nan) for name in names])
     return {"AIE": aie, "ACE": average_contour_error(errors),
-            "views": {name: {"CE": float(ce)} for name, ce in zip(names, errors)}}, problem
+            "views": {name: {"CE": float(ce)} for name, ce in zip(names, errors)}}
 
 
-def _synthetic_views(model, dataset, depth: float, tilt: float, names, settings: ReconstructSettings, backend,
-                     problem: PoseProblem) -> dict[str, np.ndarray]:
+def _synthetic_views(model, dataset, depth: float, tilt: float, names, settings: ReconstructSettings,
+                     comparison: ViewComparison) -> dict[str, np.ndarray]:
     """{view name: (5, bins, beams) float32} of ``render`` at ``settings.render`` for the views
-    ``names``: the layers ``problem`` rendered when it was located at (depth, tilt) with the
+    ``names``: the layers ``comparison`` rendered when it was located at (depth, tilt) with the
     same samples, γ and surface reflection (the same launch, so the same pixels; their total
     by ``with_total``, as ``render``'s), and a render of the other views (those where it saw
     no model)."""
     views = {}
-    if problem.estimate == (float(depth), float(tilt)) and settings.render == problem.prediction_settings:
-        views.update(zip(problem.data.names, with_total(problem.predicted)))
+    if comparison.estimate == (float(depth), float(tilt)) and settings.render == comparison.prediction_settings:
+        views.update(zip(comparison.data.names, with_total(comparison.predicted)))
     rest = [name for name in names if name not in views]
     if rest:
         views.update(render(model, dataset.sonar, dataset.rig, depth, tilt, views=rest, settings=settings.render,
-                            backend=backend))
+                            backend=comparison.backend))
     return views
 
 
 def _record(iteration: int, model, dataset, depth: float, tilt: float, settings: ReconstructSettings,
-            backend, first: dict | None, problem: PoseProblem | None = None):
-    """(What decides whether a trial is kept: AIE, ACE and E_I (relative to ``first``), the
-    trial's PoseProblem for its E_mu: ``problem`` if given)."""
-    images, problem = _image_errors(model, dataset, depth, tilt, settings, backend, problem)
+            comparison: ViewComparison, first: dict | None) -> dict:
+    """What decides whether a trial is kept: AIE, ACE and E_I (relative to ``first``), with
+    ``comparison`` left on the trial's model at (depth, tilt) for its E_mu."""
+    images = _image_errors(model, dataset, depth, tilt, settings, comparison)
     entry = {"iteration": iteration, "depth_m": depth, "tilt_deg": math.degrees(tilt),
              "AIE": images["AIE"], "ACE": images["ACE"]}
     base = first or entry
-    entry["E_I"] = 0.5 * (entry["AIE"] / base["AIE"] + entry["ACE"] / base["ACE"])
-    return entry, problem
+    entry["E_I"] = image_error(entry["AIE"], entry["ACE"], base["AIE"], base["ACE"])
+    return entry
 
 
-def _shared(refined, settings: ReconstructSettings):
-    """The refinement's PoseProblem of its mesh (RefineResult.problem) when the loop's pose
-    settings are the refinement's, so that E_I, E_mu and the next pose step can go on with it;
-    else None."""
-    return refined.problem if settings.refine.pose == settings.pose else None
-
-
-def _complete(entry: dict, problem, model, depth: float, tilt: float, truth) -> dict:
+def _complete(entry: dict, comparison: ViewComparison, model, depth: float, tilt: float, truth) -> dict:
     """The history entry (DESIGN §12's keys) of a kept trial at (depth m, tilt rad): ``entry``
-    with E_mu (from ``problem``, the PoseProblem of ``model`` there that _record made);
-    ``truth`` (_TruthMetrics) adds E_V, Chamfer and F-score later. Only kept trials pay for
-    these (a rejected trial's cost 1–2 s on a 2-core CPU)."""
+    with E_mu (``comparison`` on ``model`` there, as _record left it); ``truth``
+    (_TruthMetrics) adds E_V, Chamfer and F-score later. Only kept trials pay for these."""
     done = {key: entry[key] for key in ("iteration", "depth_m", "tilt_deg")}
-    done["E_mu"] = problem.exact(depth, tilt).value
+    done["E_mu"] = comparison.use(model, depth, tilt).exact(depth, tilt).value
     done.update((key, entry[key]) for key in ("AIE", "ACE", "E_I"))
     truth.submit(done, model)
     return done

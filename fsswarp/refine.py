@@ -1,62 +1,24 @@
 """Shape refinement: move the model's vertices so that its synthetic views agree with the data
-(paper §2.2–2.3, Figure 3b; DESIGN §8).
+(paper §2.2–2.3, Figure 3b; DESIGN §8). Lengths in m, meshes (Nv, 3) vertices, (F, 3) faces.
 
-One step at a given (D, β), over the views marked ``optimize``:
+One update at a given (D, β), over the views marked ``optimize``, with a
+``fsswarp.compare.ViewComparison`` (the caller's, or one of ``settings.pose``):
 
-1. Synthesis and contours. ``fsswarp.pose.PoseProblem`` synthesizes the views and finds the
-   frontal contours of the object and of the distinct mirror blob in the data and in the
-   synthetic views (with the data's detection threshold and the common detection-bias shift;
-   ``fsswarp.pose`` explains both). The mirror contour is used only beyond the predicted
-   object span, so mirror beams that fall on the object or the ghost are left out.
-2. Contour motions. IRLS-ICP (``fsswarp.icp``) aligns each synthetic contour with the data's in
-   the fan plane. The 2-D motion of a synthetic contour point is the vector to its matched data
-   point after the alignment (an inlier pair), else the rigid motion of the alignment: the
-   rigid part moves the whole contour, the residual bends it. The frontal patch of each beam
-   (ray casting, ``PoseProblem.frontal_faces``) collects the motions of its beams.
-3. 3-D motions of the frontal patch centres: per patch one least-squares solve over every view
-   and both components, truncated SVD (``rcond``) as ``fsswarp.motion.patch_motions``. A
-   mirror contour point is the return of the virtual mirror point Q = H·P + 2d·n, so its row is
-   ``J_mirror(Q) H``, H = I − 2nnᵀ (the mirror regularizer: the mirror is a view from the
-   mirrored sonar and constrains elevation).
-4. Overshoot (the intensity term of eq. 4, reduced to where echoes are and are not). Contours
-   pin only the front; the carved model is too big behind it. Every view casts K_θ × K_φ rays
-   per beam; a hit whose pixel the synthetic view calls bright (smoothed object + ghost above
-   the data's detection threshold), the data calls dark (farther than ``tolerance`` m from
-   every data highlight pixel: the distance in the fan's range and arc metric), and neither
-   synthetic ghost nor mirror reaches (those pixels are masked out as corrupted), votes to move
-   its triangle inward along its normal by that distance. Carving is conservative (the truth
-   lies inside the carved model), so an echo where the data has none means surface where the
-   object is not. Except beyond the data: a hit whose row lies past the last highlight row of
-   its beam does not vote. The data sees surface nearer along that beam, so the model's
-   surface there is too far (a dent), and moving it inward deepens it, the next echo lands
-   farther still, and the dent runs away. Without this rule, on coral-one at the true (D, β),
-   E_V turned back up after 11 updates (0.245, then 0.260 at 16) while the share of the true
-   volume outside the model grew from 0.02 to 0.11; with it E_V fell to 0.236 at 16 with 0.03
-   outside, and at the measured (D0, β0) to 0.289 at 16 against a turn at 10 (0.320, then
-   0.357). A triangle with a contour motion keeps that one; the others that got votes move by
-   the mean vote.
-5. Vertex displacements. Each vertex takes the area-weighted average of the motions of its
-   moving triangles, with a confidence equal to their share of its adjacent area; a membrane
-   solve spreads and smooths the field: ``(C + λ L) U = C Û`` (C the confidences, L the
-   graph Laplacian of the mesh edges, λ = ``smoothing``), so unobserved regions follow their
-   neighbours and the motion decays away from the evidence. Motions are capped at
-   ``max_motion`` and scaled by ``step``.
-6. Safety. The topology never changes, so the mesh stays closed and 2-manifold. Where a
-   step would turn a triangle's normal by more than ``max_turn`` from the previous one (or
-   degenerate it), that triangle's vertices are held still, their neighbours take a tapered
-   share of the step (``HOLD_TAPER``: ½, ¾ and ⅞ over the first three rings) and the step is
-   tried again, up to ``holds`` times; then, while any triangle still turns too far or the
-   volume reverses, the whole step is halved (up to ``halvings`` times) and otherwise
-   refused. Holding only the offending vertices keeps the rest of the mesh moving: on
-   coral-one at the true (D, β), 8 updates took E_V from 0.322 to 0.265, against 0.277 when
-   every offending step was halved as a whole. The taper keeps holding from cascading: a
-   held vertex beside moving ones shears its other triangles, which then fold in turn.
-   Without it, on the table from its measured start, 4 rounds of holds ended with triangles
-   still folding and most updates were halved 2–3 times (mean step factor 0.17–0.35 of 0.7);
-   on three recorded updates (table, coral-one) holds without the taper needed 13, 17 and
-   17 rounds to end the folding, and with it 4, 5 and 3, applying 0.66–0.69 of the 0.7 step.
-   Small steps with a smooth field are this module's guard against self-intersection: no
-   exact test is run.
+1. Contours: the comparison locates the model at (D, β) (data and synthetic frontal contours
+   of the object and of the distinct mirror blob, detection shift).
+2. Contour motions: per contour point the ICP's matched-pair vector, else the rigid motion of
+   the alignment; each beam's frontal patch (ray casting) collects them.
+3. Patch motions: per patch one truncated-SVD least-squares solve (``rcond``) over every view
+   and both components (``fsswarp.motion``); a mirror row is ``J_mirror(Q) H``, H = I − 2nnᵀ.
+4. Overshoot (the intensity term of eq. 4): a ray hit whose pixel the synthetic view calls
+   bright, the data dark (farther than ``tolerance`` from every highlight pixel) and no ghost
+   or mirror reaches votes to move its triangle inward by that distance; a hit past the last
+   highlight row of its beam does not vote. Triangles with a contour motion keep that one.
+5. Vertex displacements: area-weighted motions with confidences, spread by the membrane solve
+   ``(C + λ L) U = C Û`` (λ = ``smoothing``), capped at ``max_motion``, scaled by ``step``.
+6. Safety: the topology never changes. A triangle whose normal would turn more than
+   ``max_turn`` holds its vertices (neighbours tapered by ``HOLD_TAPER``) up to ``holds``
+   times; then the whole step is halved up to ``halvings`` times, else refused.
 """
 
 from __future__ import annotations
@@ -68,9 +30,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .compare import PoseSettings, PoseWarning, ViewComparison
 from .errors import InputError, check_integer, is_integer
 from .motion import image_jacobian, truncated_lstsq
-from .pose import PoseProblem, PoseSettings, PoseWarning
 from .rendering import check_mesh, is_watertight, signed_volume
 from .surface import surface_in_reference
 
@@ -145,8 +107,6 @@ class RefineResult:
     ce_before, ce_after : (V,) per-view CE (eq. 5, m; NaN: no contour) of the object contours
     ace_before, ace_after : their means (ACE, eq. 9); steps : one RefineStep per update
     mean_displacement : mean vertex displacement (m) over all updates; seconds : wall time
-    problem : the PoseProblem of ``mesh`` at (depth, tilt) with ``settings.pose`` that found
-        ce_after (fsswarp.reconstruction goes on with it instead of building it again)
     """
 
     mesh: object
@@ -158,7 +118,6 @@ class RefineResult:
     steps: tuple[RefineStep, ...]
     mean_displacement: float
     seconds: float
-    problem: PoseProblem = field(repr=False, compare=False)
 
     @property
     def patches_moved(self) -> int:
@@ -167,26 +126,32 @@ class RefineResult:
 
 
 def refine_shape(model, dataset, depth: float, tilt: float, *, settings: RefineSettings = RefineSettings(),
-                 backend=None) -> RefineResult:
+                 backend=None, comparison: ViewComparison | None = None) -> RefineResult:
     """Refine ``model`` (closed trimesh, reference frame of (depth m, tilt rad)) against the
     optimized views of ``dataset``: ``settings.iterations`` updates of the module docstring.
+
+    comparison : the ViewComparison of ``dataset`` to measure with (its settings stand for
+        ``settings.pose``, and it carries the backend, so give no backend with it); default
+        one of ``settings.pose`` on ``backend``. It is left with the refined mesh located at
+        (depth, tilt), as ce_after found it.
     Raises InputError when the model is seen in none of the optimized views."""
     import trimesh
 
-    from .backends import get_backend
-
     start = time.perf_counter()
     vertices, faces = check_mesh(model, name="model")
-    backend = backend or get_backend()
+    if comparison is None:
+        comparison = ViewComparison(dataset, settings=settings.pose, backend=backend)
+    elif backend is not None:
+        raise ValueError("the backend comes with the comparison: give either a backend or a comparison")
     mesh = trimesh.Trimesh(vertices, faces, process=False)
     steps, moved = [], []
     ce_before, views = None, ()
     edges = mesh.edges_unique  # the topology never changes (step 6): one Laplacian for every update
     membrane = _Membrane(_graph_laplacian(edges, len(mesh.vertices)), settings.smoothing)
     for _ in range(settings.iterations):
-        update = _Update(mesh, dataset, depth, tilt, settings, backend)
+        update = _Update(mesh, dataset, depth, tilt, settings, comparison)
         if ce_before is None:
-            ce_before, views = update.errors, update.problem.data.names
+            ce_before, views = update.errors, update.comparison.data.names
         displacement = update.displacement(membrane)
         mesh, factor = _apply(mesh, displacement, settings, edges)
         norm = float(np.linalg.norm(displacement, axis=1).mean()) * factor
@@ -195,34 +160,33 @@ def refine_shape(model, dataset, depth: float, tilt: float, *, settings: RefineS
                                 _nanmean(update.errors)))
         if factor == 0.0:
             break
-    after = _Update(mesh, dataset, depth, tilt, settings, backend, motions=False)
-    ce_after = np.array([after.errors[after.problem.data.names.index(n)]
-                         if n in after.problem.data.names else math.nan for n in views])
+    after = _Update(mesh, dataset, depth, tilt, settings, comparison, motions=False)
+    ce_after = np.array([after.errors[after.comparison.data.names.index(n)]
+                         if n in after.comparison.data.names else math.nan for n in views])
     return RefineResult(mesh=mesh, views=views, ce_before=ce_before, ce_after=ce_after,
                         ace_before=_nanmean(ce_before), ace_after=_nanmean(ce_after), steps=tuple(steps),
-                        mean_displacement=float(np.mean(moved)), seconds=time.perf_counter() - start,
-                        problem=after.problem)
+                        mean_displacement=float(np.mean(moved)), seconds=time.perf_counter() - start)
 
 
 class _Update:
     """Contours, CE per view and (unless ``motions`` is False) the patch motions of one model."""
 
-    def __init__(self, mesh, dataset, depth, tilt, settings: RefineSettings, backend, *, motions: bool = True):
+    def __init__(self, mesh, dataset, depth, tilt, settings: RefineSettings, comparison: ViewComparison, *,
+                 motions: bool = True):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", PoseWarning)  # unseen views are simply not used
-            self.problem = problem = PoseProblem(mesh, dataset, depth, tilt, settings=settings.pose,
-                                                 backend=backend)
+            self.comparison = comparison.use(mesh, depth, tilt)
         self.mesh, self.settings, self.depth, self.tilt = mesh, settings, depth, tilt
         if not motions:  # CE alone
-            self.errors = problem.contour_errors(depth, tilt)
+            self.errors = comparison.contour_errors(depth, tilt)
             return
-        data = problem.data
-        contours, shift = problem.synthetic_contours(depth, tilt)
-        self.rot, self.t, self.n_view, self.d_view = (a[0] for a in problem.view_poses(data.views, np.array([depth]),
+        data = comparison.data
+        contours, shift = comparison.synthetic_contours(depth, tilt)
+        self.rot, self.t, self.n_view, self.d_view = (a[0] for a in comparison.view_poses(data.views, np.array([depth]),
                                                                                    np.array([tilt])))
         self.errors = np.full(len(data.views), math.nan)
         self.contour = {}  # (component, view) -> (beams, 2-D motions (beams, 2))
-        for c, k, beams, source, goal, result in problem.align(contours, shift, (0, 1) if settings.mirror else (0,)):
+        for c, k, beams, source, goal, result in comparison.align(contours, shift, (0, 1) if settings.mirror else (0,)):
             if c == 0:
                 self.errors[k] = result.error
             vectors = result.motions.copy()
@@ -238,15 +202,15 @@ class _Update:
     def _contour_motions(self) -> np.ndarray:
         """Least-squares 3-D motions of the frontal patches (object and mirror rows jointly);
         fills ``self.motion`` and returns the faces that got one."""
-        problem = self.problem
+        comparison = self.comparison
         contours = [(c, k, beams, vectors) for (c, k), (beams, vectors) in self.contour.items()]
-        component, view, face, vectors = problem.frontal_motions(self.rot, self.t, self.n_view, self.d_view,
+        component, view, face, vectors = comparison.frontal_motions(self.rot, self.t, self.n_view, self.d_view,
                                                                  contours)
         if not face.size:
             return np.zeros(0, int)
         chosen = np.unique(face)
         row = np.searchsorted(chosen, face)
-        n_views = len(problem.data.views)
+        n_views = len(comparison.data.views)
         moves = np.zeros((len(chosen), 2, n_views, 2))
         counts = np.zeros((len(chosen), 2, n_views))
         np.add.at(moves, (row, component, view), vectors)
@@ -254,7 +218,7 @@ class _Update:
         seen = counts > 0
         moves = np.divide(moves, counts[..., None], out=np.zeros_like(moves), where=counts[..., None] > 0)
         centres = self.mesh.triangles_center[chosen]
-        normal, offset = surface_in_reference(problem.rig, self.depth, self.tilt)
+        normal, offset = surface_in_reference(comparison.rig, self.depth, self.tilt)
         h = np.eye(3) - 2.0 * np.outer(normal, normal)
         virtual = centres @ h + 2.0 * float(offset) * normal
         jac = []
@@ -274,12 +238,13 @@ class _Update:
         """Inward motions of triangles whose echo lands where the data is dark (module
         docstring, step 4); fills ``self.motion`` except on ``skip``; returns the faces moved.
         The views' rays go to the backend in one launch; the synthetic views are the layers
-        that the update's problem rendered at its (D, β) (``PoseProblem.predicted``); each is
+        that the comparison rendered at its (D, β) (``ViewComparison.predicted``); each is
         smoothed only in the rows that its votes read (:func:`smoothed_rows`)."""
-        problem, sonar, st = self.problem, self.problem.sonar, self.settings
-        data = problem.data
-        layers = problem.predicted
-        sigma = (st.pose.segment.sigma_bins, st.pose.segment.sigma_beams)
+        comparison, sonar, st = self.comparison, self.comparison.sonar, self.settings
+        data = comparison.data
+        layers = comparison.predicted
+        segmentation = comparison.settings.segment
+        sigma = (segmentation.sigma_bins, segmentation.sigma_beams)
         k_theta, k_phi = st.rays
         width = float(np.mean(np.diff(sonar.beam_centres)))
         theta = (sonar.beam_centres[:, None] + ((np.arange(k_theta) + 0.5) / k_theta - 0.5) * width).ravel()
@@ -288,16 +253,16 @@ class _Update:
         u = np.stack([np.cos(ph) * np.sin(th), np.cos(ph) * np.cos(th), np.sin(ph)], axis=-1).reshape(-1, 3)
         beam_of_ray = np.repeat(np.arange(sonar.beams), k_theta * k_phi)
         n_views = len(data.views)
-        dist, faces = problem.backend.cast_rays(problem.mesh, np.repeat(self.t, len(u), axis=0),
+        dist, faces = comparison.backend.cast_rays(comparison.mesh, np.repeat(self.t, len(u), axis=0),
                                                 np.concatenate([u @ rot.T for rot in self.rot]))
         dist, faces = dist.astype(np.float64).reshape(n_views, -1), faces.reshape(n_views, -1)
         total = np.zeros(len(self.mesh.faces))
         votes = np.zeros(len(self.mesh.faces))
         for k in range(n_views):
-            highlight = problem.highlight[problem.views.index(data.views[k])]
+            highlight = comparison.highlight[comparison.views.index(data.views[k])]
             if not highlight.any():
                 continue
-            dark, last_rows = dataset.derived(("overshoot", data.views[k], st.pose.segment),
+            dark, last_rows = dataset.derived(("overshoot", data.views[k], segmentation),
                                               lambda: _dark_distance(highlight, sonar))
             up = u @ self.n_view[k]
             surface = np.where(up > 0, self.d_view[k] / np.where(up > 0, up, 1.0), np.inf)
@@ -348,11 +313,9 @@ class _Membrane:
     """The membrane solve of one mesh topology (module docstring, step 5): x (Nv, 3) of
     (diag(w) + λ L) x = b, L the (Nv, Nv) sparse graph ``laplacian`` (:func:`_graph_laplacian`),
     λ = ``smoothing``. The system is symmetric positive definite: SuperLU runs with a symmetric
-    ordering and no pivoting (1.7x faster than spsolve). The fill-reducing order (MMD on
-    Aᵀ + A) depends on the sparsity pattern alone, which the topology fixes: the first solve
-    finds it, and the later ones factor the system permuted to it in the natural order (one
-    solve of coral-one's carved model, 9,744 vertices: 28 ms, then 19 ms, here; the same
-    displacements to 3e-16 m)."""
+    ordering and no pivoting. The fill-reducing order (MMD on Aᵀ + A) depends on the sparsity
+    pattern alone, which the topology fixes: the first solve finds it, and the later ones
+    factor the system permuted to it in the natural order."""
 
     def __init__(self, laplacian, smoothing: float):
         self.laplacian = smoothing * laplacian
@@ -404,8 +367,7 @@ def _apply(mesh, displacement: np.ndarray, settings: RefineSettings, edges: np.n
     tapered (:func:`_hold_weights`), and the step is tried again, up to ``holds`` times; then,
     while any still turns too far or the volume reverses, the step is halved (up to
     ``halvings`` times). A triangle that is degenerate before the step is not judged (its
-    normal is undefined; one zero-area triangle of a carved table mesh used to refuse every
-    step). A mesh that is not watertight refuses every step (moving vertices keeps the faces,
+    normal is undefined). A mesh that is not watertight refuses every step (moving vertices keeps the faces,
     so watertightness is judged once). Returns (mesh, factor used), the factor scaled by the
     mean vertex weight, 0 when refused. ``edges`` : the mesh's unique (E, 2) edges, if known."""
     import trimesh

@@ -6,7 +6,7 @@ import pytest
 import trimesh
 
 from fsswarp.backends import HostLayers
-from fsswarp.pose import _gaussian
+from fsswarp.compare import _gaussian
 from fsswarp.rig import Rig, View
 from fsswarp.sonar import SonarSpec
 from fsswarp.surface import surface_in_views
@@ -127,7 +127,7 @@ def test_warp_and_opencl_agree_on_rendered_views(backend_for_label):
 
 def tight_bands(view_index, windows, radius, bins):
     """(first (N,), R): the rows each pair's window reads, [max(lo − r, 0), min(hi + r, bins)),
-    R the widest, bands started lower where they would pass the last row (as PoseProblem.view_costs)."""
+    R the widest, bands started lower where they would pass the last row (as ViewComparison.view_costs)."""
     need_lo = np.maximum(windows[:, 0] - radius, 0)
     count = int(np.max(np.minimum(windows[:, 1] + radius, bins) - need_lo))
     return np.minimum(need_lo, bins - count)[view_index], count
@@ -244,7 +244,7 @@ def test_a_scan_from_scan_start_finds_the_contours_of_a_scan_from_row_0(backend,
     """The pose step scans its predicted views from ``scan_start`` (the row before the
     smoothing first reaches a return): the contours equal a scan of the whole image, also for
     echoes at the top rows and views with none; and ``scan_start`` is that row."""
-    from fsswarp.pose import scan_start
+    from fsswarp.compare import scan_start
 
     layers, view_index, thresholds, _, _, distances, shifts, smoothing = random_case(seed)
     n_pairs, _, bins, beams = layers.shape

@@ -1,6 +1,6 @@
-"""Model-accuracy metrics on shapes with known answers: E_V of offset spheres (the lens volume)
-and boxes, by mesh booleans and on the voxel grid; Chamfer-L1 and F-score of concentric
-spheres; exact point-to-mesh distances."""
+"""Metrics on known answers: E_V of offset spheres (the lens volume) and boxes, by mesh booleans
+and on the voxel grid; Chamfer-L1 and F-score of concentric spheres; exact point-to-mesh
+distances; μ_m and E_mu (eq. 6) and the image metrics (eq. 8–11) in closed form."""
 
 from __future__ import annotations
 
@@ -11,8 +11,10 @@ import pytest
 import trimesh
 
 from fsswarp.errors import InputError
-from fsswarp.metrics import (chamfer, compare, default_tau, fscore, inside_grid, point_mesh_distance, volume_error,
-                             volumes)
+from fsswarp.metrics import (average_contour_error, average_intensity_error, chamfer, compare, default_tau, fscore,
+                             image_error, inside_grid, intensity_error, normalized_errors, point_mesh_distance,
+                             pose_error, view_errors, volume_error, volumes)
+from fsswarp.surface import mirror_vectors
 
 R = 0.1
 
@@ -135,3 +137,100 @@ def _brute_distance(p, triangles) -> float:
 def test_metrics_reject_empty_meshes():
     with pytest.raises(InputError, match="no triangles"):
         chamfer(sphere(), trimesh.Trimesh())
+
+
+def test_view_errors_closed_form():
+    # 3 patches, 2 views, surface normal +Z (H flips z).
+    vo = np.array([[3.0, 4.0, 0.0], [0.0, 0.0, 2.0], [1.0, 0.0, 0.0]])
+    vm = np.array([[3.0, 4.0, 0.0], [0.0, 0.0, 1.0], [np.nan, np.nan, np.nan]])
+    object_frontal = np.array([[True, True, False], [False, True, True]])
+    mirror_frontal = np.array([[True, True, False], [False, False, False]])
+    mu = view_errors(vo, object_frontal, mirror_motion=vm, mirror_frontal=mirror_frontal,
+                     normal=[0.0, 0.0, 1.0])
+    # view 0: object (5 + 2)/2; mirror |H vo - vm| = 0 and |(0,0,-2) - (0,0,1)| = 3 -> 3/2
+    # view 1: object (2 + 1)/2; no distinct mirror -> 0
+    np.testing.assert_allclose(mu, [3.5 + 1.5, 1.5])
+    assert float(pose_error(vo, object_frontal, mirror_motion=vm, mirror_frontal=mirror_frontal,
+                            normal=[0.0, 0.0, 1.0])) == pytest.approx(3.25)
+    # object term alone
+    np.testing.assert_allclose(view_errors(vo, object_frontal), [3.5, 1.5])
+
+
+def test_same_frontal_sets_read_as_eq6():
+    # With one frontal set for both terms, μ^m = (1/Z_m) Σ_z (‖V^O‖ + ‖H V^O - Ṽ^M‖).
+    rng = np.random.default_rng(2)
+    vo, vm = rng.normal(size=(7, 3)), rng.normal(size=(7, 3))
+    n = np.array([0.0, math.sin(0.2), math.cos(0.2)])
+    frontal = rng.random((4, 7)) < 0.6
+    frontal[:, 0] = True
+    mu = view_errors(vo, frontal, mirror_motion=vm, mirror_frontal=frontal, normal=n)
+    terms = np.linalg.norm(vo, axis=1) + np.linalg.norm(mirror_vectors(vo, n) - vm, axis=1)
+    np.testing.assert_allclose(mu, (frontal * terms).sum(axis=1) / frontal.sum(axis=1), rtol=1e-12)
+
+
+def test_pose_error_skips_views_without_patches_and_batches():
+    vo = np.array([[[1.0, 0.0, 0.0], [0.0, 2.0, 0.0]], [[0.0, 0.0, 0.0], [0.0, 0.0, 4.0]]])  # (G=2, K=2, 3)
+    frontal = np.array([[True, False], [False, False], [True, True]])  # view 1 sees nothing
+    mu = view_errors(vo, frontal)
+    assert mu.shape == (2, 3) and np.isnan(mu[:, 1]).all()
+    np.testing.assert_allclose(pose_error(vo, frontal), [(1.0 + 1.5) / 2, (0.0 + 2.0) / 2])
+    assert np.isnan(pose_error(vo, np.zeros((3, 2), dtype=bool))).all()
+
+
+def test_pose_error_rejects_bad_inputs():
+    vo = np.zeros((3, 3))
+    with pytest.raises(ValueError, match="go together"):
+        view_errors(vo, np.ones((2, 3), dtype=bool), mirror_motion=vo)
+    with pytest.raises(ValueError, match="bool"):
+        view_errors(vo, np.ones((2, 3)))
+    with pytest.raises(ValueError, match="object_frontal"):
+        view_errors(vo, np.ones((2, 4), dtype=bool))
+    bad = vo.copy()
+    bad[1, 0] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        view_errors(bad, np.ones((2, 3), dtype=bool))
+    # a NaN motion of a patch no view uses is fine
+    assert view_errors(bad, np.array([[True, False, True]])).tolist() == [0.0]
+
+
+# --- image metrics (eq. 8–11) ----------------------------------------------------------------------
+
+def test_intensity_errors_closed_form():
+    synthetic = np.array([[[1.0, 2.0], [3.0, 4.0]], [[0.0, 0.0], [0.0, 0.0]], [[5.0, 5.0], [5.0, 5.0]]])
+    data = np.array([[[2.0, 2.0], [0.0, np.nan]], [[1.0, 1.0], [1.0, 1.0]], [[5.0, 5.0], [5.0, 5.0]]])
+    regions = np.array([[[True, True], [True, False]], [[False, False], [False, False]],
+                        [[True, False], [False, True]]])
+    ie = intensity_error(synthetic, data, regions)
+    # view 0: (1 + 0 + 3)/3; view 1: empty Ω -> NaN; view 2: 0
+    np.testing.assert_allclose(ie, [4.0 / 3.0, np.nan, 0.0])
+    assert average_intensity_error(synthetic, data, regions) == pytest.approx(2.0 / 3.0)
+    assert float(intensity_error(synthetic[0], data[0], regions[0])) == pytest.approx(4.0 / 3.0)
+    with pytest.raises(ValueError, match="non-finite"):
+        intensity_error(synthetic, data, np.ones_like(regions))
+    with pytest.raises(ValueError, match="bool"):
+        intensity_error(synthetic, data, regions.astype(float))
+    with pytest.raises(ValueError, match="one shape"):
+        intensity_error(synthetic, data[:2], regions)
+
+
+def test_contour_and_image_errors_closed_form():
+    assert average_contour_error([1.0, 2.0, np.nan, 3.0]) == pytest.approx(2.0)  # eq. 9
+    assert math.isnan(average_contour_error([np.nan]))
+    assert normalized_errors(2.0, 3.0, 4.0, 12.0) == pytest.approx((0.5, 0.25))  # eq. 10
+    assert image_error(2.0, 3.0, 4.0, 12.0) == pytest.approx(0.375)  # eq. 11
+    assert image_error(4.0, 12.0, 4.0, 12.0) == 1.0  # iteration 0
+    with pytest.raises(ValueError, match="> 0"):
+        image_error(1.0, 1.0, 0.0, 1.0)
+    with pytest.raises(ValueError, match=">= 0"):
+        normalized_errors(-1.0, 1.0, 1.0, 1.0)
+    with pytest.raises(ValueError, match="1-D"):
+        average_contour_error([[1.0]])
+
+
+def test_image_error_is_the_mean_of_the_two_ratios_and_passes_nan_on():
+    """E_I as the reconstruction loop records it: ``0.5 * (AIE / AIE⁰ + ACE / ACE⁰)`` to the bit;
+    an error without a value (NaN) gives NaN."""
+    rng = np.random.default_rng(3)
+    for aie, ace, aie0, ace0 in (rng.random((50, 4)) + 0.01).tolist():
+        assert image_error(aie, ace, aie0, ace0) == 0.5 * (aie / aie0 + ace / ace0)
+    assert math.isnan(image_error(math.nan, 1.0, 1.0, 1.0)) and math.isnan(image_error(1.0, 1.0, math.nan, 1.0))

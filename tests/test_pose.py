@@ -19,8 +19,9 @@ from fsswarp.dataset import Dataset
 from fsswarp.errors import InputError
 from fsswarp.figures import contours_figure, pose_figure
 from fsswarp.icp import icp_many
-from fsswarp.pose import (PoseProblem, PoseSettings, PoseWarning, _parabola_minimum, _view_cost, contour_distance,
-                          detection_threshold, estimate_pose, pose_objective, view_contours)
+from fsswarp.compare import (PoseSettings, PoseWarning, ViewComparison, _parabola_minimum, _view_cost,
+                             contour_distance, detection_threshold, view_contours)
+from fsswarp.pose import estimate_pose, pose_objective
 from fsswarp.rig import Rig
 from fsswarp.surface import COMPONENTS
 
@@ -36,9 +37,9 @@ def opencl():
 
 
 @pytest.fixture(scope="module")
-def truth_problem(coral_one, truth_model, opencl):
+def truth_comparison(coral_one, truth_model, opencl):
     truth = coral_one.manifest.truth
-    return PoseProblem(truth_model, coral_one, truth.depth, truth.tilt, backend=opencl)
+    return ViewComparison(coral_one, backend=opencl).use(truth_model, truth.depth, truth.tilt)
 
 
 @pytest.fixture(scope="module")
@@ -78,21 +79,22 @@ def test_mirror_term_only_where_the_mirror_is_distinct(coral_one, truth_model, o
     every = Rig(tuple(dataclasses.replace(v, optimize=True) for v in rig.views), rig.reference)
     dataset = Dataset(dataclasses.replace(coral_one.manifest, rig=every), coral_one.images, coral_one.root)
     truth = coral_one.manifest.truth
-    problem = PoseProblem(truth_model, dataset, truth.depth + 0.03, truth.tilt + math.radians(1.0), backend=opencl)
-    mirror = set(problem.data.mirror_views)
+    comparison = ViewComparison(dataset, backend=opencl).use(truth_model, truth.depth + 0.03,
+                                                          truth.tilt + math.radians(1.0))
+    mirror = set(comparison.data.mirror_views)
     assert not mirror & {"S0", "N0"}
     assert {v.name for v in rig.views if abs(math.degrees(v.roll)) >= 45} <= mirror
-    counts = dict(zip(problem.data.names, problem.data.counts.tolist()))
+    counts = dict(zip(comparison.data.names, comparison.data.counts.tolist()))
     assert all(counts[name][0] >= 10 for name in counts)  # every view has its object contour
 
 
-def test_synthetic_contours_meet_the_data_contours(coral_one, truth_problem):
+def test_synthetic_contours_meet_the_data_contours(coral_one, truth_comparison):
     # the true noise-free layers' detection contours against the noisy data's first highlight
     # rows: on average 0.5 row (the data's whole rows) plus a small detection bias
-    data = truth_problem.data
+    data = truth_comparison.data
     layers = np.stack([np.stack([coral_one.truth_layer(n, c) for c in COMPONENTS]) for n in data.names])
-    contours, _, _ = truth_problem.backend.contour_cost(layers, np.arange(len(layers)), data.threshold, data.windows,
-                                                        data.masks, data.distances, [0.0], truth_problem.smoothing)
+    contours, _, _ = truth_comparison.backend.contour_cost(layers, np.arange(len(layers)), data.threshold, data.windows,
+                                                        data.masks, data.distances, [0.0], truth_comparison.smoothing)
     both = (contours >= 0) & (data.rows >= 0)
     offset = (data.rows - contours)[both]
     assert both[:, 0].sum() >= 150 and both[:, 1].sum() >= 100
@@ -100,13 +102,13 @@ def test_synthetic_contours_meet_the_data_contours(coral_one, truth_problem):
     assert np.mean(np.abs(offset - np.median(offset)) <= 2.0) >= 0.9
 
 
-def test_surrogate_and_exact_minima_agree(coral_one, truth_problem):
+def test_surrogate_and_exact_minima_agree(coral_one, truth_comparison):
     # a 5 x 5 grid around the truth at 5 mm x 0.2 deg: both objectives are smallest at the truth
     truth = coral_one.manifest.truth
     depths, tilts = np.meshgrid(truth.depth + np.linspace(-0.01, 0.01, 5),
                                 truth.tilt + np.radians(np.linspace(-0.4, 0.4, 5)), indexing="ij")
-    surrogate = truth_problem.surrogate(depths, tilts)
-    exact = np.vectorize(lambda d, t: truth_problem.exact(d, t).value)(depths, tilts)
+    surrogate = truth_comparison.surrogate(depths, tilts)
+    exact = np.vectorize(lambda d, t: truth_comparison.exact(d, t).value)(depths, tilts)
     assert np.unravel_index(np.argmin(surrogate), surrogate.shape) == (2, 2)
     assert np.unravel_index(np.argmin(exact), exact.shape) == (2, 2)
     assert exact[2, 2] < 0.004 and surrogate[2, 2] < 0.013  # metres
@@ -116,17 +118,18 @@ def test_surrogate_and_exact_minima_agree(coral_one, truth_problem):
 def test_pose_objective_is_e_mu(coral_one, truth_model, opencl):
     truth = coral_one.manifest.truth
     value = pose_objective(truth_model, coral_one, truth.depth, truth.tilt, backend=opencl)
-    detail = PoseProblem(truth_model, coral_one, truth.depth, truth.tilt, backend=opencl).exact(truth.depth, truth.tilt)
+    comparison = ViewComparison(coral_one, backend=opencl).use(truth_model, truth.depth, truth.tilt)
+    detail = comparison.exact(truth.depth, truth.tilt)
     assert value == detail.value
     assert detail.per_view.shape == (10,) and np.all(np.isfinite(detail.per_view))
     assert detail.value == pytest.approx(np.mean(detail.per_view))
     assert detail.object_patches >= 50 and detail.mirror_patches >= 50
 
 
-def test_e_mu_aligns_on_the_device_where_it_has_float64(coral_one, truth_problem, opencl, monkeypatch):
-    """PoseProblem.align runs ICP on the backend's device when it has float64 (one thread per
+def test_e_mu_aligns_on_the_device_where_it_has_float64(coral_one, truth_comparison, opencl, monkeypatch):
+    """ViewComparison.align runs ICP on the backend's device when it has float64 (one thread per
     run), else on the host (k-d tree); E_mu is the same either way, up to rounding."""
-    import fsswarp.pose
+    import fsswarp.compare
 
     used = []
 
@@ -134,18 +137,18 @@ def test_e_mu_aligns_on_the_device_where_it_has_float64(coral_one, truth_problem
         used.append(kwargs["backend"])
         return icp_many(*args, **kwargs)
 
-    monkeypatch.setattr(fsswarp.pose, "icp_many", spy)
+    monkeypatch.setattr(fsswarp.compare, "icp_many", spy)
     truth = coral_one.manifest.truth
-    on_device = truth_problem.exact(truth.depth, truth.tilt)
+    on_device = truth_comparison.exact(truth.depth, truth.tilt)
     monkeypatch.setattr(opencl, "has_float64", False)
-    on_host = truth_problem.exact(truth.depth, truth.tilt)
+    on_host = truth_comparison.exact(truth.depth, truth.tilt)
     assert used == [opencl, None]
     assert on_device.value == pytest.approx(on_host.value, rel=1e-9)
     np.testing.assert_allclose(on_device.per_view, on_host.per_view, rtol=1e-9)
 
 
 def _oracle_frontal_faces(mesh, sonar, rot, t, n, d, theta, rays: int, mirror: bool) -> np.ndarray:
-    """PoseProblem.frontal_faces of one view by float64 trimesh ray casts: per beam the face
+    """ViewComparison.frontal_faces of one view by float64 trimesh ray casts: per beam the face
     hit at the shortest range (object) or mirror range (|P| + |Q| + |P - Q|)/2 over the beam's
     elevation rays (mirror: the ray meets the surface at Q first, is reflected to P, and P is in
     the fan and visible from the sonar)."""
@@ -189,22 +192,22 @@ def test_frontal_faces_match_a_ray_casting_oracle_and_do_not_depend_on_the_batch
     face as the float64 trimesh oracle, bar near-ties between neighbouring rays, and exactly
     what each view gives alone."""
     truth = coral_one.manifest.truth
-    problem = PoseProblem(truth_model, coral_one, truth.depth, truth.tilt, settings=PoseSettings(patch_rays=16),
-                          backend=backend)
-    rot, t, n, d = (a[0] for a in problem.view_poses(problem.data.views, [truth.depth], [truth.tilt]))
+    comparison = ViewComparison(coral_one, settings=PoseSettings(patch_rays=16),
+                             backend=backend).use(truth_model, truth.depth, truth.tilt)
+    rot, t, n, d = (a[0] for a in comparison.view_poses(comparison.data.views, [truth.depth], [truth.tilt]))
     sonar = coral_one.sonar
     thetas = [sonar.beam_centres] * len(rot)
     thetas[1], thetas[2] = sonar.beam_centres[::2], sonar.beam_centres[30:70]
-    together = problem.frontal_faces(rot, t, n, d, thetas, mirror=mirror)
+    together = comparison.frontal_faces(rot, t, n, d, thetas, mirror=mirror)
     for k in (0, 1, 2, len(rot) - 1):
-        alone = problem.frontal_faces(rot[k:k + 1], t[k:k + 1], n[k:k + 1], d[k:k + 1], [thetas[k]], mirror=mirror)
+        alone = comparison.frontal_faces(rot[k:k + 1], t[k:k + 1], n[k:k + 1], d[k:k + 1], [thetas[k]], mirror=mirror)
         np.testing.assert_array_equal(together[k], alone[0])
     found = np.concatenate(together)
     want = np.concatenate([_oracle_frontal_faces(truth_model, sonar, rot[k], t[k], n[k], float(d[k]), theta, 16,
                                                  mirror) for k, theta in enumerate(thetas)])
     assert (want >= 0).sum() >= 100
     assert np.mean(found == want) >= 0.98
-    assert problem.frontal_faces(rot[:0], t[:0], n[:0], d[:0], [], mirror=mirror) == []
+    assert comparison.frontal_faces(rot[:0], t[:0], n[:0], d[:0], [], mirror=mirror) == []
 
 
 def test_costs_at_the_estimate_read_the_located_layers(coral_one, truth_model, backend):
@@ -212,12 +215,12 @@ def test_costs_at_the_estimate_read_the_located_layers(coral_one, truth_model, b
     rendering: bit for bit what rendering the cell gives (a batch of two renders), also after
     ``locate`` moves the estimate."""
     truth = coral_one.manifest.truth
-    problem = PoseProblem(truth_model, coral_one, truth.depth + 0.01, truth.tilt, backend=backend)
-    exact = problem.settings.exact_samples
+    comparison = ViewComparison(coral_one, backend=backend).use(truth_model, truth.depth + 0.01, truth.tilt)
+    exact = comparison.settings.exact_samples
     for depth in (truth.depth + 0.01, truth.depth):
-        problem.locate(depth, truth.tilt)
-        one = problem.view_costs(np.array([depth]), np.array([truth.tilt]), exact, 0.02)
-        two = problem.view_costs(np.array([depth] * 2), np.array([truth.tilt] * 2), exact, 0.02)
+        comparison.locate(depth, truth.tilt)
+        one = comparison.view_costs(np.array([depth]), np.array([truth.tilt]), exact, 0.02)
+        two = comparison.view_costs(np.array([depth] * 2), np.array([truth.tilt] * 2), exact, 0.02)
         for alone, rendered in zip(one, two):
             np.testing.assert_array_equal(alone[0], rendered[0])
             np.testing.assert_array_equal(rendered[0], rendered[1])
@@ -230,9 +233,9 @@ def test_a_gpu_locates_without_the_host_copy(coral_one, truth_model, opencl, mon
     E_mu as the CPU's scan from ``scan_start`` with the copy read at once."""
     truth = coral_one.manifest.truth
     depth, tilt = truth.depth + 0.01, truth.tilt
-    cpu = PoseProblem(truth_model, coral_one, depth, tilt, backend=opencl)
+    cpu = ViewComparison(coral_one, backend=opencl).use(truth_model, depth, tilt)
     monkeypatch.setattr(opencl, "is_gpu", True)
-    gpu = PoseProblem(truth_model, coral_one, depth, tilt, backend=opencl)
+    gpu = ViewComparison(coral_one, backend=opencl).use(truth_model, depth, tilt)
     assert cpu._predicted is not None and gpu._predicted is None
     for name in (f.name for f in dataclasses.fields(cpu.data)):
         np.testing.assert_array_equal(getattr(gpu.data, name), getattr(cpu.data, name), err_msg=name)
@@ -242,18 +245,18 @@ def test_a_gpu_locates_without_the_host_copy(coral_one, truth_model, opencl, mon
     np.testing.assert_array_equal(gpu.predicted, cpu.predicted)
 
 
-def test_a_relocated_problem_reads_its_new_data_contours(coral_one, truth_model, opencl):
-    """After ``locate`` moves a used problem, its surrogate and E_mu are a fresh problem's there,
+def test_a_relocated_comparison_reads_its_new_data_contours(coral_one, truth_model, opencl):
+    """After ``locate`` moves a used comparison, its surrogate and E_mu are a fresh comparison's there,
     bit for bit (nothing of the old data contours, e.g. their capped distances, stays)."""
     truth = coral_one.manifest.truth
     depth, tilt = truth.depth, truth.tilt
-    moved = PoseProblem(truth_model, coral_one, depth + 0.05, tilt + math.radians(1.0), backend=opencl)
+    moved = ViewComparison(coral_one, backend=opencl).use(truth_model, depth + 0.05, tilt + math.radians(1.0))
     moved.surrogate(depth, tilt)
     moved.exact(depth, tilt)
     moved.locate(depth, tilt)
-    fresh = PoseProblem(truth_model, coral_one, depth, tilt, backend=opencl)
-    assert not np.array_equal(PoseProblem(truth_model, coral_one, depth + 0.05, tilt + math.radians(1.0),
-                                          backend=opencl).data.distances, fresh.data.distances)
+    fresh = ViewComparison(coral_one, backend=opencl).use(truth_model, depth, tilt)
+    away = ViewComparison(coral_one, backend=opencl).use(truth_model, depth + 0.05, tilt + math.radians(1.0))
+    assert not np.array_equal(away.data.distances, fresh.data.distances)
     cells = (np.array([depth, depth + 0.01]), np.array([tilt, tilt]))
     np.testing.assert_array_equal(moved.surrogate(*cells), fresh.surrogate(*cells))
     np.testing.assert_array_equal(moved.exact(depth, tilt).per_view, fresh.exact(depth, tilt).per_view)
@@ -264,8 +267,8 @@ def test_frontal_faces_warp_and_opencl_agree(coral_one, truth_model, backend_for
     faces bar float32 near-ties between a beam's rays."""
     warp, opencl = backend_for_label("warp-cpu"), backend_for_label("opencl-cpu")
     truth = coral_one.manifest.truth
-    problem = PoseProblem(truth_model, coral_one, truth.depth, truth.tilt, backend=opencl)
-    poses = problem.view_poses(problem.data.views, [truth.depth + 0.01], [truth.tilt + np.radians(0.3)])
+    comparison = ViewComparison(coral_one, backend=opencl).use(truth_model, truth.depth, truth.tilt)
+    poses = comparison.view_poses(comparison.data.views, [truth.depth + 0.01], [truth.tilt + np.radians(0.3)])
     rot, t, n, d = (a[0] for a in poses)
     beams = coral_one.sonar.beam_centres
     views, azimuths = np.repeat(np.arange(len(rot)), len(beams)), np.tile(beams, len(rot))
@@ -322,9 +325,9 @@ def test_bad_input(coral_one, truth_model, opencl):
         PoseSettings(grid=(2, 9))
     with pytest.raises(InputError, match="pose.coarse_samples"):
         PoseSettings(coarse_samples=(0, 16))
-    problem = PoseProblem(truth_model, coral_one, truth.depth, truth.tilt, backend=opencl)
+    comparison = ViewComparison(coral_one, backend=opencl).use(truth_model, truth.depth, truth.tilt)
     with pytest.raises(InputError, match="cap = 0.06: must be a distance in"):
-        problem.surrogate(truth.depth, truth.tilt, cap=0.06)  # beyond the distances kept (5 cm)
+        comparison.surrogate(truth.depth, truth.tilt, cap=0.06)  # beyond the distances kept (5 cm)
 
 
 def test_detection_threshold_is_kept_per_image_content():
@@ -380,18 +383,18 @@ def test_contour_distance_is_the_euclidean_distance_transform_saturated(rows, bi
     np.testing.assert_allclose(got, np.minimum(expected, reach), rtol=1e-6, atol=0)
 
 
-def test_located_problems_share_their_data_distance_maps(coral_one, truth_problem):
-    """A located problem's data distances are contour_distance's maps of its data contours;
-    a problem located on the same contours reuses them (read-only, one copy per map)."""
-    from fsswarp.pose import _remembered_distance
+def test_located_comparisons_share_their_data_distance_maps(coral_one, truth_comparison):
+    """A located comparison's data distances are contour_distance's maps of its data contours;
+    a comparison located on the same contours reuses them (read-only, one copy per map)."""
+    from fsswarp.compare import _remembered_distance
 
-    sonar, data = coral_one.sonar, truth_problem.data
+    sonar, data = coral_one.sonar, truth_comparison.data
     rows = data.rows[0, 0]
     arc = float(np.median(sonar.bin_range(rows[rows >= 0]))) * float(np.mean(np.diff(sonar.beam_centres)))
     np.testing.assert_array_equal(data.distances[0, 0],
-                                  contour_distance(rows, sonar.bins, sonar.range_step, arc, truth_problem.reach))
-    first = truth_problem._distance(rows)
-    assert truth_problem._distance(rows.copy()) is first and not first.flags.writeable
+                                  contour_distance(rows, sonar.bins, sonar.range_step, arc, truth_comparison.reach))
+    first = truth_comparison._distance(rows)
+    assert truth_comparison._distance(rows.copy()) is first and not first.flags.writeable
     assert _remembered_distance.cache_info().hits >= 1
 
 
@@ -405,56 +408,67 @@ def test_detection_shift_with_views_left_out_is_that_of_the_anchors_layers_alone
     settings = PoseSettings(exact_samples=(1, 16))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PoseWarning)
-        problem = PoseProblem(aside, coral_one, truth.depth, truth.tilt, settings=settings, backend=opencl)
-    data = problem.data
-    assert len(data.views) < len(problem.views) and problem.anchors  # views left out, anchors kept
-    fixed = [data.names.index(name) for name in problem.anchors]
-    _, sums, counts = opencl.contour_cost(problem.predicted[fixed], np.asarray(fixed), data.threshold, data.windows,
+        comparison = ViewComparison(coral_one, settings=settings, backend=opencl).use(aside, truth.depth, truth.tilt)
+    data = comparison.data
+    assert len(data.views) < len(comparison.views) and comparison.anchors  # views left out, anchors kept
+    fixed = [data.names.index(name) for name in comparison.anchors]
+    _, sums, counts = opencl.contour_cost(comparison.predicted[fixed], np.asarray(fixed), data.threshold, data.windows,
                                           data.masks, np.minimum(data.distances, np.float32(settings.min_cap)),
-                                          problem.shifts, problem.smoothing)
+                                          comparison.shifts, comparison.smoothing)
     sums[:, 1], counts[:, 1] = 0.0, 0
     counts_data = data.counts[fixed]
     counts_data[:, 1] = 0
     cost = _view_cost(sums[None], counts[None], counts_data, settings.min_cap)[0].mean(axis=0)
-    assert problem.shift == _parabola_minimum(problem.shifts, cost)
+    assert comparison.shift == _parabola_minimum(comparison.shifts, cost)
 
 
-def test_a_handed_over_problem_gives_the_same_estimate_and_warnings(coral_one, truth_model, opencl):
-    """estimate_pose going on with a PoseProblem already used for CE and E_mu (as the
-    reconstruction loop hands over its record's) gives the estimate it gets alone, and warns
-    about the same unseen views; a problem of another start is refused."""
+def test_a_given_comparison_gives_the_same_estimate_and_warnings(coral_one, truth_model, opencl):
+    """estimate_pose going on with a ViewComparison already used for CE and E_mu (as the
+    reconstruction loop hands it its record's) gives the estimate it gets alone, and warns
+    about the same unseen views; a comparison located at another start, or holding another
+    model, is put to the model at the start and gives that estimate too."""
     truth = coral_one.manifest.truth
     aside = truth_model.copy()
     aside.vertices += (0.4, 0.0, 0.0)  # out of the elevation aperture of the views rolled 67.5-90 deg
     settings = PoseSettings(grid=(3, 3), coarse_samples=(1, 8), samples=(1, 8), exact_samples=(1, 16), polish=4)
     start = dict(depth0=truth.depth + 0.01, tilt0=truth.tilt, bounds=(0.01, math.radians(0.4)))
 
-    def estimate(problem=None):
+    def estimate(comparison=None):
+        given = dict(settings=settings, backend=opencl) if comparison is None else dict(comparison=comparison)
         with pytest.warns(PoseWarning) as caught:
-            result = estimate_pose(aside, coral_one, **start, levels=2, settings=settings, backend=opencl,
-                                   problem=problem)
+            result = estimate_pose(aside, coral_one, **start, levels=2, **given)
         return result, sorted(str(w.message).split(":")[0] for w in caught)
+
+    def same(result, alone):
+        assert (result.depth, result.tilt, result.candidate) == (alone.depth, alone.tilt, alone.candidate)
+        assert [level.costs.tolist() for level in result.levels] == [level.costs.tolist() for level in alone.levels]
+        assert result.evaluations == alone.evaluations
 
     alone, warned = estimate()
     assert "views Nm67p5, Nm90, Np67p5, Sm67p5, Sm90, Sp67p5" in warned
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PoseWarning)
-        used = PoseProblem(aside, coral_one, start["depth0"], start["tilt0"], settings=settings, backend=opencl)
+        used = ViewComparison(coral_one, settings=settings, backend=opencl).use(aside, start["depth0"], start["tilt0"])
     assert used.data.names == ("Sm45", "Sp45", "Nm45", "Np45")
     used.contour_errors(start["depth0"], start["tilt0"])
     used.exact(start["depth0"], start["tilt0"])
     handed, warned_handed = estimate(used)
     assert warned_handed == warned
-    assert (handed.depth, handed.tilt, handed.candidate) == (alone.depth, alone.tilt, alone.candidate)
-    assert [level.costs.tolist() for level in handed.levels] == [level.costs.tolist() for level in alone.levels]
-    assert handed.evaluations == alone.evaluations
-    # E_mu at the candidate is the polish's own evaluation there: the problem, left located
+    same(handed, alone)
+    # E_mu at the candidate is the polish's own evaluation there: the comparison, left located
     # where the last level put it, gives the same value again
     assert used.exact(*handed.candidate).value == handed.polish_error
     assert handed.error_after == (handed.polish_error if handed.accepted else handed.error_before)
-    with pytest.raises(ValueError, match="problem must be a PoseProblem of this model"):
-        estimate_pose(aside, coral_one, depth0=truth.depth, tilt0=truth.tilt, settings=settings, backend=opencl,
-                      problem=used)
+    relocated, warned_relocated = estimate(used)  # located at the last level's best cell, not at the start
+    assert warned_relocated == warned
+    same(relocated, alone)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PoseWarning)
+        used.use(truth_model, start["depth0"], start["tilt0"])
+    reloaded, _ = estimate(used)
+    same(reloaded, alone)
+    with pytest.raises(ValueError, match="settings and backend come with the comparison"):
+        estimate_pose(aside, coral_one, **start, settings=settings, comparison=used)
 
 
 def _cli(capsys, *args):
@@ -538,7 +552,7 @@ def test_view_contours_are_what_e_mu_compares(coral_one, truth_model, opencl, tm
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-@pytest.mark.filterwarnings("always::fsswarp.pose.PoseWarning")  # main prints it
+@pytest.mark.filterwarnings("always::fsswarp.compare.PoseWarning")  # main prints it
 def test_cli_pose_lists_the_views_that_do_not_see_the_model(coral_one, tmp_path, capsys):
     """A model the views rolled 67.5-90° do not see (0.4 m aside): they are left out and listed
     in pose.json, and the rest are used."""
@@ -554,7 +568,7 @@ def test_cli_pose_lists_the_views_that_do_not_see_the_model(coral_one, tmp_path,
     assert len(record["levels"]) == 1
 
 
-@pytest.mark.filterwarnings("always::fsswarp.pose.PoseWarning")  # main prints it
+@pytest.mark.filterwarnings("always::fsswarp.compare.PoseWarning")  # main prints it
 def test_cli_pose_warns_when_the_estimate_lies_on_the_search_box_edge(coral_one, tmp_path, capsys):
     """From 47 cm too deep the truth lies outside the box (D0 ± 6 cm): the grid search ends on
     its lowest depth, and the command says so (exit 0) and records it; with --depth-range 0.5

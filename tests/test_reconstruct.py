@@ -202,16 +202,17 @@ def _script_the_loop(monkeypatch, pose_step, errors, completed=None):
     errors, refined = iter(errors), []
     completed = [] if completed is None else completed
 
-    def refine(model, dataset, depth, tilt, *, settings, backend):
+    def refine(model, dataset, depth, tilt, *, settings, comparison):
         moved = model.copy()
         moved.apply_translation((1e-6, 0.0, 0.0))  # a shape step that moves the model
         refined.append((depth, tilt, moved))
-        return SimpleNamespace(mesh=moved, problem=moved)  # the mesh stands for its PoseProblem
+        comparison.model = moved  # as ViewComparison.use leaves it
+        return SimpleNamespace(mesh=moved)
 
-    def record(iteration, model, dataset, depth, tilt, settings, backend, first, problem=None):
-        return {"iteration": iteration, "depth_m": depth, "E_I": next(errors)}, problem
+    def record(iteration, model, dataset, depth, tilt, settings, comparison, first):
+        return {"iteration": iteration, "depth_m": depth, "E_I": next(errors)}
 
-    def complete(entry, problem, model, depth, tilt, truth):
+    def complete(entry, comparison, model, depth, tilt, truth):
         completed.append(entry["E_I"])
         return entry
 
@@ -229,7 +230,7 @@ def test_a_refused_pose_step_keeps_the_estimate_and_the_shape_step_runs(coral_on
 
     calls = []
 
-    def refused(model, dataset, *, depth0, tilt0, settings, backend, problem):
+    def refused(model, dataset, *, depth0, tilt0, comparison):
         calls.append((depth0, tilt0))
         return SimpleNamespace(accepted=False, depth=depth0 + 0.01, tilt=tilt0 + 0.01)
 
@@ -252,8 +253,8 @@ def test_a_pose_that_raises_the_image_error_is_not_adopted(coral_one, monkeypatc
 
     moves, starts = iter([0.01, 0.02, 0.03, 0.04, 0.05, 0.06]), []
 
-    def accepted(model, dataset, *, depth0, tilt0, settings, backend, problem):
-        assert problem is model  # the pose step goes on with the PoseProblem of the model it is given
+    def accepted(model, dataset, *, depth0, tilt0, comparison):
+        assert comparison.model is model  # the pose step goes on with the comparison of the model it is given
         starts.append((depth0, model))
         return SimpleNamespace(accepted=True, depth=depth0 + next(moves), tilt=tilt0)
 
@@ -280,7 +281,7 @@ def test_a_pose_that_raises_the_image_error_is_not_adopted(coral_one, monkeypatc
 def test_patience_one_stops_at_the_first_iteration_that_does_not_lower_the_image_error(coral_one, monkeypatch):
     from types import SimpleNamespace
 
-    def refused(model, dataset, *, depth0, tilt0, settings, backend, problem):
+    def refused(model, dataset, *, depth0, tilt0, comparison):
         return SimpleNamespace(accepted=False, depth=depth0, tilt=tilt0)
 
     _script_the_loop(monkeypatch, refused, [1.0, 0.9, 0.95, 0.5])
@@ -293,21 +294,60 @@ def test_a_shape_step_that_leaves_the_model_unchanged_stops_the_loop(coral_one, 
     the loop stops at once without recording it, keeping the best iteration."""
     from types import SimpleNamespace
 
-    def refused(model, dataset, *, depth0, tilt0, settings, backend, problem):
+    def refused(model, dataset, *, depth0, tilt0, comparison):
         return SimpleNamespace(accepted=False, depth=depth0, tilt=tilt0)
 
     refined = _script_the_loop(monkeypatch, refused, [1.0, 0.9, 0.95, 0.95])
     unchanged = iter([False, False, True])
     real = reconstruct_module.refine_shape
 
-    def refine(model, dataset, depth, tilt, *, settings, backend):
-        result = real(model, dataset, depth, tilt, settings=settings, backend=backend)
-        return SimpleNamespace(mesh=model, problem=None) if next(unchanged) else result
+    def refine(model, dataset, depth, tilt, *, settings, comparison):
+        result = real(model, dataset, depth, tilt, settings=settings, comparison=comparison)
+        return SimpleNamespace(mesh=model) if next(unchanged) else result
 
     monkeypatch.setattr(reconstruct_module, "refine_shape", refine)
     result = reconstruct(coral_one, settings=dataclasses.replace(FAST, iterations=6, patience=3))
     assert len(refined) == 3  # none after the third, which returned its input
     assert [h["E_I"] for h in result.history] == [1.0, 0.9] and result.converged and result.best_iteration == 1
+
+
+def test_the_loop_hands_one_comparison_to_every_step(coral_one, monkeypatch):
+    """The loop builds one ViewComparison and hands that one to the pose steps, the shape
+    steps, the records and E_mu (two only when the shape steps' contour settings differ)."""
+    from types import SimpleNamespace
+
+    from fsswarp.compare import PoseSettings, ViewComparison
+
+    built, seen = [], []
+
+    class Counted(ViewComparison):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            built.append(self)
+
+    def accepted(model, dataset, *, depth0, tilt0, comparison):
+        seen.append(("pose", comparison))
+        return SimpleNamespace(accepted=True, depth=depth0 + 0.01, tilt=tilt0)
+
+    monkeypatch.setattr(reconstruct_module, "ViewComparison", Counted)
+    _script_the_loop(monkeypatch, accepted, [1.0, 0.9, 0.8, 1.0])
+    fakes = {name: getattr(reconstruct_module, name) for name in ("refine_shape", "_record", "_complete")}
+
+    def spy(name):
+        def call(*args, **kwargs):
+            seen.append((name, kwargs["comparison"] if "comparison" in kwargs else args[6 if name == "_record" else 1]))
+            return fakes[name](*args, **kwargs)
+        return call
+
+    for name in fakes:
+        monkeypatch.setattr(reconstruct_module, name, spy(name))
+    reconstruct(coral_one, settings=dataclasses.replace(FAST, iterations=2))
+    assert len(built) == 1 and all(comparison is built[0] for _, comparison in seen)
+    assert {name for name, _ in seen} == {"pose", "refine_shape", "_record", "_complete"}
+    built.clear()
+    other = dataclasses.replace(FAST.refine, pose=PoseSettings(window=0.2))
+    reconstruct(coral_one, settings=dataclasses.replace(FAST, iterations=0, refine=other))
+    assert len(built) == 2
 
 
 def test_settings_are_validated():
@@ -409,20 +449,20 @@ def test_demo_simulates_and_reconstructs(tmp_path):
     assert again.returncode == 0 and again.stdout == ""  # replaces its own earlier output, silently
 
 
-def test_the_image_errors_read_the_located_problem_s_layers(coral_one, monkeypatch):
-    """AIE's synthetic views are the layers that the pose problem located at that (D, β)
+def test_the_image_errors_read_the_located_comparison_s_layers(coral_one, monkeypatch):
+    """AIE's synthetic views are the layers that the comparison located at that (D, β)
     rendered, to the bit those of ``render``; only the views it does not hold are rendered, and
-    everything is when the render settings differ from the problem's or it is located elsewhere."""
+    everything is when the render settings differ from the comparison's or it is located elsewhere."""
     from fsswarp.backends import get_backend
-    from fsswarp.pose import PoseProblem
+    from fsswarp.compare import ViewComparison
     from fsswarp.rendering import RenderSettings, render
 
     truth = coral_one.manifest.truth
     model = trimesh.load(coral_one.truth_model_path, process=False)
     backend = get_backend("opencl")
-    problem = PoseProblem(model, coral_one, truth.depth, truth.tilt, backend=backend)
+    comparison = ViewComparison(coral_one, backend=backend).use(model, truth.depth, truth.tilt)
     held_out = next(v.name for v in coral_one.rig.views if not v.optimize)
-    names = list(problem.data.names) + [held_out]
+    names = list(comparison.data.names) + [held_out]
     want = render(model, coral_one.sonar, coral_one.rig, truth.depth, truth.tilt, views=names, backend=backend)
     rendered = []
 
@@ -432,13 +472,11 @@ def test_the_image_errors_read_the_located_problem_s_layers(coral_one, monkeypat
 
     monkeypatch.setattr(reconstruct_module, "render", spy)
     settings = ReconstructSettings()
-    got = reconstruct_module._synthetic_views(model, coral_one, truth.depth, truth.tilt, names, settings, backend,
-                                              problem)
+    got = reconstruct_module._synthetic_views(model, coral_one, truth.depth, truth.tilt, names, settings, comparison)
     assert rendered == [[held_out]]
     for name in names:
         np.testing.assert_array_equal(got[name], want[name])
     coarse = dataclasses.replace(settings, render=RenderSettings(samples=(1, 32)))
-    reconstruct_module._synthetic_views(model, coral_one, truth.depth, truth.tilt, names, coarse, backend, problem)
-    reconstruct_module._synthetic_views(model, coral_one, truth.depth + 0.01, truth.tilt, names, settings, backend,
-                                        problem)
+    reconstruct_module._synthetic_views(model, coral_one, truth.depth, truth.tilt, names, coarse, comparison)
+    reconstruct_module._synthetic_views(model, coral_one, truth.depth + 0.01, truth.tilt, names, settings, comparison)
     assert rendered[1:] == [names, names]

@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 
 from fsswarp.backends import get_backend
 from fsswarp.carving import carve
+from fsswarp.compare import ViewComparison
 from fsswarp.errors import InputError
 from fsswarp.metrics import compare
 from fsswarp.refine import RefineSettings, _graph_laplacian, _Membrane, _last_echo_rows, refine_shape, smoothed_rows
@@ -34,17 +35,18 @@ def test_true_model_stays(scene):
 def test_carved_model_improves(scene):
     dataset, truth, depth, tilt, backend = scene
     carved = carve(dataset, depth, tilt, backend=backend).mesh
-    result = refine_shape(carved, dataset, depth, tilt, settings=RefineSettings(iterations=3), backend=backend)
+    comparison = ViewComparison(dataset, backend=backend)
+    result = refine_shape(carved, dataset, depth, tilt, settings=RefineSettings(iterations=3), comparison=comparison)
     before, after = compare(carved, truth, samples=5000), compare(result.mesh, truth, samples=5000)
     assert result.mesh.is_watertight and len(result.mesh.faces) == len(carved.faces)
     assert result.ace_after < result.ace_before
     assert after["chamfer_m"] < before["chamfer_m"] - 5e-4
     assert after["E_V"] < before["E_V"] - 0.01
     assert all(s.step > 0 for s in result.steps) and result.patches_moved > 0
-    # the PoseProblem handed on is the refined mesh's at (depth, tilt), and it gives ce_after
-    problem = result.problem
-    assert np.array_equal(problem.vertices, result.mesh.vertices) and problem.estimate == (depth, tilt)
-    errors = dict(zip(problem.data.names, problem.contour_errors(depth, tilt)))
+    # the comparison it was given is left on the refined mesh at (depth, tilt), and it gives ce_after
+    assert comparison.model is result.mesh and comparison.estimate == (depth, tilt)
+    assert np.array_equal(comparison.vertices, result.mesh.vertices)
+    errors = dict(zip(comparison.data.names, comparison.contour_errors(depth, tilt)))
     np.testing.assert_allclose([errors[name] for name in result.views], result.ce_after, rtol=1e-12)
 
 
