@@ -477,10 +477,11 @@ def pose(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt, l
     OUT/pose.png (the grid levels) and OUT/contours.png (per view, the data's contours and
     the model's at the estimate and at the start)."""
     from .atomic import check_output_folder, output_folder
+    from .compare import PoseWarning, view_contours
     from .dataset import load_dataset
     from .figures import contours_figure, pose_figure
     from .outputs import pose_record, write_pose
-    from .pose import PoseWarning, check_uncertainties, estimate_pose, view_contours
+    from .pose import check_uncertainties, estimate_pose
     from .rig import check_depth_tilt
 
     dataset = load_dataset(dataset_dir)
@@ -583,9 +584,9 @@ def run_reconstruction(state: State, dataset, out: Path, settings, drawer, *, de
     ``fsswarp.figures.FigureDrawer``; ``shown``: the folder's name in messages, when OUT is a
     temporary folder); returns the ReconstructResult."""
     from .atomic import output_folder
+    from .compare import PoseWarning, view_contours
     from .figures import carve_figure, contours_figure, history_figure, pose_figure
     from .outputs import write_reconstruction
-    from .pose import PoseWarning, view_contours
     from .reconstruction import reconstruct as run
 
     backend = state.get_backend()

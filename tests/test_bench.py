@@ -407,12 +407,13 @@ def test_loop_profile_call_times_count_time_and_restore():
 
 def test_loop_profile_times_a_reconstruction_and_leaves_fsswarp_as_it_was(capsys):
     import fsswarp.carving
-    import fsswarp.pose
+    import fsswarp.compare
     import fsswarp.reconstruction
 
-    before = (fsswarp.reconstruction.carve, fsswarp.reconstruction.refine_shape, fsswarp.pose.PoseProblem.exact)
+    before = (fsswarp.reconstruction.carve, fsswarp.reconstruction.refine_shape, fsswarp.compare.ViewComparison.exact)
     assert _bench_module("loop_profile").main(["--backend", "opencl", "--iterations", "0"]) == 0
-    assert (fsswarp.reconstruction.carve, fsswarp.reconstruction.refine_shape, fsswarp.pose.PoseProblem.exact) == before
+    assert (fsswarp.reconstruction.carve, fsswarp.reconstruction.refine_shape,
+            fsswarp.compare.ViewComparison.exact) == before
     assert fsswarp.reconstruction.carve is fsswarp.carving.carve
     out = capsys.readouterr().out
     assert "0 iterations" in out and "| `carve` | 1 |" in out and "| `_image_errors` | 1 |" in out

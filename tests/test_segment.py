@@ -17,7 +17,7 @@ import pytest
 
 from fsswarp.errors import InputError
 from fsswarp.rendering import add_noise
-from fsswarp.pose import detection_threshold
+from fsswarp.compare import detection_threshold
 from fsswarp.segment import SPIKE_RATIO, SegmentSettings, SegmentWarning, clip_spikes, from_highlight, segment
 from fsswarp.surface import COMPONENTS
 
