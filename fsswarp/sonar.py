@@ -114,6 +114,12 @@ class SonarSpec:
         return -self.half_azimuth + np.arange(self.beams) * (self.azimuth_fov / (self.beams - 1))
 
     @property
+    def beam_widths(self) -> np.ndarray:
+        """(beams,) float32 azimuth width Δθ_b of every beam (rad): the spacing of the centres
+        (central differences inside, one-sided at the outer beams)."""
+        return np.gradient(np.asarray(self.beam_centres, np.float64)).astype(np.float32)
+
+    @property
     def bin_ranges(self) -> np.ndarray:
         """(bins,) range of each row (m)."""
         return self.range_min + np.arange(self.bins) * self.range_step

@@ -9,10 +9,11 @@ Importing this package imports neither ``warp`` nor ``pyopencl``; a backend impo
 package when it is first asked for.
 """
 
-from .base import Backend, DeviceDistances, DeviceLayers, HostLayers, ICPRuns, SonarConstants, rows_read
+from .base import (Backend, DeviceDistances, DeviceLayers, HostLayers, ICPRuns, PreparedLaunch, SonarConstants,
+                   rows_read)
 from .constants import FRONTAL_VISIBLE, MAX_DISTANCE, RAY_EPSILON
 from .select import BACKEND_NAMES, INSTALL_OPENCL, INSTALL_WARP, describe_backends, get_backend
 
-__all__ = ["Backend", "DeviceLayers", "HostLayers", "DeviceDistances", "ICPRuns", "SonarConstants",
+__all__ = ["Backend", "DeviceLayers", "HostLayers", "DeviceDistances", "ICPRuns", "PreparedLaunch", "SonarConstants",
            "get_backend", "describe_backends", "rows_read", "BACKEND_NAMES", "INSTALL_WARP", "INSTALL_OPENCL",
            "RAY_EPSILON", "FRONTAL_VISIBLE", "MAX_DISTANCE"]

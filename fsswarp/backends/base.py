@@ -20,7 +20,7 @@ from __future__ import annotations
 import abc
 import math
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 
@@ -89,6 +89,10 @@ class Backend(abc.ABC):
     device : the device, e.g. "cpu" or "cuda:0" (Warp), "<platform>: <device name>" (OpenCL)
     is_gpu : whether the device is a GPU
     has_float64 : whether its kernels can compute in float64 (``icp_runs`` needs it)
+    device_name : the device's own name (property)
+
+    For timing kernels without their transfers: ``prepared_cast``, ``prepared_carve`` (launches
+    on inputs uploaded once) and ``transfer_calls`` (copies).
     """
 
     name: str
@@ -165,18 +169,7 @@ class Backend(abc.ABC):
         Float32 on the device: decisions differ from the oracle only where a bound lies
         within float32 rounding of a half-index boundary or of the elevation edge.
         """
-        rot, trans = _view_poses(rotations, translations, sonar)
-        feasible = np.asarray(masks)
-        if feasible.dtype.kind not in "biu":
-            raise TypeError(f"masks must be bool or integer, got dtype {feasible.dtype}")
-        if feasible.shape != (rot.shape[0], sonar.bins, sonar.beams):
-            raise ValueError(f"masks must have shape (V, bins, beams) = ({rot.shape[0]}, {sonar.bins}, "
-                             f"{sonar.beams}), got {feasible.shape}")
-        if rot.shape[0] > 255:
-            raise ValueError(f"at most 255 views per launch (uint8 counts), got {rot.shape[0]}")
-        size = float(voxel_size) if isinstance(voxel_size, (int, float, np.number)) else np.nan
-        if not (np.isfinite(np.float32(size)) and np.float32(size) > 0):
-            raise ValueError(f"voxel_size must be a finite number > 0, got {voxel_size!r}")
+        feasible, rot, trans, size = _carve_views(masks, rotations, translations, sonar, voxel_size)
         grid = origin is not None or shape is not None
         if grid == (centres is not None) or (grid and (origin is None or shape is None)):
             raise ValueError("give either origin and shape (a grid) or centres")
@@ -195,20 +188,39 @@ class Backend(abc.ABC):
             raise ValueError(f"too many voxels for one launch ({n_voxels}); split them")
         if n_voxels == 0 or rot.shape[0] == 0:
             return np.zeros(n_voxels, np.uint8), np.zeros(n_voxels, np.uint8)
-        integral = np.zeros((rot.shape[0], sonar.bins + 1, sonar.beams + 1), np.int32)
-        np.cumsum(np.cumsum(feasible != 0, axis=1, dtype=np.int32), axis=2, out=integral[:, 1:, 1:])
-        radius = float(np.float32(size * np.sqrt(3.0) / 2.0))
-        return self._carve(integral, rot, trans, SonarConstants.of(sonar), float(np.float32(size)), radius,
-                           start, dims, points)
+        launch = self._prepared_carve(_summed_area(feasible, sonar), rot, trans, SonarConstants.of(sonar),
+                                      float(np.float32(size)), _circumradius(size), start, dims, points)
+        launch()
+        return launch.read()
+
+    def prepared_carve(self, masks, rotations, translations, sonar: SonarSpec, voxel_size: float, origin,
+                       side: int) -> "PreparedLaunch":
+        """``carve`` of the cubic grid of side³ voxels at ``origin`` (``shape = (side,) * 3``),
+        with its inputs uploaded once, for timing the kernel alone: the summed-area tables of
+        the masks and the poses go to the device now; each call of the returned
+        ``PreparedLaunch`` launches the carve-grid kernel and waits, and its ``read()`` gives the
+        last call's ``(seen, rejected)``, (side³,) uint8, as ``carve`` returns them.
+
+        masks, rotations, translations, sonar, voxel_size, origin : as ``carve`` (V >= 1)
+        side : voxels along each axis, >= 1
+        """
+        feasible, rot, trans, size = _carve_views(masks, rotations, translations, sonar, voxel_size)
+        start = _real_array("origin", np.asarray(origin).reshape(-1), (3,))
+        if not is_integer(side) or side < 1 or int(side) ** 3 >= 2**31 - 2**10:
+            raise ValueError(f"side must be an integer >= 1 with side**3 < 2^31 - 2^10 voxels, got {side!r}")
+        if rot.shape[0] == 0:
+            raise ValueError("give at least one view")
+        return self._prepared_carve(_summed_area(feasible, sonar), rot, trans, SonarConstants.of(sonar),
+                                    float(np.float32(size)), _circumradius(size), start, (int(side),) * 3, None)
 
     @abc.abstractmethod
-    def _carve(self, integral: np.ndarray, rotations: np.ndarray, translations: np.ndarray,
-               sonar: SonarConstants, voxel_size: float, radius: float, origin: np.ndarray | None,
-               shape: tuple[int, int, int] | None, centres: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        """Kernel launch of ``carve``: integral (V, bins + 1, beams + 1) int32 summed-area
-        tables of the masks, clean float32 poses, the float32 voxel size and circumradius,
-        and either a grid (origin (3,) float32, shape) or centres (P, 3) float32, P, V >= 1.
-        Returns (P,) uint8 seen and rejected counts."""
+    def _prepared_carve(self, integral: np.ndarray, rotations: np.ndarray, translations: np.ndarray,
+                        sonar: SonarConstants, voxel_size: float, radius: float, origin: np.ndarray | None,
+                        shape: tuple[int, int, int] | None, centres: np.ndarray | None) -> "PreparedLaunch":
+        """Inputs of a ``carve`` launch uploaded once: integral (V, bins + 1, beams + 1) int32
+        summed-area tables of the masks, clean float32 poses, the float32 voxel size and
+        circumradius, and either a grid (origin (3,) float32, shape) or centres (P, 3) float32,
+        P, V >= 1. Its ``read()`` gives (P,) uint8 seen and rejected counts."""
 
 
     # --- ray casting and image synthesis ------------------------------------------------------
@@ -231,13 +243,40 @@ class Backend(abc.ABC):
         origins : (R, 3) float, directions : (R, 3) float unit vectors
         A ray that hits nothing within ``max_distance`` gives distance inf and face -1.
         Watertight: a ray through a shared edge or vertex never leaks through the mesh."""
-        org = _real_array("origins", origins, ("R", 3))
-        dirs = _real_array("directions", directions, ("R", 3))
-        if org.shape != dirs.shape:
-            raise ValueError(f"origins and directions must have the same shape, got {org.shape} and {dirs.shape}")
+        org, dirs = _rays(origins, directions)
         if org.shape[0] == 0:
             return np.zeros(0, np.float32), np.zeros(0, np.int32)
-        return self._cast_rays(mesh, org, dirs, float(max_distance))
+        launch = self._prepared_cast(mesh, org, dirs, float(max_distance))
+        launch()
+        return launch.read()
+
+    def prepared_cast(self, mesh, origins, directions, max_distance: float = MAX_DISTANCE) -> "PreparedLaunch":
+        """``cast_rays`` with the rays uploaded once, for timing the kernel alone: origins and
+        directions (R, 3) float (R >= 1) go to the device now; each call of the returned
+        ``PreparedLaunch`` launches the cast kernel on them and waits, and its ``read()`` gives
+        the last call's ``(distance, face)`` as ``cast_rays`` returns them."""
+        org, dirs = _rays(origins, directions)
+        if org.shape[0] == 0:
+            raise ValueError("origins must hold at least one ray")
+        return self._prepared_cast(mesh, org, dirs, float(max_distance))
+
+    def transfer_calls(self, nbytes: int) -> tuple[Callable[[], None], Callable[[], None], Callable[[], None]]:
+        """Three blocking copies of ``nbytes`` (rounded down to whole float32 values, >= 4),
+        for timing the device's memory and host link: device to device, host to device and
+        device to host (pageable host memory). Buffers are allocated once, here."""
+        if not is_integer(nbytes) or nbytes < 4:
+            raise ValueError(f"nbytes must be an integer >= 4, got {nbytes!r}")
+        return self._transfer_calls(np.ones(int(nbytes) // 4, np.float32))
+
+    @property
+    @abc.abstractmethod
+    def device_name(self) -> str:
+        """The device's own name (a GPU model, an OpenCL device's name, Warp's "cpu")."""
+
+    @abc.abstractmethod
+    def _transfer_calls(self, host: np.ndarray) -> tuple[Callable[[], None], Callable[[], None], Callable[[], None]]:
+        """``transfer_calls`` of the (n,) float32 ``host`` array: device-to-device,
+        host-to-device and device-to-host copies of its bytes, each waiting until done."""
 
     def frontal_faces(self, mesh, sonar: SonarSpec, rotations, translations, plane_normals, plane_offsets,
                       views, azimuths, rays: int, *, mirror: bool) -> np.ndarray:
@@ -317,7 +356,7 @@ class Backend(abc.ABC):
         if n_views == 0:
             return HostLayers(np.zeros((0, 4, count, sonar.beams), np.float32),
                               None if rows is None else first)
-        layers = self._render(mesh, SonarConstants.of(sonar), _beam_widths(sonar), rot, trans, normals,
+        layers = self._render(mesh, SonarConstants.of(sonar), sonar.beam_widths, rot, trans, normals,
                               offsets, k_theta, k_phi, float(gamma),
                               float(surface_reflection), first, count)
         layers.first_rows = None if rows is None else first.copy()
@@ -328,8 +367,10 @@ class Backend(abc.ABC):
         """Device copy of a clean (Nv, 3) float32 / (Nf, 3) int32 mesh."""
 
     @abc.abstractmethod
-    def _cast_rays(self, mesh, origins: np.ndarray, directions: np.ndarray, max_distance: float):
-        """Kernel launch of ``cast_rays``; returns (R,) float32 distance (inf: no hit), (R,) int32 face."""
+    def _prepared_cast(self, mesh, origins: np.ndarray, directions: np.ndarray,
+                       max_distance: float) -> "PreparedLaunch":
+        """Rays of a ``cast_rays`` launch uploaded once: clean (R, 3) float32 arrays, R >= 1. Its
+        ``read()`` gives (R,) float32 distance (inf: no hit) and (R,) int32 face."""
 
     @abc.abstractmethod
     def _frontal_rays(self, mesh, sonar: SonarConstants, rotations: np.ndarray, translations: np.ndarray,
@@ -531,6 +572,22 @@ class Backend(abc.ABC):
         to it (-1 where not usable)."""
 
 
+class PreparedLaunch:
+    """A kernel launch on inputs already on the device (``Backend.prepared_cast``,
+    ``Backend.prepared_carve``): calling it launches the kernel and waits until it is done,
+    returning None; ``read()`` copies the last call's outputs to the host."""
+
+    def __init__(self, launch: Callable[[], None], read: Callable[[], tuple]):
+        self._launch = launch
+        self._read = read
+
+    def __call__(self) -> None:
+        self._launch()
+
+    def read(self) -> tuple[np.ndarray, ...]:
+        return self._read()
+
+
 class ICPRuns(NamedTuple):
     """What ``Backend.icp_runs`` leaves: per run, the final ``angles`` (R,) and
     ``translations`` (R, 2), ``iterations`` (R,) run and whether it ``converged`` (R,); per
@@ -616,11 +673,44 @@ def _row_bands(rows, n_views: int, bins: int) -> tuple[np.ndarray, int]:
     return np.ascontiguousarray(first, np.int32), count
 
 
-def _beam_widths(sonar: SonarSpec) -> np.ndarray:
-    """(beams,) float32 azimuth width Δθ_b of every beam: the spacing of the centres (central
-    differences inside, one-sided at the outer beams)."""
-    c = np.asarray(sonar.beam_centres, np.float64)
-    return np.gradient(c).astype(np.float32)
+def _carve_views(masks, rotations, translations, sonar, voxel_size):
+    """``carve``'s views and voxel size: (V, bins, beams) masks, (V, 3, 3) and (V, 3) float32
+    poses and the voxel size as a float, V <= 255, or raise."""
+    rot, trans = _view_poses(rotations, translations, sonar)
+    feasible = np.asarray(masks)
+    if feasible.dtype.kind not in "biu":
+        raise TypeError(f"masks must be bool or integer, got dtype {feasible.dtype}")
+    if feasible.shape != (rot.shape[0], sonar.bins, sonar.beams):
+        raise ValueError(f"masks must have shape (V, bins, beams) = ({rot.shape[0]}, {sonar.bins}, "
+                         f"{sonar.beams}), got {feasible.shape}")
+    if rot.shape[0] > 255:
+        raise ValueError(f"at most 255 views per launch (uint8 counts), got {rot.shape[0]}")
+    size = float(voxel_size) if isinstance(voxel_size, (int, float, np.number)) else np.nan
+    if not (np.isfinite(np.float32(size)) and np.float32(size) > 0):
+        raise ValueError(f"voxel_size must be a finite number > 0, got {voxel_size!r}")
+    return feasible, rot, trans, size
+
+
+def _summed_area(feasible: np.ndarray, sonar: SonarSpec) -> np.ndarray:
+    """(V, bins + 1, beams + 1) int32 summed-area tables of (V, bins, beams) masks: element
+    [v, B, b] counts the nonzero pixels in rows < B and columns < b."""
+    integral = np.zeros((feasible.shape[0], sonar.bins + 1, sonar.beams + 1), np.int32)
+    np.cumsum(np.cumsum(feasible != 0, axis=1, dtype=np.int32), axis=2, out=integral[:, 1:, 1:])
+    return integral
+
+
+def _circumradius(size: float) -> float:
+    """The float32 circumradius h·√3/2 of a cube of side h."""
+    return float(np.float32(size * np.sqrt(3.0) / 2.0))
+
+
+def _rays(origins, directions) -> tuple[np.ndarray, np.ndarray]:
+    """(R, 3) float32 origins and directions of the same R rays, or raise."""
+    org = _real_array("origins", origins, ("R", 3))
+    dirs = _real_array("directions", directions, ("R", 3))
+    if org.shape != dirs.shape:
+        raise ValueError(f"origins and directions must have the same shape, got {org.shape} and {dirs.shape}")
+    return org, dirs
 
 
 def _view_poses(rotations, translations, sonar) -> tuple[np.ndarray, np.ndarray]:

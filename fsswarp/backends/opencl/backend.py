@@ -12,7 +12,7 @@ import threading
 import numpy as np
 import pyopencl as cl
 
-from ..base import Backend, DeviceLayers, SonarConstants
+from ..base import Backend, DeviceLayers, PreparedLaunch, SonarConstants
 from ..bvh import FlatBVH, build_bvh
 from ..constants import FRONTAL_VISIBLE, MAX_DISTANCE, RAY_EPSILON
 from ..select import _OpenCLDevice
@@ -74,25 +74,36 @@ class OpenCLBackend(Backend):
             self.queue.finish()
         return beam, bin_, inside
 
-    def _carve(self, integral, rotations, translations, sonar: SonarConstants, voxel_size, radius, origin,
-               shape, centres):
+    def _prepared_carve(self, integral, rotations, translations, sonar: SonarConstants, voxel_size, radius, origin,
+                        shape, centres):
         n_voxels = centres.shape[0] if centres is not None else shape[0] * shape[1] * shape[2]
         seen, seen_buf = self._output((n_voxels,), np.uint8)
         rejected, rejected_buf = self._output((n_voxels,), np.uint8)
         common = (np.int32(n_voxels), self._input(rotations), self._input(translations), self._input(integral),
                   np.int32(rotations.shape[0]), self._input(sonar.beam_table), sonar.record(),
                   np.float32(radius), seen_buf, rejected_buf)
-        global_size = (-(-n_voxels // GROUP) * GROUP,)
-        with self._lock:
-            if centres is not None:
-                self._carve_points_kernel(self.queue, global_size, None, self._input(centres), *common)
-            else:
-                self._carve_grid_kernel(self.queue, global_size, None, self._input(origin), np.float32(voxel_size),
-                                        *(np.int32(n) for n in shape), *common)
-            cl.enqueue_copy(self.queue, seen, seen_buf, is_blocking=False)
-            cl.enqueue_copy(self.queue, rejected, rejected_buf, is_blocking=False)
+        if centres is not None:
+            kernel, args = self._carve_points_kernel, (self._input(centres), *common)
+        else:
+            kernel = self._carve_grid_kernel
+            args = (self._input(origin), np.float32(voxel_size), *(np.int32(n) for n in shape), *common)
+        return self._prepared(kernel, (-(-n_voxels // GROUP) * GROUP,), args,
+                              ((seen, seen_buf), (rejected, rejected_buf)))
+
+    def _prepared(self, kernel: cl.Kernel, global_size: tuple[int, ...], args: tuple, outputs: tuple) -> PreparedLaunch:
+        """A launch of ``kernel`` on ``args`` that waits, reading back ``outputs`` ((host array,
+        buffer) pairs) on ``read()``."""
+        def launch():
+            with self._lock:
+                kernel(self.queue, global_size, None, *args)
+                self.queue.finish()
+
+        def read():
+            for host, buf in outputs:
+                cl.enqueue_copy(self.queue, host, buf, is_blocking=False)
             self.queue.finish()
-        return seen, rejected
+            return tuple(host.copy() for host, _ in outputs)
+        return PreparedLaunch(launch, read)
 
     # --- ray casting and image synthesis --------------------------------------------------------
     def _load_mesh(self, vertices, faces):
@@ -100,21 +111,37 @@ class OpenCLBackend(Backend):
         return OpenCLMesh(bvh, self._input(bvh.node_bounds), self._input(bvh.node_children),
                           self._input(bvh.triangles), self._input(bvh.face_index))
 
-    def _cast_rays(self, mesh, origins, directions, max_distance):
+    def _prepared_cast(self, mesh, origins, directions, max_distance):
         _check_mesh(mesh)
         n_rays = origins.shape[0]
         distance, distance_buf = self._output((n_rays,), np.float32)
         face, face_buf = self._output((n_rays,), np.int32)
-        with self._lock:
-            self._cast_kernel(
-                self.queue, (-(-n_rays // GROUP) * GROUP,), None,
-                mesh.nodes, mesh.children, mesh.triangles, mesh.face_index,
-                self._input(origins), self._input(directions), np.int32(n_rays),
-                np.float32(max_distance), distance_buf, face_buf)
-            cl.enqueue_copy(self.queue, distance, distance_buf, is_blocking=False)
-            cl.enqueue_copy(self.queue, face, face_buf, is_blocking=False)
+        args = (mesh.nodes, mesh.children, mesh.triangles, mesh.face_index, self._input(origins),
+                self._input(directions), np.int32(n_rays), np.float32(max_distance), distance_buf, face_buf)
+        return self._prepared(self._cast_kernel, (-(-n_rays // GROUP) * GROUP,), args,
+                              ((distance, distance_buf), (face, face_buf)))
+
+    # --- copies and the device -------------------------------------------------------------------
+    @property
+    def device_name(self) -> str:
+        return self.cl_device.name.strip()
+
+    def _transfer_calls(self, host):
+        flags = cl.mem_flags.READ_WRITE
+        source = cl.Buffer(self.context, flags, size=host.nbytes)
+        target = cl.Buffer(self.context, flags, size=host.nbytes)
+        back = np.empty_like(host)
+
+        def device_to_device():
+            cl.enqueue_copy(self.queue, target, source, byte_count=host.nbytes)
             self.queue.finish()
-        return distance, face
+
+        def host_to_device():
+            cl.enqueue_copy(self.queue, source, host, is_blocking=True)
+
+        def device_to_host():
+            cl.enqueue_copy(self.queue, back, source, is_blocking=True)
+        return device_to_device, host_to_device, device_to_host
 
     def _frontal_rays(self, mesh, sonar: SonarConstants, rotations, translations, plane_normals, plane_offsets,
                       views, azimuths, rays, mirror):

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from ..base import Backend, DeviceLayers, SonarConstants
+from ..base import Backend, DeviceLayers, PreparedLaunch, SonarConstants
 from ..bvh import triangle_bounds
 from ..constants import FRONTAL_VISIBLE, MAX_DISTANCE, RAY_EPSILON, WARP_FAR
 from ..select import _warp
@@ -133,18 +133,19 @@ class WarpBackend(Backend):
             raise ValueError(f"mesh was loaded on {mesh.device!r}, this backend runs on {self.device!r}")
         return mesh
 
-    def _cast_rays(self, mesh, origins, directions, max_distance):
+    def _prepared_cast(self, mesh, origins, directions, max_distance):
         mesh = self._check_mesh(mesh)
         n_rays = origins.shape[0]
         with wp.ScopedDevice(self._device):
+            inputs = [mesh.id, mesh.points, mesh.indices, self._array(origins, wp.vec3),
+                      self._array(directions, wp.vec3), float(np.float32(min(max_distance, WARP_FAR)))]
             distance = wp.empty(n_rays, dtype=float)
             face = wp.empty(n_rays, dtype=wp.int32)
-            wp.launch(cast_rays_kernel, dim=n_rays,
-                      inputs=[mesh.id, mesh.points, mesh.indices, self._array(origins, wp.vec3), self._array(directions, wp.vec3),
-                              float(np.float32(min(max_distance, WARP_FAR)))],
-                      outputs=[distance, face])
+
+        def launch():
+            wp.launch(cast_rays_kernel, dim=n_rays, inputs=inputs, outputs=[distance, face], device=self._device)
             wp.synchronize_device(self._device)
-            return distance.numpy(), face.numpy()
+        return PreparedLaunch(launch, lambda: (distance.numpy(), face.numpy()))
 
     def _frontal_rays(self, mesh, sonar: SonarConstants, rotations, translations, plane_normals, plane_offsets,
                       views, azimuths, rays, mirror):
@@ -192,8 +193,8 @@ class WarpBackend(Backend):
             return WarpLayers(layers)
 
     # --- voxel space carving -------------------------------------------------------------------
-    def _carve(self, integral, rotations, translations, sonar: SonarConstants, voxel_size, radius, origin,
-               shape, centres):
+    def _prepared_carve(self, integral, rotations, translations, sonar: SonarConstants, voxel_size, radius, origin,
+                        shape, centres):
         n_voxels = centres.shape[0] if centres is not None else shape[0] * shape[1] * shape[2]
         with wp.ScopedDevice(self._device):
             seen = wp.empty(n_voxels, dtype=wp.uint8)
@@ -202,14 +203,39 @@ class WarpBackend(Backend):
                       self._array(integral, wp.int32), self._constant(sonar.beam_table, float),
                       kernel_sonar(sonar), radius]
             if centres is not None:
-                wp.launch(carve_points, dim=n_voxels, inputs=[self._array(centres, wp.vec3), *common],
-                          outputs=[seen, rejected])
+                kernel, inputs = carve_points, [self._array(centres, wp.vec3), *common]
             else:
-                wp.launch(carve_grid, dim=n_voxels,
-                          inputs=[wp.vec3(*(float(x) for x in origin)), voxel_size, shape[1], shape[2], *common],
-                          outputs=[seen, rejected])
+                kernel = carve_grid
+                inputs = [wp.vec3(*(float(x) for x in origin)), voxel_size, shape[1], shape[2], *common]
+
+        def launch():
+            wp.launch(kernel, dim=n_voxels, inputs=inputs, outputs=[seen, rejected], device=self._device)
             wp.synchronize_device(self._device)
-            return seen.numpy(), rejected.numpy()
+        return PreparedLaunch(launch, lambda: (seen.numpy(), rejected.numpy()))
+
+    # --- copies and the device -------------------------------------------------------------------
+    @property
+    def device_name(self) -> str:
+        return self._device.name
+
+    def _transfer_calls(self, host):
+        with wp.ScopedDevice(self._device):
+            source = self._array(host, float)
+            target = wp.empty_like(source)
+        staging = wp.array(host, dtype=float, device="cpu")
+        back = np.empty_like(host)
+
+        def device_to_device():
+            wp.copy(target, source)
+            wp.synchronize_device(self._device)
+
+        def host_to_device():
+            wp.copy(source, staging)
+            wp.synchronize_device(self._device)
+
+        def device_to_host():
+            back[:] = source.numpy()
+        return device_to_device, host_to_device, device_to_host
 
     # --- frontal contours and their distance to the data's (kernels after the class) ---------
     def _contour_cost(self, layers, first_rows, view_index, thresholds, windows, masks, range_weights,
