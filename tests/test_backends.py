@@ -396,3 +396,204 @@ def test_build_log_of_a_successful_build_is_not_raised(backend_for_label):
         cl.Program(opencl.context, source).build()
     program = build(opencl.context, source, (), label="fine.cl")
     assert program.get_info(cl.program_info.NUM_KERNELS) == 1
+
+
+# --- the sonar struct and the shared constants ---------------------------------------------------
+def test_sonar_struct_layout_warp():
+    """SONAR_DTYPE is 3 int32 and 5 float32 with no padding, and the Warp struct lists the same
+    fields in the same order with the same types."""
+    wp = pytest.importorskip("warp")
+    from fsswarp.backends.base import SONAR_DTYPE, SonarConstants
+    from fsswarp.backends.warp.sonar import KernelSonar, kernel_sonar
+
+    assert SONAR_DTYPE.itemsize == 32
+    assert [SONAR_DTYPE.fields[n][1] for n in SONAR_DTYPE.names] == list(range(0, 32, 4))
+    assert list(KernelSonar.vars) == list(SONAR_DTYPE.names)
+    kinds = {wp.int32: np.int32, wp.float32: np.float32}
+    assert [kinds[v.type] for v in KernelSonar.vars.values()] == [SONAR_DTYPE[n].type for n in SONAR_DTYPE.names]
+    consts = SonarConstants.of(table_sonar())
+    packed = kernel_sonar(consts)
+    for name in SONAR_DTYPE.names:
+        assert getattr(packed, name) == getattr(consts, name)
+
+
+def test_sonar_struct_layout_opencl(backend_for_label):
+    """The host's SONAR_DTYPE record and kernels/sonar.h's fss_sonar agree byte for byte: a kernel
+    reads every field of the struct argument back, and pyopencl's layout check inserts no padding."""
+    opencl = backend_for_label("opencl-cpu")
+    import pyopencl as cl
+    from pyopencl.tools import match_dtype_to_c_struct
+
+    from fsswarp.backends.base import SONAR_DTYPE, SonarConstants
+    from fsswarp.backends.opencl import build, kernel_source
+    from fsswarp.backends.opencl.programs import BUILD_OPTIONS
+
+    matched, _ = match_dtype_to_c_struct(opencl.cl_device, "fss_sonar_check", SONAR_DTYPE, opencl.context)
+    assert matched == SONAR_DTYPE
+    source = kernel_source("sonar.h") + """
+__kernel void echo(const fss_sonar s, __global int *ints, __global float *floats)
+{
+    ints[0] = s.use_table; ints[1] = s.beams; ints[2] = s.bins; ints[3] = (int)sizeof(fss_sonar);
+    floats[0] = s.half_azimuth; floats[1] = s.beam_scale; floats[2] = s.range_min;
+    floats[3] = s.inv_range_step; floats[4] = s.half_elevation;
+}
+"""
+    kernel = build(opencl.context, source, BUILD_OPTIONS, label="echo.cl").echo
+    consts = SonarConstants.of(table_sonar())
+    ints, floats = np.zeros(4, np.int32), np.zeros(5, np.float32)
+    flags = cl.mem_flags.WRITE_ONLY
+    ints_buf = cl.Buffer(opencl.context, flags, size=ints.nbytes)
+    floats_buf = cl.Buffer(opencl.context, flags, size=floats.nbytes)
+    kernel(opencl.queue, (1,), None, consts.record(), ints_buf, floats_buf)
+    cl.enqueue_copy(opencl.queue, ints, ints_buf)
+    cl.enqueue_copy(opencl.queue, floats, floats_buf)
+    record = consts.record()
+    assert ints.tolist() == [record["use_table"], record["beams"], record["bins"], SONAR_DTYPE.itemsize]
+    assert floats.tolist() == [record[n] for n in SONAR_DTYPE.names[3:]]
+    assert record["use_table"] == 1 and record["beams"] == 96
+
+
+def test_kernel_constants_come_from_python():
+    """The OpenCL sources define none of the shared constants themselves; the -D options give
+    Python's values."""
+    pytest.importorskip("pyopencl")
+    from fsswarp.backends import constants
+    from fsswarp.backends.opencl import kernel_dir
+    from fsswarp.backends.opencl.programs import BUILD_OPTIONS
+
+    for path in kernel_dir().iterdir():
+        text = path.read_text(encoding="utf-8")
+        assert "#define FSS_INDEX_LIMIT" not in text and "#define FSS_FIXED" not in text, path.name
+    defines = dict(option[2:].split("=") for option in BUILD_OPTIONS)
+    assert float(defines["FSS_INDEX_LIMIT"].rstrip("f")) == constants.INDEX_LIMIT
+    assert float(defines["FSS_FIXED"].rstrip("f")) == constants.FIXED_SCALE
+
+
+def test_beam_widths():
+    for sonar in (linear_sonar(), table_sonar()):
+        widths = sonar.beam_widths
+        assert widths.dtype == np.float32 and widths.shape == (sonar.beams,)
+        c = np.asarray(sonar.beam_centres, np.float64)
+        np.testing.assert_array_equal(widths[1:-1], ((c[2:] - c[:-2]) / 2).astype(np.float32))
+        np.testing.assert_array_equal(widths[[0, -1]], np.float32([c[1] - c[0], c[-1] - c[-2]]))
+
+
+# --- launches on resident data (the benchmark's) ------------------------------------------------
+def test_prepared_cast_matches_cast_rays(backend):
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
+    handle = backend.load_mesh(sphere.vertices + [0.0, 2.0, 0.0], sphere.faces)
+    rng = np.random.default_rng(3)
+    origins = rng.normal(0.0, 0.05, (5000, 3))
+    dirs = rng.normal(0.0, 0.15, (5000, 3)) + [0.0, 1.0, 0.0]
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    for limit in ({}, {"max_distance": 1.9}):
+        want = backend.cast_rays(handle, origins, dirs, **limit)
+        launch = backend.prepared_cast(handle, origins, dirs, **limit)
+        assert launch() is None
+        launch()
+        got = launch.read()
+        assert np.isfinite(got[0]).any() and (got[1] >= 0).any() and (got[1] < 0).any()
+        for a, b in zip(got, want):
+            assert a.dtype == b.dtype
+            np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match="at least one ray"):
+        backend.prepared_cast(handle, np.zeros((0, 3)), np.zeros((0, 3)))
+
+
+def test_prepared_carve_matches_carve(backend):
+    sonar = table_sonar()
+    _, rotations, translations = random_scene(5, n_points=10, n_views=4)
+    masks = np.random.default_rng(5).random((4, sonar.bins, sonar.beams)) > 0.995
+    origin, side, size = np.array([-0.6, 1.2, -0.3]), 24, 0.025
+    want = backend.carve(masks, rotations, translations, sonar, size, origin=origin, shape=(side,) * 3)
+    launch = backend.prepared_carve(masks, rotations, translations, sonar, size, origin, side)
+    assert launch() is None
+    got = launch.read()
+    assert want[0].any() and want[1].any()
+    for a, b in zip(got, want):
+        assert a.dtype == np.uint8 and a.shape == (side**3,)
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match="side must be an integer >= 1"):
+        backend.prepared_carve(masks, rotations, translations, sonar, size, origin, 0)
+
+
+def test_transfer_calls_and_device_name(backend):
+    calls = backend.transfer_calls(1 << 16)
+    assert len(calls) == 3
+    for call in calls:
+        assert call() is None
+    with pytest.raises(ValueError, match="nbytes"):
+        backend.transfer_calls(2)
+    assert isinstance(backend.device_name, str) and backend.device_name.strip() == backend.device_name != ""
+    if backend.name == "opencl":
+        assert backend.device_name == backend.cl_device.name.strip()
+    else:
+        import warp as wp
+
+        assert backend.device_name == wp.get_device(backend.device).name
+
+
+# --- OpenCL devices that cannot build a kernel ------------------------------------------------------
+class _FakeCLDevice:
+    version, driver_version, max_compute_units, global_mem_size = "OpenCL 1.2", "1.0", 2, 1 << 30
+
+    def __init__(self, name: str):
+        self.name = name
+
+
+def _fake_devices(*names):
+    platform = _FakeCLDevice("Portable Computing Language")
+    return [select._OpenCLDevice(i, f"Portable Computing Language: {name}", platform, _FakeCLDevice(name),
+                                 False, True, True) for i, name in enumerate(names)]
+
+
+def test_a_device_that_cannot_build_is_not_picked(monkeypatch):
+    """A device whose runtime fails the trivial build is skipped by auto and by the default
+    OpenCL choice, listed unavailable with the reason, and probed once."""
+    found = _fake_devices("broken", "good")
+    probed = []
+
+    def probe(d):
+        probed.append(d.label)
+        return "cannot build an OpenCL kernel: error: unknown target CPU 'generic'" if "broken" in d.label else None
+
+    monkeypatch.setattr(select, "_opencl_devices", lambda: (found, None))
+    monkeypatch.setattr(select, "_probe", probe)
+    monkeypatch.setattr(select, "_PROBES", {})
+    assert select._resolve_opencl_device(None) is found[1]
+    assert select._resolve_opencl_device(0) is found[0]  # named: still selected
+    wp, _ = select._warp()
+    if wp is None or not wp.is_cuda_available():
+        assert select._auto_choice(None) == ("opencl", 1)
+    rows = {r["device"]: r for r in describe_backends() if r["backend"] == "opencl"}
+    broken, good = rows[found[0].label], rows[found[1].label]
+    assert not broken["available"] and not broken["auto"] and "unknown target CPU 'generic'" in broken["note"]
+    assert "\n" not in broken["note"]
+    assert good["available"] and good["note"] == ""
+    assert sorted(probed) == sorted(d.label for d in found)  # once each, however often asked
+
+    monkeypatch.setattr(select, "_probe", lambda d: "cannot build an OpenCL kernel: error: nothing works")
+    monkeypatch.setattr(select, "_PROBES", {})
+    with pytest.raises(InputError, match=r"^--backend = 'opencl': no usable OpenCL device .*nothing works"):
+        select._resolve_opencl_device(None)
+    if wp is not None and not wp.is_cuda_available():
+        assert select._auto_choice(None) == ("warp", "cpu")
+
+
+def test_probe_reports_a_build_failure_in_one_line(monkeypatch):
+    cl = pytest.importorskip("pyopencl")
+
+    class Failing:
+        def __init__(self, *args):
+            pass
+
+        def build(self):
+            raise cl.RuntimeError("clBuildProgram failed: BUILD_PROGRAM_FAILURE\n\nBuild on <device>:\n\n"
+                                  "error: unknown target CPU 'generic'\nDevice failed to build the program")
+
+    monkeypatch.setattr(cl, "Context", lambda devices: None)
+    monkeypatch.setattr(cl, "Program", Failing)
+    reason = select._probe(_fake_devices("broken")[0])
+    assert reason == "cannot build an OpenCL kernel: error: unknown target CPU 'generic'"

@@ -14,6 +14,7 @@ import re
 import sys
 import tempfile
 import threading
+import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -38,15 +39,17 @@ def get_backend(name: str = "auto", device: str | int | None = None) -> Backend:
     """The backend ``name`` on ``device``, created once per (backend, device) and cached.
 
     name : "auto", "warp" or "opencl" (``--backend``)
-        auto: Warp on CUDA when a CUDA GPU is present, else OpenCL on a CPU device (PoCL
-        first), else Warp on the CPU. With a ``device``, auto sends "cpu", "cuda" and "cuda:N"
+        auto: Warp on CUDA when a CUDA GPU is present, else OpenCL on a usable CPU device
+        (PoCL first), else Warp on the CPU. With a ``device``, auto sends "cpu", "cuda" and "cuda:N"
         to Warp and anything else to OpenCL.
     device : (``--device``)
         warp: "cpu", "cuda" (the current CUDA device) or "cuda:N"; default "cuda:0" when a
         GPU is present, else "cpu".
         opencl: a case-insensitive substring of "<platform>: <device name>" (the first
         match wins), or an index into the list of ``describe_backends()`` (``index``);
-        default the first CPU device (PoCL first), else the first device.
+        default the first usable CPU device (PoCL first), else the first usable device.
+        A device whose runtime cannot build a trivial kernel (``build_failure``) is never
+        picked by auto or by default; naming it still selects it.
 
     Raises ``InputError`` (field "--backend" or "--device") naming the value, what is
     available and how to install what is missing.
@@ -227,11 +230,39 @@ def _opencl_devices() -> tuple[list[_OpenCLDevice], str | None]:
 
 
 def _default_opencl(found: list[_OpenCLDevice], *, cpu_only: bool) -> _OpenCLDevice | None:
-    """First PoCL CPU device, else the first CPU device, else (unless cpu_only) the first."""
+    """First usable PoCL CPU device, else the first usable CPU device, else (unless cpu_only)
+    the first usable device (``build_failure``)."""
     for want in (lambda d: d.is_cpu and d.is_pocl, lambda d: d.is_cpu, lambda d: not cpu_only):
         for d in found:
-            if want(d):
+            if want(d) and build_failure(d) is None:
                 return d
+    return None
+
+
+_PROBES: dict[tuple[int, str], str | None] = {}
+_PROBE_SOURCE = "__kernel void probe(__global float *x) { x[0] = 1.0f; }\n"
+
+
+def build_failure(found: _OpenCLDevice) -> str | None:
+    """Why the device's runtime cannot build a trivial kernel (one line), else None: a device
+    that fails this is never picked by default. Probed once per process and device."""
+    key = (found.index, found.label)
+    if key not in _PROBES:
+        _PROBES[key] = _probe(found)
+    return _PROBES[key]
+
+
+def _probe(found: _OpenCLDevice) -> str | None:
+    """Build the trivial kernel on the device; the first error line of a failure, else None."""
+    import pyopencl as cl
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", cl.CompilerWarning)
+            cl.Program(cl.Context([found.device]), _PROBE_SOURCE).build()
+    except Exception as err:  # noqa: BLE001 - whatever fails, the device cannot run our kernels
+        lines = [line.strip() for line in str(err).splitlines() if line.strip().startswith("error:")]
+        return "cannot build an OpenCL kernel: " + (lines[0] if lines else _one_line(err))
     return None
 
 
@@ -244,7 +275,11 @@ def _resolve_opencl_device(device) -> _OpenCLDevice:
                          field="--backend", value="opencl")
     available = "available: " + ", ".join(f"{d.index} = {d.label!r}" for d in found)
     if device is None:
-        return _default_opencl(found, cpu_only=False)
+        usable = _default_opencl(found, cpu_only=False)
+        if usable is None:
+            reasons = "; ".join(f"{d.label!r}: {build_failure(d)}" for d in found)
+            raise InputError(f"no usable OpenCL device ({reasons})", field="--backend", value="opencl")
+        return usable
     if isinstance(device, int) or (isinstance(device, str) and device.isdigit()):
         index = int(device)
         if 0 <= index < len(found):
@@ -269,8 +304,9 @@ def describe_backends() -> list[dict]:
     backend ("warp" | "opencl"), device (the ``--device`` value naming it, None for a missing
     thing), index (OpenCL: its index for ``--device``, else None), name, platform, kind
     ("cpu" | "gpu" | None), version, driver, compute_units, memory_bytes, available (bool),
-    auto (whether ``--backend auto`` picks it) and note (why something is missing and how to
-    install it, else "").
+    auto (whether ``--backend auto`` picks it) and note (why something is missing or unusable
+    and how to install it, else ""). An OpenCL device that cannot build a kernel is listed
+    with available False and the reason.
     """
     rows: list[dict] = []
 
@@ -303,10 +339,12 @@ def describe_backends() -> list[dict]:
     found, why = _opencl_devices()
     for d in found:
         try:
+            failure = build_failure(d)
             row(backend="opencl", device=d.label, index=d.index, name=d.device.name.strip(),
                 platform=d.platform.name.strip(), kind="gpu" if d.is_gpu else "cpu" if d.is_cpu else None,
                 version=d.device.version.strip(), driver=d.device.driver_version.strip(),
-                compute_units=int(d.device.max_compute_units), memory_bytes=int(d.device.global_mem_size))
+                compute_units=int(d.device.max_compute_units), memory_bytes=int(d.device.global_mem_size),
+                available=failure is None, note=failure or "")
         except Exception as err:  # noqa: BLE001 - a broken driver is reported, not raised
             row(backend="opencl", device=d.label, index=d.index, available=False, note=_one_line(err))
     if why is not None:
