@@ -545,7 +545,7 @@ class _FakeCLDevice:
 
 def _fake_devices(*names):
     platform = _FakeCLDevice("Portable Computing Language")
-    return [select._OpenCLDevice(i, f"Portable Computing Language: {name}", platform, _FakeCLDevice(name),
+    return [select.OpenCLDevice(i, f"Portable Computing Language: {name}", platform, _FakeCLDevice(name),
                                  False, True, True) for i, name in enumerate(names)]
 
 
@@ -564,7 +564,7 @@ def test_a_device_that_cannot_build_is_not_picked(monkeypatch):
     monkeypatch.setattr(select, "_PROBES", {})
     assert select._resolve_opencl_device(None) is found[1]
     assert select._resolve_opencl_device(0) is found[0]  # named: still selected
-    wp, _ = select._warp()
+    wp, _ = select.import_warp()
     if wp is None or not wp.is_cuda_available():
         assert select._auto_choice(None) == ("opencl", 1)
     rows = {r["device"]: r for r in describe_backends() if r["backend"] == "opencl"}

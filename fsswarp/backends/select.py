@@ -91,7 +91,7 @@ def _auto_choice(device) -> tuple[str, Any]:
         if isinstance(device, str) and _WARP_DEVICE.match(device.lower()):
             return "warp", device
         return "opencl", device
-    wp, _ = _warp()
+    wp, _ = import_warp()
     if wp is not None and wp.is_cuda_available():
         return "warp", "cuda:0"
     found, _ = _opencl_devices()
@@ -108,7 +108,7 @@ def _auto_choice(device) -> tuple[str, Any]:
 _WARP_STATE: dict[str, Any] = {}
 
 
-def _warp():
+def import_warp():
     """(warp module, None) initialized quietly, or (None, why it is unavailable)."""
     try:
         import warp as wp
@@ -164,7 +164,7 @@ def _warp_note() -> str:
 
 def _resolve_warp_device(device) -> str:
     """Canonical Warp device alias ("cpu", "cuda:N") for ``device``, or InputError."""
-    wp, why = _warp()
+    wp, why = import_warp()
     if wp is None:
         raise InputError(f"{why}; install it with {INSTALL_WARP}", field="--backend", value="warp")
     aliases = [str(d.alias) for d in wp.get_devices()]
@@ -188,7 +188,9 @@ def _resolve_warp_device(device) -> str:
 
 # --- OpenCL devices ---------------------------------------------------------------------------
 @dataclass(frozen=True)
-class _OpenCLDevice:
+class OpenCLDevice:
+    """One OpenCL device as found here: its index for ``--device``, label, pyopencl handles and kind."""
+
     index: int
     label: str  # "<platform>: <device name>"
     platform: Any  # pyopencl.Platform
@@ -198,7 +200,7 @@ class _OpenCLDevice:
     is_pocl: bool
 
 
-def _opencl_devices() -> tuple[list[_OpenCLDevice], str | None]:
+def _opencl_devices() -> tuple[list[OpenCLDevice], str | None]:
     """Every OpenCL device of every platform, and why there are none (else None). Never raises."""
     try:
         import pyopencl as cl
@@ -224,12 +226,12 @@ def _opencl_devices() -> tuple[list[_OpenCLDevice], str | None]:
         if labels.count(label) > 1:
             label = f"{label} #{labels[:i].count(label)}"
         pocl = "portable computing language" in platform.name.lower() or "pocl" in platform.name.lower()
-        result.append(_OpenCLDevice(i, label, platform, device, bool(device.type & cl.device_type.GPU),
+        result.append(OpenCLDevice(i, label, platform, device, bool(device.type & cl.device_type.GPU),
                                     bool(device.type & cl.device_type.CPU), pocl))
     return result, None
 
 
-def _default_opencl(found: list[_OpenCLDevice], *, cpu_only: bool) -> _OpenCLDevice | None:
+def _default_opencl(found: list[OpenCLDevice], *, cpu_only: bool) -> OpenCLDevice | None:
     """First usable PoCL CPU device, else the first usable CPU device, else (unless cpu_only)
     the first usable device (``build_failure``)."""
     for want in (lambda d: d.is_cpu and d.is_pocl, lambda d: d.is_cpu, lambda d: not cpu_only):
@@ -243,7 +245,7 @@ _PROBES: dict[tuple[int, str], str | None] = {}
 _PROBE_SOURCE = "__kernel void probe(__global float *x) { x[0] = 1.0f; }\n"
 
 
-def build_failure(found: _OpenCLDevice) -> str | None:
+def build_failure(found: OpenCLDevice) -> str | None:
     """Why the device's runtime cannot build a trivial kernel (one line), else None: a device
     that fails this is never picked by default. Probed once per process and device."""
     key = (found.index, found.label)
@@ -252,7 +254,7 @@ def build_failure(found: _OpenCLDevice) -> str | None:
     return _PROBES[key]
 
 
-def _probe(found: _OpenCLDevice) -> str | None:
+def _probe(found: OpenCLDevice) -> str | None:
     """Build the trivial kernel on the device; the first error line of a failure, else None."""
     import pyopencl as cl
 
@@ -266,7 +268,7 @@ def _probe(found: _OpenCLDevice) -> str | None:
     return None
 
 
-def _resolve_opencl_device(device) -> _OpenCLDevice:
+def _resolve_opencl_device(device) -> OpenCLDevice:
     found, why = _opencl_devices()
     if not found:
         missing = why.startswith("pyopencl")
@@ -318,7 +320,7 @@ def describe_backends() -> list[dict]:
         rows.append(base)
 
     try:
-        wp, why = _warp()
+        wp, why = import_warp()
     except Exception as err:  # noqa: BLE001 - a broken install is reported, not raised
         wp, why = None, f"warp failed to initialize ({_one_line(err)})"
     if wp is None:

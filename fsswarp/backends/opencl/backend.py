@@ -15,7 +15,7 @@ import pyopencl as cl
 from ..base import Backend, DeviceLayers, PreparedLaunch, SonarConstants
 from ..bvh import FlatBVH, build_bvh
 from ..constants import FRONTAL_VISIBLE, MAX_DISTANCE, RAY_EPSILON
-from ..select import _OpenCLDevice
+from ..select import OpenCLDevice
 from .programs import GROUP, program
 
 
@@ -25,7 +25,7 @@ class OpenCLBackend(Backend):
 
     name = "opencl"
 
-    def __init__(self, found: _OpenCLDevice):
+    def __init__(self, found: OpenCLDevice):
         self.device = found.label
         self.is_gpu = found.is_gpu
         self.cl_device = found.device

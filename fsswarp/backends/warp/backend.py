@@ -13,7 +13,7 @@ import warp as wp
 from ..base import Backend, DeviceLayers, PreparedLaunch, SonarConstants
 from ..bvh import triangle_bounds
 from ..constants import FRONTAL_VISIBLE, MAX_DISTANCE, RAY_EPSILON, WARP_FAR
-from ..select import _warp
+from ..select import import_warp
 from .carve import carve_grid, carve_points
 from .icp import icp_runs_kernel
 from .pose import contour_cost_kernel, frontal_contour
@@ -68,7 +68,7 @@ class WarpBackend(Backend):
     name = "warp"
 
     def __init__(self, device: str):
-        _warp()  # initialized quietly
+        import_warp()  # initialized quietly
         self._device = wp.get_device(device)
         self.device = str(self._device.alias)
         self.is_gpu = bool(self._device.is_cuda)
