@@ -15,8 +15,8 @@ FRONTAL_VISIBLE = 2e-3
 #: "No limit" (m): the longest ray of ``cast_rays`` (its default), of ``frontal_faces`` and of
 #: the OpenCL render.
 MAX_DISTANCE = 1e6
-#: The Warp kernels' bound on a ray (m): ``cast_rays`` clamps ``max_distance`` to it (the BVH
-#: query takes no infinity), and the Warp render's "no limit".
+#: The Warp kernels' bound on a ray (m): Warp's ``cast_rays`` clamps ``max_distance`` to it, and
+#: the Warp render uses it as "no limit" where the OpenCL render uses ``MAX_DISTANCE``.
 WARP_FAR = 1e30
 #: Indices are clamped to ±2^30 before conversion to int32, so far-away points cannot overflow.
 INDEX_LIMIT = 1073741824.0
