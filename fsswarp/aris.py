@@ -42,7 +42,7 @@ import numpy as np
 from .atomic import check_output_folder, json_number, output_folder, write_text
 from .dataset import (Dataset, Manifest, SurfaceEstimate, load_dataset, manifest_to_toml, parse_manifest,
                       save_dataset)
-from .errors import InputError, is_integer
+from .errors import InputError, is_finite_number, is_integer, is_number
 from .rig import Rig, View
 from .sonar import SonarSpec
 
@@ -508,7 +508,7 @@ def import_aris(path, out, *, frames=None, elevation_fov_deg: float | None = Non
 def _elevation(value) -> float:
     if value is None:
         return DEFAULT_ELEVATION_FOV_DEG
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < 180:
+    if not (is_number(value) and 0 < value < 180):
         raise InputError("must be a full aperture in (0, 180) degrees", field="--elevation-fov-deg", value=value)
     return float(value)
 
@@ -516,7 +516,7 @@ def _elevation(value) -> float:
 def _sensor(path: Path, headers: dict[int, FrameHeader], name: str, given, flag: str, unit: str, ok, message: str):
     """(value, source) of a measured D0 or β0: ``given``, or the median sensor value."""
     if given is not None:
-        if isinstance(given, bool) or not isinstance(given, (int, float)) or not math.isfinite(given) or not ok(given):
+        if not (is_finite_number(given) and ok(given)):
             raise InputError(message, field=flag, value=given)
         return float(given), flag
     for i, header in headers.items():

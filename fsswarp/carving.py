@@ -33,9 +33,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import InputError, check_integer, is_integer
+from .errors import InputError, check_depth_tilt, check_integer, is_finite_number, is_integer
 from .rendering import signed_volume
-from .rig import check_depth_tilt, to_view
+from .rig import to_view
 from .segment import Segmentation, SegmentSettings, segment
 from .sonar import SonarSpec, from_polar, to_polar
 from .surface import surface_in_reference
@@ -76,7 +76,7 @@ class CarveSettings:
         for name, lowest in (("domain_resolution", 8), ("coarse", 2), ("min_views", 1), ("smooth", 0),
                              ("faces", 0)):
             check_integer(name, getattr(self, name), lowest)
-        if not (isinstance(self.surface_margin, (int, float)) and math.isfinite(self.surface_margin)):
+        if not is_finite_number(self.surface_margin):
             raise InputError("must be a finite number (m)", field="surface_margin", value=self.surface_margin)
 
 

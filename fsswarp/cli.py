@@ -383,7 +383,7 @@ def carve(state: State, dataset_dir: Path, out: Path, depth, tilt, resolution: i
     from .dataset import load_dataset
     from .figures import carve_figure
     from .outputs import carve_record, write_carve
-    from .rig import check_depth_tilt
+    from .errors import check_depth_tilt
 
     start = time.perf_counter()
     dataset = load_dataset(dataset_dir)
@@ -441,7 +441,7 @@ def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, pat
     from .dataset import load_dataset
     from .pose import check_uncertainties
     from .reconstruction import ReconstructSettings
-    from .rig import check_depth_tilt
+    from .errors import check_depth_tilt
 
     dataset = load_dataset(dataset_dir)
     check_output_folder(out, marker=MARKERS["reconstruct"])
@@ -482,7 +482,7 @@ def pose(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt, l
     from .figures import contours_figure, pose_figure
     from .outputs import pose_record, write_pose
     from .pose import check_uncertainties, estimate_pose
-    from .rig import check_depth_tilt
+    from .errors import check_depth_tilt
 
     dataset = load_dataset(dataset_dir)
     mesh = load_mesh_file(model, "--model")
@@ -653,7 +653,7 @@ def enhance(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt
     from .atomic import check_output_folder
     from .dataset import load_dataset
     from .enhancement import check_ghost_sigma, check_views
-    from .rig import check_depth_tilt
+    from .errors import check_depth_tilt
 
     dataset = load_dataset(dataset_dir)
     mesh = load_mesh_file(model, "--model")

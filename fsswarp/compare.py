@@ -38,7 +38,7 @@ from .icp import CONTOUR_TOL, icp_many
 from .metrics import view_errors
 from .motion import patch_motions
 from .rendering import RenderSettings, check_mesh
-from .rig import check_depth_tilt
+from .errors import check_depth_tilt
 from .segment import SegmentSettings, memoized, normalized, segment
 from .surface import mirror_points, surface_in_reference, surface_in_views
 

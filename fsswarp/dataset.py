@@ -34,7 +34,7 @@ import tifffile
 import tomli_w
 
 from .atomic import output_folder, write_text
-from .errors import InputError
+from .errors import InputError, check_number, is_number
 from .rig import Rig, View
 from .sonar import SonarSpec
 from .surface import COMPONENTS
@@ -74,8 +74,8 @@ class SurfaceEstimate:
     def __post_init__(self) -> None:
         _check_depth("surface.depth_m", self.depth)
         _check_tilt("surface.tilt_deg", self.tilt)
-        _check_number("surface.depth_sigma_m", self.depth_sigma, lambda v: v >= 0, "must be >= 0")
-        _check_number("surface.tilt_sigma_deg", self.tilt_sigma, lambda v: v >= 0, "must be >= 0",
+        check_number("surface.depth_sigma_m", self.depth_sigma, lambda v: v >= 0, "must be >= 0")
+        check_number("surface.tilt_sigma_deg", self.tilt_sigma, lambda v: v >= 0, "must be >= 0",
                       degrees=True)
 
 
@@ -123,7 +123,7 @@ class Target:
         if self.builtin is not None and self.builtin not in BUILTIN_TARGETS:
             raise InputError(f"unknown built-in target; choose one of {', '.join(BUILTIN_TARGETS)}",
                              field="target.builtin", value=self.builtin)
-        _check_number("target.scale_m", self.scale, lambda v: v > 0, "must be > 0")
+        check_number("target.scale_m", self.scale, lambda v: v > 0, "must be > 0")
         _check_vector("target.position_m", self.position, 3)
         if not self.position[2] < 0:
             raise InputError("z must be < 0: the mesh origin lies below the surface (z = 0)",
@@ -537,7 +537,7 @@ class _Table:
         if key not in self.items:
             return self._missing(key, default)
         value = self.items[key]
-        if not _is_number(value):
+        if not is_number(value):
             raise self.error(key, f"must be a number ({unit})")
         try:
             value = float(value)
@@ -590,7 +590,7 @@ class _Table:
         what = f"[{', '.join('xyz'[:count])}]" if count is not None and count <= 3 else "a list of numbers"
         if not isinstance(value, list) or (count is not None and len(value) != count):
             raise self.error(key, f"must be {what}" + (f" ({count} numbers, {unit})" if count else f" ({unit})"))
-        if not all(_is_number(v) for v in value):
+        if not all(is_number(v) for v in value):
             raise self.error(key, f"must hold numbers only ({unit})")
         try:
             out = [float(v) for v in value]
@@ -733,32 +733,12 @@ def _check_scene(manifest: Manifest, file) -> None:
 
 # --- value checks ------------------------------------------------------------------------
 
-def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
-
-
-def _shown(value: Any, degrees: bool) -> Any:
-    """``value`` as the file would hold it (degrees, rounded so that 95° shows as 95.0)."""
-    if degrees and _is_number(value) and math.isfinite(value):
-        return float(f"{math.degrees(value):.12g}")
-    return value
-
-
-def _check_number(field: str, value: Any, ok, message: str, *, degrees: bool = False) -> None:
-    if not _is_number(value):
-        raise InputError(f"must be a number ({'degrees' if degrees else 'm'})", field=field, value=value)
-    if not math.isfinite(value):
-        raise InputError("must be finite", field=field, value=_shown(value, degrees))
-    if not ok(value):
-        raise InputError(message, field=field, value=_shown(value, degrees))
-
-
 def _check_depth(field: str, value: Any) -> None:
-    _check_number(field, value, lambda v: v > 0, "must be > 0 (the sonar lies below the surface)")
+    check_number(field, value, lambda v: v > 0, "must be > 0 (the sonar lies below the surface)")
 
 
 def _check_tilt(field: str, value: Any) -> None:
-    _check_number(field, value, lambda v: abs(v) < math.pi / 2, "must lie in (-90, 90) degrees",
+    check_number(field, value, lambda v: abs(v) < math.pi / 2, "must lie in (-90, 90) degrees",
                   degrees=True)
 
 
@@ -766,7 +746,7 @@ def _check_vector(field: str, value: Any, count: int, *, degrees: bool = False) 
     if not isinstance(value, (tuple, list)) or len(value) != count:
         raise InputError(f"must hold {count} numbers", field=field, value=value)
     for v in value:
-        _check_number(field, v, lambda _: True, "", degrees=degrees)
+        check_number(field, v, lambda _: True, "", degrees=degrees)
 
 
 def _check_inner_path(field: str, value: Any, suffixes: tuple[str, ...]) -> None:

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from .errors import InputError
+from .errors import InputError, is_number
 from .rendering import LAYERS, RenderSettings, RenderWarning, render
 
 _DB_FLOOR = 1e-30
@@ -130,8 +130,7 @@ def check_ghost_sigma(sigma) -> None:
     (pixels): a larger σ blurs the ghost over more than the region it fills, and a huge one
     would run for minutes."""
     values = tuple(sigma) if isinstance(sigma, (tuple, list)) else ()
-    if len(values) != 2 or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
-                                   and 0.0 <= v <= MAX_GHOST_SIGMA for v in values):  # NaN fails too
+    if len(values) != 2 or not all(is_number(v) and 0.0 <= v <= MAX_GHOST_SIGMA for v in values):  # NaN fails too
         raise InputError(f"must be two sigmas (bins, beams) in [0, {MAX_GHOST_SIGMA:g}] pixels", field="--ghost-sigma",
                          value=sigma)
 

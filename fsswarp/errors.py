@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import math
 import numbers
-from typing import Any
+from typing import Any, Callable
+
+import numpy as np
 
 _UNSET = object()
 
@@ -48,6 +51,59 @@ def check_integer(name: str, value: Any, minimum: int) -> None:
     """InputError naming field ``name`` unless ``value`` is an integer >= ``minimum``."""
     if not is_integer(value) or value < minimum:
         raise InputError(f"must be an integer >= {minimum}", field=name, value=value)
+
+
+def is_number(value: Any) -> bool:
+    """An int, float or NumPy real scalar, not a bool."""
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+
+
+def is_finite_number(value: Any) -> bool:
+    """A finite :func:`is_number`."""
+    return is_number(value) and math.isfinite(value)
+
+
+def degrees_shown(angle: float) -> float:
+    """``angle`` (rad) in degrees to 12 significant digits: the value as the user typed it,
+    without the radian round trip's last digits (95° shows as 95.0)."""
+    return float(f"{math.degrees(angle):.12g}")
+
+
+def check_number(field: str, value: Any, ok: Callable[[float], bool], message: str, *,
+                 degrees: bool = False) -> None:
+    """InputError naming ``field`` unless ``value`` is a finite number (m, or rad shown in
+    degrees with ``degrees``) for which ``ok(value)`` holds (else ``message``)."""
+    def shown(v: Any) -> Any:
+        return degrees_shown(v) if degrees and is_finite_number(v) else v
+
+    if not is_number(value):
+        raise InputError(f"must be a number ({'degrees' if degrees else 'm'})", field=field, value=value)
+    if not math.isfinite(value):
+        raise InputError("must be finite", field=field, value=shown(value))
+    if not ok(value):
+        raise InputError(message, field=field, value=shown(value))
+
+
+def check_depth_tilt(depth: Any, tilt: Any) -> None:
+    """InputError (field ``--depth`` or ``--tilt``, the tilt shown in degrees) unless depth (m)
+    is a finite number > 0 and tilt (rad) a finite number in (-π/2, π/2)."""
+    if not (is_finite_number(depth) and depth > 0):
+        raise InputError("must be a finite depth > 0 (m)", field="--depth",
+                         value=float(depth) if is_number(depth) else depth)
+    if not (is_finite_number(tilt) and abs(tilt) < math.pi / 2):
+        raise InputError("must be a finite tilt in (-90, 90) degrees", field="--tilt",
+                         value=degrees_shown(tilt) if is_number(tilt) else tilt)
+
+
+def finite_array(name: str, value: Any, ndim: int) -> np.ndarray:
+    """``value`` as a float64 array of ``ndim`` dimensions with finite entries, or InputError
+    naming ``name``."""
+    array = np.asarray(value, np.float64)
+    if array.ndim != ndim:
+        raise InputError(f"must have {ndim} dimensions", field=name, value=array.shape)
+    if not np.all(np.isfinite(array)):
+        raise InputError("must be finite", field=name, value="NaN/inf")
+    return array
 
 
 def _short(value: Any, limit: int = 60) -> str:

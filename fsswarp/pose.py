@@ -33,7 +33,7 @@ from .atomic import json_number
 from .compare import PoseSettings, PoseWarning, ViewComparison
 from .dataset import MANIFEST_NAME
 from .errors import InputError, check_integer
-from .rig import check_depth_tilt
+from .errors import check_depth_tilt
 
 #: Half-width of the polish box in cells of the finest grid level.
 POLISH_CELLS = 2

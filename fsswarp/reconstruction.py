@@ -41,7 +41,7 @@ from .metrics import average_contour_error, average_intensity_error, combine, im
 from .pose import check_uncertainties, estimate_pose
 from .refine import RefineSettings, refine_shape
 from .rendering import RenderSettings, render, with_total
-from .rig import check_depth_tilt
+from .errors import check_depth_tilt
 
 
 @dataclass(frozen=True)

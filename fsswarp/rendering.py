@@ -30,8 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError, is_integer
-from .rig import Rig, check_depth_tilt
+from .errors import InputError, check_depth_tilt, finite_array, is_integer
+from .rig import Rig
 from .sonar import SonarSpec, to_polar
 from .surface import COMPONENTS, apparent_returns, surface_in_views
 
@@ -120,10 +120,10 @@ def render_views(mesh, sonar: SonarSpec, rotations, translations, plane_normals,
     from .backends import get_backend
 
     vertices, faces = check_mesh(mesh)
-    rotations = _finite("pose rotations", rotations, 3)
-    translations = _finite("pose translations", translations, 2)
-    normals = _finite("plane normals", plane_normals, 2)
-    offsets = _finite("plane offsets", plane_offsets, 1)
+    rotations = finite_array("pose rotations", rotations, 3)
+    translations = finite_array("pose translations", translations, 2)
+    normals = finite_array("plane normals", plane_normals, 2)
+    offsets = finite_array("plane offsets", plane_offsets, 1)
     if np.any(offsets <= 0):
         raise InputError("the sonar must lie below the surface (offset > 0)", field="plane offsets",
                          value=float(offsets.min()))
@@ -202,12 +202,3 @@ def log_compress(image, *, dynamic_range_db: float = 60.0, peak: float | None = 
     with np.errstate(divide="ignore"):
         db = 20.0 * np.log10(np.maximum(image, 0.0) / peak)
     return np.clip(np.rint(255.0 * (1.0 + db / dynamic_range_db)), 0, 255).astype(np.uint8)
-
-
-def _finite(name: str, value, ndim: int) -> np.ndarray:
-    array = np.asarray(value, np.float64)
-    if array.ndim != ndim:
-        raise InputError(f"must have {ndim} dimensions", field=name, value=array.shape)
-    if not np.all(np.isfinite(array)):
-        raise InputError("must be finite", field=name, value="NaN/inf")
-    return array

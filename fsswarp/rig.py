@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, degrees_shown
 
 
 def rotation_x(angle) -> np.ndarray:
@@ -161,20 +161,6 @@ class Rig:
         return rt @ rot_w, (rt @ (s_w - s_ref[..., None, :])[..., None])[..., 0]
 
 
-def check_depth_tilt(depth, tilt) -> None:
-    """InputError (field ``--depth`` or ``--tilt``, the tilt shown in degrees) unless depth (m)
-    is a finite number > 0 and tilt (rad) a finite number in (-π/2, π/2)."""
-    def number(value) -> bool:
-        return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
-
-    if not (number(depth) and math.isfinite(depth) and depth > 0):
-        raise InputError("must be a finite depth > 0 (m)", field="--depth",
-                         value=float(depth) if number(depth) else depth)
-    if not (number(tilt) and math.isfinite(tilt) and abs(tilt) < math.pi / 2):
-        raise InputError("must be a finite tilt in (-90, 90) degrees", field="--tilt",
-                         value=_degrees_shown(tilt) if number(tilt) else tilt)
-
-
 def with_rolls(rig: Rig, rolls, *, at: str | None = None) -> tuple[Rig, list[str]]:
     """``rig`` plus one new view per roll (rad) at the position, heading and offsets of view
     ``at`` (default: the reference view), named ``roll<degrees>`` (e.g. ``roll45``,
@@ -186,14 +172,14 @@ def with_rolls(rig: Rig, rolls, *, at: str | None = None) -> tuple[Rig, list[str
     for roll in rolls:
         if not (math.isfinite(roll) and abs(roll) <= math.pi):
             raise InputError("must be a finite angle in [-180, 180] degrees", field="--roll",
-                             value=_degrees_shown(roll))
+                             value=degrees_shown(roll))
         name = f"roll{math.degrees(roll):g}"
         if name in rig.names:
             raise InputError("the dataset already has a view of that name", field="--roll", value=name)
         if name in names:
             if added[names.index(name)].roll != roll:
                 raise InputError(f"differs from another --roll only beyond the 6 digits of the view name {name}",
-                                 field="--roll", value=_degrees_shown(roll))
+                                 field="--roll", value=degrees_shown(roll))
             continue
         names.append(name)
         added.append(View(name, base.position, base.heading, roll, base.depth_offset,
@@ -216,12 +202,6 @@ def reference_to_world(points, rig: Rig, depth: float, tilt: float) -> np.ndarra
 def to_view(points, rotation, translation) -> np.ndarray:
     """(..., 3) reference-frame points in a view frame: ``Rᵀ (P - t)``."""
     return (np.asarray(points, np.float64) - translation) @ rotation
-
-
-def _degrees_shown(angle: float) -> float:
-    """``angle`` (rad) in degrees to 12 significant digits: the value as the user typed it,
-    without the radian round trip's last digits."""
-    return float(f"{math.degrees(angle):.12g}")
 
 
 def _safe_name(name: str) -> bool:

@@ -33,12 +33,7 @@ from typing import Callable
 
 import numpy as np
 
-from .errors import InputError, check_integer
-
-
-def _is_real(value) -> bool:
-    return not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating)) \
-        and math.isfinite(value)
+from .errors import InputError, check_integer, is_finite_number
 
 
 class SegmentWarning(UserWarning):
@@ -68,9 +63,9 @@ class SegmentSettings:
     def __post_init__(self) -> None:
         for name in ("sigma_bins", "sigma_beams"):
             value = getattr(self, name)
-            if not (_is_real(value) and 0 <= value <= 50):
+            if not (is_finite_number(value) and 0 <= value <= 50):
                 raise InputError("must be a number in [0, 50] (pixels)", field=f"segment.{name}", value=value)
-        if not (_is_real(self.low) and _is_real(self.high) and 0 < self.low <= self.high):
+        if not (is_finite_number(self.low) and is_finite_number(self.high) and 0 < self.low <= self.high):
             raise InputError("thresholds must satisfy 0 < low <= high", field="segment.low",
                              value=(self.low, self.high))
         for name, lowest in (("min_pixels", 1), ("background_rows", 1), ("dilate_beams", 0)):

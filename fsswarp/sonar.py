@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import InputError, check_integer
+from .errors import InputError, check_integer, is_finite_number, is_number
 
 
 @dataclass(frozen=True)
@@ -40,7 +40,7 @@ class SonarSpec:
         check_integer("sonar.bins", self.bins, 2)
         _check_angle("sonar.elevation_fov_deg", self.elevation_fov, math.pi)
         for name, value in (("sonar.range_min_m", self.range_min), ("sonar.range_max_m", self.range_max)):
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+            if not (is_finite_number(value) and value >= 0):
                 raise InputError("must be a finite number >= 0", field=name, value=value)
         if not self.range_max > self.range_min:
             raise InputError(f"must be greater than range_min_m = {self.range_min:g}",
@@ -252,12 +252,12 @@ def scan_convert(image, sonar: SonarSpec, *, pixel_m: float | None = None, fill:
 
 
 def _check_angle(name: str, value, maximum: float) -> None:
-    if not (isinstance(value, (int, float)) and math.isfinite(value) and 0 < value < maximum):
+    if not (is_finite_number(value) and 0 < value < maximum):
         raise InputError(f"must be in (0, {math.degrees(maximum):g}) degrees", field=name,
-                         value=math.degrees(value) if isinstance(value, (int, float)) else value)
+                         value=math.degrees(value) if is_number(value) else value)
 
 
 def _radians(name: str, degrees) -> float:
-    if isinstance(degrees, bool) or not isinstance(degrees, (int, float)):
+    if not is_number(degrees):
         raise InputError("must be a number (degrees)", field=name, value=degrees)
     return math.radians(degrees)

@@ -7,14 +7,13 @@ A scene places it in the world with ``[target] position_m`` and ``rotation_deg``
 
 from __future__ import annotations
 
-import math
 from typing import Any, NamedTuple
 
 import manifold3d
 import numpy as np
 import trimesh
 
-from .errors import InputError, check_integer, is_integer
+from .errors import InputError, check_integer, is_finite_number, is_integer
 
 
 class CoralSpec(NamedTuple):
@@ -90,7 +89,7 @@ def table_mesh(*, top=(0.24, 0.16, 0.02), leg=(0.025, 0.025, 0.14),
     """
     top_size = _size3("top", top)
     leg_size = _size3("leg", leg)
-    if not (_is_real(inset) and math.isfinite(inset) and inset >= 0):
+    if not (is_finite_number(inset) and inset >= 0):
         raise InputError("must be a finite number >= 0 (m)", field="inset", value=inset)
     for axis in (0, 1):
         if 2.0 * (inset + leg_size[axis]) >= top_size[axis]:
@@ -128,14 +127,9 @@ def builtin_mesh(name: str) -> trimesh.Trimesh:
 def _size3(name: str, value: Any) -> tuple[float, float, float]:
     """``value`` as three finite sizes > 0 (m), or InputError naming ``name``."""
     items = list(value) if isinstance(value, (list, tuple, np.ndarray)) else []
-    if not (len(items) == 3 and all(_is_real(v) and math.isfinite(v) and v > 0 for v in items)):
+    if not (len(items) == 3 and all(is_finite_number(v) and v > 0 for v in items)):
         raise InputError("must be three finite sizes > 0 (x, y, z in m)", field=name, value=value)
     return (float(items[0]), float(items[1]), float(items[2]))
-
-
-def _is_real(value: Any) -> bool:
-    """Whether ``value`` is a real number (a bool is not)."""
-    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
 
 
 def _unit_vectors(rng: np.random.Generator, count: int) -> np.ndarray:

@@ -228,7 +228,8 @@ def test_new_rolls_lie_in_a_turn_and_each_name_is_one_roll():
     """``with_rolls`` (render --roll): a roll given twice makes one view; rolls beyond ±180°
     (a manifest's range) and two rolls that share a 6-digit name are refused, naming --roll
     in degrees; depth and tilt are checked with their options' names, the tilt in degrees."""
-    from fsswarp.rig import check_depth_tilt, with_rolls
+    from fsswarp.errors import check_depth_tilt
+    from fsswarp.rig import with_rolls
 
     rig = paper_rig()
     extended, names = with_rolls(rig, [math.radians(10.0), math.radians(10.0), math.radians(-180.0)])
