@@ -157,12 +157,12 @@ def table_markdown(record: dict, name: str) -> str:
 
 
 def machine(backend) -> dict:
-    from fsswarp.bench import cpu_info, device_name
+    from fsswarp.benchmark import cpu_info
 
     cpu = cpu_info()
     return {"host": platform.node(), "system": f"{platform.system()} {platform.release()}", "cpu": cpu["model"],
             "logical_cpus": cpu["logical_cpus"], "python": platform.python_version(), "backend": backend.name,
-            "device": backend.device, "device_name": device_name(backend)}
+            "device": backend.device, "device_name": backend.device_name}
 
 
 def add_run_options(parser: argparse.ArgumentParser, records: Path) -> None:

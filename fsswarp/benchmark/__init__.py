@@ -6,7 +6,8 @@ limits; ``families``: what each family launches and its operation counts, and ``
 """
 
 from .families import FAMILIES, check_options, coral_batch, run_suite
+from .harness import cpu_info
 from .report import machine_markdown, markdown, plot_family, slowest
 
-__all__ = ["FAMILIES", "check_options", "coral_batch", "machine_markdown", "markdown", "plot_family", "run_suite",
-           "slowest"]
+__all__ = ["FAMILIES", "check_options", "coral_batch", "cpu_info", "machine_markdown", "markdown", "plot_family",
+           "run_suite", "slowest"]

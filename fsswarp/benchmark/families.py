@@ -82,40 +82,6 @@ def sphere_rays(count: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     return origins.astype(np.float32), dirs.astype(np.float32)
 
 
-def _resident_cast(backend, handle, origins: np.ndarray, dirs: np.ndarray):
-    """A call that launches the cast kernel on rays already on the device and waits."""
-    n = origins.shape[0]
-    if backend.name == "warp":
-        import warp as wp
-
-        from ..backends.warp_backend import cast_rays_kernel
-
-        device = wp.get_device(backend.device)
-        org, dir_ = (wp.array(a, dtype=wp.vec3, device=device) for a in (origins, dirs))
-        distance, face = wp.empty(n, dtype=float, device=device), wp.empty(n, dtype=wp.int32, device=device)
-
-        def call():
-            wp.launch(cast_rays_kernel, dim=n, inputs=[handle.id, handle.points, handle.indices, org, dir_, 1.0e6],
-                      outputs=[distance, face], device=device)
-            wp.synchronize_device(device)
-        return call
-    import pyopencl as cl
-
-    from ..backends.opencl_backend import GROUP
-
-    org, dir_ = backend._input(origins), backend._input(dirs)
-    distance = cl.Buffer(backend.context, cl.mem_flags.WRITE_ONLY, size=4 * n)
-    face = cl.Buffer(backend.context, cl.mem_flags.WRITE_ONLY, size=4 * n)
-
-    def call():
-        with backend._lock:
-            backend._cast_kernel(backend.queue, (-(-n // GROUP) * GROUP,), None, handle.nodes, handle.children,
-                                 handle.triangles, handle.face_index, org, dir_, np.int32(n), np.float32(1.0e6),
-                                 distance, face)
-            backend.queue.finish()
-    return call
-
-
 def _ray_count(who) -> int:
     return 1 << (22 if who.is_gpu else 18)
 
@@ -128,7 +94,8 @@ def _triangle_points(levels: Sequence[int], rays: int) -> list[tuple]:
 def raycast(backend, levels: Sequence[int], *, profiles: dict, repeat: int = 3, budget: float = 20.0,
             rays: int | None = None, progress: Progress | None = None) -> list[dict]:
     """Ray casting on icospheres of 20·4^level triangles (``levels``), the same ray set at
-    every size: "end to end" (``Backend.cast_rays``) and "resident" (the kernel alone)."""
+    every size: "end to end" (``Backend.cast_rays``) and "resident" (``Backend.prepared_cast``:
+    the kernel alone on rays already on the device)."""
     rays = rays or _ray_count(backend)
     origins, dirs = sphere_rays(rays)
     profile = profiles[profile_key(backend)]
@@ -147,7 +114,7 @@ def raycast(backend, levels: Sequence[int], *, profiles: dict, repeat: int = 3, 
         size = {"triangles": faces, "rays": rays, "hits": hits}
         out = []
         for mode, call in (("end to end", lambda: backend.cast_rays(handle, origins, dirs)),
-                           ("resident", _resident_cast(backend, handle, origins, dirs))):
+                           ("resident", backend.prepared_cast(handle, origins, dirs))):
             timing = measure(call, repeat, budget=budget)
             up, down = (rays * RAY_IN_BYTES, rays * RAY_OUT_BYTES) if link and mode == "end to end" else (0, 0)
             out.append(timed_record(bases[mode], faces, timing, rays, "rays", size=size,
@@ -215,10 +182,8 @@ def coral_batch(n_views: int):
 def render_ops(backend, sonar, mesh, rot, t, n, d, samples) -> np.ndarray:
     """(N,) minimal operations of rendering each view (docs/benchmarks.md), from the measured
     hits of its primary sub-rays."""
-    from ..backends import _beam_widths
-
     kt, kp = samples
-    widths = _beam_widths(sonar).astype(np.float64)
+    widths = sonar.beam_widths.astype(np.float64)
     i = (np.arange(kt) + 0.5) / kt - 0.5
     j = (np.arange(kp) + 0.5) / kp
     theta = (sonar.beam_centres[:, None] + i[None, :] * widths[:, None]).reshape(-1, 1)
@@ -313,54 +278,6 @@ def _tests_per_voxel(backend, masks, rot, t, sonar, h, origin, side, sample=4096
     return float(first.mean())
 
 
-def _resident_carve(backend, masks, rot, t, sonar, h, origin, side):
-    """A call that launches the carve-grid kernel on tables already on the device and waits."""
-    from ..backends import SonarConstants
-
-    consts = SonarConstants.of(sonar)
-    integral = np.zeros((len(rot), sonar.bins + 1, sonar.beams + 1), np.int32)
-    np.cumsum(np.cumsum(masks != 0, axis=1, dtype=np.int32), axis=2, out=integral[:, 1:, 1:])
-    rot32, t32 = np.ascontiguousarray(rot, np.float32), np.ascontiguousarray(t, np.float32)
-    radius = float(np.float32(h * np.sqrt(3.0) / 2.0))
-    h32 = float(np.float32(h))
-    n = side**3
-    scalars = (consts.use_table, consts.beams, consts.bins, consts.half_azimuth, consts.beam_scale,
-               consts.range_min, consts.inv_range_step, consts.half_elevation, radius)
-    if backend.name == "warp":
-        import warp as wp
-
-        from ..backends.warp_backend import carve_grid
-
-        device = wp.get_device(backend.device)
-        arrays = [wp.array(rot32, dtype=wp.mat33, device=device), wp.array(t32, dtype=wp.vec3, device=device),
-                  wp.array(integral, dtype=wp.int32, device=device),
-                  wp.array(consts.beam_table, dtype=float, device=device)]
-        seen, rejected = (wp.empty(n, dtype=wp.uint8, device=device) for _ in range(2))
-
-        def call():
-            wp.launch(carve_grid, dim=n, inputs=[wp.vec3(*(float(x) for x in origin)), h32, side, side, *arrays,
-                                                 *scalars], outputs=[seen, rejected], device=device)
-            wp.synchronize_device(device)
-        return call
-    import pyopencl as cl
-
-    from ..backends.opencl_backend import GROUP
-
-    inputs = [backend._input(a) for a in (np.ascontiguousarray(origin, np.float32), rot32, t32, integral,
-                                          consts.beam_table)]
-    seen, rejected = (cl.Buffer(backend.context, cl.mem_flags.WRITE_ONLY, size=n) for _ in range(2))
-    types = (np.int32, np.int32, np.int32, np.float32, np.float32, np.float32, np.float32, np.float32, np.float32)
-
-    def call():
-        with backend._lock:
-            backend._carve_grid_kernel(backend.queue, (-(-n // GROUP) * GROUP,), None, inputs[0], np.float32(h32),
-                                       *(np.int32(side) for _ in range(3)), np.int32(n), inputs[1], inputs[2],
-                                       inputs[3], np.int32(len(rot)), inputs[4],
-                                       *(ty(v) for ty, v in zip(types, scalars)), seen, rejected)
-            backend.queue.finish()
-    return call
-
-
 def _carve_limit(profile, sonar, views, side, tests, *, end_to_end: bool) -> dict:
     tables = views * (sonar.bins + 1) * (sonar.beams + 1) * 4
     link = profile.get("link_up_Bps") is not None and end_to_end
@@ -371,7 +288,8 @@ def _carve_limit(profile, sonar, views, side, tests, *, end_to_end: bool) -> dic
 def carving(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3, budget: float = 20.0,
             scene=None, progress: Progress | None = None) -> list[dict]:
     """One carve launch over side³ voxels × 16 views (``sides``): "end to end"
-    (``Backend.carve``) and "resident" (the kernel alone)."""
+    (``Backend.carve``) and "resident" (``Backend.prepared_carve``: the kernel alone on
+    tables already on the device)."""
     sonar, masks, rot, t, centre = scene or carve_scene(backend)
     views = len(rot)
     profile = profiles[profile_key(backend)]
@@ -381,7 +299,7 @@ def carving(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3, b
         h, origin = carving_grid(centre, side)
         tests = _tests_per_voxel(backend, masks, rot, t, sonar, h, origin, side)
         calls = {"end to end": lambda: backend.carve(masks, rot, t, sonar, h, origin=origin, shape=(side,) * 3),
-                 "resident": _resident_carve(backend, masks, rot, t, sonar, h, origin, side)}
+                 "resident": backend.prepared_carve(masks, rot, t, sonar, h, origin, side)}
         out = []
         for mode, call in calls.items():
             timing = measure(call, repeat, budget=budget)
@@ -489,7 +407,7 @@ def array_carving(sides: Sequence[int], *, profiles: dict, scene, repeat: int = 
 def pose_grid(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3, budget: float = 20.0,
               launch_bytes: int | None = None, progress: Progress | None = None) -> list[dict]:
     """The (D, β) grid surrogate over side² cells × 16 views (``sides``): "end to end"
-    (``PoseProblem.surrogate``: render + contour cost per launch, costs read back) and
+    (``ViewComparison.surrogate``: render + contour cost per launch, costs read back) and
     "resident" (``Backend.contour_cost`` alone on layers already rendered, where they fit in
     one launch of ``launch_bytes``: default 16 GiB on a GPU, 2 GiB on a CPU)."""
     import dataclasses
@@ -497,7 +415,7 @@ def pose_grid(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3,
     import trimesh
 
     from ..dataset import Dataset
-    from ..pose import PoseProblem, PoseSettings
+    from ..compare import PoseSettings, ViewComparison
     from ..rig import Rig
     from ..simulation import simulate
 
@@ -513,8 +431,8 @@ def pose_grid(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3,
         dataset = Dataset(dataclasses.replace(dataset.manifest, rig=every), dataset.images, dataset.root)
         model = trimesh.load(dataset.truth_model_path, process=False)
         truth = dataset.manifest.truth
-        problem = PoseProblem(model, dataset, truth.depth, truth.tilt,
-                              settings=PoseSettings(launch_bytes=launch_bytes), backend=backend)
+        problem = ViewComparison(dataset, settings=PoseSettings(launch_bytes=launch_bytes),
+                                 backend=backend).use(model, truth.depth, truth.tilt)
     data, sonar, settings = problem.data, problem.sonar, problem.settings
     views = len(data.views)
     rot, t, n, d = problem.view_poses(data.views, np.array([truth.depth]), np.array([truth.tilt]))

@@ -255,8 +255,7 @@ def copy_rates(who, nbytes: int) -> tuple[float, float, float]:
     """(device-to-device B/s counting read + write, host-to-device B/s, device-to-host B/s) of
     ``who.transfer_calls(nbytes)``: the fastest of 5 copies after one untimed."""
     rates = []
-    calls = who.transfer_calls(nbytes) if hasattr(who, "transfer_calls") else _legacy_transfer_calls(who, nbytes)
-    for fn, factor in zip(calls, (2, 1, 1)):
+    for fn, factor in zip(who.transfer_calls(nbytes), (2, 1, 1)):
         fn()
         rates.append(factor * nbytes / min(_once(fn) for _ in range(5)))
     return rates[0], rates[1], rates[2]
@@ -276,7 +275,7 @@ def limit_profile(who, cpu: dict, host_bw: float, *, quick: bool) -> dict:
                 "bandwidth_Bps": bandwidth, "bandwidth_source": source,
                 "peak_ops": peak, "peak_source": None if peak is None else
                 f"{cores} core(s) x {cpu['peak_derivation']}"}
-    name = who.device_name if hasattr(type(who), "device_name") else _legacy_device_name(who)
+    name = who.device_name
     size = (64 if quick else 512) << 20
     copy, up, down = copy_rates(who, size)
     sheet = next((p for p in GPU_PEAKS if p[0].lower() in name.lower()), None)
@@ -303,51 +302,3 @@ def probe_machine(participants: Sequence, *, quick: bool = False) -> dict:
             "host_bandwidth_Bps": host_bw, "versions": versions,
             "profiles": {profile_key(p): limit_profile(p, cpu, host_bw, quick=quick) for p in participants}}
 
-
-def _legacy_device_name(backend) -> str:  # TEMPORARY until Backend.device_name
-    if backend.name == "warp":
-        import warp as wp
-
-        return wp.get_device(backend.device).name
-    return backend.cl_device.name.strip()
-
-
-def _legacy_transfer_calls(backend, nbytes):  # TEMPORARY until Backend.transfer_calls
-    host = np.ones(nbytes // 4, np.float32)
-    back = np.empty_like(host)
-    if backend.name == "warp":
-        import warp as wp
-
-        device = wp.get_device(backend.device)
-        src = wp.array(host, device=device)
-        dst = wp.empty_like(src)
-
-        def d2d():
-            wp.copy(dst, src)
-            wp.synchronize_device(device)
-
-        staging = wp.array(host, device="cpu")
-
-        def h2d():
-            wp.copy(src, staging)
-            wp.synchronize_device(device)
-
-        def d2h():
-            back[:] = src.numpy()
-    else:
-        import pyopencl as cl
-
-        queue, flags = backend.queue, cl.mem_flags.READ_WRITE
-        src = cl.Buffer(backend.context, flags, size=host.nbytes)
-        dst = cl.Buffer(backend.context, flags, size=host.nbytes)
-
-        def d2d():
-            cl.enqueue_copy(queue, dst, src, byte_count=host.nbytes)
-            queue.finish()
-
-        def h2d():
-            cl.enqueue_copy(queue, src, host, is_blocking=True)
-
-        def d2h():
-            cl.enqueue_copy(queue, back, src, is_blocking=True)
-    return d2d, h2d, d2h
