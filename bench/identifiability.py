@@ -73,8 +73,9 @@ def valley_depth(rig, centroid, depth_true: float, tilt_true: float, tilt: float
 
 def state(model, dataset, depth: float, tilt: float, truth, backend) -> dict:
     """AIE, ACE (m), E_mu (m) and E_V of ``model`` at (depth m, tilt rad)."""
+    from fsswarp.compare import PoseWarning
     from fsswarp.metrics import compare
-    from fsswarp.pose import PoseWarning, pose_objective
+    from fsswarp.pose import pose_objective
     from fsswarp.reconstruction import image_errors
 
     with warnings.catch_warnings():

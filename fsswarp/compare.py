@@ -33,12 +33,11 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from .backends import rows_read
-from .errors import InputError, check_integer, is_integer
+from .errors import InputError, check_depth_tilt, check_integer, is_integer
 from .icp import CONTOUR_TOL, icp_many
 from .metrics import view_errors
 from .motion import patch_motions
 from .rendering import RenderSettings, check_mesh
-from .errors import check_depth_tilt
 from .segment import SegmentSettings, memoized, normalized, segment
 from .surface import mirror_points, surface_in_reference, surface_in_views
 

@@ -32,8 +32,7 @@ import numpy as np
 from .atomic import json_number
 from .compare import PoseSettings, PoseWarning, ViewComparison
 from .dataset import MANIFEST_NAME
-from .errors import InputError, check_integer
-from .errors import check_depth_tilt
+from .errors import InputError, check_depth_tilt, check_integer
 
 #: Half-width of the polish box in cells of the finest grid level.
 POLISH_CELLS = 2

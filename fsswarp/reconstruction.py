@@ -35,13 +35,12 @@ from typing import Callable
 import numpy as np
 
 from .carving import CarveSettings, carve
-from .errors import check_integer
+from .errors import check_depth_tilt, check_integer
 from .compare import PoseSettings, PoseWarning, ViewComparison
 from .metrics import average_contour_error, average_intensity_error, combine, image_error
 from .pose import check_uncertainties, estimate_pose
 from .refine import RefineSettings, refine_shape
 from .rendering import RenderSettings, render, with_total
-from .errors import check_depth_tilt
 
 
 @dataclass(frozen=True)

@@ -151,12 +151,10 @@ def test_uncertainties_that_span_no_search_name_their_field_before_the_carving(c
     field, before the carving runs."""
     import dataclasses
 
-    from fsswarp import reconstruct as module
-
     manifest = coral_one.manifest
     spoilt = dataclasses.replace(coral_one, manifest=dataclasses.replace(
         manifest, surface=dataclasses.replace(manifest.surface, **change)))
-    monkeypatch.setattr(module, "carve", lambda *a, **k: pytest.fail("carved before the check"))
+    monkeypatch.setattr(reconstruct_module, "carve", lambda *a, **k: pytest.fail("carved before the check"))
     with pytest.raises(InputError, match=f"dataset.toml: {field} = .*: must be > 0") as info:
         reconstruct(spoilt, settings=FAST)
     assert "\n" not in str(info.value)
