@@ -454,6 +454,33 @@ def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, pat
 
 
 @app.command()
+@click.argument("jobs_file", metavar="JOBS.toml", type=click.Path(path_type=Path))
+@click.option("--out", required=True, type=click.Path(path_type=Path),
+              help="Folder for one reconstruction folder per job (OUT/<name>/), jobs.jsonl and summary.json.")
+@click.option("--address", default=None,
+              help="Ray cluster to join: 'auto' or HOST:PORT of its head; default: start a local Ray instance.")
+@click.option("--jobs-per-gpu", default=1, show_default=True, type=click.IntRange(min=1),
+              help="Jobs sharing each GPU at once (each asks Ray for 1/K of a GPU); CPU-only clusters run one "
+                   "job per CPU on OpenCL.")
+@click.option("--retries", default=2, show_default=True, type=click.IntRange(min=0),
+              help="Runs again of a job that was killed, crashed or lost its worker (bad input is not retried).")
+@click.pass_obj
+def batch(state: State, jobs_file: Path, out: Path, address, jobs_per_gpu: int, retries: int) -> None:
+    """Run the reconstructions of JOBS.toml on a Ray cluster (or a local Ray instance), one
+    'fsswarp reconstruct' per job: OUT/<name>/, OUT/jobs.jsonl (one line per job: ok, failed or
+    skipped) and OUT/summary.json. Jobs already done are skipped. Exit 1 if any job failed."""
+    from .batch import load_jobs, run_batch
+
+    jobs = load_jobs(jobs_file, reconstruct)
+    selection = [a for k, v in (("--backend", state.backend), ("--device", state.device)) if v not in (None, "auto")
+                 for a in (k, v)]
+    outcomes = run_batch(jobs, out, address=address, jobs_per_gpu=jobs_per_gpu, retries=retries,
+                         global_options=tuple(selection), quiet=state.quiet)
+    if any(o.status == "failed" for o in outcomes):
+        raise SystemExit(1)  # main() would drop the status of click's Exit (standalone_mode=False)
+
+
+@app.command()
 @click.argument("dataset_dir", metavar="DIR", type=click.Path(path_type=Path))
 @click.option("--model", required=True, type=click.Path(path_type=Path),
               help="Mesh of the object in the dataset's reference frame (a known shape, truth/model.ply of a "

@@ -18,7 +18,7 @@ MODEL = {"errors", "atomic", "system", "sonar", "rig", "surface", "targets", "da
 PIPELINE = {"aris", "segment", "icp", "motion", "compare", "rendering", "simulation", "carving", "pose", "refine",
             "reconstruction", "enhancement"}
 READERS = {"figures", "outputs", "benchmark"}
-TOP = {"cli", "__main__"}
+TOP = {"cli", "__main__", "batch"}
 #: What each layer may import besides itself.
 ALLOWED = {"model": {"model"}, "backends": {"model", "backends"}, "pipeline": {"model", "backends", "pipeline"},
            "readers": {"model", "backends", "pipeline", "readers"},

@@ -1,0 +1,370 @@
+"""``fsswarp batch``: many ``fsswarp reconstruct`` jobs on a Ray cluster (docs/batch.md).
+
+A batch is a JOBS.toml file: ``[defaults]`` and one ``[[jobs]]`` table per job (``name``,
+``dataset``, and options of ``fsswarp reconstruct`` by their long name with '_' for '-').
+:func:`load_jobs` checks the whole file against the reconstruct command's own click options
+before anything runs. :func:`run_batch` runs one Ray task per job; each task runs
+``python -m fsswarp [global options] reconstruct DATASET --out DIR/<name> ...`` as a child
+process, so a killed or crashed job is a dead process and the job's exit status 2 means
+bad input. Outputs under DIR:
+
+- ``<name>/``: the job's folder, exactly as ``fsswarp reconstruct --out`` writes it
+- ``jobs.jsonl``: one JSON line per job outcome: name, status (ok, failed, skipped),
+  attempts, seconds (the last attempt's wall time), error (one line or null), node, device
+- ``summary.json``: the totals
+
+A job whose ``DIR/<name>/result.json`` exists is skipped. Ray is imported only inside
+:func:`run_batch` and :func:`run_job` (the optional extra ``fsswarp[batch]``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import click
+
+from .atomic import write_text
+from .errors import InputError
+
+#: The files of a batch folder besides the job folders; ``jobs.jsonl`` marks the folder.
+JOBS_FILE, SUMMARY_FILE = "jobs.jsonl", "summary.json"
+#: The file whose presence in DIR/<name>/ means the job is done (reconstruct writes it).
+DONE_MARKER = "result.json"
+#: A job name: letters, digits, '-', '_', '.'; not starting with '.' (hidden and temporary folders).
+NAME_PATTERN = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]*")
+#: The exit status of ``fsswarp`` for bad input: the job fails at once, with no retry.
+BAD_INPUT = 2
+
+
+@dataclass(frozen=True)
+class Job:
+    """One reconstruction: ``name`` (its folder under DIR), ``dataset`` (absolute path) and
+    ``options`` (reconstruct's option arguments, e.g. ("--iterations", "6"))."""
+
+    name: str
+    dataset: Path
+    options: tuple[str, ...]
+
+    def arguments(self, out: Path) -> list[str]:
+        """The ``fsswarp reconstruct`` arguments that write this job into ``out``/<name>."""
+        return ["reconstruct", str(self.dataset), "--out", str(out / self.name), *self.options]
+
+
+def load_jobs(path: str | os.PathLike, command) -> list[Job]:
+    """The jobs of the JOBS.toml file ``path``, every value checked by the click ``command``
+    (``fsswarp reconstruct``) as its command line would; InputError naming the file, field and
+    value otherwise. A dataset folder that does not exist is no error here (that job fails)."""
+    path = Path(path)
+    try:
+        document = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError("no such file", field="JOBS.toml", value=str(path)) from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
+        raise InputError(f"not a valid TOML file: {err}", file=path) from None
+    options = {p.name: max(p.opts, key=len) for p in command.params
+               if isinstance(p, click.Option) and p.name != "out" and not p.is_eager}
+    for key, value in document.items():
+        if key not in ("defaults", "jobs"):
+            raise InputError("unknown key; a JOBS.toml file holds [defaults] and [[jobs]]", file=path, field=key,
+                             value=value)
+    defaults = document.get("defaults", {})
+    if not isinstance(defaults, dict):
+        raise InputError("must be a table ([defaults])", file=path, field="defaults", value=defaults)
+    tables = document.get("jobs")
+    if not isinstance(tables, list) or not tables or not all(isinstance(t, dict) for t in tables):
+        raise InputError("must be one or more [[jobs]] tables", file=path, field="jobs",
+                         **({} if tables is None else {"value": tables}))
+    defaults = {key: _option(path, command, options, "defaults", key, value) for key, value in defaults.items()}
+    jobs, seen = [], {}
+    for number, table in enumerate(tables, start=1):
+        where = f"jobs[{number}]"
+        name = table.get("name")
+        if not isinstance(name, str) or not NAME_PATTERN.fullmatch(name) or name in (JOBS_FILE, SUMMARY_FILE):
+            raise InputError(f"must be a name of letters, digits, '-', '_' and '.' (not starting with '.', not "
+                             f"{JOBS_FILE} or {SUMMARY_FILE})" if name is not None else "missing: every job has a name",
+                             file=path, field=f"{where}.name", **({} if name is None else {"value": name}))
+        if name in seen:
+            raise InputError(f"is the name of jobs[{seen[name]}] too; names must be unique", file=path,
+                             field=f"{where}.name", value=name)
+        seen[name] = number
+        if "dataset" not in table:
+            raise InputError("missing: every job names its dataset folder (relative to JOBS.toml)", file=path,
+                             field=f"{where}.dataset")
+        if not isinstance(table["dataset"], str) or not table["dataset"]:
+            raise InputError("must be a folder name", file=path, field=f"{where}.dataset", value=table["dataset"])
+        overrides = {key: _option(path, command, options, where, key, value) for key, value in table.items()
+                     if key not in ("name", "dataset")}
+        merged = {**defaults, **overrides}
+        jobs.append(Job(name, Path(os.path.abspath(path.parent / table["dataset"])),
+                        tuple(a for key in sorted(merged) for a in (options[key], merged[key]))))
+    return jobs
+
+
+def _option(path: Path, command, options: dict[str, str], where: str, key: str, value) -> str:
+    """``value`` of the option ``key`` as a command-line argument, parsed by ``command`` as
+    ``fsswarp reconstruct`` would parse it; InputError naming ``where``.``key`` otherwise."""
+    if key not in options:
+        raise InputError(f"unknown key; the options of fsswarp reconstruct are {', '.join(sorted(options))}"
+                         + (" (and name, dataset in [[jobs]])" if where != "defaults" else ""),
+                         file=path, field=f"{where}.{key}", value=value)
+    if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+        raise InputError("must be a number or a string", file=path, field=f"{where}.{key}", value=value)
+    text = str(value)
+    try:
+        command.make_context(command.name, ["DATASET", "--out", "OUT", options[key], text])
+    except click.UsageError as err:
+        raise InputError(f"not a valid {options[key]}: {' '.join(err.message.split())}", file=path,
+                         field=f"{where}.{key}", value=value) from None
+    return text
+
+
+def run_job(arguments: list[str], out: str, name: str) -> dict:
+    """Run ``python -m fsswarp ARGUMENTS`` (one reconstruction into ``out``/``name``) in a child
+    process that dies with this one; returns its ``returncode``, ``error`` (one line or None),
+    ``seconds``, ``node`` and ``device`` (the GPUs Ray gave this task, or "cpu"). The Ray task."""
+    import platform
+
+    import ray
+
+    remove_leftovers(Path(out), name)  # of an attempt whose worker died
+    gpus = ray.get_gpu_ids()
+    start = time.perf_counter()
+    done = subprocess.run([sys.executable, "-m", "fsswarp", *arguments], stdin=subprocess.DEVNULL,
+                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, errors="replace",
+                          preexec_fn=_die_with_parent())
+    seconds = time.perf_counter() - start
+    if done.returncode != 0:
+        remove_leftovers(Path(out), name)
+    return {"returncode": done.returncode, "error": _error_line(done.returncode, done.stderr), "seconds": seconds,
+            "node": platform.node(), "device": "gpu " + ",".join(map(str, gpus)) if gpus else "cpu"}
+
+
+def _die_with_parent():
+    """A ``preexec_fn`` that has the child killed (SIGKILL) when its parent dies (Linux), or
+    None elsewhere: a Ray worker killed mid-job takes its reconstruction with it."""
+    if not sys.platform.startswith("linux"):
+        return None
+    import ctypes
+
+    prctl = ctypes.CDLL(None, use_errno=True).prctl  # resolved before the fork
+    set_parent_death_signal = 1  # PR_SET_PDEATHSIG
+    return lambda: prctl(set_parent_death_signal, signal.SIGKILL)
+
+
+def _error_line(returncode: int, stderr: str) -> str | None:
+    """The one-line error of a job: its ``fsswarp: error:`` line, the signal that killed it, or
+    the last line it wrote (a traceback's exception)."""
+    if returncode == 0:
+        return None
+    lines = [line.strip() for line in stderr.splitlines() if line.strip()]
+    errors = [line.removeprefix("fsswarp: error:").strip() for line in lines if line.startswith("fsswarp: error:")]
+    if errors:
+        return errors[-1]
+    if returncode < 0:
+        return f"killed by {signal.Signals(-returncode).name}"
+    return f"exit status {returncode}" + (f": {lines[-1]}" if lines else "")
+
+
+def remove_leftovers(out: Path, name: str) -> None:
+    """Remove the temporary siblings (``.<name>.XXXXXXXX.tmp`` and ``.old``, see
+    ``fsswarp.atomic.output_folder``) that a killed job left in ``out``."""
+    with contextlib.suppress(OSError):
+        for entry in out.iterdir():
+            stem, dot, suffix = entry.name.rpartition(".")
+            if (entry.name.startswith(f".{name}.") and suffix in ("tmp", "old") and dot
+                    and stem[1:].rpartition(".")[0] == name):
+                shutil.rmtree(entry, ignore_errors=True)
+
+
+@dataclass
+class Outcome:
+    """One line of jobs.jsonl."""
+
+    name: str
+    status: str
+    attempts: int = 0
+    seconds: float | None = None
+    error: str | None = None
+    node: str | None = None
+    device: str | None = None
+
+
+def run_batch(jobs: list[Job], out: str | os.PathLike, *, address: str | None = None, jobs_per_gpu: int = 1,
+              retries: int = 2, global_options: tuple[str, ...] = (), quiet: bool = False) -> list[Outcome]:
+    """Run ``jobs`` into ``out`` on Ray: the cluster at ``address`` ('auto', HOST:PORT), or a
+    local instance started here when None. On a cluster with GPUs each job takes 1/jobs_per_gpu
+    of a GPU; else one CPU, on OpenCL unless ``global_options`` names a backend. A job that
+    exits 2 fails at once; one killed, crashed or whose worker died is run again, at most
+    ``retries`` times. Writes out/jobs.jsonl and out/summary.json after every outcome; returns
+    the outcomes (KeyboardInterrupt after the running jobs are cancelled)."""
+    from .atomic import check_output_folder
+
+    out = check_output_folder(out, marker=JOBS_FILE)
+    ray = _start_ray(address)
+    try:
+        resources = ray.cluster_resources()
+        gpus = resources.get("GPU", 0)
+        options = tuple(global_options)
+        if not gpus and not any(o in ("--backend", "--device") for o in options):
+            options += ("--backend", "opencl")
+        task = ray.remote(run_job).options(num_cpus=1, num_gpus=1 / jobs_per_gpu if gpus else 0, max_retries=0)
+        slots = int(gpus * jobs_per_gpu) if gpus else int(resources.get("CPU", 1))
+        return _schedule(ray, task, jobs, out, ["-q", *options], retries, slots, quiet,
+                         {"GPU": gpus, "CPU": resources.get("CPU", 0), "jobs_per_gpu": jobs_per_gpu})
+    finally:
+        ray.shutdown()
+
+
+def _start_ray(address: str | None):
+    """The ``ray`` module, connected to ``address`` or to a new local instance (quietly)."""
+    import logging
+
+    try:
+        import ray
+    except ImportError:
+        raise InputError("needs Ray: pip install 'fsswarp[batch]'", field="fsswarp batch") from None
+    settings = {"log_to_driver": False, "logging_level": logging.ERROR}
+    try:
+        if address is None:
+            ray.init(address="local", include_dashboard=False, **settings)
+        else:
+            ray.init(address=address, **settings)
+    except (ConnectionError, ValueError, RuntimeError) as err:
+        raise InputError(f"cannot start or join Ray: {' '.join(str(err).split())}", field="--address",
+                         value=address) from None
+    return ray
+
+
+def _schedule(ray, task, jobs: list[Job], out: Path, global_options: list[str], retries: int, slots: int,
+              quiet: bool, resources: dict) -> list[Outcome]:
+    """Submit every job not done yet, resubmit the retried ones and record each outcome."""
+    start = time.perf_counter()
+    outcomes = [Outcome(job.name, "skipped") for job in jobs if (out / job.name / DONE_MARKER).is_file()]
+    todo = [job for job in jobs if not (out / job.name / DONE_MARKER).is_file()]
+    attempts = {job.name: 0 for job in todo}
+    running: dict = {}
+
+    def submit(job: Job) -> None:
+        attempts[job.name] += 1
+        ref = task.remote([*global_options, *job.arguments(out)], str(out), job.name)
+        running[ref] = job
+
+    def record() -> None:
+        _write_records(out, outcomes, len(jobs), time.perf_counter() - start, resources)
+
+    record()
+    with _Progress(len(jobs), quiet) as progress:
+        for outcome in outcomes:
+            progress.finished(outcome)
+        try:
+            for job in todo:
+                submit(job)
+            while running:
+                progress.update(running=min(len(running), slots))
+                ready, _ = ray.wait(list(running), num_returns=1, timeout=0.5)
+                for ref in ready:
+                    job = running.pop(ref)
+                    outcome = _outcome(ray, ref, job.name, attempts[job.name])
+                    if outcome.status == "retry" and attempts[job.name] <= retries:
+                        progress.say(f"retrying {job.name} (attempt {attempts[job.name] + 1} of {retries + 1}): "
+                                     f"{outcome.error}")
+                        submit(job)
+                        continue
+                    if outcome.status == "retry":
+                        outcome.status = "failed"
+                    outcomes.append(outcome)
+                    progress.finished(outcome)
+                    record()
+        except KeyboardInterrupt:
+            for ref in running:
+                with contextlib.suppress(Exception):
+                    ray.cancel(ref, force=True)
+            raise
+        finally:
+            for name in {job.name for job in running.values()} | {o.name for o in outcomes if o.status == "failed"}:
+                remove_leftovers(out, name)
+        progress.update(running=0)
+    counts = {status: sum(o.status == status for o in outcomes) for status in ("ok", "failed", "skipped")}
+    progress.say(f"wrote {out}: {counts['ok']} ok, {counts['failed']} failed, {counts['skipped']} skipped; "
+                 f"{JOBS_FILE}, {SUMMARY_FILE} ({time.perf_counter() - start:.1f} s)")
+    return outcomes
+
+
+def _outcome(ray, ref, name: str, attempts: int) -> Outcome:
+    """The outcome of one attempt: ok, failed (bad input) or retry (killed, crashed, the worker died)."""
+    try:
+        done = ray.get(ref)
+    except ray.exceptions.RayError as err:
+        first = next((line.strip() for line in str(err).splitlines() if line.strip()), "")
+        return Outcome(name, "retry", attempts, error=f"Ray: {type(err).__name__}: {first}")
+    status = "ok" if done["returncode"] == 0 else "failed" if done["returncode"] == BAD_INPUT else "retry"
+    return Outcome(name, status, attempts, done["seconds"], done["error"], done["node"], done["device"])
+
+
+def _write_records(out: Path, outcomes: list[Outcome], jobs: int, seconds: float, resources: dict) -> None:
+    """out/jobs.jsonl and out/summary.json, each atomically."""
+    write_text(out / JOBS_FILE, "".join(json.dumps(vars(o)) + "\n" for o in outcomes))
+    counts = {status: sum(o.status == status for o in outcomes) for status in ("ok", "failed", "skipped")}
+    write_text(out / SUMMARY_FILE, json.dumps({
+        "jobs": jobs, **counts, "unfinished": jobs - len(outcomes), "attempts": sum(o.attempts for o in outcomes),
+        "seconds": seconds, "resources": resources}, indent=2))
+
+
+class _Progress:
+    """One rich progress bar over the jobs (done, failed, running) and a line per finished job
+    on stdout; silent when ``quiet``."""
+
+    def __init__(self, total: int, quiet: bool):
+        self.quiet, self.counts, self.running = quiet, {"ok": 0, "failed": 0, "skipped": 0}, 0
+        self.bar = None
+        if not quiet:
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+            self.bar = Progress(TextColumn("jobs"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.description}"),
+                                TimeElapsedColumn())
+            self.task = self.bar.add_task(self._description(), total=total)
+
+    def __enter__(self) -> "_Progress":
+        if self.bar is not None:
+            self.bar.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.bar is not None:
+            self.bar.stop()
+
+    def _description(self) -> str:
+        done = self.counts["ok"] + self.counts["skipped"]
+        return f"done {done}, failed {self.counts['failed']}, running {self.running}"
+
+    def update(self, *, running: int) -> None:
+        self.running = running
+        if self.bar is not None:
+            self.bar.update(self.task, description=self._description())
+
+    def say(self, line: str) -> None:
+        if self.bar is not None:
+            self.bar.console.print(line, markup=False, highlight=False, soft_wrap=True)
+
+    def finished(self, outcome: Outcome) -> None:
+        self.counts[outcome.status] += 1
+        if outcome.status == "ok":
+            detail = f"{outcome.seconds:.1f} s on {outcome.node} ({outcome.device})"
+        elif outcome.status == "failed":
+            detail = f"after {outcome.attempts} attempt{'s' if outcome.attempts != 1 else ''}: {outcome.error}"
+        else:
+            detail = f"{DONE_MARKER} exists"
+        self.say(f"{outcome.status:7} {outcome.name}: {detail}")
+        if self.bar is not None:
+            self.bar.update(self.task, advance=1, description=self._description())

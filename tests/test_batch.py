@@ -1,0 +1,208 @@
+"""``fsswarp batch`` on a real local Ray instance (this machine's CPUs, no GPU, OpenCL): the
+jobs' outputs match ``fsswarp reconstruct`` alone, a bad job fails alone, a killed worker is
+retried, a rerun skips the finished jobs, Ctrl-C stops cleanly, and a bad JOBS.toml exits 2
+before anything is written."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.slow
+
+#: Reconstruct options of every job: few voxels, the carving alone (a few seconds a job).
+DEFAULTS = {"iterations": 0, "resolution": 32}
+#: name -> per-job overrides of DEFAULTS.
+JOBS = {"plain": {}, "given-start": {"depth": 0.41, "tilt": 12.3}, "finer.v2": {"resolution": 40}}
+
+
+@pytest.fixture(scope="module")
+def ray_env(tmp_path_factory):
+    """The environment of the batch commands: Ray's session files in a short temporary folder
+    of their own (Ray's sockets need a short path)."""
+    folder = tempfile.mkdtemp(prefix="ray-")
+    yield dict(os.environ, RAY_TMPDIR=folder)
+    import shutil
+
+    shutil.rmtree(folder, ignore_errors=True)
+
+
+def fsswarp(*args, env=None, **kwargs):
+    return subprocess.run([sys.executable, "-m", "fsswarp", "--backend", "opencl", *map(str, args)],
+                          capture_output=True, text=True, env=env, timeout=300, **kwargs)
+
+
+def write_jobs(path: Path, jobs: dict[str, tuple[str, dict]], defaults=DEFAULTS) -> Path:
+    """A JOBS.toml of ``jobs`` (name -> (dataset, overrides))."""
+    lines = ["[defaults]"] + [f"{k} = {v!r}" for k, v in defaults.items()]
+    for name, (dataset, overrides) in jobs.items():
+        lines += ["", "[[jobs]]", f'name = "{name}"', f'dataset = "{dataset}"']
+        lines += [f"{k} = {v!r}" for k, v in overrides.items()]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def records(out: Path) -> dict[str, dict]:
+    return {r["name"]: r for r in map(json.loads, (out / "jobs.jsonl").read_text().splitlines())}
+
+
+def result(folder: Path) -> dict:
+    """result.json without its wall time."""
+    record = json.loads((folder / "result.json").read_text())
+    record.pop("seconds")
+    return record
+
+
+def snapshot(folder: Path) -> dict[str, tuple[int, bytes]]:
+    return {p.relative_to(folder).as_posix(): (p.stat().st_mtime_ns, p.read_bytes())
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def first_batch(coral_one, tmp_path_factory, ray_env):
+    """JOBS plus one job whose dataset folder is missing, run once: (JOBS.toml, DIR, process)."""
+    root = tmp_path_factory.mktemp("batch")
+    dataset = os.path.relpath(coral_one.root, root)
+    jobs_file = write_jobs(root / "JOBS.toml", {**{n: (dataset, o) for n, o in JOBS.items()},
+                                                "lost": ("no-such-dataset", {})})
+    done = fsswarp("batch", jobs_file, "--out", root / "out", env=ray_env)
+    return jobs_file, root / "out", done
+
+
+def test_each_job_writes_what_reconstruct_alone_writes(first_batch, coral_one, tmp_path):
+    _, out, done = first_batch
+    for name, overrides in JOBS.items():
+        options = [a for k, v in {**DEFAULTS, **overrides}.items() for a in (f"--{k}", v)]
+        alone = fsswarp("-q", "reconstruct", coral_one.root, "--out", tmp_path / name, *options)
+        assert alone.returncode == 0, alone.stderr
+        assert sorted(snapshot(out / name)) == sorted(snapshot(tmp_path / name))
+        assert result(out / name) == result(tmp_path / name), name
+        for mesh in ("model.ply", "carved.ply"):
+            assert (out / name / mesh).read_bytes() == (tmp_path / name / mesh).read_bytes(), (name, mesh)
+    assert [p.name for p in out.iterdir() if p.name.startswith(".")] == []
+
+
+def test_a_missing_dataset_fails_alone_with_its_message(first_batch):
+    _, out, done = first_batch
+    assert done.returncode == 1 and done.stderr == "", done.stderr
+    lines = records(out)
+    assert {n: r["status"] for n, r in lines.items()} == {**{n: "ok" for n in JOBS}, "lost": "failed"}
+    lost = lines["lost"]
+    assert lost["attempts"] == 1 and "no-such-dataset" in lost["error"] and "no such" in lost["error"]
+    assert all(lines[n]["attempts"] == 1 and lines[n]["error"] is None and lines[n]["device"] == "cpu"
+               for n in JOBS)
+    assert set(lines["plain"]) == {"name", "status", "attempts", "seconds", "error", "node", "device"}
+    summary = json.loads((out / "summary.json").read_text())
+    assert (summary["jobs"], summary["ok"], summary["failed"], summary["skipped"]) == (4, 3, 1, 0)
+    assert "failed  lost" in done.stdout and "wrote" in done.stdout
+    assert not (out / "lost").exists()
+
+
+def test_a_rerun_skips_the_finished_jobs_and_leaves_their_files(first_batch, ray_env):
+    jobs_file, out, _ = first_batch
+    before = {name: snapshot(out / name) for name in JOBS}
+    again = fsswarp("batch", jobs_file, "--out", out, env=ray_env)
+    assert again.returncode == 1 and again.stderr == "", again.stderr  # the lost dataset is still lost
+    assert {n: r["status"] for n, r in records(out).items()} == {**{n: "skipped" for n in JOBS}, "lost": "failed"}
+    assert {name: snapshot(out / name) for name in JOBS} == before
+
+
+def reconstruct_process(out: Path) -> int | None:
+    """The pid of the running ``fsswarp reconstruct`` whose --out is ``out``, or None."""
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            command = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if b"reconstruct" in command and str(out).encode() in command:
+            return int(pid)
+    return None
+
+
+def parent(pid: int) -> int:
+    return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+
+
+def when_started(out: Path, act, timeout: float = 120.0) -> threading.Thread:
+    """A thread that calls ``act(pid)`` once the reconstruction into ``out`` has run a second."""
+    def watch():
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            pid = reconstruct_process(out)
+            if pid is not None:
+                time.sleep(1.0)
+                act(pid)
+                return
+            time.sleep(0.05)
+
+    thread = threading.Thread(target=watch, daemon=True)
+    thread.start()
+    return thread
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the Ray worker through /proc")
+def test_a_killed_worker_is_retried_and_the_job_ends_ok(first_batch, coral_one, tmp_path, ray_env):
+    jobs_file = write_jobs(tmp_path / "JOBS.toml", {"plain": (str(coral_one.root), JOBS["plain"])})
+    out = tmp_path / "out"
+    killed = []
+
+    def kill_worker(pid):
+        worker = parent(pid)  # the Ray worker running the job's task
+        killed.append(worker)
+        os.kill(worker, signal.SIGKILL)
+
+    watcher = when_started(out / "plain", kill_worker)
+    done = fsswarp("batch", jobs_file, "--out", out, "--retries", 1, env=ray_env)
+    watcher.join()
+    assert killed and done.returncode == 0, done.stderr
+    line = records(out)["plain"]
+    assert (line["status"], line["attempts"]) == ("ok", 2)
+    assert "retrying plain (attempt 2 of 2)" in done.stdout
+    assert result(out / "plain") == result(first_batch[1] / "plain")
+    assert sorted(p.name for p in out.iterdir()) == ["jobs.jsonl", "plain", "summary.json"]
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the job's process through /proc")
+def test_ctrl_c_stops_the_batch_and_leaves_no_half_written_folder(coral_one, tmp_path, ray_env):
+    jobs_file = write_jobs(tmp_path / "JOBS.toml", {"plain": (str(coral_one.root), JOBS["plain"])})
+    out = tmp_path / "out"
+    driver = subprocess.Popen([sys.executable, "-m", "fsswarp", "--backend", "opencl", "batch", str(jobs_file),
+                               "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                              env=ray_env)
+    seen = []
+    when_started(out / "plain", lambda pid: (seen.append(pid), driver.send_signal(signal.SIGINT))).join()
+    _, stderr = driver.communicate(timeout=120)
+    assert seen and driver.returncode == 130, stderr
+    assert stderr.strip().splitlines() == ["fsswarp: interrupted"]
+    assert sorted(p.name for p in out.iterdir()) == ["jobs.jsonl", "summary.json"]
+    deadline = time.monotonic() + 10
+    while reconstruct_process(out / "plain") is not None and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert reconstruct_process(out / "plain") is None
+
+
+@pytest.mark.parametrize("text, field", [
+    ('[[jobs]]\nname = "a"\ndataset = "d"\ncolour = 3\n', "jobs[1].colour = 3"),
+    ('[[jobs]]\nname = "a"\ndataset = "d"\n[[jobs]]\nname = "a"\ndataset = "e"\n', "jobs[2].name = 'a'"),
+    ('[[jobs]]\nname = "a"\n', "jobs[1].dataset"),
+    ('[defaults]\niterations = -1\n[[jobs]]\nname = "a"\ndataset = "d"\n', "defaults.iterations = -1"),
+    ('[[jobs]]\nname = "a"\ndataset = "d"\nresolution = 12.5\n', "jobs[1].resolution = 12.5"),
+    ('[[jobs]]\nname = "a/b"\ndataset = "d"\n', "jobs[1].name = 'a/b'"),
+    ("[defaults]\niterations = 1\n", "jobs"),
+])
+def test_a_bad_jobs_file_exits_2_with_one_line_and_writes_nothing(tmp_path, text, field):
+    jobs_file = tmp_path / "JOBS.toml"
+    jobs_file.write_text(text)
+    done = fsswarp("batch", jobs_file, "--out", tmp_path / "out")
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.count("\n") == 1 and f"JOBS.toml: {field}" in done.stderr, done.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["JOBS.toml"]
