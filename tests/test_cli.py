@@ -27,16 +27,18 @@ def _backend_args() -> list[str]:
 
 # --- Ctrl-C ----------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("wait_for", ["reconstructing", "iteration 0: D"])
-def test_ctrl_c_prints_one_line_and_leaves_nothing(coral_one, tmp_path, wait_for):
+@pytest.mark.parametrize("command, wait_for", [("reconstruct", "reconstructing"), ("reconstruct", "iteration 0: D"),
+                                               ("demo", "simulating")])
+def test_ctrl_c_prints_one_line_and_leaves_nothing(coral_one, tmp_path, command, wait_for):
     """SIGINT to the whole process group (as a terminal's Ctrl-C) at the first progress line
     (figure processes starting) or once the truth-metrics process works: exit 130, one line
     on stderr, no traceback from any process, no output folder."""
-    out = tmp_path / "rec"
+    out = tmp_path / "out"
+    args = ([str(coral_one.root), "--resolution", "32", "--iterations", "3"] if command == "reconstruct"
+            else ["coral-one", "--iterations", "1"])
     env = dict(os.environ, FSSWARP_FIGURE_WORKERS="1",
                PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
-    child = subprocess.Popen([sys.executable, "-m", "fsswarp", *_backend_args(), "reconstruct", str(coral_one.root),
-                              "--out", str(out), "--resolution", "32", "--iterations", "3"],
+    child = subprocess.Popen([sys.executable, "-m", "fsswarp", *_backend_args(), command, *args, "--out", str(out)],
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
                              env=env, cwd=tmp_path)
     try:
