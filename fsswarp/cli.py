@@ -1,7 +1,10 @@
 """The ``fsswarp`` command line (DESIGN §12).
 
 Exit status: 0 done; 2 bad input (one line on stderr naming the file, field and value);
-1 an internal error. Each command is one function below; shared options live in ``State``.
+1 an internal error; 130 interrupted (Ctrl-C: one line, no output folder). A command checks
+all of its input before it prints anything. Each command is one function below; shared
+options live in ``State``. The JSON files and meshes come from ``fsswarp.outputs``, the
+figures from ``fsswarp.figures``.
 """
 
 from __future__ import annotations
