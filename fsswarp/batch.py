@@ -235,6 +235,8 @@ def _start_ray(address: str | None):
     except ImportError:
         raise InputError("needs Ray: pip install 'fsswarp[batch]'", field="fsswarp batch") from None
     settings = {"log_to_driver": False, "logging_level": logging.ERROR}
+    if address is not None and address != "auto" and "://" not in address:
+        _check_reachable(address)
     try:
         if address is None:
             ray.init(address="local", include_dashboard=False, **settings)
@@ -244,6 +246,22 @@ def _start_ray(address: str | None):
         raise InputError(f"cannot start or join Ray: {' '.join(str(err).split())}", field="--address",
                          value=address) from None
     return ray
+
+
+def _check_reachable(address: str) -> None:
+    """InputError (field --address) unless a TCP connection to HOST:PORT opens within 10 s (Ray
+    itself would try for minutes)."""
+    import socket
+
+    host, _, port = address.rpartition(":")
+    try:
+        socket.create_connection((host, int(port)), timeout=10).close()
+    except ValueError:
+        raise InputError("must be 'auto' or HOST:PORT of the cluster's head", field="--address",
+                         value=address) from None
+    except OSError as err:
+        raise InputError(f"no Ray head answers there: {err.strerror or err}", field="--address",
+                         value=address) from None
 
 
 def _schedule(ray, task, jobs: list[Job], out: Path, global_options: list[str], retries: int, slots: int,
