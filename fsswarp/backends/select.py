@@ -8,19 +8,16 @@ is first asked for.
 
 from __future__ import annotations
 
-import contextlib
 import os
 import re
-import sys
-import tempfile
 import threading
 import warnings
-from dataclasses import dataclass
 from typing import Any
 
 from ..errors import InputError
 from ..system import host_memory
 from .base import Backend
+from .runtimes import OpenCLDevice, import_warp, warp_note
 
 #: Values of ``--backend``.
 BACKEND_NAMES = ("auto", "warp", "opencl")
@@ -105,63 +102,6 @@ def _auto_choice(device) -> tuple[str, Any]:
 
 
 # --- Warp devices ------------------------------------------------------------------------------
-_WARP_STATE: dict[str, Any] = {}
-
-
-def import_warp():
-    """(warp module, None) initialized quietly, or (None, why it is unavailable)."""
-    try:
-        import warp as wp
-    except ImportError as err:
-        return None, f"warp-lang is not installed ({err})"
-    if "init" not in _WARP_STATE:
-        _WARP_STATE["init"] = _init_warp(wp)
-    return wp, None
-
-
-def _init_warp(wp) -> str:
-    """wp.init() without its banner; returns what the native library printed to stderr
-    (on a machine without a CUDA driver: "Could not find or load the NVIDIA CUDA driver")."""
-    if hasattr(wp, "LOG_WARNING"):  # the banner and "Module ... loaded" lines are LOG_INFO
-        wp.config.log_level = max(getattr(wp.config, "log_level", 0), wp.LOG_WARNING)
-    else:  # older Warp
-        wp.config.quiet = True
-    with _captured_stderr_fd() as captured:
-        wp.init()
-    return " ".join(line.strip() for line in "".join(captured).splitlines() if line.strip())
-
-
-@contextlib.contextmanager
-def _captured_stderr_fd():
-    """Redirect file descriptor 2 (where native libraries print) into a temporary file; the
-    yielded list holds the text once the block ends."""
-    captured: list[str] = []
-    try:
-        sys.stderr.flush()
-        saved = os.dup(2)
-    except (OSError, ValueError, AttributeError):
-        yield captured
-        return
-    with tempfile.TemporaryFile(mode="w+b") as tmp:
-        os.dup2(tmp.fileno(), 2)
-        try:
-            yield captured
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
-            tmp.seek(0)
-            captured.append(tmp.read().decode("utf-8", "replace"))
-
-
-def _warp_note() -> str:
-    """Why Warp sees no CUDA device, from what its init printed."""
-    text = _WARP_STATE.get("init", "")
-    if "Could not find or load the NVIDIA CUDA driver" in text:
-        return "no CUDA GPU found (no NVIDIA CUDA driver)"
-    text = text.replace("Warp CUDA warning: ", "").strip()
-    return f"no CUDA GPU found ({text})" if text else "no CUDA GPU found"
-
-
 def _resolve_warp_device(device) -> str:
     """Canonical Warp device alias ("cpu", "cuda:N") for ``device``, or InputError."""
     wp, why = import_warp()
@@ -176,30 +116,17 @@ def _resolve_warp_device(device) -> str:
                          field="--device", value=device)
     if text == "cuda":
         if not wp.is_cuda_available():
-            raise InputError(f"{_warp_note()}; available: {', '.join(aliases)}",
+            raise InputError(f"{warp_note()}; available: {', '.join(aliases)}",
                              field="--device", value=device)
         return str(wp.get_device("cuda").alias)
     if text not in aliases:
-        note = "" if wp.is_cuda_available() else f"; {_warp_note()}"
+        note = "" if wp.is_cuda_available() else f"; {warp_note()}"
         raise InputError(f"no such Warp device{note}; available: {', '.join(aliases)}",
                          field="--device", value=device)
     return text
 
 
 # --- OpenCL devices ---------------------------------------------------------------------------
-@dataclass(frozen=True)
-class OpenCLDevice:
-    """One OpenCL device as found here: its index for ``--device``, label, pyopencl handles and kind."""
-
-    index: int
-    label: str  # "<platform>: <device name>"
-    platform: Any  # pyopencl.Platform
-    device: Any  # pyopencl.Device
-    is_gpu: bool
-    is_cpu: bool
-    is_pocl: bool
-
-
 def _opencl_devices() -> tuple[list[OpenCLDevice], str | None]:
     """Every OpenCL device of every platform, and why there are none (else None). Never raises."""
     try:
@@ -336,7 +263,7 @@ def describe_backends() -> list[dict]:
                 row(backend="warp", device=str(d.alias), name=d.name, platform=f"Warp {wp.__version__}",
                     kind="cpu", compute_units=os.cpu_count(), memory_bytes=host_memory())
         if not wp.is_cuda_available():
-            row(backend="warp", device="cuda", kind="gpu", available=False, note=_warp_note())
+            row(backend="warp", device="cuda", kind="gpu", available=False, note=warp_note())
 
     found, why = _opencl_devices()
     for d in found:

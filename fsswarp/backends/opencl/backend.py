@@ -15,7 +15,7 @@ import pyopencl as cl
 from ..base import Backend, DeviceLayers, PreparedLaunch, SonarConstants
 from ..bvh import FlatBVH, build_bvh
 from ..constants import FRONTAL_VISIBLE, MAX_DISTANCE, RAY_EPSILON
-from ..select import OpenCLDevice
+from ..runtimes import OpenCLDevice
 from .programs import GROUP, program
 
 

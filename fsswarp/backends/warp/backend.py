@@ -13,7 +13,7 @@ import warp as wp
 from ..base import Backend, DeviceLayers, PreparedLaunch, SonarConstants
 from ..bvh import triangle_bounds
 from ..constants import FRONTAL_VISIBLE, MAX_DISTANCE, RAY_EPSILON, WARP_FAR
-from ..select import import_warp
+from ..runtimes import import_warp
 from .carve import carve_grid, carve_points
 from .icp import icp_runs_kernel
 from .pose import contour_cost_kernel, frontal_contour
