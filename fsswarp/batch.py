@@ -89,11 +89,12 @@ def load_jobs(path: str | os.PathLike, command) -> list[Job]:
     jobs, seen = [], {}
     for number, table in enumerate(tables, start=1):
         where = f"jobs[{number}]"
-        name = table.get("name")
+        if "name" not in table:
+            raise InputError("missing: every job has a name", file=path, field=f"{where}.name")
+        name = table["name"]
         if not isinstance(name, str) or not NAME_PATTERN.fullmatch(name) or name in (JOBS_FILE, SUMMARY_FILE):
-            raise InputError(f"must be a name of letters, digits, '-', '_' and '.' (not starting with '.', not "
-                             f"{JOBS_FILE} or {SUMMARY_FILE})" if name is not None else "missing: every job has a name",
-                             file=path, field=f"{where}.name", **({} if name is None else {"value": name}))
+            raise InputError(f"must be letters, digits, '-', '_' and '.', not starting with '.', and not {JOBS_FILE} "
+                             f"or {SUMMARY_FILE}", file=path, field=f"{where}.name", value=name)
         if name in seen:
             raise InputError(f"is the name of jobs[{seen[name]}] too; names must be unique", file=path,
                              field=f"{where}.name", value=name)
