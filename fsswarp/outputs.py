@@ -103,7 +103,7 @@ def write_reconstruction(out, result) -> Path:
 def pose_record(dataset_dir, model_path, dataset, result, contours: dict, *, given: bool, backend) -> dict:
     """pose.json of ``result`` (a ``fsswarp.pose.PoseResult`` of the mesh read from
     ``model_path`` and ``dataset``, read from ``dataset_dir``); ``contours``: the
-    ``fsswarp.pose.view_contours`` at the estimate and at the start; ``given``: the start came
+    ``fsswarp.compare.view_contours`` at the estimate and at the start; ``given``: the start came
     from the user; ``backend``: the backend that ran it."""
     left_out = [v.name for v in dataset.rig.views if v.optimize and v.name not in result.views]
     record = {"dataset": str(dataset_dir), "model": str(model_path), **result.summary(),
