@@ -34,7 +34,7 @@ from pathlib import Path
 
 import click
 
-from .atomic import write_text
+from .atomic import check_output_folder, write_text
 from .errors import InputError
 
 #: The files of a batch folder besides the job folders; ``jobs.jsonl`` marks the folder.
@@ -209,8 +209,6 @@ def run_batch(jobs: list[Job], out: str | os.PathLike, *, address: str | None = 
     exits 2 fails at once; one killed, crashed or whose worker died is run again, at most
     ``retries`` times. Writes out/jobs.jsonl and out/summary.json after every outcome; returns
     the outcomes (KeyboardInterrupt after the running jobs are cancelled)."""
-    from .atomic import check_output_folder
-
     out = check_output_folder(out, marker=JOBS_FILE)
     ray = _start_ray(address)
     try:
@@ -314,7 +312,7 @@ def _schedule(ray, task, jobs: list[Job], out: Path, global_options: list[str], 
             for name in {job.name for job in running.values()} | {o.name for o in outcomes if o.status == "failed"}:
                 remove_leftovers(out, name)
         progress.update(running=0)
-    counts = {status: sum(o.status == status for o in outcomes) for status in ("ok", "failed", "skipped")}
+    counts = _counts(outcomes)
     progress.say(f"wrote {out}: {counts['ok']} ok, {counts['failed']} failed, {counts['skipped']} skipped; "
                  f"{JOBS_FILE}, {SUMMARY_FILE} ({time.perf_counter() - start:.1f} s)")
     return outcomes
@@ -331,12 +329,16 @@ def _outcome(ray, ref, name: str, attempts: int) -> Outcome:
     return Outcome(name, status, attempts, done["seconds"], done["error"], done["node"], done["device"])
 
 
+def _counts(outcomes: list[Outcome]) -> dict[str, int]:
+    """The number of outcomes of each status: ok, failed, skipped."""
+    return {status: sum(o.status == status for o in outcomes) for status in ("ok", "failed", "skipped")}
+
+
 def _write_records(out: Path, outcomes: list[Outcome], jobs: int, seconds: float, resources: dict) -> None:
     """out/jobs.jsonl and out/summary.json, each atomically."""
     write_text(out / JOBS_FILE, "".join(json.dumps(vars(o)) + "\n" for o in outcomes))
-    counts = {status: sum(o.status == status for o in outcomes) for status in ("ok", "failed", "skipped")}
     write_text(out / SUMMARY_FILE, json.dumps({
-        "jobs": jobs, **counts, "unfinished": jobs - len(outcomes), "attempts": sum(o.attempts for o in outcomes),
+        "jobs": jobs, **_counts(outcomes), "unfinished": jobs - len(outcomes), "attempts": sum(o.attempts for o in outcomes),
         "seconds": seconds, "resources": resources}, indent=2))
 
 
