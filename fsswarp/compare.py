@@ -33,7 +33,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from .backends import rows_read
-from .errors import InputError, check_depth_tilt, check_integer, is_integer
+from .errors import InputError, check_depth_tilt, check_integer, is_finite_number, is_integer, is_number
 from .icp import CONTOUR_TOL, icp_many
 from .metrics import view_errors
 from .motion import patch_motions
@@ -95,7 +95,7 @@ class PoseSettings:
             raise InputError("needs at least 3 cells along each axis", field="pose.grid", value=self.grid)
         for name in ("cap", "min_cap", "window"):
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+            if not (is_finite_number(value) and value > 0):
                 raise InputError("must be a finite number > 0 (m)", field=f"pose.{name}", value=value)
         for name, lowest in (("margin_beams", 0), ("min_mirror_beams", 2), ("polish", 0), ("patch_rays", 1),
                              ("launch_bytes", 1)):
@@ -406,7 +406,7 @@ class ViewComparison:
         cap : saturation distance (default ``settings.cap``), at most ``reach``, max(cap,
             min_cap), up to which the data's distances are kept; samples : default
             ``settings.samples``."""
-        if cap is not None and not (isinstance(cap, (int, float)) and 0 < cap <= self.reach):
+        if cap is not None and not (is_number(cap) and 0 < cap <= self.reach):
             raise InputError(f"must be a distance in (0, {self.reach}] m", field="cap", value=cap)
         depths, tilts = np.broadcast_arrays(np.asarray(depths, np.float64), np.asarray(tilts, np.float64))
         costs, _ = self.view_costs(depths.reshape(-1), tilts.reshape(-1), samples or self.settings.samples,

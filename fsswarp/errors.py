@@ -1,4 +1,11 @@
-"""Errors raised for user mistakes: one line naming the file, field and value."""
+"""The project's value checks, in one place.
+
+``InputError`` is a user's mistake (a file's field, a command-line option): one line naming
+the file, field and value; the command line prints it and exits 2. ``check_*`` raise it
+(integers, numbers with a condition, depth (m) and tilt (rad)). ``finite_vectors`` and
+``real_array`` check arguments of the Python API and the kernel backends (ValueError /
+TypeError naming the argument); ``is_*`` are the predicates they share.
+"""
 
 from __future__ import annotations
 
@@ -104,6 +111,42 @@ def finite_array(name: str, value: Any, ndim: int) -> np.ndarray:
     if not np.all(np.isfinite(array)):
         raise InputError("must be finite", field=name, value="NaN/inf")
     return array
+
+
+def finite_vectors(name: str, value: Any, last: int) -> np.ndarray:
+    """``value`` as a float64 array of shape (..., last) with finite entries, or ValueError
+    naming ``name`` (an argument of the Python API, not a file's field)."""
+    array = np.asarray(value, dtype=np.float64)
+    if array.ndim < 1 or array.shape[-1] != last:
+        raise ValueError(f"{name} must have shape (..., {last}), got {array.shape}")
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"{name} holds non-finite values")
+    return array
+
+
+def real_array(name: str, value: Any, shape: tuple, dtype=np.float32) -> np.ndarray:
+    """``value`` as a C-contiguous finite array of ``dtype`` (float32 or float64) and ``shape``
+    (a letter = any length), or ValueError / TypeError naming ``name`` (an API argument)."""
+    try:
+        array = np.asarray(value)
+    except (ValueError, TypeError) as err:  # ragged nested lists
+        raise ValueError(f"{name} must be an array of shape {_shape_text(shape)}: {err}") from None
+    if array.dtype.kind not in "fiu":
+        raise TypeError(f"{name} must hold real numbers, got dtype {array.dtype}")
+    if array.ndim != len(shape) or any(isinstance(s, int) and s != n for s, n in zip(shape, array.shape)):
+        raise ValueError(f"{name} must have shape {_shape_text(shape)}, got {array.shape}")
+    with np.errstate(over="ignore"):  # too large for float32: reported as inf below
+        array = np.ascontiguousarray(array, dtype=dtype)
+    finite = np.isfinite(array)
+    if not finite.all():
+        bad = np.argwhere(~finite)[0]
+        raise ValueError(f"{name} must be finite in {array.dtype.name}, got {array[tuple(bad)]} at index "
+                         f"{tuple(int(i) for i in bad)}")
+    return array
+
+
+def _shape_text(shape: tuple) -> str:
+    return "(" + ", ".join(str(s) for s in shape) + ")"
 
 
 def _short(value: Any, limit: int = 60) -> str:

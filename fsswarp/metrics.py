@@ -28,8 +28,7 @@ import os
 import numpy as np
 
 from .errors import InputError
-from .motion import check_plane
-from .surface import mirror_vectors
+from .surface import check_plane, mirror_vectors
 
 #: τ of the F-score as a fraction of the truth's bounding-box diagonal.
 TAU_FRACTION = 0.02

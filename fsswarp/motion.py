@@ -23,7 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .surface import mirror_points, mirror_vectors
+from .errors import finite_vectors
+from .surface import check_plane, mirror_points, mirror_vectors
 
 PLANES = ("fan", "polar")
 
@@ -44,7 +45,7 @@ def image_jacobian(points, *, plane: str = "fan", surface=None) -> np.ndarray:
     """
     if plane not in PLANES:
         raise ValueError(f"plane must be one of {PLANES}, got {plane!r}")
-    p = _finite("points", points, last=3)
+    p = finite_vectors("points", points, 3)
     x, y = p[..., 0], p[..., 1]
     rho2 = x * x + y * y
     rng = np.linalg.norm(p, axis=-1)
@@ -107,9 +108,9 @@ def patch_motions(centres, motions, visible, rotations, translations, *, plane: 
     """
     if not (np.isfinite(rcond) and 0 < rcond < 1):
         raise ValueError(f"rcond must lie in (0, 1), got {rcond!r}")
-    c = _finite("centres", centres, last=3)
-    rot = _finite("rotations", rotations, last=3)
-    t = _finite("translations", translations, last=3)
+    c = finite_vectors("centres", centres, 3)
+    rot = finite_vectors("rotations", rotations, 3)
+    t = finite_vectors("translations", translations, 3)
     m = np.asarray(motions, dtype=np.float64)
     vis = np.asarray(visible)
     if vis.dtype != np.bool_:
@@ -166,22 +167,3 @@ def truncated_lstsq(a: np.ndarray, b: np.ndarray, rcond: float) -> tuple[np.ndar
 
 
 # --- helpers --------------------------------------------------------------------------------
-
-def check_plane(surface) -> tuple[np.ndarray, np.ndarray]:
-    """(normal (..., 3), offset (...)) of a plane, checked: finite, unit normals."""
-    normal = _finite("surface normal", surface[0], last=3)
-    offset = np.asarray(surface[1], np.float64)
-    if not np.all(np.isfinite(offset)):
-        raise ValueError("surface offset holds non-finite values")
-    if not np.allclose(np.linalg.norm(normal, axis=-1), 1.0, rtol=0.0, atol=1e-9):
-        raise ValueError("surface normal must be a unit vector")
-    return normal, offset
-
-
-def _finite(name: str, value, *, last: int) -> np.ndarray:
-    array = np.asarray(value, dtype=np.float64)
-    if array.ndim < 1 or array.shape[-1] != last:
-        raise ValueError(f"{name} must have shape (..., {last}), got {array.shape}")
-    if not np.all(np.isfinite(array)):
-        raise ValueError(f"{name} holds non-finite values")
-    return array

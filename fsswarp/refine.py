@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .compare import PoseSettings, PoseWarning, ViewComparison
-from .errors import InputError, check_integer, is_integer
+from .errors import InputError, check_integer, is_finite_number, is_integer
 from .motion import image_jacobian, truncated_lstsq
 from .rendering import check_mesh, is_watertight, signed_volume
 from .surface import surface_in_reference
@@ -78,7 +78,7 @@ class RefineSettings:
                                  ("shrink", True, 10.0), ("tolerance", True, 1.0), ("corrupt", False, 1e6),
                                  ("rcond", False, 1.0), ("max_turn", False, math.pi)):
             value = getattr(self, name)
-            ok = isinstance(value, (int, float)) and math.isfinite(value) and value <= high
+            ok = is_finite_number(value) and value <= high
             if not (ok and (value >= 0 if zero else value > 0)):
                 raise InputError(f"must be a number in {'[' if zero else '('}0, {high}]", field=f"refine.{name}",
                                  value=value)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .errors import finite_vectors
 from .rig import Rig
 from .sonar import to_polar
 
@@ -65,3 +66,14 @@ def apparent_returns(points, normal, offset) -> dict[str, tuple[np.ndarray, np.n
     half = 0.5 * (r_p + r_q)
     return {"object": (theta_p, r_p), "ghost": (theta_p, half),
             "mirror": (theta_q, half), "mirror2": (theta_q, r_q)}
+
+
+def check_plane(surface) -> tuple[np.ndarray, np.ndarray]:
+    """(normal (..., 3), offset (...)) of a plane, checked: finite, unit normals."""
+    normal = finite_vectors("surface normal", surface[0], 3)
+    offset = np.asarray(surface[1], np.float64)
+    if not np.all(np.isfinite(offset)):
+        raise ValueError("surface offset holds non-finite values")
+    if not np.allclose(np.linalg.norm(normal, axis=-1), 1.0, rtol=0.0, atol=1e-9):
+        raise ValueError("surface normal must be a unit vector")
+    return normal, offset

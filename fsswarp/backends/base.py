@@ -24,7 +24,7 @@ from typing import Any, Callable, NamedTuple
 
 import numpy as np
 
-from ..errors import is_integer
+from ..errors import is_integer, is_number, real_array
 from ..sonar import SonarSpec
 from .constants import MAX_DISTANCE
 
@@ -127,7 +127,7 @@ class Backend(abc.ABC):
         a half-index boundary, or within ~1e-6 rad of the elevation edge. Backends agree
         with each other on the same terms.
         """
-        pts = _real_array("points", points, ("P", 3))
+        pts = real_array("points", points, ("P", 3))
         rot, trans = _view_poses(rotations, translations, sonar)
         if pts.shape[0] >= 2**31 - 2**10:
             raise ValueError(f"too many points for one launch ({pts.shape[0]}); split them")
@@ -174,10 +174,10 @@ class Backend(abc.ABC):
         if grid == (centres is not None) or (grid and (origin is None or shape is None)):
             raise ValueError("give either origin and shape (a grid) or centres")
         if centres is not None:
-            points = _real_array("centres", centres, ("P", 3))
+            points = real_array("centres", centres, ("P", 3))
             n_voxels, start, dims = points.shape[0], None, None
         else:
-            start = _real_array("origin", np.asarray(origin).reshape(-1), (3,))
+            start = real_array("origin", np.asarray(origin).reshape(-1), (3,))
             dims = tuple(shape) if isinstance(shape, (tuple, list, np.ndarray)) else ()
             if len(dims) != 3 or any(not is_integer(n) or n < 0
                                      for n in dims):
@@ -205,7 +205,7 @@ class Backend(abc.ABC):
         side : voxels along each axis, >= 1
         """
         feasible, rot, trans, size = _carve_views(masks, rotations, translations, sonar, voxel_size)
-        start = _real_array("origin", np.asarray(origin).reshape(-1), (3,))
+        start = real_array("origin", np.asarray(origin).reshape(-1), (3,))
         if not is_integer(side) or side < 1 or int(side) ** 3 >= 2**31 - 2**10:
             raise ValueError(f"side must be an integer >= 1 with side**3 < 2^31 - 2^10 voxels, got {side!r}")
         if rot.shape[0] == 0:
@@ -229,7 +229,7 @@ class Backend(abc.ABC):
 
         vertices : (Nv, 3) float, faces : (Nf, 3) int, indices into vertices (Nf >= 1)
         The handle keeps the device copy (Warp: ``wp.Mesh``; OpenCL: a flattened BVH)."""
-        verts = _real_array("vertices", vertices, ("Nv", 3))
+        verts = real_array("vertices", vertices, ("Nv", 3))
         tris = np.asarray(faces)
         if tris.ndim != 2 or tris.shape[1] != 3 or tris.shape[0] == 0 or tris.dtype.kind not in "iu":
             raise ValueError(f"faces must be a non-empty (Nf, 3) integer array, got {tris.shape} {tris.dtype}")
@@ -298,7 +298,7 @@ class Backend(abc.ABC):
         may win than in float64."""
         _check_sonar(sonar)
         rot, trans, normals, offsets = _view_planes(rotations, translations, plane_normals, plane_offsets)
-        theta = _real_array("azimuths", np.asarray(azimuths).reshape(-1), ("B",))
+        theta = real_array("azimuths", np.asarray(azimuths).reshape(-1), ("B",))
         index = _view_index("views", views, rot.shape[0])
         if index.shape != theta.shape:
             raise ValueError(f"views must be ({theta.shape[0]},) like azimuths, got {index.shape}")
@@ -422,7 +422,7 @@ class Backend(abc.ABC):
         layers, -1 where none; (N, 2, S) float32 sums of the distances over the contour
         points; (N, 2) int32 their counts. Float32 on the device, summed in beam order.
         """
-        thr = _real_array("thresholds", thresholds, ("V", "bins"))
+        thr = real_array("thresholds", thresholds, ("V", "bins"))
         if isinstance(distances, DeviceDistances):
             if distances.backend is not self:
                 raise ValueError(f"distances were uploaded by {distances.backend!r}, not by this backend")
@@ -442,17 +442,17 @@ class Backend(abc.ABC):
                 or np.any(win[:, 1] > bins) or np.any(win[:, 0] >= win[:, 1]):
             raise ValueError(f"windows must be ({n_views}, 2) integers with 0 <= lo < hi <= {bins}, got {win!r}")
         index = _view_index("view_index", view_index, n_views)
-        steps = _real_array("shifts", shifts, ("S",))
+        steps = real_array("shifts", shifts, ("S",))
         if steps.shape[0] == 0:
             raise ValueError("shifts must hold at least one shift")
-        if not (isinstance(cap, (int, float)) and cap > 0):  # NaN fails too
+        if not (is_number(cap) and cap > 0):  # NaN fails too
             raise ValueError(f"cap must be a distance > 0 (m), got {cap!r}")
-        weights = [_real_array(name, w, ("K",)) for name, w in zip(("range weights", "beam weights"),
+        weights = [real_array(name, w, ("K",)) for name, w in zip(("range weights", "beam weights"),
                                                                       smoothing)]
         if len(smoothing) != 2 or any(w.shape[0] % 2 == 0 for w in weights):
             raise ValueError("smoothing must be two 1-D weight arrays of odd lengths")
         if not isinstance(layers, DeviceLayers):
-            layers = HostLayers(_real_array("layers", layers, ("N", 4, bins, beams)))
+            layers = HostLayers(real_array("layers", layers, ("N", 4, bins, beams)))
         first = getattr(layers, "first_rows", None)
         shape = tuple(layers.shape)
         if first is None:
@@ -496,7 +496,7 @@ class Backend(abc.ABC):
         """``contour_cost``'s distance maps, (V, 2, bins, beams) float >= 0, checked and
         uploaded once for many calls (a pose step reads the same maps in every E_mu: 3.9 MB
         for coral-one's 10 views)."""
-        dist = _real_array("distances", distances, ("V", 2, "bins", "beams"))
+        dist = real_array("distances", distances, ("V", 2, "bins", "beams"))
         if np.any(dist < 0):
             raise ValueError("distances must be >= 0")
         return DeviceDistances(self, self._upload(dist), dist.shape)
@@ -525,7 +525,7 @@ class Backend(abc.ABC):
         max_distance : pairs farther than this (> 0; inf: none) get weight 0 and distance inf
         tuning : the Cauchy constant c > 0
         Returns an ICPRuns. Needs a device with float64 (``has_float64``)."""
-        sx, sy, tx, ty = (_real_array(name, value, ("F",), np.float64) for name, value in (
+        sx, sy, tx, ty = (real_array(name, value, ("F",), np.float64) for name, value in (
             ("source_x", source_x), ("source_y", source_y), ("target_x", target_x), ("target_y", target_y)))
         table = np.asarray(runs)
         if table.dtype.kind not in "iu" or table.ndim != 2 or table.shape[1] != 3:
@@ -539,10 +539,10 @@ class Backend(abc.ABC):
         if int(table[:, 2].sum()) != sx.shape[0]:
             raise ValueError(f"the runs' source counts sum to {int(table[:, 2].sum())}, not to the "
                              f"{sx.shape[0]} source points")
-        angle = _real_array("angles", angles, (n_runs,), np.float64)
-        move = _real_array("translations", translations, (n_runs, 2), np.float64)
-        floor = _real_array("floors", floors, (n_runs,), np.float64)
-        tol = _real_array("step_tols", step_tols, (n_runs,), np.float64)
+        angle = real_array("angles", angles, (n_runs,), np.float64)
+        move = real_array("translations", translations, (n_runs, 2), np.float64)
+        floor = real_array("floors", floors, (n_runs,), np.float64)
+        tol = real_array("step_tols", step_tols, (n_runs,), np.float64)
         if np.any(floor <= 0) or np.any(tol < 0):
             raise ValueError("floors must be > 0 and step_tols >= 0")
         if not (is_integer(max_iterations) and max_iterations >= 1):
@@ -685,7 +685,7 @@ def _carve_views(masks, rotations, translations, sonar, voxel_size):
                          f"{sonar.beams}), got {feasible.shape}")
     if rot.shape[0] > 255:
         raise ValueError(f"at most 255 views per launch (uint8 counts), got {rot.shape[0]}")
-    size = float(voxel_size) if isinstance(voxel_size, (int, float, np.number)) else np.nan
+    size = float(voxel_size) if is_number(voxel_size) else np.nan
     if not (np.isfinite(np.float32(size)) and np.float32(size) > 0):
         raise ValueError(f"voxel_size must be a finite number > 0, got {voxel_size!r}")
     return feasible, rot, trans, size
@@ -706,8 +706,8 @@ def _circumradius(size: float) -> float:
 
 def _rays(origins, directions) -> tuple[np.ndarray, np.ndarray]:
     """(R, 3) float32 origins and directions of the same R rays, or raise."""
-    org = _real_array("origins", origins, ("R", 3))
-    dirs = _real_array("directions", directions, ("R", 3))
+    org = real_array("origins", origins, ("R", 3))
+    dirs = real_array("directions", directions, ("R", 3))
     if org.shape != dirs.shape:
         raise ValueError(f"origins and directions must have the same shape, got {org.shape} and {dirs.shape}")
     return org, dirs
@@ -716,8 +716,8 @@ def _rays(origins, directions) -> tuple[np.ndarray, np.ndarray]:
 def _view_poses(rotations, translations, sonar) -> tuple[np.ndarray, np.ndarray]:
     """(V, 3, 3) and (V, 3) float32 view poses of the same V views, with ``sonar`` a SonarSpec,
     or raise."""
-    rot = _real_array("rotations", rotations, ("V", 3, 3))
-    trans = _real_array("translations", translations, ("V", 3))
+    rot = real_array("rotations", rotations, ("V", 3, 3))
+    trans = real_array("translations", translations, ("V", 3))
     if rot.shape[0] != trans.shape[0]:
         raise ValueError(f"rotations and translations must describe the same views, got "
                          f"{rot.shape[0]} rotations and {trans.shape[0]} translations")
@@ -733,10 +733,10 @@ def _check_sonar(sonar) -> None:
 def _view_planes(rotations, translations, plane_normals, plane_offsets):
     """(N, 3, 3), (N, 3), (N, 3) and (N,) float32 poses and surface planes of the same N views
     (``render_device``, ``frontal_faces``), or raise."""
-    rot = _real_array("rotations", rotations, ("N", 3, 3))
-    trans = _real_array("translations", translations, ("N", 3))
-    normals = _real_array("plane_normals", plane_normals, ("N", 3))
-    offsets = _real_array("plane_offsets", np.asarray(plane_offsets).reshape(-1, 1), ("N", 1))
+    rot = real_array("rotations", rotations, ("N", 3, 3))
+    trans = real_array("translations", translations, ("N", 3))
+    normals = real_array("plane_normals", plane_normals, ("N", 3))
+    offsets = real_array("plane_offsets", np.asarray(plane_offsets).reshape(-1, 1), ("N", 1))
     if not (rot.shape[0] == trans.shape[0] == normals.shape[0] == offsets.shape[0]):
         raise ValueError("rotations, translations, plane_normals and plane_offsets must describe "
                          f"the same views, got {rot.shape[0]}, {trans.shape[0]}, {normals.shape[0]}, "
@@ -751,28 +751,3 @@ def _view_index(name: str, value, n_views: int) -> np.ndarray:
                                                                          or index.max() >= n_views)):
         raise ValueError(f"{name} must be a 1-D integer array of views 0..{n_views - 1}")
     return np.ascontiguousarray(index, np.int32)
-
-
-def _real_array(name: str, value: Any, shape: tuple, dtype=np.float32) -> np.ndarray:
-    """``value`` as a C-contiguous finite array of ``dtype`` (float32 or float64) and ``shape``
-    (a letter = any length), or raise."""
-    try:
-        array = np.asarray(value)
-    except (ValueError, TypeError) as err:  # ragged nested lists
-        raise ValueError(f"{name} must be an array of shape {_shape_text(shape)}: {err}") from None
-    if array.dtype.kind not in "fiu":
-        raise TypeError(f"{name} must hold real numbers, got dtype {array.dtype}")
-    if array.ndim != len(shape) or any(isinstance(s, int) and s != n for s, n in zip(shape, array.shape)):
-        raise ValueError(f"{name} must have shape {_shape_text(shape)}, got {array.shape}")
-    with np.errstate(over="ignore"):  # too large for float32: reported as inf below
-        array = np.ascontiguousarray(array, dtype=dtype)
-    finite = np.isfinite(array)
-    if not finite.all():
-        bad = np.argwhere(~finite)[0]
-        raise ValueError(f"{name} must be finite in {array.dtype.name}, got {array[tuple(bad)]} at index "
-                         f"{tuple(int(i) for i in bad)}")
-    return array
-
-
-def _shape_text(shape: tuple) -> str:
-    return "(" + ", ".join(str(s) for s in shape) + ")"
