@@ -182,9 +182,8 @@ def remove_leftovers(out: Path, name: str) -> None:
     ``fsswarp.atomic.output_folder``) that a killed job left in ``out``."""
     with contextlib.suppress(OSError):
         for entry in out.iterdir():
-            stem, dot, suffix = entry.name.rpartition(".")
-            if (entry.name.startswith(f".{name}.") and suffix in ("tmp", "old") and dot
-                    and stem[1:].rpartition(".")[0] == name):
+            stem, _, suffix = entry.name.rpartition(".")  # stem: .<name>.XXXXXXXX
+            if suffix in ("tmp", "old") and stem.startswith(".") and stem[1:].rpartition(".")[0] == name:
                 shutil.rmtree(entry, ignore_errors=True)
 
 
