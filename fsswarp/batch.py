@@ -5,8 +5,8 @@ A batch is a JOBS.toml file: ``[defaults]`` and one ``[[jobs]]`` table per job (
 :func:`load_jobs` checks the whole file against the reconstruct command's own click options
 before anything runs. :func:`run_batch` runs one Ray task per job; each task runs
 ``python -m fsswarp [global options] reconstruct DATASET --out DIR/<name> ...`` as a child
-process, so a killed or crashed job is a dead process and the job's exit status 2 means
-bad input. Outputs under DIR:
+process (under :func:`supervise`, ``python -m fsswarp.batch``), so a killed or crashed job
+is a dead process and the job's exit status 2 means bad input. Outputs under DIR:
 
 - ``<name>/``: the job's folder, exactly as ``fsswarp reconstruct --out`` writes it
 - ``jobs.jsonl``: one JSON line per job outcome: name, status (ok, failed, skipped),
@@ -27,6 +27,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 import tomllib
 from dataclasses import dataclass
@@ -131,9 +132,10 @@ def _option(path: Path, command, options: dict[str, str], where: str, key: str, 
 
 
 def run_job(arguments: list[str], out: str, name: str) -> dict:
-    """Run ``python -m fsswarp ARGUMENTS`` (one reconstruction into ``out``/``name``) in a child
-    process that dies with this one; returns its ``returncode``, ``error`` (one line or None),
-    ``seconds``, ``node`` and ``device`` (the GPUs Ray gave this task, or "cpu"). The Ray task."""
+    """Run ``python -m fsswarp ARGUMENTS`` (one reconstruction into ``out``/``name``) under
+    :func:`supervise`; returns its ``returncode`` (-N: killed by signal N), ``error`` (one line
+    or None), ``seconds``, ``node`` and ``device`` (the GPUs Ray gave this task, or "cpu"). The
+    Ray task."""
     import platform
 
     import ray
@@ -141,26 +143,41 @@ def run_job(arguments: list[str], out: str, name: str) -> dict:
     remove_leftovers(Path(out), name)  # of an attempt whose worker died
     gpus = ray.get_gpu_ids()
     start = time.perf_counter()
-    done = subprocess.run([sys.executable, "-m", "fsswarp", *arguments], stdin=subprocess.DEVNULL,
-                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, errors="replace",
-                          preexec_fn=_die_with_parent())
+    # stderr into a file, not a pipe, which a process the job left behind could hold open
+    with tempfile.TemporaryFile("w+", errors="replace") as stderr:
+        returncode = subprocess.run([sys.executable, "-m", "fsswarp.batch", *arguments], stdin=subprocess.DEVNULL,
+                                    stdout=subprocess.DEVNULL, stderr=stderr).returncode
+        returncode = 128 - returncode if returncode > 128 else returncode
+        stderr.seek(0)
+        error = _error_line(returncode, stderr.read())
     seconds = time.perf_counter() - start
-    if done.returncode != 0:
+    if returncode != 0:
         remove_leftovers(Path(out), name)
-    return {"returncode": done.returncode, "error": _error_line(done.returncode, done.stderr), "seconds": seconds,
-            "node": platform.node(), "device": "gpu " + ",".join(map(str, gpus)) if gpus else "cpu"}
+    return {"returncode": returncode, "error": error, "seconds": seconds, "node": platform.node(),
+            "device": "gpu " + ",".join(map(str, gpus)) if gpus else "cpu"}
 
 
-def _die_with_parent():
-    """A ``preexec_fn`` that has the child killed (SIGKILL) when its parent dies (Linux), or
-    None elsewhere: a Ray worker killed mid-job takes its reconstruction with it."""
-    if not sys.platform.startswith("linux"):
-        return None
-    import ctypes
+def supervise(arguments: list[str]) -> int:
+    """Run ``python -m fsswarp ARGUMENTS`` as the leader of a new process group and kill that
+    group (the job's figure processes with it) when the job ends, or when this process's parent
+    (the Ray worker) dies (Linux). Returns the job's exit status, 128 + N if signal N killed it."""
+    child = subprocess.Popen([sys.executable, "-m", "fsswarp", *arguments], start_new_session=True)
 
-    prctl = ctypes.CDLL(None, use_errno=True).prctl  # resolved before the fork
-    set_parent_death_signal = 1  # PR_SET_PDEATHSIG
-    return lambda: prctl(set_parent_death_signal, signal.SIGKILL)
+    def stop(signum=None, frame=None) -> None:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(child.pid, signal.SIGKILL)
+
+    signal.signal(signal.SIGTERM, stop)
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        set_parent_death_signal = 1  # PR_SET_PDEATHSIG: SIGTERM to this process when its parent dies
+        ctypes.CDLL(None, use_errno=True).prctl(set_parent_death_signal, signal.SIGTERM)
+        if os.getppid() == 1:  # the parent died before that
+            stop()
+    returncode = child.wait()
+    stop()
+    return 128 - returncode if returncode < 0 else returncode
 
 
 def _error_line(returncode: int, stderr: str) -> str | None:
@@ -388,3 +405,7 @@ class _Progress:
         self.say(f"{outcome.status:7} {outcome.name}: {detail}")
         if self.bar is not None:
             self.bar.update(self.task, advance=1, description=self._description())
+
+
+if __name__ == "__main__":
+    raise SystemExit(supervise(sys.argv[1:]))

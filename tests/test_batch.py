@@ -128,6 +128,24 @@ def reconstruct_process(out: Path) -> int | None:
     return None
 
 
+def processes_left(env: dict, wait: float = 10.0) -> list[int]:
+    """The processes still running, after up to ``wait`` seconds, whose environment holds
+    ``env``'s FSSWARP_TEST_RUN (the batch, Ray, the jobs and whatever they started)."""
+    marker = f"FSSWARP_TEST_RUN={env['FSSWARP_TEST_RUN']}".encode()
+    deadline = time.monotonic() + wait
+    while True:
+        left = []
+        for pid in filter(str.isdigit, os.listdir("/proc")):
+            try:
+                if marker in Path(f"/proc/{pid}/environ").read_bytes().split(b"\0"):
+                    left.append(int(pid))
+            except OSError:
+                continue
+        if not left or time.monotonic() > deadline:
+            return left
+        time.sleep(0.2)
+
+
 def parent(pid: int) -> int:
     return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
 
@@ -150,23 +168,29 @@ def when_started(out: Path, act, timeout: float = 120.0) -> threading.Thread:
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the Ray worker through /proc")
-def test_a_killed_worker_is_retried_and_the_job_ends_ok(first_batch, coral_one, tmp_path, ray_env):
+@pytest.mark.parametrize("target, reason", [("worker", "Ray: WorkerCrashedError"), ("job", "killed by SIGKILL")])
+def test_a_killed_worker_or_job_is_retried_and_the_job_ends_ok(first_batch, coral_one, tmp_path, ray_env, target,
+                                                                reason):
+    """SIGKILL to the Ray worker running the job's task (its reconstruct process dies with it), or
+    to the reconstruct process alone."""
     jobs_file = write_jobs(tmp_path / "JOBS.toml", {"plain": (str(coral_one.root), JOBS["plain"])})
     out = tmp_path / "out"
     killed = []
 
-    def kill_worker(pid):
-        worker = parent(pid)  # the Ray worker running the job's task
-        killed.append(worker)
-        os.kill(worker, signal.SIGKILL)
+    def kill(pid):
+        victim = parent(pid) if target == "worker" else pid
+        killed.append(victim)
+        os.kill(victim, signal.SIGKILL)
 
-    watcher = when_started(out / "plain", kill_worker)
-    done = fsswarp("batch", jobs_file, "--out", out, "--retries", 1, env=ray_env)
+    watcher = when_started(out / "plain", kill)
+    env = dict(ray_env, FSSWARP_TEST_RUN=f"kill-{target}-{os.getpid()}")
+    done = fsswarp("batch", jobs_file, "--out", out, "--retries", 1, env=env)
     watcher.join()
     assert killed and done.returncode == 0, done.stderr
+    assert processes_left(env) == []
     line = records(out)["plain"]
     assert (line["status"], line["attempts"]) == ("ok", 2)
-    assert "retrying plain (attempt 2 of 2)" in done.stdout
+    assert f"retrying plain (attempt 2 of 2): {reason}" in done.stdout
     assert result(out / "plain") == result(first_batch[1] / "plain")
     assert sorted(p.name for p in out.iterdir()) == ["jobs.jsonl", "plain", "summary.json"]
 
@@ -175,19 +199,17 @@ def test_a_killed_worker_is_retried_and_the_job_ends_ok(first_batch, coral_one, 
 def test_ctrl_c_stops_the_batch_and_leaves_no_half_written_folder(coral_one, tmp_path, ray_env):
     jobs_file = write_jobs(tmp_path / "JOBS.toml", {"plain": (str(coral_one.root), JOBS["plain"])})
     out = tmp_path / "out"
+    env = dict(ray_env, FSSWARP_TEST_RUN=f"ctrl-c-{os.getpid()}")
     driver = subprocess.Popen([sys.executable, "-m", "fsswarp", "--backend", "opencl", "batch", str(jobs_file),
                                "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                              env=ray_env)
+                              env=env)
     seen = []
     when_started(out / "plain", lambda pid: (seen.append(pid), driver.send_signal(signal.SIGINT))).join()
     _, stderr = driver.communicate(timeout=120)
     assert seen and driver.returncode == 130, stderr
     assert stderr.strip().splitlines() == ["fsswarp: interrupted"]
     assert sorted(p.name for p in out.iterdir()) == ["jobs.jsonl", "summary.json"]
-    deadline = time.monotonic() + 10
-    while reconstruct_process(out / "plain") is not None and time.monotonic() < deadline:
-        time.sleep(0.1)
-    assert reconstruct_process(out / "plain") is None
+    assert processes_left(env) == []
 
 
 @pytest.mark.parametrize("text, field", [
