@@ -62,6 +62,10 @@ class Job:
         return ["reconstruct", str(self.dataset), "--out", str(out / self.name), *self.options]
 
 
+#: JOBS.toml keys that name an option by the unit-suffixed name result.json uses.
+ALIASES = {"depth_m": "depth", "tilt_deg": "tilt"}
+
+
 def load_jobs(path: str | os.PathLike, command) -> list[Job]:
     """The jobs of the JOBS.toml file ``path``, every value checked by the click ``command``
     (``fsswarp reconstruct``) as its command line would; InputError naming the file, field and
@@ -86,7 +90,7 @@ def load_jobs(path: str | os.PathLike, command) -> list[Job]:
     if not isinstance(tables, list) or not tables or not all(isinstance(t, dict) for t in tables):
         raise InputError("must be one or more [[jobs]] tables", file=path, field="jobs",
                          **({} if tables is None else {"value": tables}))
-    defaults = {key: _option(path, command, options, "defaults", key, value) for key, value in defaults.items()}
+    defaults = _options(path, command, options, "defaults", defaults)
     jobs, seen = [], {}
     for number, table in enumerate(tables, start=1):
         where = f"jobs[{number}]"
@@ -105,18 +109,32 @@ def load_jobs(path: str | os.PathLike, command) -> list[Job]:
                              field=f"{where}.dataset")
         if not isinstance(table["dataset"], str) or not table["dataset"]:
             raise InputError("must be a folder name", file=path, field=f"{where}.dataset", value=table["dataset"])
-        overrides = {key: _option(path, command, options, where, key, value) for key, value in table.items()
-                     if key not in ("name", "dataset")}
+        overrides = _options(path, command, options, where,
+                             {key: value for key, value in table.items() if key not in ("name", "dataset")})
         merged = {**defaults, **overrides}
         jobs.append(Job(name, Path(os.path.abspath(path.parent / table["dataset"])),
                         tuple(a for key in sorted(merged) for a in (options[key], merged[key]))))
     return jobs
 
 
+def _options(path: Path, command, options: dict[str, str], where: str, table: dict) -> dict[str, str]:
+    """{option name: its command-line text} of one table, ALIASES resolved; InputError when a
+    table names one option twice (by its name and its alias)."""
+    parsed = {}
+    for key, value in table.items():
+        name = ALIASES.get(key, key)
+        if name in parsed:
+            raise InputError(f"names the option {name} twice (as {name} and as its alias)", file=path,
+                             field=f"{where}.{key}", value=value)
+        parsed[name] = _option(path, command, options, where, key, value)
+    return parsed
+
+
 def _option(path: Path, command, options: dict[str, str], where: str, key: str, value) -> str:
     """``value`` of the option ``key`` as a command-line argument, parsed by ``command`` as
     ``fsswarp reconstruct`` would parse it; InputError naming ``where``.``key`` otherwise."""
-    if key not in options:
+    name = ALIASES.get(key, key)
+    if name not in options:
         raise InputError(f"unknown key; the options of fsswarp reconstruct are {', '.join(sorted(options))}"
                          + (" (and name, dataset in [[jobs]])" if where != "defaults" else ""),
                          file=path, field=f"{where}.{key}", value=value)
@@ -124,9 +142,9 @@ def _option(path: Path, command, options: dict[str, str], where: str, key: str, 
         raise InputError("must be a number or a string", file=path, field=f"{where}.{key}", value=value)
     text = str(value)
     try:
-        command.make_context(command.name, ["DATASET", "--out", "OUT", options[key], text])
+        command.make_context(command.name, ["DATASET", "--out", "OUT", options[name], text])
     except click.UsageError as err:
-        raise InputError(f"not a valid {options[key]}: {' '.join(err.message.split())}", file=path,
+        raise InputError(f"not a valid {options[name]}: {' '.join(err.message.split())}", file=path,
                          field=f"{where}.{key}", value=value) from None
     return text
 

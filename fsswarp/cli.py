@@ -480,7 +480,7 @@ def batch(state: State, jobs_file: Path, out: Path, address, jobs_per_gpu: int, 
     outcomes = run_batch(jobs, out, address=address, jobs_per_gpu=jobs_per_gpu, retries=retries,
                          global_options=tuple(selection), quiet=state.quiet)
     if any(o.status == "failed" for o in outcomes):
-        raise SystemExit(1)  # main() would drop the status of click's Exit (standalone_mode=False)
+        click.get_current_context().exit(1)
 
 
 @app.command()
@@ -832,7 +832,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with warnings.catch_warnings():
             warnings.showwarning = _show_warning
-            app.main(args=argv, prog_name="fsswarp", standalone_mode=False)
+            status = app.main(args=argv, prog_name="fsswarp", standalone_mode=False)
     except InputError as err:
         print(f"fsswarp: error: {err}", file=sys.stderr)
         return 2
@@ -855,4 +855,4 @@ def main(argv: list[str] | None = None) -> int:
     except (click.Abort, KeyboardInterrupt):
         print("fsswarp: interrupted", file=sys.stderr)
         return 130
-    return 0
+    return status if isinstance(status, int) else 0  # ctx.exit(n)'s status (click returns it)

@@ -220,6 +220,7 @@ def test_ctrl_c_stops_the_batch_and_leaves_no_half_written_folder(coral_one, tmp
     ('[[jobs]]\nname = "a"\ndataset = "d"\nresolution = 12.5\n', "jobs[1].resolution = 12.5"),
     ('[[jobs]]\nname = "a/b"\ndataset = "d"\n', "jobs[1].name = 'a/b'"),
     ("[defaults]\niterations = 1\n", "jobs"),
+    ('[[jobs]]\nname = "a"\ndataset = "d"\ndepth = 0.4\ndepth_m = 0.43\n', "jobs[1].depth_m = 0.43"),
 ])
 def test_a_bad_jobs_file_exits_2_with_one_line_and_writes_nothing(tmp_path, text, field):
     jobs_file = tmp_path / "JOBS.toml"
@@ -228,3 +229,15 @@ def test_a_bad_jobs_file_exits_2_with_one_line_and_writes_nothing(tmp_path, text
     assert done.returncode == 2, done.stderr
     assert done.stderr.count("\n") == 1 and f"JOBS.toml: {field}" in done.stderr, done.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["JOBS.toml"]
+
+
+def test_depth_m_and_tilt_deg_name_the_depth_and_tilt_options(tmp_path):
+    """The unit-suffixed names of result.json are aliases of --depth and --tilt."""
+    from fsswarp.batch import load_jobs
+    from fsswarp.cli import reconstruct
+
+    jobs_file = tmp_path / "JOBS.toml"
+    jobs_file.write_text('[defaults]\ntilt_deg = 10.3\n[[jobs]]\nname = "a"\ndataset = "d"\ndepth_m = 0.43\n'
+                         '[[jobs]]\nname = "b"\ndataset = "d"\ndepth = 0.43\ntilt = 10.3\n')
+    first, second = load_jobs(jobs_file, reconstruct)
+    assert first.options == second.options == ("--depth", "0.43", "--tilt", "10.3")
