@@ -163,7 +163,7 @@ def plot_record(record: dict, path: Path, *, title: str = "") -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from fsswarp.figures import _save
+    from fsswarp.figures import save_figure
 
     tilts, rounds, scenes = record["tilts_deg"], record["rounds"], record["scenes"]
     fig, axes = plt.subplots(len(scenes), len(METRICS), figsize=(3.2 * len(METRICS), 2.6 * len(scenes)),
@@ -183,7 +183,7 @@ def plot_record(record: dict, path: Path, *, title: str = "") -> Path:
             ax.set_xlabel("tilt error along the valley (°)", fontsize=8)
             ax.tick_params(labelsize=7)
     fig.legend(loc="lower center", ncol=3, fontsize=7, frameon=False)
-    return _save(fig, path, title, rect=(0, 0.06, 1, 1))
+    return save_figure(fig, path, title, rect=(0, 0.06, 1, 1))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -63,7 +63,7 @@ def layers_figure(views: dict[str, np.ndarray], sonar: SonarSpec, path: str | Pa
                 ax.set_ylim(limits["y"])
             for a in axes[r, 2 * k: 2 * k + 2]:
                 a.tick_params(labelsize=5)
-    return _save(fig, path, title)
+    return save_figure(fig, path, title)
 
 
 def _zoom_limits(views: dict[str, np.ndarray], sonar: SonarSpec, peak: float, *, margin_m: float = 0.15):
@@ -86,7 +86,7 @@ def _zoom_limits(views: dict[str, np.ndarray], sonar: SonarSpec, peak: float, *,
             "x": (min(x), max(x)), "y": (r_lo * math.cos(max(abs(t_lo), abs(t_hi))), r_hi)}
 
 
-def _save(fig, path: str | Path, title: str = "", *, rect=(0, 0, 1, 1)) -> Path:
+def save_figure(fig, path: str | Path, title: str = "", *, rect=(0, 0, 1, 1)) -> Path:
     """Title (``fig.suptitle``), lay out inside ``rect``, close and write ``fig`` as a PNG,
     atomically; returns the path."""
     import matplotlib.pyplot as plt
@@ -133,7 +133,7 @@ def fan_figure(image: np.ndarray, sonar: SonarSpec, path: str | Path, *, title: 
     fig.colorbar(shown, ax=ax, label="dB below peak", shrink=0.8)
     if title:
         ax.set_title(title, fontsize=9)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def carve_figure(mesh, path: str | Path, *, truth=None, title: str = "", label: str = "carved") -> Path:
@@ -165,7 +165,7 @@ def carve_figure(mesh, path: str | Path, *, truth=None, title: str = "", label: 
     if truth is not None:
         axes[0].legend(handles=[matplotlib.patches.Patch(color=c, alpha=0.5, label=lab) for _, c, _, lab in meshes],
                        fontsize=7, loc="upper right")
-    return _save(fig, path, title)
+    return save_figure(fig, path, title)
 
 
 def pose_figure(result, path: str | Path, *, truth: tuple[float, float] | None = None, title: str = "") -> Path:
@@ -204,7 +204,7 @@ def pose_figure(result, path: str | Path, *, truth: tuple[float, float] | None =
                      f"{step[0] * 1000:.2f} mm x {step[1]:.3f} deg", fontsize=8)
         ax.tick_params(labelsize=7)
     _bottom_legend(fig, handles)
-    return _save(fig, path, title, rect=(0, 0.07, 1, 1))
+    return save_figure(fig, path, title, rect=(0, 0.07, 1, 1))
 
 
 def contours_figure(images: dict[str, np.ndarray], contours: dict[str, dict], sonar: SonarSpec, path: str | Path, *,
@@ -257,7 +257,7 @@ def contours_figure(images: dict[str, np.ndarray], contours: dict[str, dict], so
     for ax in axes.ravel()[len(names):]:
         ax.axis("off")
     _bottom_legend(fig, handles, markerscale=2.5)
-    return _save(fig, path, title, rect=(0, 0.05, 1, 1))
+    return save_figure(fig, path, title, rect=(0, 0.05, 1, 1))
 
 
 def history_figure(history: list[dict], path: str | Path, *, truth_depth: float | None = None,
@@ -293,7 +293,7 @@ def history_figure(history: list[dict], path: str | Path, *, truth_depth: float 
         a.set_xticks(it)
         a.tick_params(labelsize=7)
     ax.legend(fontsize=7)
-    return _save(fig, path, title)
+    return save_figure(fig, path, title)
 
 
 def enhance_figure(images: dict[str, np.ndarray], results: dict, sonar: SonarSpec, path: str | Path, *,
@@ -329,7 +329,7 @@ def enhance_figure(images: dict[str, np.ndarray], results: dict, sonar: SonarSpe
             ax.set_xlabel("azimuth (deg)", fontsize=6)
             ax.set_ylabel("range (m)", fontsize=6)
             ax.tick_params(labelsize=5)
-    return _save(fig, path, title)
+    return save_figure(fig, path, title)
 
 
 def comparison_figure(images: dict[str, np.ndarray], enhanced: dict[str, np.ndarray],
@@ -377,7 +377,7 @@ def comparison_figure(images: dict[str, np.ndarray], enhanced: dict[str, np.ndar
                        orientation="horizontal")
     bar.set_label("dB below the row's data peak", fontsize=7)
     bar.ax.tick_params(labelsize=6)
-    return _save(fig, path, title)
+    return save_figure(fig, path, title)
 
 
 def draw_here(function, *args, **kwargs):
@@ -416,7 +416,7 @@ class FigureDrawer:
     fraction of that, they were most of the demo's wall time. The processes start (and import
     matplotlib, about 0.9 s) when the drawer is made, at the start of the command, so they
     are ready when its first figure comes. Each figure's arguments are pickled to its process,
-    and its file is written there, atomically (``_save``).
+    and its file is written there, atomically (``save_figure``).
 
     Use: per output folder ``with drawer.batch() as draw:`` and ``draw(figure_function, *args,
     **kwargs)``. Leaving a batch waits for its figures and raises the first failure; leaving it

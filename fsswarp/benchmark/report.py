@@ -97,7 +97,7 @@ def plot_family(records: Sequence[dict], family: str, path, *, title: str = ""):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..figures import _save
+    from ..figures import save_figure
 
     series: dict[str, list[dict]] = {}
     for r in records:
@@ -124,4 +124,4 @@ def plot_family(records: Sequence[dict], family: str, path, *, title: str = ""):
     ax.set_ylabel("median time (s); dashed: physical limit")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=6, loc="best")
-    return _save(fig, path, title or FAMILY_TITLES[family])
+    return save_figure(fig, path, title or FAMILY_TITLES[family])
