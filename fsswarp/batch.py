@@ -149,9 +149,21 @@ def _option(path: Path, command, options: dict[str, str], where: str, key: str, 
     return text
 
 
-def run_job(arguments: list[str], out: str, name: str) -> dict:
-    """Run ``python -m fsswarp ARGUMENTS`` (one reconstruction into ``out``/``name``) under
-    :func:`supervise`; returns its ``returncode`` (-N: killed by signal N), ``error`` (one line
+#: What a job's environment limits to its share of the node's CPUs, unless the user set it.
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def job_environment(threads: int, environment=os.environ) -> dict[str, str]:
+    """``environment`` with the BLAS/OpenMP threads and the figure processes of one job limited
+    to its share of the node's CPUs (``threads``), where the user has not set them: K jobs at
+    once with every library sized for the whole machine oversubscribe its cores."""
+    limits = dict.fromkeys(THREAD_VARIABLES, str(threads)) | {"FSSWARP_FIGURE_WORKERS": str(min(4, threads))}
+    return limits | dict(environment)
+
+
+def run_job(arguments: list[str], out: str, name: str, threads: int) -> dict:
+    """Run ``python -m fsswarp ARGUMENTS`` (one reconstruction into ``out``/``name``, with
+    ``threads`` CPUs: :func:`job_environment`) under :func:`supervise`; returns its ``returncode`` (-N: killed by signal N), ``error`` (one line
     or None), ``seconds``, ``node`` and ``device`` (the GPUs Ray gave this task, or "cpu"). The
     Ray task."""
     import platform
@@ -164,7 +176,7 @@ def run_job(arguments: list[str], out: str, name: str) -> dict:
     # stderr into a file, not a pipe, which a process the job left behind could hold open
     with tempfile.TemporaryFile("w+", errors="replace") as stderr:
         returncode = subprocess.run([sys.executable, "-m", "fsswarp.batch", *arguments], stdin=subprocess.DEVNULL,
-                                    stdout=subprocess.DEVNULL, stderr=stderr).returncode
+                                    stdout=subprocess.DEVNULL, stderr=stderr, env=job_environment(threads)).returncode
         returncode = 128 - returncode if returncode > 128 else returncode
         stderr.seek(0)
         error = _error_line(returncode, stderr.read())
@@ -253,7 +265,8 @@ def run_batch(jobs: list[Job], out: str | os.PathLike, *, address: str | None = 
             options += ("--backend", "opencl")
         task = ray.remote(run_job).options(num_cpus=1, num_gpus=1 / jobs_per_gpu if gpus else 0, max_retries=0)
         slots = int(gpus * jobs_per_gpu) if gpus else int(resources.get("CPU", 1))
-        return _schedule(ray, task, jobs, out, ["-q", *options], retries, slots, quiet,
+        threads = max(1, int(resources.get("CPU", 1) // slots)) if gpus else 1
+        return _schedule(ray, task, jobs, out, ["-q", *options], retries, slots, threads, quiet,
                          {"GPU": gpus, "CPU": resources.get("CPU", 0), "jobs_per_gpu": jobs_per_gpu})
     finally:
         ray.shutdown()
@@ -298,7 +311,7 @@ def _check_reachable(address: str) -> None:
 
 
 def _schedule(ray, task, jobs: list[Job], out: Path, global_options: list[str], retries: int, slots: int,
-              quiet: bool, resources: dict) -> list[Outcome]:
+              threads: int, quiet: bool, resources: dict) -> list[Outcome]:
     """Submit every job not done yet, resubmit the retried ones and record each outcome."""
     start = time.perf_counter()
     outcomes = [Outcome(job.name, "skipped") for job in jobs if (out / job.name / DONE_MARKER).is_file()]
@@ -308,7 +321,7 @@ def _schedule(ray, task, jobs: list[Job], out: Path, global_options: list[str], 
 
     def submit(job: Job) -> None:
         attempts[job.name] += 1
-        ref = task.remote([*global_options, *job.arguments(out)], str(out), job.name)
+        ref = task.remote([*global_options, *job.arguments(out)], str(out), job.name, threads)
         running[ref] = job
 
     def record() -> None:

@@ -241,3 +241,14 @@ def test_depth_m_and_tilt_deg_name_the_depth_and_tilt_options(tmp_path):
                          '[[jobs]]\nname = "b"\ndataset = "d"\ndepth = 0.43\ntilt = 10.3\n')
     first, second = load_jobs(jobs_file, reconstruct)
     assert first.options == second.options == ("--depth", "0.43", "--tilt", "10.3")
+
+
+def test_a_job_gets_its_share_of_the_cpus_unless_the_user_chose():
+    from fsswarp.batch import job_environment
+
+    shared = job_environment(2, {"PATH": "/bin"})
+    assert shared["OMP_NUM_THREADS"] == shared["OPENBLAS_NUM_THREADS"] == shared["MKL_NUM_THREADS"] == "2"
+    assert shared["FSSWARP_FIGURE_WORKERS"] == "2" and shared["PATH"] == "/bin"
+    assert job_environment(16, {})["FSSWARP_FIGURE_WORKERS"] == "4"
+    chosen = job_environment(2, {"OMP_NUM_THREADS": "8", "FSSWARP_FIGURE_WORKERS": "0"})
+    assert chosen["OMP_NUM_THREADS"] == "8" and chosen["FSSWARP_FIGURE_WORKERS"] == "0"
