@@ -30,7 +30,10 @@ import json, sys, time
 import fsswarp
 from fsswarp.backends import get_backend
 from fsswarp.dataset import load_dataset
-from fsswarp.reconstruction import ReconstructSettings, reconstruct
+try:
+    from fsswarp.reconstruction import ReconstructSettings, reconstruct
+except ImportError:  # a tree from before the modules were renamed (reconstruct.py)
+    from fsswarp.reconstruct import ReconstructSettings, reconstruct
 dataset = load_dataset(sys.argv[1])
 backend = get_backend(sys.argv[2], sys.argv[3] or None)
 start = time.perf_counter()
