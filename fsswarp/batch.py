@@ -175,8 +175,15 @@ def run_job(arguments: list[str], out: str, name: str, threads: int) -> dict:
     start = time.perf_counter()
     # stderr into a file, not a pipe, which a process the job left behind could hold open
     with tempfile.TemporaryFile("w+", errors="replace") as stderr:
-        returncode = subprocess.run([sys.executable, "-m", "fsswarp.batch", *arguments], stdin=subprocess.DEVNULL,
-                                    stdout=subprocess.DEVNULL, stderr=stderr, env=job_environment(threads)).returncode
+        job = subprocess.Popen([sys.executable, "-m", "fsswarp.batch", *arguments], stdin=subprocess.DEVNULL,
+                               stdout=subprocess.DEVNULL, stderr=stderr, env=job_environment(threads))
+        try:
+            returncode = _wait(job)
+        except KeyboardInterrupt:  # ray.cancel: stop the job (supervise kills its group), leave nothing behind
+            job.terminate()
+            job.wait()
+            remove_leftovers(Path(out), name)
+            raise
         returncode = 128 - returncode if returncode > 128 else returncode
         stderr.seek(0)
         error = _error_line(returncode, stderr.read())
@@ -185,6 +192,14 @@ def run_job(arguments: list[str], out: str, name: str, threads: int) -> dict:
         remove_leftovers(Path(out), name)
     return {"returncode": returncode, "error": error, "seconds": seconds, "node": platform.node(),
             "device": "gpu " + ",".join(map(str, gpus)) if gpus else "cpu"}
+
+
+def _wait(process: subprocess.Popen) -> int:
+    """``process.wait()`` in short slices: Ray's cancel raises KeyboardInterrupt in the task's
+    thread between two Python instructions, which a blocking wait would never reach."""
+    while True:
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            return process.wait(timeout=0.2)
 
 
 def supervise(arguments: list[str]) -> int:
@@ -351,9 +366,7 @@ def _schedule(ray, task, jobs: list[Job], out: Path, global_options: list[str], 
                     progress.finished(outcome)
                     record()
         except KeyboardInterrupt:
-            for ref in running:
-                with contextlib.suppress(Exception):
-                    ray.cancel(ref, force=True)
+            _cancel(ray, list(running))
             raise
         finally:
             for name in {job.name for job in running.values()} | {o.name for o in outcomes if o.status == "failed"}:
@@ -363,6 +376,19 @@ def _schedule(ray, task, jobs: list[Job], out: Path, global_options: list[str], 
     progress.say(f"wrote {out}: {counts['ok']} ok, {counts['failed']} failed, {counts['skipped']} skipped; "
                  f"{JOBS_FILE}, {SUMMARY_FILE} ({time.perf_counter() - start:.1f} s)")
     return outcomes
+
+
+def _cancel(ray, refs: list) -> None:
+    """Cancel the running jobs ``refs``: each task stops its job and removes its temporary folder
+    (run_job's KeyboardInterrupt); a task still running after 30 s loses its worker."""
+    for ref in refs:
+        with contextlib.suppress(Exception):
+            ray.cancel(ref)
+    with contextlib.suppress(Exception):
+        _, refs = ray.wait(refs, num_returns=len(refs), timeout=30)
+    for ref in refs:
+        with contextlib.suppress(Exception):
+            ray.cancel(ref, force=True)
 
 
 def _outcome(ray, ref, name: str, attempts: int) -> Outcome:
