@@ -329,8 +329,9 @@ def _schedule(ray, task, jobs: list[Job], out: Path, global_options: list[str], 
               threads: int, quiet: bool, resources: dict) -> list[Outcome]:
     """Submit every job not done yet, resubmit the retried ones and record each outcome."""
     start = time.perf_counter()
-    outcomes = [Outcome(job.name, "skipped") for job in jobs if (out / job.name / DONE_MARKER).is_file()]
-    todo = [job for job in jobs if not (out / job.name / DONE_MARKER).is_file()]
+    done = {job.name for job in jobs if (out / job.name / DONE_MARKER).is_file()}
+    outcomes = [Outcome(job.name, "skipped") for job in jobs if job.name in done]
+    todo = [job for job in jobs if job.name not in done]
     attempts = {job.name: 0 for job in todo}
     running: dict = {}
 

@@ -449,8 +449,9 @@ def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, pat
     dataset = load_dataset(dataset_dir)
     check_output_folder(out, marker=MARKERS["reconstruct"])
     surface = dataset.manifest.surface
-    check_depth_tilt(surface.depth if depth is None else depth, surface.tilt if tilt is None else math.radians(tilt))
-    check_uncertainties(dataset, surface.depth if depth is None else depth)
+    depth0 = surface.depth if depth is None else depth
+    check_depth_tilt(depth0, surface.tilt if tilt is None else math.radians(tilt))
+    check_uncertainties(dataset, depth0)
     run_reconstruction(state, dataset, out,
                        ReconstructSettings(iterations=iterations, patience=patience, resolution=resolution),
                        state.figure_drawer(), depth0=depth, tilt0=None if tilt is None else math.radians(tilt))
