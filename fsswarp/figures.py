@@ -214,7 +214,7 @@ def contours_figure(images: dict[str, np.ndarray], contours: dict[str, dict], so
     frontal object and mirror contours (dots) and the synthetic ones at each pose (lines,
     the mirror dashed), with μ_m per pose in the panel's title.
 
-    images : {view: (bins, beams)}; contours : ``fsswarp.pose.view_contours``'s dict (its
+    images : {view: (bins, beams)}; contours : ``fsswarp.compare.view_contours``'s dict (its
     views that ``images`` holds); labels : one name per synthetic pose, in its order."""
     import matplotlib
 

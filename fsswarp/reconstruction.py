@@ -346,7 +346,7 @@ class _TruthMetrics:
 
 def truth_workers() -> int:
     """Truth-metric processes that run at once: one per 4 CPUs that this process may use
-    (``fsswarp.backends.usable_cpus``), 1 to 4: 1 on a 2-core CPU, where the loop's kernels use
+    (``fsswarp.system.usable_cpus``), 1 to 4: 1 on a 2-core CPU, where the loop's kernels use
     both cores; 4 on a 16-core GPU host."""
     from .system import usable_cpus
 

@@ -281,7 +281,7 @@ class Backend(abc.ABC):
     def frontal_faces(self, mesh, sonar: SonarSpec, rotations, translations, plane_normals, plane_offsets,
                       views, azimuths, rays: int, *, mirror: bool) -> np.ndarray:
         """Face of the frontal patch of every beam, -1 where none (the patches that E_mu and
-        shape refinement move, fsswarp/pose.py): over the beam's ``rays`` elevation rays
+        shape refinement move, fsswarp/compare.py): over the beam's ``rays`` elevation rays
         φ_j = −W_φ + (j + ½) · 2W_φ / rays, the face seen at the shortest range.
 
         mirror False: a ray's first hit before it meets the surface, at its distance.
@@ -395,7 +395,7 @@ class Backend(abc.ABC):
     def contour_cost(self, layers, view_index, thresholds, windows, masks, distances, shifts,
                      smoothing, cap: float = math.inf) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Frontal contours of N synthetic views and their distances to the data's contours
-        (the grid surrogate of fsswarp/pose.py; kernels/pose.cl states the rule exactly).
+        (the grid surrogate of fsswarp/compare.py; kernels/pose.cl states the rule exactly).
 
         layers : (N, 4, bins, beams) float32, a ``DeviceLayers`` of this backend's
             ``render_device`` (read where it lies) or a host array (full layers); or banded
