@@ -1,7 +1,8 @@
 """Figures for people, as PNG files: synthetic layers (``layers_figure``), fan images
 (``fan_figure``), a mesh over the truth (``carve_figure``), the pose grid levels
 (``pose_figure``), frontal contours per view (``contours_figure``), a reconstruction's history
-(``history_figure``) and ghost removal (``enhance_figure``, ``comparison_figure``).
+(``history_figure``), ghost removal (``enhance_figure``, ``comparison_figure``) and one view
+beside its syntheses as fan images with range and azimuth axes (``views_figure``, the report's).
 ``FigureDrawer`` draws them in child processes while a command goes on
 (``FSSWARP_FIGURE_WORKERS``; the files are the same byte for byte either way).
 
@@ -26,43 +27,54 @@ from .sonar import SonarSpec, scan_convert
 def layers_figure(views: dict[str, np.ndarray], sonar: SonarSpec, path: str | Path, *,
                   layers=("object", "ghost", "mirror", "mirror2", "total"), title: str = "",
                   zoom: bool = True) -> Path:
-    """Save a PNG grid: one row per view, per layer a beam-bin image and its fan image.
+    """Save a PNG grid: one row per view, per layer a beam-bin image and its fan image, with
+    one colour bar.
 
     views : {label: (len(layers), bins, beams) float32}. Intensities on a shared dB scale
     (60 dB below the brightest pixel of all views). With ``zoom`` the axes show the ranges
     and azimuths that hold returns within 40 dB of that peak, plus a margin, instead of the
-    whole window."""
+    whole window; a layer named "data" (noisy) counts for the peak but not for the zoom."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     peak = max(float(np.max(stack)) for stack in views.values()) or 1.0
-    limits = _zoom_limits(views, sonar, peak) if zoom else None
+    clean = [k for k, layer in enumerate(layers) if layer != "data"] or list(range(len(layers)))
+    limits = _zoom_limits({label: np.asarray(stack)[clean] for label, stack in views.items()}, sonar, peak) \
+        if zoom else None
     rows, cols = len(views), 2 * len(layers)
-    fig, axes = plt.subplots(rows, cols, figsize=(2.1 * cols, 2.6 * rows), squeeze=False)
+    fig = plt.figure(figsize=(2.2 * cols, 2.5 * rows + 0.9))
+    grid = fig.add_gridspec(rows + 1, cols, height_ratios=[1.0] * rows + [0.06])
+    axes = np.array([[fig.add_subplot(grid[r, c]) for c in range(cols)] for r in range(rows)])
     extent_bb = (math.degrees(sonar.beam_centres[0]), math.degrees(sonar.beam_centres[-1]),
                  sonar.range_min, sonar.range_max)
     for r, (label, stack) in enumerate(views.items()):
         for k, layer in enumerate(layers):
             db = _decibels(stack[k], peak)
             ax = axes[r, 2 * k]
-            ax.imshow(db, origin="lower", aspect="auto", extent=extent_bb, cmap="magma", vmin=-60, vmax=0)
-            ax.set_title(f"{label} {layer}\nbeam-bin", fontsize=7)
-            ax.set_xlabel("azimuth (deg)", fontsize=6)
-            ax.set_ylabel("range (m)", fontsize=6)
+            shown = ax.imshow(db, origin="lower", aspect="auto", extent=extent_bb, cmap="magma", vmin=-60, vmax=0)
+            ax.set_title(f"{label} {layer}, beam-bin", fontsize=8)
+            ax.set_xlabel("azimuth (deg)", fontsize=7)
+            ax.set_ylabel("range (m)", fontsize=7)
             fan, extent = scan_convert(db, sonar, fill=np.nan)
             ax = axes[r, 2 * k + 1]
             ax.imshow(fan, extent=extent, cmap="magma", vmin=-60, vmax=0)
-            ax.set_title(f"{label} {layer}\nfan", fontsize=7)
-            ax.set_xlabel("x (m)", fontsize=6)
+            ax.set_title(f"{label} {layer}, fan", fontsize=8)
+            ax.set_xlabel("x (m)", fontsize=7)
+            ax.set_ylabel("y (m)", fontsize=7)
             if limits is not None:
                 axes[r, 2 * k].set_xlim(limits["azimuth"])
                 axes[r, 2 * k].set_ylim(limits["range"])
                 ax.set_xlim(limits["x"])
                 ax.set_ylim(limits["y"])
             for a in axes[r, 2 * k: 2 * k + 2]:
-                a.tick_params(labelsize=5)
+                a.tick_params(labelsize=7)
+                a.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(4))
+                a.yaxis.set_major_locator(matplotlib.ticker.MaxNLocator(5))
+    bar = fig.colorbar(shown, cax=fig.add_subplot(grid[-1, cols // 4: cols - cols // 4]), orientation="horizontal")
+    bar.set_label("dB below the brightest pixel of all views", fontsize=8)
+    bar.ax.tick_params(labelsize=7)
     return save_figure(fig, path, title)
 
 
@@ -87,14 +99,17 @@ def _zoom_limits(views: dict[str, np.ndarray], sonar: SonarSpec, peak: float, *,
 
 
 def save_figure(fig, path: str | Path, title: str = "", *, rect=(0, 0, 1, 1)) -> Path:
-    """Title (``fig.suptitle``), lay out inside ``rect``, close and write ``fig`` as a PNG,
-    atomically; returns the path."""
+    """Title (``fig.suptitle``), lay out inside ``rect`` below the title, close and write
+    ``fig`` as a PNG, atomically; returns the path."""
     import matplotlib.pyplot as plt
 
+    top = rect[3]
     if title:
         width = max(40, int(fig.get_figwidth() * 15))  # characters of a 9-point line
-        fig.suptitle("\n".join(textwrap.fill(line, width) for line in title.splitlines()), fontsize=9)
-    fig.tight_layout(rect=rect)
+        text = "\n".join(textwrap.fill(line, width) for line in title.splitlines())
+        fig.suptitle(text, fontsize=9, y=1 - 0.06 / fig.get_figheight())
+        top = min(top, 1 - (0.17 * (text.count("\n") + 1) + 0.02) / fig.get_figheight())
+    fig.tight_layout(rect=(rect[0], rect[1], rect[2], top))
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=110)
     plt.close(fig)
@@ -136,36 +151,58 @@ def fan_figure(image: np.ndarray, sonar: SonarSpec, path: str | Path, *, title: 
     return save_figure(fig, path)
 
 
+#: The colours of the models in figures and in the report's 3-D view, by label.
+MODEL_COLOURS = {"carved": "#d9822b", "final": "#2f6db5", "truth": "#222222"}
+
+
 def carve_figure(mesh, path: str | Path, *, truth=None, title: str = "", label: str = "carved") -> Path:
-    """Save a PNG of a mesh's XY, XZ and YZ projections (reference frame, metres), over the
-    truth's projections when ``truth`` (a mesh) is given: filled triangles, the mesh (named
-    ``label``) in blue, truth in black."""
+    """Save a PNG of a mesh's XY, XZ and YZ projections (reference frame, metres): the mesh
+    shaded as lit from the viewer, in the colour of ``label`` (MODEL_COLOURS; carved orange,
+    final blue), and over it, when ``truth`` (a mesh) is given, the truth's outline in black
+    (its silhouette and fold edges)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.collections import PolyCollection
+    from matplotlib.collections import LineCollection, PolyCollection
+    from matplotlib.colors import to_rgb
 
-    fig, axes = plt.subplots(1, 3, figsize=(12.6, 4.4))
-    meshes = [(m, colour, alpha, label) for m, colour, alpha, label in
-              ((truth, "black", 0.35, "truth"), (mesh, "tab:blue", 0.35, label)) if m is not None]
-    points = np.concatenate([np.asarray(m.vertices) for m, *_ in meshes])
+    fig, axes = plt.subplots(1, 3, figsize=(12.6, 4.6))
+    colour = np.array(to_rgb(MODEL_COLOURS.get(label, MODEL_COLOURS["final"])))
+    points = np.concatenate([np.asarray(m.vertices) for m in (mesh, truth) if m is not None])
     pad = 0.05 * float(np.ptp(points, axis=0).max())
+    triangles, normals = np.asarray(mesh.triangles), np.asarray(mesh.face_normals)
     for ax, (i, j) in zip(axes, ((0, 1), (0, 2), (1, 2))):
-        for m, colour, alpha, label in meshes:
-            tri = np.asarray(m.triangles)[:, :, (i, j)]
-            ax.add_collection(PolyCollection(tri, facecolors=colour, edgecolors="none", alpha=alpha, label=label))
+        k = 3 - i - j  # the viewing axis: the viewer looks from +k
+        order = np.argsort(triangles[:, :, k].mean(axis=1))  # far faces first
+        shade = 0.3 + 0.7 * np.abs(normals[order, k])[:, None]
+        faces = np.clip(shade * colour, 0, 1)
+        ax.add_collection(PolyCollection(triangles[order][:, :, (i, j)], facecolors=faces, edgecolors=faces,
+                                         linewidths=0.2))
+        if truth is not None:
+            ax.add_collection(LineCollection(_outline(truth, k)[:, :, (i, j)], colors=MODEL_COLOURS["truth"],
+                                             linewidths=0.9))
         ax.set_xlim(points[:, i].min() - pad, points[:, i].max() + pad)
         ax.set_ylim(points[:, j].min() - pad, points[:, j].max() + pad)
         ax.set_aspect("equal")
         ax.set_xlabel(f"{'xyz'[i]} (m)")
         ax.set_ylabel(f"{'xyz'[j]} (m)")
-        ax.set_title(f"{'xyz'[i]}{'xyz'[j]} projection", fontsize=9)
+        ax.set_title(f"{'xyz'[i]}{'xyz'[j]} projection, seen from +{'xyz'[k]}", fontsize=9)
         ax.tick_params(labelsize=7)
+    handles = {f"{label} model (shaded)": matplotlib.patches.Patch(color=colour)}
     if truth is not None:
-        axes[0].legend(handles=[matplotlib.patches.Patch(color=c, alpha=0.5, label=lab) for _, c, _, lab in meshes],
-                       fontsize=7, loc="upper right")
-    return save_figure(fig, path, title)
+        handles["truth (outline)"] = matplotlib.lines.Line2D([], [], color=MODEL_COLOURS["truth"], lw=1.2)
+    _bottom_legend(fig, handles)
+    return save_figure(fig, path, title, rect=(0, 0.08, 1, 1))
+
+
+def _outline(mesh, axis: int) -> np.ndarray:
+    """(edges, 2, 3) the edges of ``mesh`` between a face turned toward +``axis`` and one
+    turned away: its silhouette seen along that axis, and its folds."""
+    normals = np.asarray(mesh.face_normals)[:, axis]
+    pairs = np.asarray(mesh.face_adjacency)
+    turn = np.sign(normals[pairs[:, 0]]) != np.sign(normals[pairs[:, 1]])
+    return np.asarray(mesh.vertices)[np.asarray(mesh.face_adjacency_edges)[turn]]
 
 
 def pose_figure(result, path: str | Path, *, truth: tuple[float, float] | None = None, title: str = "") -> Path:
@@ -261,74 +298,114 @@ def contours_figure(images: dict[str, np.ndarray], contours: dict[str, dict], so
 
 
 def history_figure(history: list[dict], path: str | Path, *, truth_depth: float | None = None,
-                   truth_tilt_deg: float | None = None, best_iteration: int | None = None, title: str = "") -> Path:
+                   truth_tilt_deg: float | None = None, best_iteration: int | None = None,
+                   depth_interval_m=None, tilt_interval_deg=None, title: str = "") -> Path:
     """Save a PNG like the paper's Figures 7–8: depth and tilt against iteration (truth dashed),
-    and E_I, E_mu and (with a truth model) E_V against iteration, the kept (best) iteration
-    marked by a dotted line. ``history``: the entries of ``result.json``."""
+    E_I and E_mu, and (with a truth model) E_V against iteration, the kept (best) iteration
+    marked by a dotted line. ``history``: the entries of ``result.json``; an entry's
+    ``depth_interval_m`` and ``tilt_interval_deg`` ([low, high]) are shaded as a band, and
+    ``depth_interval_m``, ``tilt_interval_deg`` given here (the result's) as a bar at the kept
+    iteration."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    it = [h["iteration"] for h in history]
-    fig, axes = plt.subplots(1, 3, figsize=(12.6, 3.6))
-    for ax, key, unit, truth in ((axes[0], "depth_m", "depth D (m)", truth_depth),
-                                 (axes[1], "tilt_deg", "tilt (deg)", truth_tilt_deg)):
+    it = np.array([h["iteration"] for h in history])
+    panels = 4 if "E_V" in history[0] else 3
+    fig, axes = plt.subplots(1, panels, figsize=(3.6 * panels, 3.6))
+    for ax, key, unit, truth, interval in ((axes[0], "depth_m", "depth D (m)", truth_depth, depth_interval_m),
+                                           (axes[1], "tilt_deg", "tilt β (deg)", truth_tilt_deg, tilt_interval_deg)):
+        band = np.array([h.get(key.replace("_", "_interval_", 1)) or (np.nan, np.nan) for h in history], float)
+        if np.isfinite(band).any():
+            ax.fill_between(it, band[:, 0], band[:, 1], color="tab:blue", alpha=0.18, lw=0,
+                            label="interval per iteration")
         ax.plot(it, [h[key] for h in history], "o-", color="tab:blue", label="estimate")
+        if interval is not None and best_iteration is not None:
+            estimate = history[best_iteration][key]
+            ax.errorbar([best_iteration], [estimate], yerr=[[estimate - interval[0]], [interval[1] - estimate]],
+                        color="tab:red", capsize=4, lw=1.5, label="result's interval")
         if truth is not None:
             ax.axhline(truth, color="black", linestyle="--", label="truth")
-        ax.set_xlabel("iteration")
         ax.set_ylabel(unit)
-        ax.legend(fontsize=7)
+    axes[0].yaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%.3f"))
+    axes[1].yaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%.2f"))
     ax = axes[2]
-    ax.plot(it, [h["E_I"] for h in history], "o-", label="E_I")
-    ax.plot(it, [h["E_mu"] / history[0]["E_mu"] for h in history], "s-", label="E_mu / E_mu(0)")
-    if "E_V" in history[0]:
-        ax.plot(it, [h["E_V"] for h in history], "^-", label="E_V")
-    ax.set_xlabel("iteration")
-    ax.set_ylabel("error")
+    ax.plot(it, [h["E_I"] for h in history], "o-", color="tab:orange", label="E_I")
+    ax.plot(it, [h["E_mu"] / history[0]["E_mu"] for h in history], "s-", color="tab:brown", label="E_mu / E_mu(0)")
+    ax.set_ylabel("image error (1 = carved model)")
+    if panels == 4:
+        axes[3].plot(it, [h["E_V"] for h in history], "^-", color="tab:green", label="E_V")
+        axes[3].plot(it, [h["fscore"] for h in history], "v-", color="tab:purple", label="F-score")
+        axes[3].set_ylabel("E_V, F-score (vs truth)")
+    handles = {}
     for a in axes:
         if best_iteration is not None:
-            a.axvline(best_iteration, color="grey", linestyle=":", label="kept" if a is axes[2] else None)
-        a.set_xticks(it)
+            a.axvline(best_iteration, color="grey", linestyle=":", label="kept iteration")
+        a.set_xlabel("iteration")
+        a.set_xticks(it if len(it) <= 12 else it[::math.ceil(len(it) / 12)])
         a.tick_params(labelsize=7)
-    ax.legend(fontsize=7)
-    return save_figure(fig, path, title)
+        handles.update({label: handle for handle, label in zip(*a.get_legend_handles_labels())})
+    _bottom_legend(fig, handles)
+    return save_figure(fig, path, title, rect=(0, 0.08, 1, 1))
+
+
+#: The regions of ``enhance_figure``: name and colour, by code (1 object + 2 ghost + 4 mirror).
+REGIONS = {0: ("none", "#f2f2f2"), 1: ("object", "#1f77b4"), 2: ("ghost", "#ff7f0e"),
+           3: ("object + ghost", "#d62728"), 4: ("mirror", "#9467bd"), 5: ("object + mirror", "#8c564b"),
+           6: ("ghost + mirror", "#e377c2"), 7: ("all three", "#2ca02c")}
 
 
 def enhance_figure(images: dict[str, np.ndarray], results: dict, sonar: SonarSpec, path: str | Path, *,
                    title: str = "") -> Path:
     """Save a PNG grid, one row per view: data | ghost-free (enhanced) | isolated ghost |
-    regions (object, ghost, mirror, overlap), beam-bin images in dB below the data's peak.
+    regions (object, ghost, mirror and their overlaps, named in a legend), beam-bin images in
+    dB below the data's peak with a colour bar.
 
     images : {view: (bins, beams) linear data}; results : {view: fsswarp.enhancement.EnhancedView}."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.colors import ListedColormap
 
-    fig, axes = plt.subplots(len(images), 4, figsize=(9.0, 2.7 * len(images)), squeeze=False)
+    fig = plt.figure(figsize=(10.0, 2.8 * len(images) + 1.2))
+    grid = fig.add_gridspec(len(images) + 1, 4, height_ratios=[1.0] * len(images) + [0.05])
+    axes = np.array([[fig.add_subplot(grid[r, c]) for c in range(4)] for r in range(len(images))])
     extent = (math.degrees(sonar.beam_centres[0]), math.degrees(sonar.beam_centres[-1]),
               sonar.range_min, sonar.range_max)
+    codes = ListedColormap([colour for _, colour in REGIONS.values()])
     for row, (name, image) in enumerate(images.items()):
         result = results[name]
         peak = float(np.max(image)) or 1.0
-        regions = (result.object_region.astype(np.float32) + 2 * result.ghost_region + 4 * result.mirror_region)
+        regions = (result.object_region.astype(np.int8) + 2 * result.ghost_region + 4 * result.mirror_region)
         panels = [(_decibels(image, peak), "data", "magma", (-60, 0)),
                   (_decibels(result.enhanced, peak), "ghost-free", "magma", (-60, 0)),
                   (_decibels(result.ghost, peak), "isolated ghost", "magma", (-60, 0)),
-                  (regions, "regions: 1 obj, 2 ghost, 4 mirror", "tab10", (0, 9))]
+                  (regions, "regions", codes, (-0.5, 7.5))]
         rows, cols = np.nonzero(result.object_region | result.ghost_region | result.mirror_region)
         for ax, (shown, label, cmap, (low, high)) in zip(axes[row], panels):
-            ax.imshow(shown, origin="lower", aspect="auto", extent=extent, cmap=cmap, vmin=low, vmax=high,
-                      interpolation="nearest")
-            ax.set_title(f"{name} {label}", fontsize=7)
+            drawn = ax.imshow(shown, origin="lower", aspect="auto", extent=extent, cmap=cmap, vmin=low, vmax=high,
+                              interpolation="nearest")
+            if label == "data":
+                decibels = drawn
+            ax.set_title(f"{name} {label}", fontsize=8)
             if rows.size:
                 ax.set_ylim(max(sonar.range_min, float(sonar.bin_ranges[rows.min()]) - 0.1),
                             min(sonar.range_max, float(sonar.bin_ranges[rows.max()]) + 0.1))
-            ax.set_xlabel("azimuth (deg)", fontsize=6)
-            ax.set_ylabel("range (m)", fontsize=6)
-            ax.tick_params(labelsize=5)
+                ax.set_xlim(max(extent[0], math.degrees(sonar.beam_centres[cols.min()]) - 4.0),
+                            min(extent[1], math.degrees(sonar.beam_centres[cols.max()]) + 4.0))
+            ax.set_xlabel("azimuth (deg)", fontsize=7)
+            ax.set_ylabel("range (m)", fontsize=7)
+            ax.tick_params(labelsize=7)
+    bar = fig.colorbar(decibels, cax=fig.add_subplot(grid[-1, :2]), orientation="horizontal")
+    bar.set_label("dB below the view's data peak", fontsize=8)
+    bar.ax.tick_params(labelsize=7)
+    key = fig.add_subplot(grid[-1, 2:])
+    key.axis("off")
+    key.legend([matplotlib.patches.Patch(color=colour) for _, colour in REGIONS.values()],
+               [name for name, _ in REGIONS.values()], loc="center", ncol=4, fontsize=7, frameon=False,
+               title="regions (the model's, at D and β)", title_fontsize=7)
     return save_figure(fig, path, title)
 
 
@@ -378,6 +455,97 @@ def comparison_figure(images: dict[str, np.ndarray], enhanced: dict[str, np.ndar
     bar.set_label("dB below the row's data peak", fontsize=7)
     bar.ax.tick_params(labelsize=6)
     return save_figure(fig, path, title)
+
+
+def views_figure(rows: dict[str, dict[str, np.ndarray]], sonar: SonarSpec, path: str | Path, *,
+                 floor_db: float = -40.0, title: str = "") -> Path:
+    """Save a PNG like the paper's Figures 10–14: per row, its images side by side as fan
+    images with range arcs (m) and azimuth rays (deg), zoomed on the returns of the images
+    after the second (the synthetic ones), and one colour bar.
+
+    rows : {row label: {column label: (bins, beams) linear image}}, the first column the data;
+    each row on its own scale, dB below its data's peak down to ``floor_db``. Synthetic images
+    should already be scaled to the data's level (fsswarp.enhancement.match_level)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    first = next(iter(rows.values()))
+    limits = {label: _zoom_limits({label: np.stack(list(images.values())[2:] or list(images.values()))}, sonar,
+                                  max(float(np.max(m)) for m in list(images.values())[2:] or images.values()) or 1.0)
+              or _window(sonar) for label, images in rows.items()}
+    aspect = max((lim["x"][1] - lim["x"][0]) / (lim["y"][1] - lim["y"][0]) for lim in limits.values())
+    width = 2.9
+    height = min(2.9, max(1.3, width / aspect)) + 0.75
+    fig, axes = plt.subplots(len(rows), len(first), figsize=(width * len(first) + 1.0, height * len(rows)),
+                             squeeze=False)
+    for row, (label, images) in enumerate(rows.items()):
+        peak = float(np.max(next(iter(images.values())))) or 1.0
+        for ax, (column, image) in zip(axes[row], images.items()):
+            with np.errstate(divide="ignore"):
+                db = np.maximum(20.0 * np.log10(np.maximum(np.asarray(image, np.float64), 0) / peak), floor_db)
+            shown = draw_fan(ax, db, sonar, limits[label], vmin=floor_db)
+            ax.set_title(f"{label}: {column}" if len(rows) > 1 else column, fontsize=8)
+    bar = fig.colorbar(shown, ax=axes.ravel().tolist(), orientation="horizontal", fraction=0.6 / fig.get_figheight(),
+                       aspect=60, pad=0.12 / len(rows))
+    bar.set_label("dB below the data's peak", fontsize=7)
+    bar.ax.tick_params(labelsize=7)
+    if title:
+        fig.suptitle(title, fontsize=9)
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=100, bbox_inches="tight", pad_inches=0.05)
+    plt.close(fig)
+    return write_bytes(path, buffer.getvalue())
+
+
+def _window(sonar: SonarSpec) -> dict:
+    """``_zoom_limits``'s dict for the whole window of ``sonar``."""
+    t_lo, t_hi = float(sonar.beam_centres[0]), float(sonar.beam_centres[-1])
+    x = [r * math.sin(t) for r in (sonar.range_min, sonar.range_max) for t in (t_lo, t_hi)]
+    return {"range": (sonar.range_min, sonar.range_max), "azimuth": (math.degrees(t_lo), math.degrees(t_hi)),
+            "x": (min(x), max(x)), "y": (sonar.range_min * math.cos(max(abs(t_lo), abs(t_hi))), sonar.range_max)}
+
+
+def draw_fan(ax, db: np.ndarray, sonar: SonarSpec, limits: dict, *, vmin: float = -40.0, cmap: str = "magma"):
+    """Draw the (bins, beams) image ``db`` (dB, 0 at the top of the scale) on ``ax`` as a fan
+    (x across, y ahead, true shape), the part within ``limits`` (``_zoom_limits``'s "range" m
+    and "azimuth" deg), with range arcs labelled in m and azimuth rays in deg; returns the mesh."""
+    import matplotlib
+
+    centres = np.asarray(sonar.beam_centres, np.float64)
+    ranges = np.asarray(sonar.bin_ranges, np.float64)
+    theta = np.concatenate([[1.5 * centres[0] - 0.5 * centres[1]], 0.5 * (centres[1:] + centres[:-1]),
+                            [1.5 * centres[-1] - 0.5 * centres[-2]]])
+    radius = np.concatenate([ranges - 0.5 * sonar.range_step, [ranges[-1] + 0.5 * sonar.range_step]])
+    (r_lo, r_hi), (t_lo, t_hi) = limits["range"], np.radians(limits["azimuth"])
+    rows = np.flatnonzero((radius[1:] > r_lo) & (radius[:-1] < r_hi))
+    cols = np.flatnonzero((theta[1:] > t_lo) & (theta[:-1] < t_hi))
+    t, r = np.meshgrid(theta[cols[0]:cols[-1] + 2], radius[rows[0]:rows[-1] + 2])
+    shown = ax.pcolormesh(r * np.sin(t), r * np.cos(t), db[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1], cmap=cmap,
+                          vmin=vmin, vmax=0, shading="flat", rasterized=True)
+    r_lo, r_hi = float(r[0, 0]), float(r[-1, 0])
+    t_lo, t_hi = float(t[0, 0]), float(t[0, -1])
+    arc = np.linspace(t_lo, t_hi, 64)
+    for value in matplotlib.ticker.MaxNLocator(4).tick_values(r_lo, r_hi):
+        if r_lo <= value <= r_hi:
+            ax.plot(value * np.sin(arc), value * np.cos(arc), color="white", lw=0.5, alpha=0.45)
+            ax.annotate(f"{value:.2f} m", (value * math.sin(t_hi), value * math.cos(t_hi)), xytext=(3, 0),
+                        textcoords="offset points", fontsize=7, va="center", ha="left")
+    for value in matplotlib.ticker.MaxNLocator(5).tick_values(math.degrees(t_lo), math.degrees(t_hi)):
+        angle = math.radians(value)
+        if t_lo <= angle <= t_hi:
+            ax.plot([r_lo * math.sin(angle), r_hi * math.sin(angle)], [r_lo * math.cos(angle), r_hi * math.cos(angle)],
+                    color="white", lw=0.5, alpha=0.45)
+            ax.annotate(f"{value:g}°", (r_lo * math.sin(angle), r_lo * math.cos(angle)), xytext=(0, -3),
+                        textcoords="offset points", fontsize=7, ha="center", va="top")
+    ax.plot(np.r_[r_lo * np.sin(arc), r_hi * np.sin(arc[::-1]), r_lo * math.sin(t_lo)],
+            np.r_[r_lo * np.cos(arc), r_hi * np.cos(arc[::-1]), r_lo * math.cos(t_lo)], color="black", lw=0.8)
+    ax.set_aspect("equal")
+    ax.axis("off")
+    ax.annotate("azimuth (deg)", (0.5, -0.02), xycoords="axes fraction", xytext=(0, -10), textcoords="offset points",
+                fontsize=6, ha="center", va="top", color="dimgrey")
+    return shown
 
 
 def draw_here(function, *args, **kwargs):
