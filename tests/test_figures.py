@@ -1,6 +1,7 @@
 """Figure drawing in child processes (fsswarp.figures.FigureDrawer) and its setting."""
 
 import os
+import re
 import time
 
 import pytest
@@ -100,3 +101,167 @@ def test_figures_are_drawn_here_where_processes_cannot_start(monkeypatch, tmp_pa
         draw(write_bytes, tmp_path / "a.bin", b"a")
     assert (tmp_path / "a.bin").read_bytes() == b"a"
     drawer.close()
+
+
+# --- what the figures show ------------------------------------------------------------------------
+
+def captured_figures(monkeypatch):
+    """The figures that fsswarp.figures saves, kept for inspection after their layout."""
+    import fsswarp.figures as figures
+
+    kept, save = [], figures.save_figure
+
+    def keep(fig, path, title="", **options):
+        kept.append(fig)
+        return save(fig, path, title, **options)
+
+    monkeypatch.setattr(figures, "save_figure", keep)
+    return kept
+
+
+def small_sonar():
+    from fsswarp.sonar import SonarSpec
+
+    return SonarSpec.from_degrees(beams=32, bins=128, azimuth_fov_deg=28.8, range_min_m=1.0, range_max_m=3.0)
+
+
+def test_layers_zoom_on_the_noise_free_echoes_and_share_a_colour_bar(monkeypatch, tmp_path):
+    """The noisy data layer fills the window; the zoom follows the clean layers' echo (range
+    2.0 m, azimuth 0) all the same, and one colour bar names the scale."""
+    import numpy as np
+
+    from fsswarp.figures import layers_figure
+
+    sonar = small_sonar()
+    echo = np.zeros((sonar.bins, sonar.beams), np.float32)
+    row = int(np.argmin(np.abs(sonar.bin_ranges - 2.0)))
+    echo[row - 1: row + 2, 15:17] = 1.0
+    noisy = echo + np.random.default_rng(0).uniform(0.05, 0.2, echo.shape).astype(np.float32)
+    kept = captured_figures(monkeypatch)
+    path = layers_figure({"S0": np.stack([echo, noisy])}, sonar, tmp_path / "layers.png", layers=("object", "data"))
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    fig = kept[0]
+    beam_bin = [ax for ax in fig.axes if ax.get_ylabel() == "range (m)"]
+    assert len(beam_bin) == 2
+    for ax in beam_bin:
+        low, high = ax.get_ylim()
+        assert 1.7 < low < 2.0 < high < 2.3, (low, high)
+        assert ax.xaxis.get_ticklabels()[0].get_fontsize() >= 7
+    assert [ax.get_xlabel() for ax in fig.axes if "dB" in ax.get_xlabel()] == ["dB below the brightest pixel of all views"]
+    assert all(ax.get_xlabel().endswith(")") for ax in fig.axes if ax.get_xlabel() and "dB" not in ax.get_xlabel())
+
+
+def fake_views(sonar, count):
+    """``count`` EnhancedView-like results with an object, a ghost and a mirror region."""
+    import numpy as np
+
+    from fsswarp.enhancement import EnhancedView
+
+    shape = (sonar.bins, sonar.beams)
+    views = {}
+    for k in range(count):
+        region = np.zeros(shape, bool)
+        region[60:70, 10:20] = True
+        ghost = np.roll(region, 3, axis=0)
+        mirror = np.roll(region, 6, axis=1)
+        image = np.random.default_rng(k).uniform(0.01, 1.0, shape).astype(np.float32)
+        views[f"V{k}"] = (image, EnhancedView(enhanced=image * 0.5, ghost=image * 0.2, synthetic=image,
+                                              object_region=region, ghost_region=ghost, mirror_region=mirror,
+                                              overlap=region & (ghost | mirror), lut=np.zeros((2, 4)),
+                                              background=0.01))
+    return views
+
+
+def test_enhance_names_its_region_colours_and_its_titles_do_not_overlap(monkeypatch, tmp_path):
+    from fsswarp.figures import REGIONS, enhance_figure
+
+    sonar = small_sonar()
+    views = fake_views(sonar, 3)
+    kept = captured_figures(monkeypatch)
+    enhance_figure({n: image for n, (image, _) in views.items()}, {n: r for n, (_, r) in views.items()}, sonar,
+                   tmp_path / "enhance.png", title="coral-one: ghost removal with a model of a long name, to wrap")
+    fig = kept[0]
+    legends = [legend for ax in fig.axes for legend in [ax.get_legend()] if legend is not None]
+    assert [t.get_text() for t in legends[0].get_texts()] == [name for name, _ in REGIONS.values()]
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    renderer = FigureCanvasAgg(fig).get_renderer()  # the figure is closed: a canvas of its own, same layout
+    boxes = [fig._suptitle.get_window_extent(renderer)] + [ax.title.get_window_extent(renderer) for ax in fig.axes
+                                                           if ax.get_title()]
+    assert len(boxes) == 1 + 3 * 4
+    for i, first in enumerate(boxes):
+        for second in boxes[i + 1:]:
+            assert not first.overlaps(second), (first, second)
+
+
+def test_the_carved_and_the_final_model_have_their_own_shaded_colours(monkeypatch, tmp_path):
+    """Orange for the carved model, blue for the final one, each shaded (more than one tone),
+    the truth an outline."""
+    import numpy as np
+    from matplotlib.collections import LineCollection, PolyCollection
+
+    from fsswarp.figures import carve_figure
+
+    mesh = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
+    truth = trimesh.creation.box((0.15, 0.15, 0.15))
+    kept = captured_figures(monkeypatch)
+    carve_figure(mesh, tmp_path / "carved.png", truth=truth, label="carved")
+    carve_figure(mesh, tmp_path / "model.png", truth=truth, label="final")
+    for fig, hue in zip(kept, ("orange", "blue")):
+        faces = [c for c in fig.axes[0].collections if isinstance(c, PolyCollection)][0].get_facecolors()[:, :3]
+        red, blue = faces[:, 0].mean(), faces[:, 2].mean()
+        assert (red > 2 * blue) if hue == "orange" else (blue > 1.5 * red), (hue, red, blue)
+        assert len(np.unique(faces.round(3), axis=0)) > 10  # shaded, not flat
+        outline = [c for c in fig.axes[0].collections if isinstance(c, LineCollection)][0]
+        assert len(outline.get_segments()) >= 4  # the box's silhouette seen along z: its four side edges
+
+
+def test_history_shades_the_intervals_where_the_entries_have_them(monkeypatch, tmp_path):
+    import numpy as np
+    from matplotlib.collections import PolyCollection
+
+    from fsswarp.figures import history_figure
+
+    history = [{"iteration": k, "depth_m": 0.45 + 0.001 * k, "tilt_deg": 11.0 + 0.1 * k, "E_mu": 0.01 / (k + 1),
+                "E_I": 1.0 - 0.1 * k, "E_V": 0.4 - 0.02 * k, "fscore": 0.2 + 0.05 * k} for k in range(4)]
+    with_bands = [dict(h, depth_interval_m=[h["depth_m"] - 0.01, h["depth_m"] + 0.02],
+                       tilt_interval_deg=[h["tilt_deg"] - 0.3, h["tilt_deg"] + 0.4]) for h in history]
+    kept = captured_figures(monkeypatch)
+    history_figure(history, tmp_path / "plain.png", best_iteration=3)
+    history_figure(with_bands, tmp_path / "bands.png", best_iteration=3, depth_interval_m=[0.44, 0.47])
+    plain, bands = kept
+    assert len(plain.axes) == 4 and not [c for c in plain.axes[0].collections if isinstance(c, PolyCollection)]
+    band = [c for c in bands.axes[0].collections if isinstance(c, PolyCollection)][0]
+    low, high = band.get_paths()[0].vertices[:, 1].min(), band.get_paths()[0].vertices[:, 1].max()
+    assert np.isclose(low, 0.44) and np.isclose(high, 0.473)
+    assert "result's interval" in [t.get_text() for t in bands.legends[0].get_texts()]
+
+
+def test_a_fan_puts_each_cell_at_its_range_and_azimuth_with_labelled_arcs_and_rays():
+    """Cell (bin, beam) centres at R (sin θ, cos θ) from the sonar's geometry; arcs in m, rays in deg."""
+    import math
+
+    import matplotlib
+    import numpy as np
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from fsswarp.figures import draw_fan
+
+    sonar = small_sonar()
+    fig, ax = plt.subplots()
+    mesh = draw_fan(ax, np.zeros((sonar.bins, sonar.beams)), sonar, {"range": (1.8, 2.2), "azimuth": (-6.0, 8.0)})
+    corners = mesh.get_coordinates()  # (rows + 1, cols + 1, 2)
+    centres = corners.reshape(-1, 2)
+    radius = np.hypot(centres[:, 0], centres[:, 1])
+    assert radius.min() > 1.8 - sonar.range_step and radius.max() < 2.2 + sonar.range_step
+    rows = np.flatnonzero((sonar.bin_ranges + sonar.range_step / 2 > 1.8) & (sonar.bin_ranges - sonar.range_step / 2 < 2.2))
+    first_range, first_beam = sonar.bin_ranges[rows[0]], np.flatnonzero(
+        np.degrees(sonar.beam_centres) + 0.5 * math.degrees(sonar.beam_widths[0]) > -6.0)[0]
+    cell = corners[:2, :2].reshape(-1, 2).mean(axis=0)
+    theta = sonar.beam_centres[first_beam]
+    assert np.allclose(cell, [first_range * math.sin(theta), first_range * math.cos(theta)], atol=2e-3)
+    labels = [t.get_text() for t in ax.texts]
+    assert any(re.fullmatch(r"\d\.\d\d m", t) for t in labels) and any(re.fullmatch(r"-?\d+°", t) for t in labels)
+    plt.close(fig)
