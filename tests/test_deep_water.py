@@ -8,8 +8,10 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import tomllib
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -28,6 +30,7 @@ from fsswarp.simulation import simulate
 from fsswarp.surface import COMPONENTS
 
 FAST = RenderSettings(samples=(1, 16))
+REPO = Path(__file__).resolve().parents[1]
 
 
 def table() -> dict:
@@ -171,6 +174,8 @@ def test_the_commands_on_a_deep_water_dataset(tmp_path, capsys):
     assert run("reconstruct", data, "--out", tmp_path / "rec", "--iterations", 0, "--resolution", 16) == 0
     record = json.loads((tmp_path / "rec" / "result.json").read_text())
     assert record["surface"] is None and record["pose_step"] == NO_POSE_STEP
+    documented = set(re.findall(r"`([^`\s]+)`", (REPO / "docs" / "formats.md").read_text()))
+    assert not (set(record) | set(record["history"][0])) - documented
     assert run("render", data / "truth" / "model.ply", "--dataset", data, "--out", tmp_path / "r", "--view", "S0",
                "--samples", 1, 8) == 0
     import tifffile
