@@ -434,7 +434,7 @@ def _history_table(result: dict) -> str:
                                    if _interval(entry, key) else '<span class="missing">–</span>') + "</td>")
         style = ' class="kept"' if i == result["best_iteration"] else ""
         rows.append(f"<tr{style}>{''.join(cells)}</tr>")
-    return f'<table class="history"><tr>{head}</tr>{"".join(rows)}</table>'
+    return f'<div class="scroll"><table class="history"><tr>{head}</tr>{"".join(rows)}</table></div>'
 
 
 def _views(dataset, figures: dict, skipped: dict) -> str:
@@ -549,7 +549,7 @@ def write_batch_report(folder, *, backend=None, command: str = "", drawer=None) 
     body = (f"<h1>{html.escape(folder.name)}: batch report</h1>\n"
             f'<p class="lead">{len(jobs)} jobs of <code>fsswarp batch</code>, {ok} done; each job\'s name links '
             "to its reconstruction report.</p>\n"
-            f'<table class="batch">{head}{"".join(rows)}</table>\n'
+            f'<div class="scroll"><table class="batch">{head}{"".join(rows)}</table></div>\n'
             f'<p class="note">Written {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M UTC} by '
             f"<code>{html.escape(command or 'fsswarp report')}</code>.</p>")
     return write_text(folder / REPORT_FILE, _document(f"{folder.name}: batch report", body))
