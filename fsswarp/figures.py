@@ -152,7 +152,7 @@ def fan_figure(image: np.ndarray, sonar: SonarSpec, path: str | Path, *, title: 
 
 
 #: The colours of the models in figures and in the report's 3-D view, by label.
-MODEL_COLOURS = {"carved": "#d9822b", "final": "#2f6db5", "truth": "#222222"}
+MODEL_COLOURS = {"carved": "#d9822b", "final": "#2f6db5", "truth": "#5c5c5c"}
 
 
 def carve_figure(mesh, path: str | Path, *, truth=None, title: str = "", label: str = "carved") -> Path:
@@ -487,8 +487,8 @@ def views_figure(rows: dict[str, dict[str, np.ndarray]], sonar: SonarSpec, path:
                 db = np.maximum(20.0 * np.log10(np.maximum(np.asarray(image, np.float64), 0) / peak), floor_db)
             shown = draw_fan(ax, db, sonar, limits[label], vmin=floor_db)
             ax.set_title(f"{label}: {column}" if len(rows) > 1 else column, fontsize=8)
-    bar = fig.colorbar(shown, ax=axes.ravel().tolist(), orientation="horizontal", fraction=0.6 / fig.get_figheight(),
-                       aspect=60, pad=0.12 / len(rows))
+    bar = fig.colorbar(shown, ax=axes.ravel().tolist(), orientation="horizontal", fraction=0.5 / fig.get_figheight(),
+                       shrink=0.4, aspect=40, pad=0.12 / len(rows))
     bar.set_label("dB below the data's peak", fontsize=7)
     bar.ax.tick_params(labelsize=7)
     if title:
@@ -543,8 +543,8 @@ def draw_fan(ax, db: np.ndarray, sonar: SonarSpec, limits: dict, *, vmin: float 
             np.r_[r_lo * np.cos(arc), r_hi * np.cos(arc[::-1]), r_lo * math.cos(t_lo)], color="black", lw=0.8)
     ax.set_aspect("equal")
     ax.axis("off")
-    ax.annotate("azimuth (deg)", (0.5, -0.02), xycoords="axes fraction", xytext=(0, -10), textcoords="offset points",
-                fontsize=6, ha="center", va="top", color="dimgrey")
+    ax.annotate("azimuth (deg)", (0.5, -0.02), xycoords="axes fraction", xytext=(0, -11), textcoords="offset points",
+                fontsize=7, ha="center", va="top", color="#444444")
     return shown
 
 
