@@ -401,8 +401,13 @@ class ViewComparison:
 
     def surrogate(self, depths, tilts, *, cap: float | None = None, samples=None) -> np.ndarray:
         """Surrogate cost (m) of cells: depths (m), tilts (rad) of one shape -> that shape, the
-        mean over the views of the object + mirror contour terms at the detection shift (or,
-        without anchor views, at the cell's best shift).
+        mean over the views of :meth:`surrogate_views`."""
+        return self.surrogate_views(depths, tilts, cap=cap, samples=samples).mean(axis=-1)
+
+    def surrogate_views(self, depths, tilts, *, cap: float | None = None, samples=None) -> np.ndarray:
+        """Per-view surrogate costs (m) of cells: depths (m), tilts (rad) of one shape -> that
+        shape + (V,): each view's object + mirror contour terms at the detection shift (or,
+        without anchor views, at the cell's best shift, the least mean over the views).
         cap : saturation distance (default ``settings.cap``), at most ``reach``, max(cap,
             min_cap), up to which the data's distances are kept; samples : default
             ``settings.samples``."""
@@ -411,7 +416,9 @@ class ViewComparison:
         depths, tilts = np.broadcast_arrays(np.asarray(depths, np.float64), np.asarray(tilts, np.float64))
         costs, _ = self.view_costs(depths.reshape(-1), tilts.reshape(-1), samples or self.settings.samples,
                                     self.settings.cap if cap is None else cap)
-        return costs.mean(axis=1).min(axis=-1).reshape(depths.shape)
+        shift = np.argmin(costs.mean(axis=1), axis=-1)
+        per_view = np.take_along_axis(costs, shift[:, None, None], axis=-1)[..., 0]
+        return per_view.reshape(depths.shape + (costs.shape[1],))
 
     # --- E_mu --------------------------------------------------------------------------------
     def exact(self, depth: float, tilt: float) -> ExactError:

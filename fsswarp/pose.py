@@ -1,21 +1,19 @@
-"""Sonar depth D and tilt β from frontal contours (paper §2.4, eq. 7; DESIGN §7).
+"""Sonar depth D and tilt β from frontal contours and the sensors (paper §2.3–2.4, eq. 7;
+DESIGN §7). The sensors' D0 and β0 (manifest ``surface``) are 1-σ Gaussian priors
+(:class:`Prior`); :func:`estimate_pose` minimises, for a model (reference frame) against the
+views marked ``optimize`` (a ``fsswarp.compare.ViewComparison``), the posterior cost
 
-:func:`estimate_pose` searches (D, β) for a given model (reference frame) against a dataset's
-views marked ``optimize``, with a ``fsswarp.compare.ViewComparison`` (its own, or the one the
-caller hands it):
+    J(D, β) = E(D, β) + s · P(D, β),   P = ½((D − D0)/σ_D)² + ½((β − β0)/σ_β)²
 
-- a ``grid[0]`` × ``grid[1]`` grid of the comparison's surrogate over [D0 ± e_D] × [β0 ± e_β]
-  (m, rad), then ``levels − 1`` finer grids, each centred on the previous level's best cell and
-  spanning ± two of its cells (the spacing halves), every cell and view of a level in one
-  launch; the cap halves per level from ``cap`` to ``min_cap``, and the levels before the
-  finest use ``coarse_samples``. After each level the comparison is located at the new best
-  cell (data contours and detection shift found again);
-- a BOBYQA polish (nlopt) on E_mu (eq. 6, ``ViewComparison.exact``) in a frame fitted to the
-  finest level (a quadratic through its 5 × 5 best cells: ± ``POLISH_CELLS`` cells along its
-  valley, ± one across);
-- greedy acceptance: the estimate moves from (D0, β0) only if E_mu falls there.
-
-:func:`check_uncertainties` gives the grid half-widths; :func:`pose_objective` is E_mu itself.
+E is the data term (m): the surrogate on the grids, E_mu (eq. 6) in the polish and the
+acceptance. s is its noise (:func:`noise_level`: the standard error of a cell's mean once each
+view's own offset is removed), so exp(−(E − min E)/s) is the likelihood, a Gibbs posterior
+with no hand-tuned weight. Steps: grids of J over [D0 ± e_D] × [β0 ± e_β], each level centred
+on the last's best cell at half its spacing, one launch per level; a BOBYQA polish (nlopt) of
+E_mu + s · P; greedy acceptance where J falls; the :class:`Posterior` from a grid around the
+estimate (:func:`fit_posterior`): 95% intervals, the valley (D − L·β const.) and whether each
+parameter is identified (its interval at most half the prior's). :func:`check_uncertainties`
+gives the box, :func:`check_start` refuses starts that cannot be right.
 """
 
 from __future__ import annotations
@@ -36,19 +34,105 @@ from .errors import InputError, check_depth_tilt, check_integer
 
 #: Half-width of the polish box in cells of the finest grid level.
 POLISH_CELLS = 2
-#: Default grid half-widths in units of the manifest's depth and tilt uncertainties.
-BOUNDS_FACTOR = 1.2
+#: Default grid half-widths in units of the manifest's depth and tilt uncertainties: the
+#: posterior lies inside ± 3 σ of the priors.
+BOUNDS_FACTOR = 3.0
+#: Two-sided 95% point of the normal distribution.
+Z95 = 1.959963984540054
+#: A start farther than this many σ of the prior from the measured value is refused.
+START_SIGMAS = 5.0
+#: Cells along each axis of the posterior's grid.
+POSTERIOR_CELLS = 11
+#: Lowest noise level s of a data term (m): float32 distances resolve no finer.
+MIN_NOISE = 1e-6
+
+
+@dataclass(frozen=True)
+class Prior:
+    """The sensors' measured depth (m) and tilt (rad) and their 1-σ uncertainties (m, rad; inf:
+    no prior). ``penalty`` is P = ½((D − D0)/σ_D)² + ½((β − β0)/σ_β)² (arrays broadcast)."""
+
+    depth: float
+    tilt: float
+    depth_sigma: float
+    tilt_sigma: float
+
+    @classmethod
+    def of(cls, dataset) -> "Prior":
+        """The manifest's ``surface``; InputError naming its file and field unless both
+        sigmas are finite and > 0 (the pose step needs both priors)."""
+        surface = dataset.manifest.surface
+        file = _manifest_file(dataset)
+        for field, value, degrees in (("surface.depth_sigma_m", surface.depth_sigma, False),
+                                      ("surface.tilt_sigma_deg", surface.tilt_sigma, True)):
+            if not (math.isfinite(value) and value > 0):
+                raise InputError("must be > 0: the pose step weighs the sensor by it", file=file, field=field,
+                                 value=math.degrees(value) if degrees else value)
+        return cls(surface.depth, surface.tilt, surface.depth_sigma, surface.tilt_sigma)
+
+    def penalty(self, depth, tilt):
+        return 0.5 * (((np.asarray(depth) - self.depth) / self.depth_sigma) ** 2
+                      + ((np.asarray(tilt) - self.tilt) / self.tilt_sigma) ** 2)
+
+    def curvature(self) -> np.ndarray:
+        """(2, 2) Hessian of ``penalty`` in (m, rad)."""
+        return np.diag([self.depth_sigma ** -2.0, self.tilt_sigma ** -2.0])
 
 
 @dataclass(frozen=True)
 class GridLevel:
     """One level of the grid search: depths (nD,) m, tilts (nβ,) rad, costs (nD, nβ) of the
-    surrogate (m), and the best cell's (depth, tilt)."""
+    surrogate (m), noise its level s (m), posterior (nD, nβ) the cost J = costs + s · P (m),
+    and the best cell's (depth, tilt) (least J)."""
 
     depths: np.ndarray
     tilts: np.ndarray
     costs: np.ndarray
     best: tuple[float, float]
+    noise: float = math.nan
+    posterior: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class Posterior:
+    """The posterior of (D, β) around an estimate (the module docstring).
+
+    depth (m), tilt (rad) : its centre, the estimate; covariance : (2, 2) in (m, rad)
+    prior : the Prior; valley_slope : dD/dβ along the likelihood's long axis (m/rad);
+    valley_depth : the depth of that axis at the estimated tilt (m); noise : s (m)
+    """
+
+    depth: float
+    tilt: float
+    covariance: np.ndarray
+    prior: Prior
+    valley_slope: float
+    valley_depth: float
+    noise: float
+
+    def interval(self, index: int) -> tuple[float, float]:
+        """The 95% interval of depth (0, m) or tilt (1, rad)."""
+        centre = (self.depth, self.tilt)[index]
+        half = Z95 * math.sqrt(max(float(self.covariance[index, index]), 0.0))
+        return centre - half, centre + half
+
+    def axes(self, sigmas: float = 4.0) -> np.ndarray:
+        """(2, 2) columns: the covariance's principal axes, ``sigmas`` σ long (m, rad)."""
+        return _principal_axes(self.covariance, sigmas)
+
+    def identified(self) -> dict:
+        """{"depth", "tilt"}: whether the 95% interval is at most half as wide as the prior's."""
+        sigmas = (self.prior.depth_sigma, self.prior.tilt_sigma)
+        return {name: bool(math.sqrt(max(float(self.covariance[i, i]), 0.0)) <= 0.5 * sigmas[i])
+                for i, name in enumerate(("depth", "tilt"))}
+
+    def summary(self) -> dict:
+        """The fields of result.json and pose.json (docs/formats.md): m and degrees."""
+        return {"depth_interval_m": list(self.interval(0)),
+                "tilt_interval_deg": [math.degrees(v) for v in self.interval(1)],
+                "valley": {"slope_m_per_deg": json_number(self.valley_slope * math.pi / 180.0),
+                           "depth_m_at_estimated_tilt": json_number(self.valley_depth)},
+                "identified": self.identified()}
 
 
 @dataclass(frozen=True)
@@ -62,6 +146,9 @@ class PoseResult:
     shift : the detection shift (rows; None: per cell); anchors : the anchor views
     evaluations : {"grid_cells", "surrogate_cells", "exact"} counts; seconds : wall time
     views, mirror_views : view names used, and those with a mirror term
+    posterior : the Posterior around (depth, tilt); noise : s of the finest level (m), the
+        prior's weight in the polish and the acceptance
+    cost_before, cost_after : J (E_mu + noise · P, m) at the start and at the accepted estimate
     """
 
     depth: float
@@ -80,6 +167,10 @@ class PoseResult:
     seconds: float
     views: tuple[str, ...]
     mirror_views: tuple[str, ...]
+    posterior: Posterior
+    noise: float
+    cost_before: float
+    cost_after: float
 
     def box_edges(self) -> tuple[str, ...]:
         """The edges of the search box (the first grid level's span) that the finest grid
@@ -109,9 +200,12 @@ class PoseResult:
                 "E_mu_candidate_m": json_number(self.polish_error),
                 "levels": [{"depths_m": level.depths.tolist(), "tilts_deg": np.degrees(level.tilts).tolist(),
                             "costs_m": [[json_number(c) for c in row] for row in level.costs.tolist()],
-                            "best": point(*level.best)} for level in self.levels],
+                            "noise_m": json_number(level.noise), "best": point(*level.best)}
+                           for level in self.levels],
                 "detection_shift_rows": self.shift, "anchor_views": list(self.anchors), "views": list(self.views),
                 "mirror_views": list(self.mirror_views), "search_box_edges": list(self.box_edges()),
+                "noise_m": json_number(self.noise), "cost_start_m": json_number(self.cost_before),
+                "cost_m": json_number(self.cost_after), **self.posterior.summary(),
                 "evaluations": dict(self.evaluations), "seconds": self.seconds}
 
 
@@ -129,28 +223,29 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
                   bounds: tuple[float, float] | None = None, levels: int = 3,
                   settings: PoseSettings | None = None, backend=None,
                   progress: Callable[[str], None] | None = None,
-                  comparison: ViewComparison | None = None) -> PoseResult:
-    """Estimate the sonar depth D and tilt β (paper §2.4, eq. 7) for ``model`` (reference frame).
+                  comparison: ViewComparison | None = None, prior: Prior | None = None) -> PoseResult:
+    """Estimate the sonar depth D and tilt β (paper §2.4, eq. 7) for ``model`` (reference frame)
+    by the posterior cost of the module docstring.
 
     depth0 (m), tilt0 (rad) : the start, default the dataset's measured values
     bounds : (e_D m, e_β rad), the half-widths of the first grid [D0 ± e_D] × [β0 ± e_β];
-        default ``BOUNDS_FACTOR`` × the manifest's uncertainties (``surface.depth_sigma_m``,
-        ``tilt_sigma_deg``): 6 cm and 2.4° for the default 5 cm and 2°, so that a start at the
-        edge of the stated uncertainty keeps the truth inside the grid, not on its edge
+        default ``BOUNDS_FACTOR`` × the priors' sigmas (:func:`check_uncertainties`)
     levels : grid levels (>= 1), each in one launch; the polish follows (``settings.polish``)
     settings : PoseSettings (default ``PoseSettings()``); backend : default ``get_backend()``
     progress : called with one line per step
     comparison : a ViewComparison of ``dataset`` to search with (it carries the settings and the
         backend, so give neither with it); default a new one. It is put to ``model`` at
-        (depth0, tilt0) (kept where it is there already, ``ViewComparison.use``), its counters
-        restart, and it is left located at the finest level's best cell
-    Returns a PoseResult; the estimate moves from (depth0, tilt0) only where E_mu falls.
+        (depth0, tilt0) (``ViewComparison.use``), its counters restart, and it is left located
+        at the finest level's best cell
+    prior : default ``Prior.of(dataset)``, the manifest's sensors
+    Returns a PoseResult; the estimate moves from (depth0, tilt0) only where J falls.
     """
     start = time.perf_counter()
     surface = dataset.manifest.surface
     depth0 = surface.depth if depth0 is None else float(depth0)
     tilt0 = surface.tilt if tilt0 is None else float(tilt0)
     check_depth_tilt(depth0, tilt0)
+    prior = Prior.of(dataset) if prior is None else prior
     if bounds is None:
         bounds = check_uncertainties(dataset, depth0)
     e_d, e_b = (float(b) for b in bounds) if len(bounds) == 2 else (math.nan, math.nan)
@@ -182,32 +277,152 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
         dd, tt = np.meshgrid(*axes, indexing="ij")
         cap = max(settings.cap / 2 ** level, settings.min_cap)
         samples = settings.samples if level == levels - 1 else settings.coarse_samples
-        costs = comparison.surrogate(dd, tt, cap=cap, samples=samples)
+        per_view = comparison.surrogate_views(dd, tt, cap=cap, samples=samples)
+        costs = per_view.mean(axis=-1)
         comparison.counters["grid_cells"] += costs.size
-        i, j = np.unravel_index(int(np.argmin(costs)), costs.shape)
+        noise = noise_level(per_view)
+        posterior = costs + noise * prior.penalty(dd, tt)
+        i, j = np.unravel_index(int(np.argmin(posterior)), costs.shape)
         best = np.array([dd[i, j], tt[i, j]])
-        found.append(GridLevel(axes[0], axes[1], costs, (float(best[0]), float(best[1]))))
+        found.append(GridLevel(axes[0], axes[1], costs, (float(best[0]), float(best[1])), noise, posterior))
         step = 2 * half / (grid - 1)
         say(f"level {level + 1}: {grid[0]} x {grid[1]} cells, spacing {step[0] * 1000:.2f} mm x "
             f"{math.degrees(step[1]):.3f} deg, cap {cap * 1000:.0f} mm; best D {best[0]:.4f} m, beta "
-            f"{math.degrees(best[1]):.3f} deg, cost {costs[i, j] * 1000:.3f} mm")
+            f"{math.degrees(best[1]):.3f} deg, cost {costs[i, j] * 1000:.3f} mm (noise {noise * 1000:.3f} mm)")
         half = 2 * step
         comparison.locate(*best)  # the data contours and the detection shift, seen from the new estimate
 
-    candidate, polish_error = _polish(comparison, *_valley(found[-1], step), lo, hi, settings.polish)
+    noise = found[-1].noise
+    candidate, polish_error, after = _polish(comparison, *_valley(found[-1], step), lo, hi, settings.polish, prior,
+                                             noise)
     say(f"polish: D {candidate[0]:.4f} m, beta {math.degrees(candidate[1]):.3f} deg, E_mu {polish_error * 1000:.3f} mm")
-    before, after = comparison.exact(depth0, tilt0).value, polish_error  # the polish evaluated the candidate
-    accepted = bool(np.isfinite(after) and (not np.isfinite(before) or after < before))
+    before = comparison.exact(depth0, tilt0).value
+    cost_before = before + noise * float(prior.penalty(depth0, tilt0))
+    accepted = bool(np.isfinite(after) and (not np.isfinite(cost_before) or after < cost_before))
     depth, tilt = (candidate if accepted else (depth0, tilt0))
-    say(f"E_mu {before * 1000:.3f} mm at the start, {after * 1000:.3f} mm at the candidate: "
-        f"{'accepted' if accepted else 'rejected (E_mu did not fall)'}")
+    say(f"E_mu {before * 1000:.3f} mm and J {cost_before * 1000:.3f} mm at the start, E_mu "
+        f"{polish_error * 1000:.3f} mm and J {after * 1000:.3f} mm at the candidate: "
+        f"{'accepted' if accepted else 'rejected (J did not fall)'}")
+    posterior = fit_posterior(comparison, prior, float(depth), float(tilt), _valley(found[-1], step)[1])
     return PoseResult(depth=float(depth), tilt=float(tilt), depth0=depth0, tilt0=tilt0,
                       candidate=(float(candidate[0]), float(candidate[1])), accepted=accepted,
-                      error_before=float(before), error_after=float(after if accepted else before),
+                      error_before=float(before), error_after=float(polish_error if accepted else before),
                       levels=tuple(found), polish_error=float(polish_error), shift=comparison.shift,
                       anchors=comparison.anchors, evaluations=dict(comparison.counters),
                       seconds=time.perf_counter() - start, views=comparison.data.names,
-                      mirror_views=comparison.data.mirror_views)
+                      mirror_views=comparison.data.mirror_views, posterior=posterior, noise=float(noise),
+                      cost_before=float(cost_before), cost_after=float(after if accepted else cost_before))
+
+
+def fit_posterior(comparison: ViewComparison, prior: Prior, depth: float, tilt: float, axes: np.ndarray, *,
+              cells: int = POSTERIOR_CELLS, launches: int = 2) -> Posterior:
+    """The Posterior around (depth m, tilt rad) from ``comparison``'s surrogate at the finest
+    settings (``min_cap``, ``samples``) on a ``cells`` × ``cells`` grid x + axes @ u, u in
+    [-1, 1]², in one launch: J = (E − min E)/s + P, weights exp(−J); covariance and mean from
+    the weights. The grid is refitted to ± 4 posterior σ along the posterior's axes and
+    evaluated again while that changes a span (in prior σ) by 1.5× or more (``launches`` at most).
+    The valley: the likelihood-weighted principal axis (in prior-σ units) through its mean.
+    axes : (2, 2) columns in (m, rad), the first grid's half-spans."""
+    settings = comparison.settings
+    u = np.linspace(-1.0, 1.0, cells)
+    centre = np.array([depth, tilt], np.float64)
+    scale = np.array([prior.depth_sigma, prior.tilt_sigma])
+    scale = np.where(np.isfinite(scale), scale, np.abs(axes).max(axis=1))
+    for launch in range(launches):
+        grid = centre + np.einsum("ij,abj->abi", axes, np.stack(np.meshgrid(u, u, indexing="ij"), axis=-1))
+        dd, tt = grid[..., 0], grid[..., 1]
+        per_view = comparison.surrogate_views(dd, tt, cap=settings.min_cap, samples=settings.samples)
+        comparison.counters["grid_cells"] += dd.size
+        costs = per_view.mean(axis=-1)
+        noise = noise_level(per_view)
+        data = (costs - np.nanmin(costs)) / noise
+        mean, covariance = _moments(grid, data + prior.penalty(dd, tt))
+        wanted = _principal_axes(covariance, 4.0)
+        spans = [np.sort(np.linalg.norm(a / scale[:, None], axis=0)) for a in (axes, wanted)]
+        if not np.all(spans[1] > 0) or np.all(np.abs(np.log(spans[1] / spans[0])) < math.log(1.5)):
+            break
+        axes = wanted
+    like_mean, like_cov = _moments(grid, data)
+    _, like_vectors = np.linalg.eigh(like_cov / np.outer(scale, scale))
+    along = like_vectors[:, -1] * scale
+    slope = along[0] / along[1] if along[1] != 0 else math.inf
+    valley_depth = like_mean[0] + slope * (tilt - like_mean[1]) if math.isfinite(slope) else math.nan
+    return Posterior(float(mean[0]), float(mean[1]), covariance, prior, float(slope), float(valley_depth),
+                     float(noise))
+
+
+def _principal_axes(covariance: np.ndarray, sigmas: float) -> np.ndarray:
+    values, vectors = np.linalg.eigh(covariance)
+    return vectors * (sigmas * np.sqrt(np.maximum(values, 0.0)))
+
+
+def _moments(grid: np.ndarray, cost: np.ndarray):
+    """Mean (2,) and covariance (2, 2) of the cells grid (..., 2) weighted by exp(−cost)."""
+    finite = np.isfinite(cost)
+    points, weights = grid[finite], np.exp(-(cost[finite] - cost[finite].min()))
+    weights /= weights.sum()
+    mean = weights @ points
+    offsets = points - mean
+    return mean, (weights[:, None] * offsets).T @ offsets
+
+
+def noise_level(per_view: np.ndarray) -> float:
+    """The standard error (m) of a cell's mean cost for comparisons between cells: per_view
+    (..., V) costs of cells × views (NaN: a view without a value; views not finite in every
+    cell are left out) fitted by cell + view effects; s = σ_ε / √V from the residuals (the
+    views' own offsets cancel between cells). At least ``MIN_NOISE``; one cell or one view: the
+    standard error of its values."""
+    table = np.asarray(per_view, np.float64).reshape(-1, np.shape(per_view)[-1])
+    table = table[:, np.all(np.isfinite(table), axis=0)]
+    cells, views = table.shape
+    if cells < 2 or views < 2:
+        values = table.ravel()
+        spread = float(np.std(values, ddof=1) / math.sqrt(values.size)) if values.size > 1 else \
+            (float(values[0]) if values.size else 0.0)
+        return max(spread, MIN_NOISE)
+    residual = table - table.mean(axis=1, keepdims=True) - table.mean(axis=0, keepdims=True) + table.mean()
+    variance = float(np.sum(residual ** 2)) / ((cells - 1) * (views - 1))
+    return max(math.sqrt(variance / views), MIN_NOISE)
+
+
+def check_start(dataset, depth: float, tilt: float) -> None:
+    """InputError (``--depth`` or ``--tilt``) unless (depth m, tilt rad) lies within
+    ``START_SIGMAS`` σ of the sensors' measured values and puts the sea surface inside some
+    view's range window (else no ghost or mirror can be seen, and nothing fixes D or β)."""
+    prior = Prior.of(dataset)
+    for field, value, measured, sigma, unit in (("--depth", depth, prior.depth, prior.depth_sigma, "m"),
+                                                ("--tilt", tilt, prior.tilt, prior.tilt_sigma, "deg")):
+        if abs(value - measured) > START_SIGMAS * sigma:
+            shown = (lambda v: v) if unit == "m" else math.degrees
+            raise InputError(f"is {abs(value - measured) / sigma:.3g} sigma from the measured {shown(measured):.4g} "
+                             f"{unit} (sigma {shown(sigma):.3g} {unit}); more than {START_SIGMAS:g} is refused: "
+                             f"check the units ({unit})", field=field, value=round(shown(value), 6))
+    nearest = surface_range(dataset, depth, tilt)
+    if not nearest < dataset.sonar.range_max:
+        raise InputError(f"puts the sea surface {nearest:.3g} m or farther along every beam, beyond the range window "
+                         f"(up to {dataset.sonar.range_max:g} m): no ghost or mirror could be seen; check the units "
+                         "(m)", field="--depth", value=depth)
+
+
+def surface_range(dataset, depth: float, tilt: float, *, rays: int = 33) -> float:
+    """The least range (m) at which any view's beam fan (``rays`` × ``rays`` directions over
+    its azimuth and elevation apertures) meets the sea surface at (depth m, tilt rad); inf where
+    none looks up at it."""
+    from .surface import surface_in_views
+
+    sonar = dataset.sonar
+    theta = np.linspace(-0.5, 0.5, rays) * sonar.azimuth_fov
+    phi = np.linspace(-0.5, 0.5, rays) * sonar.elevation_fov
+    t, p = np.meshgrid(theta, phi, indexing="ij")
+    directions = np.stack([np.cos(p) * np.sin(t), np.cos(p) * np.cos(t), np.sin(p)], axis=-1).reshape(-1, 3)
+    normals, offsets = surface_in_views(dataset.rig, depth, tilt)
+    nearest = math.inf
+    for normal, offset in zip(np.atleast_2d(normals), np.atleast_1d(offsets)):
+        along = directions @ normal
+        up = along > 1e-12
+        if up.any():
+            nearest = min(nearest, float(np.min(offset / along[up])))
+    return nearest
 
 
 # --- helpers -------------------------------------------------------------------------------
@@ -218,7 +433,7 @@ def check_uncertainties(dataset, depth0: float, *, depth_range: float | None = N
     given (``--depth-range``, ``--tilt-range``), else ``BOUNDS_FACTOR`` × the manifest's
     uncertainties; InputError naming the option or the manifest's field unless they span a
     search from ``depth0`` (m): 0 < e_D < depth0 and 0 < e_β < 45°."""
-    file = dataset.root / MANIFEST_NAME if getattr(dataset, "root", None) is not None else None
+    file = _manifest_file(dataset)
     surface = dataset.manifest.surface
     default = (BOUNDS_FACTOR * surface.depth_sigma, BOUNDS_FACTOR * surface.tilt_sigma)
     if depth_range is not None:
@@ -240,23 +455,34 @@ def check_uncertainties(dataset, depth0: float, *, depth_range: float | None = N
 
 
 
+def _manifest_file(dataset):
+    return dataset.root / MANIFEST_NAME if getattr(dataset, "root", None) is not None else None
+
+
+def _quadratic_fit(x: np.ndarray, y: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Least-squares coefficients (6,) of c0 + c1 x + c2 y + c3 x² + c4 xy + c5 y² through
+    points (N,) x, y with ``values`` (N,)."""
+    x, y = (np.asarray(a, np.float64).ravel() for a in (x, y))
+    design = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=1)
+    return np.linalg.lstsq(design, np.asarray(values, np.float64).ravel(), rcond=None)[0]
+
+
 def _valley(level: GridLevel, step: np.ndarray):
-    """The polish frame from a quadratic fitted (least squares) to the level's costs at the
-    5 × 5 cells around its minimum: (centre (2,), axes (2, 2)) in (m, rad); column 0 runs
+    """The polish frame from a quadratic fitted (least squares) to the level's posterior cost at
+    the 5 × 5 cells around its minimum: (centre (2,), axes (2, 2)) in (m, rad); column 0 runs
     along the fit's valley (smallest curvature) over ``POLISH_CELLS`` cells, column 1 across it
     over one cell (cells scaled to the grid spacing ``step``). The centre is the fit's minimum
     when that lies within one cell of the best cell, else the best cell; without a convex fit
     the axes are the grid's, ``POLISH_CELLS`` cells each."""
-    costs = level.costs
+    costs = level.posterior
     i, j = np.unravel_index(int(np.argmin(costs)), costs.shape)
     rows = np.arange(max(i - 2, 0), min(i + 3, costs.shape[0]))
     cols = np.arange(max(j - 2, 0), min(j + 3, costs.shape[1]))
-    x, y = (a.ravel().astype(np.float64) for a in np.meshgrid(rows - i, cols - j, indexing="ij"))
-    design = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=1)
     best = np.array([level.depths[i], level.tilts[j]])
     if len(rows) < 3 or len(cols) < 3:
         return best, np.diag(POLISH_CELLS * step)
-    c = np.linalg.lstsq(design, costs[np.ix_(rows, cols)].ravel(), rcond=None)[0]
+    x, y = np.meshgrid(rows - i, cols - j, indexing="ij")
+    c = _quadratic_fit(x, y, costs[np.ix_(rows, cols)])
     hessian = np.array([[2 * c[3], c[4]], [c[4], 2 * c[5]]])
     curvature, vectors = np.linalg.eigh(hessian)
     if curvature[0] <= 0:
@@ -266,22 +492,29 @@ def _valley(level: GridLevel, step: np.ndarray):
     return centre, np.stack([POLISH_CELLS * vectors[:, 0] * step, vectors[:, 1] * step], axis=1)
 
 
-def _polish(comparison: ViewComparison, centre, axes, lo, hi, evaluations: int):
-    """BOBYQA (nlopt) on E_mu over ``centre + axes @ u``, u in [-1, 1]² (points clipped to the
-    bounds ``lo``, ``hi``), from u = 0. Returns the best point seen and its E_mu."""
+def _polish(comparison: ViewComparison, centre, axes, lo, hi, evaluations: int, prior: Prior, noise: float):
+    """BOBYQA (nlopt) on J = E_mu + noise · P over ``centre + axes @ u``, u in [-1, 1]² (points
+    clipped to the bounds ``lo``, ``hi``), from u = 0. Returns the best point seen, its E_mu and
+    its J."""
     def point(u):
         return np.clip(centre + axes @ np.asarray(u, np.float64), lo, hi)
 
-    start = comparison.exact(*point((0.0, 0.0)))
-    seen = {"x": point((0.0, 0.0)), "f": start.value}
-    if evaluations == 0 or not math.isfinite(start.value):
-        return seen["x"], seen["f"]
+    first = comparison.exact(*point((0.0, 0.0)))
+
+    def cost(x, value):
+        return value + noise * float(prior.penalty(x[0], x[1]))
+
+    seen = {"x": point((0.0, 0.0)), "E": first.value, "J": cost(point((0.0, 0.0)), first.value)}
+    if evaluations == 0 or not math.isfinite(first.value):
+        return seen["x"], seen["E"], seen["J"]
+
     def objective(u, grad):
         x = point(u)
-        value = start.value if np.all(np.asarray(u) == 0.0) else comparison.exact(x[0], x[1]).value
-        if value < seen["f"]:
-            seen["x"], seen["f"] = x, value
-        return value if math.isfinite(value) else 1.0  # 1 m: far worse than any E_mu seen
+        value = first.value if np.all(np.asarray(u) == 0.0) else comparison.exact(x[0], x[1]).value
+        total = cost(x, value)
+        if total < seen["J"]:
+            seen.update(x=x, E=value, J=total)
+        return total if math.isfinite(total) else 1.0  # 1 m: far worse than any E_mu seen
 
     opt = nlopt.opt(nlopt.LN_BOBYQA, 2)
     opt.set_lower_bounds([-1.0, -1.0])
@@ -294,4 +527,4 @@ def _polish(comparison: ViewComparison, centre, axes, lo, hi, evaluations: int):
         opt.optimize([0.0, 0.0])
     except nlopt.RoundoffLimited:
         pass
-    return seen["x"], seen["f"]
+    return seen["x"], seen["E"], seen["J"]

@@ -21,7 +21,7 @@ from fsswarp.figures import contours_figure, pose_figure
 from fsswarp.icp import icp_many
 from fsswarp.compare import (PoseSettings, PoseWarning, ViewComparison, _parabola_minimum, _view_cost,
                              contour_distance, detection_threshold, view_contours)
-from fsswarp.pose import estimate_pose, pose_objective
+from fsswarp.pose import Prior, estimate_pose, pose_objective
 from fsswarp.rig import Rig
 from fsswarp.surface import COMPONENTS
 
@@ -42,12 +42,18 @@ def truth_comparison(coral_one, truth_model, opencl):
     return ViewComparison(coral_one, backend=opencl).use(truth_model, truth.depth, truth.tilt)
 
 
+#: No prior: the images alone (σ → ∞), the plain E_mu estimate.
+FLAT = dict(depth_sigma=math.inf, tilt_sigma=math.inf)
+
+
 @pytest.fixture(scope="module")
 def estimate(coral_one, truth_model, opencl):
-    """estimate_pose from initial errors of +4 cm in D and -1.5° in β."""
+    """estimate_pose with no prior from initial errors of +4 cm in D and -1.5° in β, over a
+    box of ± 6 cm and ± 2.4°."""
     truth = coral_one.manifest.truth
     lines = []
     result = estimate_pose(truth_model, coral_one, depth0=truth.depth + 0.04, tilt0=truth.tilt - math.radians(1.5),
+                           bounds=(0.06, math.radians(2.4)), prior=Prior(truth.depth, truth.tilt, **FLAT),
                            backend=opencl, progress=lines.append)
     return result, lines
 
@@ -59,14 +65,15 @@ def test_recovers_depth_and_tilt(coral_one, estimate):
     assert abs(math.degrees(result.tilt - truth.tilt)) <= 0.2
     assert result.accepted and result.error_after < 0.2 * result.error_before
     assert (result.depth, result.tilt) == result.candidate
-    # the default grid spans 1.2 x the manifest's uncertainties (5 cm, 2 deg), halving per level
+    # the grid spans the given box, halving per level
     assert [level.costs.shape for level in result.levels] == [(9, 9)] * 3
     first = result.levels[0]
     assert first.depths[-1] - first.depths[0] == pytest.approx(0.12)
     assert math.degrees(first.tilts[-1] - first.tilts[0]) == pytest.approx(4.8)
     spacing = [level.depths[1] - level.depths[0] for level in result.levels]
     assert spacing == pytest.approx([0.015, 0.0075, 0.00375])
-    assert result.evaluations["grid_cells"] == 243 and 3 <= result.evaluations["exact"] <= 32
+    # three levels and the posterior's grid of 11 x 11 cells, once or refitted once
+    assert result.evaluations["grid_cells"] in (243 + 121, 243 + 242) and 3 <= result.evaluations["exact"] <= 32
     assert result.anchors == ("Sm90", "Sm67p5", "Sm45", "Sp45", "Sp67p5") and 0.5 < result.shift < 1.5
     assert len(lines) == 6 and lines[0].startswith("start:") and "accepted" in lines[-1]
     assert result.views == tuple(v.name for v in coral_one.rig.views if v.optimize)
@@ -366,7 +373,9 @@ def test_grid_levels_before_the_finest_use_the_coarse_samples(coral_one, truth_m
     views = len(result.views)
     grid_launches = [samples for samples, n in spy.launches if n == 9 * views]
     assert grid_launches == [(1, 8), (1, 8), (2, 16)]
-    assert {samples for samples, n in spy.launches if n != 9 * views} == {(2, 32)}  # windows, E_mu
+    posterior = [samples for samples, n in spy.launches if n == 121 * views]  # the posterior's grid, finest
+    assert posterior and set(posterior) == {(2, 16)}
+    assert {samples for samples, n in spy.launches if n not in (9 * views, 121 * views)} == {(2, 32)}  # E_mu
 
 
 @given(st.lists(st.integers(-1, 40), min_size=1, max_size=12), st.integers(41, 48),
@@ -517,7 +526,8 @@ def test_cli_pose_bad_input(coral_one, tmp_path, capsys):
              (["--model", str(far)], ["--model", "far.ply", "seen in none of the views"]),
              (["--model", model, "--tilt", "95"], ["--tilt = 95"]),
              (["--model", model, "--levels", "0"], ["--levels", "0"]),
-             (["--model", model, "--depth-range", "0.5"], ["--depth-range = 0.5", "below the start depth 0.47 m"]),
+             (["--model", model, "--depth-range", "0.5"], ["--depth-range = 0.5", "below the start depth 0.432 m"]),
+             (["--model", model, "--depth", "47"], ["--depth = 47.0", "sigma from the measured 0.432 m"]),
              (["--model", model, "--tilt-range", "nan"], ["--tilt-range = nan"])]
     for args, words in cases:
         status, err = _cli(capsys, "pose", str(coral_one.root), *args, "--out", str(bad))
@@ -570,22 +580,27 @@ def test_cli_pose_lists_the_views_that_do_not_see_the_model(coral_one, tmp_path,
 
 @pytest.mark.filterwarnings("always::fsswarp.compare.PoseWarning")  # main prints it
 def test_cli_pose_warns_when_the_estimate_lies_on_the_search_box_edge(coral_one, tmp_path, capsys):
-    """From 47 cm too deep the truth lies outside the box (D0 ± 6 cm): the grid search ends on
-    its lowest depth, and the command says so (exit 0) and records it; with --depth-range 0.5
-    the box holds the truth, and the estimate meets the pose aim."""
+    """From 12 mm too deep (4 sigma of the depth sensor) the truth lies outside the box (D0 ±
+    9 mm): the grid search ends on its lowest depth, and the command says so (exit 0) and
+    records it; with --depth-range 0.03 the box holds the truth, and the estimate meets the
+    pose aim, its intervals holding the truth."""
     out = tmp_path / "pose"
+    start = coral_one.manifest.surface.depth + 0.012
     status, err = _cli(capsys, "pose", str(coral_one.root), "--model", str(coral_one.truth_model_path),
-                       "--out", str(out), "--depth", "0.9", "--levels", "1")
+                       "--out", str(out), "--depth", str(start), "--levels", "1")
     assert status == 0 and len(err) == 1 and "ended on the lowest depth edge of its box" in err[0], err
     record = json.loads((out / "pose.json").read_text())
     assert record["search_box_edges"] == ["lowest depth"]
-    assert record["levels"][0]["best"]["depth_m"] == pytest.approx(0.9 - 0.06)
+    assert record["levels"][0]["best"]["depth_m"] == pytest.approx(start - 0.009)
     status, err = _cli(capsys, "pose", str(coral_one.root), "--model", str(coral_one.truth_model_path),
-                       "--out", str(out), "--depth", "0.9", "--depth-range", "0.5")
+                       "--out", str(out), "--depth", str(start), "--depth-range", "0.03")
     assert status == 0 and err == []
     record = json.loads((out / "pose.json").read_text())
-    assert record["search_box_edges"] == [] and record["levels"][0]["depths_m"][0] == pytest.approx(0.4)
-    assert abs(record["truth"]["depth_error_m"]) <= 0.005 and abs(record["truth"]["tilt_error_deg"]) <= 0.2
+    assert record["search_box_edges"] == [] and record["levels"][0]["depths_m"][0] == pytest.approx(start - 0.03)
+    assert abs(record["truth"]["depth_error_m"]) <= 0.003 and abs(record["truth"]["tilt_error_deg"]) <= 0.15
+    truth = coral_one.manifest.truth
+    (d0, d1), (t0, t1) = record["depth_interval_m"], record["tilt_interval_deg"]
+    assert d0 <= truth.depth <= d1 and t0 <= math.degrees(truth.tilt) <= t1
 
 
 def test_box_edges_name_the_edges_the_estimate_lies_on(coral_one, estimate):

@@ -1,0 +1,130 @@
+"""The sensors as priors (fsswarp.pose: Prior, fit_posterior, noise_level, check_start; DESIGN §7)
+against closed forms: a synthetic quadratic valley has an analytic Gaussian posterior."""
+
+import math
+
+import numpy as np
+import pytest
+
+from fsswarp.compare import PoseSettings
+from fsswarp.errors import InputError
+from fsswarp.pose import Prior, Z95, check_start, fit_posterior, noise_level, surface_range
+
+
+class ValleyComparison:
+    """A stand-in for ViewComparison whose per-view surrogate is a quadratic valley
+    E(x) = ½ (x − c)ᵀ A (x − c) in (m, rad) plus fixed per-view offsets (their standard error
+    is the noise level s): exp(−(E − min E)/s) × prior is then an exact Gaussian."""
+
+    def __init__(self, centre, hessian, offsets):
+        self.centre, self.hessian = np.asarray(centre, float), np.asarray(hessian, float)
+        self.offsets = np.asarray(offsets, float)
+        self.settings = PoseSettings()
+        self.counters = {"grid_cells": 0}
+
+    def surrogate_views(self, depths, tilts, *, cap, samples):
+        x = np.stack([depths - self.centre[0], tilts - self.centre[1]], axis=-1)
+        value = 0.5 * np.einsum("...i,ij,...j->...", x, self.hessian, x)
+        return value[..., None] + self.offsets
+
+
+def analytic(comparison, prior):
+    """Mean (2,) and covariance (2, 2) of the Gaussian posterior of ``ValleyComparison``."""
+    s = noise_level(comparison.offsets)
+    sigma = np.array([prior.depth_sigma, prior.tilt_sigma])
+    precision = comparison.hessian / s + np.diag(1.0 / sigma ** 2)
+    covariance = np.linalg.inv(precision)
+    mean = covariance @ (comparison.hessian / s @ comparison.centre + np.array([prior.depth, prior.tilt]) / sigma ** 2)
+    return mean, covariance
+
+
+@pytest.mark.parametrize("slope_m_per_deg", [0.034, 0.0])
+def test_a_quadratic_valley_gives_the_analytic_interval(slope_m_per_deg):
+    # a valley along D − L·β = const (L = slope in m/rad), stiff across it, flat along it
+    slope = slope_m_per_deg * 180.0 / math.pi
+    across = np.array([1.0, -slope]) / math.hypot(1.0, slope)
+    hessian = 40.0 * np.outer(across, across) + 1e-3 * np.eye(2)
+    offsets = np.array([0.0012, 0.0031, 0.0020, 0.0027, 0.0016, 0.0024])
+    comparison = ValleyComparison((0.431, math.radians(10.35)), hessian, offsets)
+    prior = Prior(0.432, math.radians(11.1), 0.003, math.radians(0.6))
+    mean, covariance = analytic(comparison, prior)
+    axes = np.diag([0.01, math.radians(1.0)])  # a first grid far from the posterior's size: refitted
+    post = fit_posterior(comparison, prior, float(mean[0]), float(mean[1]), axes)
+    np.testing.assert_allclose(post.covariance, covariance, rtol=0.03, atol=1e-3 * np.abs(covariance).max())
+    for index in (0, 1):
+        lo, hi = post.interval(index)
+        half = Z95 * math.sqrt(covariance[index, index])
+        assert lo == pytest.approx(mean[index] - half, rel=1e-4, abs=0.03 * half)
+        assert hi == pytest.approx(mean[index] + half, rel=1e-4, abs=0.03 * half)
+    summary = post.summary()
+    assert summary["valley"]["slope_m_per_deg"] == pytest.approx(slope_m_per_deg, abs=0.002)
+    assert comparison.counters["grid_cells"] in (121, 242)  # one launch, or refitted once to ± 4 sigma
+
+
+def test_identified_means_half_the_prior_interval():
+    comparison = ValleyComparison((0.43, 0.18), np.diag([1e-9, 1e-9]), [0.001, 0.002, 0.003])  # flat: no data
+    prior = Prior(0.43, 0.18, 0.003, 0.01)
+    post = fit_posterior(comparison, prior, 0.43, 0.18, np.diag([0.012, 0.04]))
+    assert post.identified() == {"depth": False, "tilt": False}
+    (d0, d1), (t0, t1) = post.interval(0), post.interval(1)
+    assert d1 - d0 == pytest.approx(2 * Z95 * 0.003, rel=0.03) and t1 - t0 == pytest.approx(2 * Z95 * 0.01, rel=0.03)
+    stiff = ValleyComparison((0.43, 0.18), np.diag([1e4, 1e4]), [0.001, 0.002, 0.003])
+    assert fit_posterior(stiff, prior, 0.43, 0.18, np.diag([0.012, 0.04])).identified() == {"depth": True,
+                                                                                            "tilt": True}
+
+
+def test_noise_level_is_the_standard_error_of_the_views():
+    values = np.array([1.0, 2.0, 4.0, np.nan])
+    assert noise_level(values) == pytest.approx(np.std([1.0, 2.0, 4.0], ddof=1) / math.sqrt(3))
+    assert noise_level(np.array([0.002])) == 0.002 and noise_level(np.zeros(4)) == 1e-6
+
+
+def test_a_prior_with_infinite_sigma_adds_nothing():
+    prior = Prior(0.43, 0.18, math.inf, math.inf)
+    assert prior.penalty(np.array([0.1, 5.0]), np.array([0.0, 1.0])).tolist() == [0.0, 0.0]
+
+
+@pytest.mark.parametrize("field, change, shown", [
+    ("surface.depth_sigma_m", dict(depth_sigma=0.0), "0.0"),
+    ("surface.tilt_sigma_deg", dict(tilt_sigma=0.0), "0.0")])
+def test_a_prior_needs_a_positive_sigma(coral_one, field, change, shown):
+    import dataclasses
+
+    manifest = coral_one.manifest
+    spoilt = dataclasses.replace(coral_one, manifest=dataclasses.replace(
+        manifest, surface=dataclasses.replace(manifest.surface, **change)))
+    with pytest.raises(InputError, match=f"dataset.toml: {field} = {shown}: must be > 0") as info:
+        Prior.of(spoilt)
+    assert "\n" not in str(info.value)
+
+
+def test_starts_that_cannot_be_right_are_refused(coral_one):
+    surface = coral_one.manifest.surface
+    check_start(coral_one, surface.depth + 0.01, surface.tilt + math.radians(2.0))  # within 5 sigma
+    with pytest.raises(InputError, match=r"--depth = 47.0: is .* sigma from the measured 0.432 m"):
+        check_start(coral_one, 47.0, surface.tilt)  # centimetres typed as metres
+    with pytest.raises(InputError, match=r"--tilt = 0.19: is .* sigma from the measured 11.1 deg"):
+        check_start(coral_one, surface.depth, math.radians(0.19))  # radians typed as degrees
+    # the surface beyond every beam's range: no ghost or mirror can be seen
+    assert surface_range(coral_one, surface.depth, surface.tilt) < coral_one.sonar.range_max
+    far = surface_range(coral_one, 3.5, surface.tilt)
+    assert far > coral_one.sonar.range_max
+    import dataclasses
+
+    wide = dataclasses.replace(coral_one, manifest=dataclasses.replace(coral_one.manifest, surface=dataclasses.replace(
+        surface, depth_sigma=1.0)))
+    with pytest.raises(InputError, match="--depth = 3.5: puts the sea surface .* beyond the range window"):
+        check_start(wide, 3.5, surface.tilt)
+
+
+def test_surface_range_is_the_closed_form_for_a_level_sonar(coral_one):
+    # one view, no roll: the top edge of the elevation aperture meets the plane at D / sin(β + W_φ)
+    import dataclasses
+
+    from fsswarp.rig import Rig
+
+    level = dataclasses.replace(coral_one.rig.views[0], roll=0.0, heading=0.0, depth_offset=0.0, tilt_offset=0.0)
+    one = dataclasses.replace(coral_one, manifest=dataclasses.replace(coral_one.manifest, rig=Rig((level,), 0)))
+    depth, tilt = 0.5, math.radians(5.0)
+    expected = depth / math.sin(tilt + coral_one.sonar.elevation_fov / 2)
+    assert surface_range(one, depth, tilt) == pytest.approx(expected, rel=1e-9)
