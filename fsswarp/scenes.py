@@ -3,8 +3,12 @@
 Each scene is a scene manifest (a dataset manifest with a ``[target]`` and no images). The
 sonar looks along +Y from the south position at the origin; the target sits ``STANDOFF_M``
 ahead with its top 2 cm below the surface, so that object, ghost and mirror all fall inside
-the default 1.0–3.0 m range window and the ±7° elevation aperture. The measured depth and
-tilt are off from the truth by 3–5 cm and 0.6–1°, the sensor class of the paper.
+the default 1.0–3.0 m range window and the ±7° elevation aperture.
+
+Sensors (DESIGN §11), ``SENSORS``: ``realistic`` (the default) is the paper's class, a
+pressure depth sensor zeroed at the surface (0.1% of a few metres: σ 3 mm, D0 within 3 mm of
+the truth) and a tilt sensor good to ±0.6° (β0 0.6–1° off); ``poor`` keeps the starts of the
+identifiability study, a depth 3–5 cm off with σ 5 cm and the same tilts with σ 2°.
 """
 
 from __future__ import annotations
@@ -13,7 +17,7 @@ import math
 
 import numpy as np
 
-from .dataset import Manifest, SurfaceEstimate, Target, Truth
+from .dataset import KnownPose, Manifest, SurfaceEstimate, Target, Truth
 from .errors import InputError
 from .rig import Rig, View
 from .sonar import SonarSpec
@@ -27,13 +31,17 @@ TOP_DEPTH_M = 0.02
 ROLLS = tuple(math.radians(-90.0 + 22.5 * k) for k in range(8))
 #: Rolls whose mirror overlaps the object: held out of the optimization (new views).
 HELD_OUT_ROLLS_DEG = (-22.5, 0.0, 22.5)
+#: How much deeper (m) a deep-water scene puts the rig and the target than the scene's own.
+DEEP_WATER_M = 20.0
 
-# name: (true depth m, true tilt deg, measured depth m, measured tilt deg, positions)
+# name: (true depth m, true tilt deg, measured tilt deg, positions, measured depth m per sensor class)
 _SCENES = {
-    "coral-one": (0.43, 10.3, 0.47, 11.1, "SN"),
-    "coral-two": (0.48, 11.5, 0.445, 10.8, "SN"),
-    "table": (0.45, 10.0, 0.49, 10.9, "SNEW"),
+    "coral-one": (0.43, 10.3, 11.1, "SN", {"realistic": 0.432, "poor": 0.47}),
+    "coral-two": (0.48, 11.5, 10.8, "SN", {"realistic": 0.4775, "poor": 0.445}),
+    "table": (0.45, 10.0, 10.9, "SNEW", {"realistic": 0.4525, "poor": 0.49}),
 }
+#: Sensor classes of the built-in scenes: (depth σ m, tilt σ deg).
+SENSORS = {"realistic": (0.003, 0.6), "poor": (0.05, 2.0)}
 
 # position letter: (x, y) offset from the target's centre in units of STANDOFF_M, heading (rad)
 _POSITIONS = {
@@ -44,20 +52,28 @@ _POSITIONS = {
 }
 
 
-def builtin_scene(name: str, positions: str | None = None) -> Manifest:
+def builtin_scene(name: str, positions: str | None = None, sensors: str = "realistic", *,
+                  deep_water: bool = False) -> Manifest:
     """The scene manifest of a built-in target: ``coral-one``, ``coral-two`` or ``table``.
 
     positions : the sonar positions around the target, distinct letters of ``SNEW`` (south,
         north, east, west; eight rolls at each, the first position's first view the
         reference); default the scene's own (DESIGN §11: ``SN`` for the corals, ``SNEW`` for
-        the table). The corals with ``SNEW`` see their south–north extent in azimuth too."""
+        the table). The corals with ``SNEW`` see their south–north extent in azimuth too.
+    sensors : a class of ``SENSORS`` (module docstring).
+    deep_water : the same rig and target ``DEEP_WATER_M`` deeper, without a surface: no
+        [surface] and no [truth] table; the true depth and tilt are the known [rig] ones."""
     if name not in _SCENES:
         raise InputError(f"unknown built-in scene; choose one of {', '.join(BUILTIN_TARGETS)}",
                          field="scene", value=name)
-    depth, tilt_deg, depth0, tilt0_deg, own = _SCENES[name]
+    if sensors not in SENSORS:
+        raise InputError(f"must be one of {', '.join(SENSORS)}", field="--sensors", value=sensors)
+    depth, tilt_deg, tilt0_deg, own, measured = _SCENES[name]
+    depth0, (depth_sigma, tilt_sigma_deg) = measured[sensors], SENSORS[sensors]
     positions = check_positions(positions) or own
     height = float(builtin_mesh(name).extents[2])
-    centre = (0.0, STANDOFF_M, -(TOP_DEPTH_M + 0.5 * height))
+    drop = DEEP_WATER_M if deep_water else 0.0
+    centre = (0.0, STANDOFF_M, -(drop + TOP_DEPTH_M + 0.5 * height))
     views = []
     for letter in positions:
         (ux, uy), heading = _POSITIONS[letter]
@@ -66,12 +82,17 @@ def builtin_scene(name: str, positions: str | None = None) -> Manifest:
             roll_deg = round(math.degrees(roll), 6)
             views.append(View(name=f"{letter}{_roll_label(roll_deg)}", position=xy, heading=heading,
                               roll=roll, optimize=roll_deg not in HELD_OUT_ROLLS_DEG))
+    rig, target = Rig(tuple(views), reference=0), Target(position=centre, builtin=name)
+    if deep_water:
+        return Manifest(sonar=SonarSpec(), surface=None, rig=rig, target=target,
+                        known_pose=KnownPose(depth=drop + depth, tilt=math.radians(tilt_deg)))
     return Manifest(
         sonar=SonarSpec(),
-        surface=SurfaceEstimate(depth=depth0, tilt=math.radians(tilt0_deg)),
-        rig=Rig(tuple(views), reference=0),
+        surface=SurfaceEstimate(depth=depth0, tilt=math.radians(tilt0_deg), depth_sigma=depth_sigma,
+                                tilt_sigma=math.radians(tilt_sigma_deg)),
+        rig=rig,
         truth=Truth(depth=depth, tilt=math.radians(tilt_deg)),
-        target=Target(position=centre, builtin=name),
+        target=target,
     )
 
 

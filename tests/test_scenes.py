@@ -24,8 +24,23 @@ def test_view_sets_follow_the_paper(name, count):
     assert held == {-22.5, 0.0, 22.5}
     assert scene.rig.views[scene.rig.reference].position == (0.0, 0.0)
     truth, measured = scene.truth, scene.surface
-    assert 0.03 <= abs(measured.depth - truth.depth) <= 0.05
+    # realistic sensors (DESIGN §11): a pressure depth sensor, a tilt sensor good to 0.6 deg
+    assert abs(measured.depth - truth.depth) <= 0.003 and measured.depth_sigma == 0.003
     assert math.radians(0.6) <= abs(measured.tilt - truth.tilt) <= math.radians(1.0)
+    assert measured.tilt_sigma == pytest.approx(math.radians(0.6))
+    poor = builtin_scene(name, sensors="poor").surface
+    assert 0.03 <= abs(poor.depth - truth.depth) <= 0.05 and poor.depth_sigma == 0.05
+    assert poor.tilt == measured.tilt and poor.tilt_sigma == pytest.approx(math.radians(2.0))
+
+
+def test_scene_command_writes_the_poor_sensors_on_request(tmp_path):
+    from fsswarp.cli import main
+    from fsswarp.dataset import load_scene
+
+    assert main(["scene", "coral-two", "--sensors", "poor", "--out", str(tmp_path / "poor.toml")]) == 0
+    assert load_scene(tmp_path / "poor.toml").surface == builtin_scene("coral-two", sensors="poor").surface
+    with pytest.raises(InputError, match="--sensors = 'bad': must be one of realistic, poor"):
+        builtin_scene("table", sensors="bad")
 
 
 @pytest.mark.parametrize("name", ["coral-one", "coral-two", "table"])
