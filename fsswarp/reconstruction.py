@@ -1,27 +1,23 @@
-"""The unified optimization of the paper's Figure 3a (DESIGN §1): carve, then alternate pose
-and shape steps while the image error E_I falls. Lengths in m, angles in rad (degrees in the
-history), meshes in the reference frame.
+"""The unified optimization of the paper's Figure 3a (DESIGN §1): carve at the measured
+(D0, β0) and refine, then per iteration (lengths m, angles rad, meshes in the reference frame):
 
-Iteration 0 carves the model S0 at the measured (D0, β0) from every view and refines it
-there. Each later iteration t:
-
-1. pose step (``fsswarp.pose.estimate_pose``): a (D, β) proposed only where E_mu falls;
-2. shape step (``fsswarp.refine.refine_shape``) at the proposed (D, β), then, if E_I did not
-   fall below its lowest, again at the previous (D, β);
-3. record D, β, E_mu, AIE, ACE, E_I and, with a truth model, E_V, Chamfer and F-score
+1. pose step (``fsswarp.pose.estimate_pose``) on the model carved last, unrefined (a shape
+   refined at one (D, β) absorbs the tilt signal): a (D, β) proposed only where the posterior
+   cost falls, with its 95% intervals; where they leave the last carving's pose outside, the
+   views are carved again at the proposal, for the next pose steps and as a shape candidate;
+2. shape step (``fsswarp.refine.refine_shape``) at the proposal, then, if E_I did not fall
+   below its lowest, again at the previous (D, β); of the refined and the fresh carving the
+   lower E_I goes on (``recarved``);
+3. record D, β, intervals, E_mu, AIE, ACE, E_I and, with a truth, E_V, Chamfer and F-score
    (``fsswarp.metrics``; the truth metrics in child processes while the loop goes on).
 
-The loop owns one ``fsswarp.compare.ViewComparison`` and hands it to both steps and to the
-metrics, so the layers and contours found for a model at a (D, β) serve all of them. It stops
-after ``iterations``, after ``patience`` iterations in a row without a new lowest E_I, or when
-a shape step leaves the model unchanged at the same (D, β); the result is the iteration with
-the lowest E_I.
-
-Image metrics, over the views marked ``optimize`` at the iteration's (D, β): Ω_m, the pixels
-of the synthetic object layer above 1% of its peak where ghost, mirror and double-bounce stay
-below 10% of the object; IE on Ω_m with data and synthetic totals each divided by their mean
-there; CE from the comparison's contours (``ViewComparison.contour_errors``);
-E_I = (AIE/AIE⁰ + ACE/ACE⁰)/2 (``fsswarp.metrics.image_error``).
+One ``fsswarp.compare.ViewComparison`` serves both steps and the metrics. The loop stops
+after ``iterations``, after ``patience`` iterations without a new lowest E_I, or when a shape
+step leaves the model unchanged; the result is the lowest E_I, with the posterior of a model
+carved at its (D, β) (``converged``: stopped, and both identified). Image metrics over the
+optimized views: Ω_m, the synthetic object above 1% of its peak where ghost and mirrors stay
+below 10% of it; IE on Ω_m, totals divided by their means there; CE from the comparison's
+contours; E_I = (AIE/AIE⁰ + ACE/ACE⁰)/2 (``fsswarp.metrics.image_error``).
 """
 
 from __future__ import annotations
@@ -38,7 +34,7 @@ from .carving import CarveSettings, carve
 from .errors import check_depth_tilt, check_integer
 from .compare import PoseSettings, PoseWarning, ViewComparison
 from .metrics import average_contour_error, average_intensity_error, combine, image_error
-from .pose import check_uncertainties, estimate_pose
+from .pose import BOUNDS_FACTOR, Prior, check_start, check_uncertainties, estimate_pose, fit_posterior
 from .refine import RefineSettings, refine_shape
 from .rendering import RenderSettings, render, with_total
 
@@ -75,10 +71,13 @@ class ReconstructResult:
         (depth, tilt)); carved : the iteration-0 mesh
     depth (m), tilt (rad) : the best iteration's estimate; best_iteration : its number
     iterations : pose + shape iterations run
-    converged : whether it stopped because E_I stopped falling (not because T ran out)
+    stopped : whether the stopping rule ended it (not the iteration limit)
+    converged : stopped, and the posterior identified both D and β
     history : one dict per iteration run (0 = the carved model), the keys of DESIGN §12
     seconds : wall time; backend, device : where the kernels ran
     pose_steps : the PoseResult of every pose step (grid levels, for figures)
+    posterior : the fsswarp.pose.Posterior at (depth, tilt) with ``model``
+    start : (depth m, tilt rad) the loop started from; truth : (depth, tilt) or None
     """
 
     model: object
@@ -87,16 +86,26 @@ class ReconstructResult:
     tilt: float
     best_iteration: int
     iterations: int
+    stopped: bool
     converged: bool
     history: list[dict]
     seconds: float
     backend: str
     device: str
     pose_steps: list = field(default_factory=list)
+    posterior: object = None
+    start: tuple[float, float] = (math.nan, math.nan)
+    truth: tuple[float, float] | None = None
 
     def summary(self) -> dict:
         """``result.json`` (DESIGN §12)."""
-        return {"depth_m": self.depth, "tilt_deg": math.degrees(self.tilt), "best_iteration": self.best_iteration,
+        def point(depth: float, tilt: float) -> dict:
+            return {"depth_m": depth, "tilt_deg": math.degrees(tilt)}
+
+        error = None if self.truth is None else {"depth_m": self.depth - self.truth[0],
+                                                 "tilt_deg": math.degrees(self.tilt) - math.degrees(self.truth[1])}
+        return {"depth_m": self.depth, "tilt_deg": math.degrees(self.tilt), **self.posterior.summary(),
+                "start": point(*self.start), "error_vs_truth": error, "best_iteration": self.best_iteration,
                 "iterations": self.iterations, "converged": self.converged, "backend": self.backend,
                 "device": self.device, "seconds": self.seconds, "history": self.history}
 
@@ -106,14 +115,21 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
                 progress: Callable[[str], None] | None = None) -> ReconstructResult:
     """Run the loop of the module docstring on ``dataset`` from (D0, β0).
 
-    depth0 (m), tilt0 (rad) : the start; default the dataset's measured values
+    depth0 (m), tilt0 (rad) : the start; default the dataset's measured values; a start that
+        ``fsswarp.pose.check_start`` refuses is an InputError
     progress : called with one line per stage (``fsswarp reconstruct`` prints them)."""
     from .backends import get_backend
 
+    if dataset.manifest.deep_water:  # no sea surface in view: the loop without its pose step (end of module)
+        return reconstruct_shape_only(dataset, depth0=depth0, tilt0=tilt0, settings=settings, backend=backend,
+                                      progress=progress)
     surface = dataset.manifest.surface
     depth = surface.depth if depth0 is None else depth0
     tilt = surface.tilt if tilt0 is None else tilt0
     check_depth_tilt(depth, tilt)
+    start_pose = (depth, tilt)
+    prior = Prior.of(dataset)
+    check_start(dataset, depth, tilt)
     check_uncertainties(dataset, depth)  # the pose steps' grids, before the carving
     backend = backend or get_backend()
     say = progress or (lambda line: None)
@@ -121,6 +137,8 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
     comparison = ViewComparison(dataset, settings=settings.pose, backend=backend)  # E_I, E_mu, the pose steps
     shaping = comparison if settings.refine.pose == settings.pose else \
         ViewComparison(dataset, settings=settings.refine.pose, backend=backend)  # the shape steps
+    truth_pose = None if dataset.manifest.truth is None else (dataset.manifest.truth.depth,
+                                                              dataset.manifest.truth.tilt)
     with _TruthMetrics(dataset.truth_mesh(), say) as truth:
         given = "given" if depth0 is not None or tilt0 is not None else "measured"
         say(f"iteration 0: carving at the {given} D0 = {depth:.4f} m, tilt0 = {math.degrees(tilt):.3f} deg")
@@ -130,24 +148,35 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
         first = _complete(_record(0, kept, dataset, depth, tilt, settings, comparison, None), comparison, kept, depth,
                           tilt, truth)
         working = carved  # the model gone on with
+        carved_at, sighting = (depth, tilt), carved  # the pose steps' model: the last carving, unrefined
         if settings.iterations:
             working = refine_shape(carved, dataset, depth, tilt, settings=settings.refine, comparison=shaping).mesh
         history = [first]
         say(_line(first))
-        best, best_pose, misses, converged = first, (depth, tilt), 0, False
+        best, best_pose, misses, stopped = first, (depth, tilt), 0, False
         pose_steps = []
         for iteration in range(1, settings.iterations + 1):
-            pose = estimate_pose(working, dataset, depth0=depth, tilt0=tilt, comparison=comparison)
+            pose = estimate_pose(sighting, dataset, depth0=depth, tilt0=tilt, comparison=comparison, prior=prior)
             pose_steps.append(pose)
+            intervals = pose.posterior.summary()
+            say(f"iteration {iteration}: pose step {_intervals(pose.depth, pose.tilt, pose.posterior)}")
             if pose.accepted:
                 trials = [(pose.depth, pose.tilt), (depth, tilt)]
             else:
                 trials = [(depth, tilt)]
-                say(f"iteration {iteration}: the pose step found no (D, tilt) with a lower E_mu; D and tilt stay")
+                say(f"iteration {iteration}: the pose step found no (D, tilt) with a lower posterior cost; D and tilt "
+                    "stay")
             for depth_tried, tilt_tried in trials:
                 trial = refine_shape(working, dataset, depth_tried, tilt_tried, settings=settings.refine,
                                      comparison=shaping).mesh
                 entry = _record(iteration, trial, dataset, depth_tried, tilt_tried, settings, comparison, first)
+                entry["recarved"] = False
+                if (depth_tried, tilt_tried) != (depth, tilt) and _outside(carved_at, pose.posterior):
+                    carved_at = (depth_tried, tilt_tried)  # again only once the pose moves far from here
+                    sighting = carve(dataset, *carved_at, resolution=settings.resolution, settings=settings.carve,
+                                     backend=backend).mesh
+                    trial, entry = _recarved(sighting, trial, entry, iteration, dataset, depth_tried, tilt_tried,
+                                             settings, comparison, shaping, first, say)
                 improved = entry["E_I"] < best["E_I"]
                 if improved:
                     break
@@ -158,9 +187,11 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
             if not improved and np.array_equal(trial.vertices, working.vertices):
                 say(f"iteration {iteration}: the shape step left the model as it was (every update refused), so "
                     f"the next iterations would repeat this one; keeping iteration {best['iteration']} and stopping")
-                converged = True
+                stopped = True
                 break
             working, depth, tilt = trial, depth_tried, tilt_tried
+            entry.update(depth_interval_m=intervals["depth_interval_m"],
+                         tilt_interval_deg=intervals["tilt_interval_deg"])
             history.append(_complete(entry, comparison, trial, depth, tilt, truth))
             say(_line(history[-1]))
             truth.collect(wait=False)
@@ -171,13 +202,54 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
             if misses == settings.patience:
                 say(f"iteration {iteration}: E_I has not fallen for {misses} iteration{'s' * (misses > 1)}; "
                     f"keeping iteration {best['iteration']} and stopping")
-                converged = True
+                stopped = True
                 break
+        posterior = _answer_posterior(comparison, sighting if carved_at == best_pose else carve(
+            dataset, *best_pose, resolution=settings.resolution, settings=settings.carve, backend=backend).mesh,
+            *best_pose, prior, pose_steps)
+        say(f"the answer: {_intervals(*best_pose, posterior)}")
         truth.collect(wait=True)
+        identified = posterior.identified()
         return ReconstructResult(model=kept, carved=carved, depth=best_pose[0], tilt=best_pose[1],
-                                 best_iteration=best["iteration"], iterations=len(history) - 1, converged=converged,
-                                 history=history, seconds=time.perf_counter() - start, backend=backend.name,
-                                 device=backend.device, pose_steps=pose_steps)
+                                 best_iteration=best["iteration"], iterations=len(history) - 1, stopped=stopped,
+                                 converged=stopped and all(identified.values()), history=history,
+                                 seconds=time.perf_counter() - start, backend=backend.name, device=backend.device,
+                                 pose_steps=pose_steps, posterior=posterior, start=start_pose, truth=truth_pose)
+
+
+def _answer_posterior(comparison: ViewComparison, model, depth: float, tilt: float, prior: Prior, pose_steps):
+    """The Posterior of the answer: ``comparison`` put to ``model`` (carved at (depth m, tilt
+    rad), as the pose steps' models are), its first grid the last pose step's ± 4 σ (or ±
+    ``BOUNDS_FACTOR`` prior σ without one)."""
+    comparison.use(model, depth, tilt)
+    axes = pose_steps[-1].posterior.axes() if pose_steps else \
+        np.diag([BOUNDS_FACTOR * prior.depth_sigma, BOUNDS_FACTOR * prior.tilt_sigma])
+    return fit_posterior(comparison, prior, depth, tilt, axes)
+
+
+def _outside(pose: tuple[float, float], posterior) -> bool:
+    """Whether (depth m, tilt rad) lies outside either 95% interval of ``posterior``."""
+    return any(not lo <= value <= hi for value, (lo, hi) in zip(pose, (posterior.interval(0), posterior.interval(1))))
+
+
+def _recarved(carved, trial, entry: dict, iteration: int, dataset, depth: float, tilt: float,
+              settings: ReconstructSettings, comparison: ViewComparison, shaping: ViewComparison, first: dict, say):
+    """The better, by E_I, of (``trial``, ``entry``) and ``carved``, carved afresh at (depth m,
+    tilt rad), refined there: (model, its entry, ``recarved`` set)."""
+    fresh = refine_shape(carved, dataset, depth, tilt, settings=settings.refine, comparison=shaping).mesh
+    again = _record(iteration, fresh, dataset, depth, tilt, settings, comparison, first)
+    say(f"iteration {iteration}: the model was carved outside the new 95% intervals; carved again at D {depth:.4f} m, "
+        f"tilt {math.degrees(tilt):.3f} deg: E_I {again['E_I']:.3f} against {entry['E_I']:.3f} for the moved model")
+    if again["E_I"] < entry["E_I"]:
+        return fresh, dict(again, recarved=True)
+    comparison.use(trial, depth, tilt)  # _record left it on the fresh model
+    return trial, entry
+
+
+def _intervals(depth: float, tilt: float, posterior) -> str:
+    (d0, d1), (t0, t1) = posterior.interval(0), posterior.interval(1)
+    return (f"D {depth:.4f} m (95%: {d0:.4f}-{d1:.4f}), tilt {math.degrees(tilt):.2f} deg (95%: "
+            f"{math.degrees(t0):.2f}-{math.degrees(t1):.2f})")
 
 
 def image_errors(model, dataset, depth: float, tilt: float, *, settings: ReconstructSettings = ReconstructSettings(),
@@ -248,7 +320,8 @@ def _complete(entry: dict, comparison: ViewComparison, model, depth: float, tilt
     (_TruthMetrics) adds E_V, Chamfer and F-score later. Only kept trials pay for these."""
     done = {key: entry[key] for key in ("iteration", "depth_m", "tilt_deg")}
     done["E_mu"] = comparison.use(model, depth, tilt).exact(depth, tilt).value
-    done.update((key, entry[key]) for key in ("AIE", "ACE", "E_I"))
+    done.update((key, entry[key]) for key in ("depth_interval_m", "tilt_interval_deg", "recarved", "AIE", "ACE",
+                                              "E_I") if key in entry)
     truth.submit(done, model)
     return done
 
@@ -357,3 +430,90 @@ def _line(entry: dict) -> str:
     return (f"iteration {entry['iteration']}: D {entry['depth_m']:.4f} m, tilt {entry['tilt_deg']:.3f} deg, "
             f"E_mu {entry['E_mu'] * 1e3:.2f} mm, AIE {entry['AIE']:.3f}, ACE {entry['ACE'] * 1e3:.2f} mm, "
             f"E_I {entry['E_I']:.3f}")
+
+
+# --- deep water: no sea surface in view --------------------------------------------------------
+
+#: result.json's ``pose_step`` for a dataset without a sea surface (deep water).
+NO_POSE_STEP = "skipped: no sea surface in the dataset"
+
+
+@dataclass
+class ShapeOnlyResult(ReconstructResult):
+    """What :func:`reconstruct_shape_only` made: ``depth`` and ``tilt`` are the (D m, β rad)
+    its views were synthesized at (``fsswarp.dataset.deep_water_pose``), ``known`` the
+    manifest's known [rig] depth (m) and tilt (rad), which ``summary`` reports."""
+
+    known: tuple[float, float] = (math.nan, math.nan)
+
+    def summary(self) -> dict:
+        """``result.json`` of a deep-water dataset: no surface, no pose step (docs/formats.md)."""
+        return {"depth_m": self.known[0], "tilt_deg": math.degrees(self.known[1]), "surface": None,
+                "pose_step": NO_POSE_STEP, "best_iteration": self.best_iteration, "iterations": self.iterations,
+                "converged": self.converged, "backend": self.backend, "device": self.device, "seconds": self.seconds,
+                "history": self.history}
+
+
+def reconstruct_shape_only(dataset, *, depth0: float | None = None, tilt0: float | None = None,
+                           settings: ReconstructSettings = ReconstructSettings(), backend=None,
+                           progress: Callable[[str], None] | None = None) -> ShapeOnlyResult:
+    """The loop of the module docstring without its pose step, for a deep-water dataset (no
+    [surface]: known depth and tilt): carve at ``fsswarp.dataset.deep_water_pose``, which puts
+    the surface beyond every range window (no multipath layers, no surface rule), then shape
+    steps while E_I falls, under the same stopping rules. ``depth0``/``tilt0`` must be None (the
+    depth and tilt are known). History entries hold the known depth and tilt."""
+    from .backends import get_backend
+    from .dataset import deep_water_pose
+    from .errors import InputError
+    from .rendering import RenderWarning
+
+    if depth0 is not None or tilt0 is not None:
+        raise InputError("the dataset has no sea surface (deep water): its depth and tilt are known ([rig] depth_m, "
+                         "tilt_deg), there is no start to give", field="--depth" if depth0 is not None else "--tilt",
+                         value=depth0 if depth0 is not None else math.degrees(tilt0))
+    depth, tilt = deep_water_pose(dataset.manifest)
+    known = (dataset.manifest.known_pose.depth, dataset.manifest.known_pose.tilt)
+    backend = backend or get_backend()
+    say = progress or (lambda line: None)
+    start = time.perf_counter()
+    comparison = ViewComparison(dataset, settings=settings.pose, backend=backend)
+    shaping = comparison if settings.refine.pose == settings.pose else \
+        ViewComparison(dataset, settings=settings.refine.pose, backend=backend)
+    with warnings.catch_warnings(), _TruthMetrics(dataset.truth_mesh(), say) as truth:
+        warnings.filterwarnings("ignore", "view .*: ghost returns reach", RenderWarning)  # beyond the windows on purpose
+        say(f"iteration 0: carving at the known D = {known[0]:.4f} m, tilt = {math.degrees(known[1]):.3f} deg "
+            f"({NO_POSE_STEP}: no pose step, no ghost or mirror)")
+        carved = carve(dataset, depth, tilt, resolution=settings.resolution, settings=settings.carve,
+                       backend=backend).mesh
+        first = _complete(_record(0, carved, dataset, depth, tilt, settings, comparison, None), comparison, carved,
+                          depth, tilt, truth)
+        history, best, kept, working, misses, stopped = [first], first, carved, carved, 0, False
+        say(_line(first))
+        for iteration in range(1, settings.iterations + 1):
+            trial = refine_shape(working, dataset, depth, tilt, settings=settings.refine, comparison=shaping).mesh
+            if np.array_equal(trial.vertices, working.vertices):
+                say(f"iteration {iteration}: the shape step left the model as it was (every update refused); keeping "
+                    f"iteration {best['iteration']} and stopping")
+                stopped = True
+                break
+            entry = _record(iteration, trial, dataset, depth, tilt, settings, comparison, first)
+            history.append(_complete(entry, comparison, trial, depth, tilt, truth))
+            say(_line(history[-1]))
+            truth.collect(wait=False)
+            working = trial
+            if history[-1]["E_I"] < best["E_I"]:
+                best, kept, misses = history[-1], trial, 0
+                continue
+            misses += 1
+            if misses == settings.patience:
+                say(f"iteration {iteration}: E_I has not fallen for {misses} iteration{'s' * (misses > 1)}; "
+                    f"keeping iteration {best['iteration']} and stopping")
+                stopped = True
+                break
+        truth.collect(wait=True)
+    for entry in history:
+        entry.update(depth_m=known[0], tilt_deg=math.degrees(known[1]))
+    return ShapeOnlyResult(model=kept, carved=carved, depth=depth, tilt=tilt, best_iteration=best["iteration"],
+                           iterations=len(history) - 1, stopped=stopped, converged=stopped, history=history,
+                           seconds=time.perf_counter() - start, backend=backend.name, device=backend.device,
+                           start=(depth, tilt), known=known)

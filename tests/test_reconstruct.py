@@ -18,7 +18,8 @@ from fsswarp.reconstruction import ReconstructSettings, image_errors, reconstruc
 from fsswarp.refine import RefineSettings, refine_shape
 
 HISTORY_KEYS = {"iteration", "depth_m", "tilt_deg", "E_mu", "AIE", "ACE", "E_I", "E_V", "chamfer_m", "fscore"}
-RESULT_KEYS = {"depth_m", "tilt_deg", "best_iteration", "iterations", "converged", "backend", "device", "seconds",
+RESULT_KEYS = {"depth_m", "tilt_deg", "depth_interval_m", "tilt_interval_deg", "valley", "identified", "start",
+               "error_vs_truth", "best_iteration", "iterations", "converged", "backend", "device", "seconds",
                "history"}
 FAST = ReconstructSettings(iterations=1, resolution=64)
 
@@ -49,6 +50,24 @@ def test_history_follows_the_contract(one_iteration, coral_one):
     assert result.model.is_watertight and result.carved.is_watertight
     assert len(result.pose_steps) == 1 and result.pose_steps[0].levels  # the figure's grid
     json.dumps(result.summary())  # JSON-ready
+
+
+def test_the_answer_carries_its_intervals_start_and_error(one_iteration, coral_one):
+    result, lines = one_iteration
+    summary, truth = result.summary(), coral_one.manifest.truth
+    (d0, d1), (t0, t1) = summary["depth_interval_m"], summary["tilt_interval_deg"]
+    assert d0 < summary["depth_m"] < d1 and t0 < summary["tilt_deg"] < t1
+    assert summary["start"] == {"depth_m": coral_one.manifest.surface.depth,
+                                "tilt_deg": math.degrees(coral_one.manifest.surface.tilt)}
+    assert summary["error_vs_truth"] == {"depth_m": result.depth - truth.depth,
+                                         "tilt_deg": math.degrees(result.tilt) - math.degrees(truth.tilt)}
+    assert set(summary["valley"]) == {"slope_m_per_deg", "depth_m_at_estimated_tilt"}
+    assert 0.01 < summary["valley"]["slope_m_per_deg"] < 0.08  # D − L·β: about 3.5 cm per degree at 2 m
+    assert summary["converged"] == (result.stopped and all(summary["identified"].values()))
+    for entry in result.history[1:]:  # each pose step's intervals, and whether the model was carved again
+        assert len(entry["depth_interval_m"]) == 2 and len(entry["tilt_interval_deg"]) == 2
+        assert isinstance(entry["recarved"], bool)
+    assert any(line.startswith("the answer: D ") and "(95%: " in line for line in lines)
 
 
 def test_truth_metrics_of_every_recorded_iteration_are_reported(one_iteration, coral_one):
@@ -197,8 +216,17 @@ def _script_the_loop(monkeypatch, pose_step, errors, completed=None):
     mesh), in order."""
     from types import SimpleNamespace
 
+    from fsswarp.pose import Posterior
+
     errors, refined = iter(errors), []
     completed = [] if completed is None else completed
+
+    def wide(depth, tilt, prior):  # a posterior that identifies nothing and holds every pose tried
+        return Posterior(depth, tilt, np.diag([1.0, 1.0]), prior, 0.0, depth, 1e-3)
+
+    def posed(model, dataset, *, depth0, tilt0, comparison, prior):
+        step = pose_step(model, dataset, depth0=depth0, tilt0=tilt0, comparison=comparison)
+        return SimpleNamespace(**vars(step), posterior=wide(step.depth, step.tilt, prior))
 
     def refine(model, dataset, depth, tilt, *, settings, comparison):
         moved = model.copy()
@@ -214,8 +242,10 @@ def _script_the_loop(monkeypatch, pose_step, errors, completed=None):
         completed.append(entry["E_I"])
         return entry
 
-    for name, fake in (("estimate_pose", pose_step), ("refine_shape", refine), ("_record", record),
-                       ("_complete", complete), ("_line", str)):
+    for name, fake in (("estimate_pose", posed), ("refine_shape", refine), ("_record", record),
+                       ("_complete", complete), ("_line", str),
+                       ("_answer_posterior", lambda comparison, model, depth, tilt, prior, steps: wide(depth, tilt,
+                                                                                                      prior))):
         monkeypatch.setattr(reconstruct_module, name, fake)
     return refined
 
@@ -236,7 +266,8 @@ def test_a_refused_pose_step_keeps_the_estimate_and_the_shape_step_runs(coral_on
     result = reconstruct(coral_one, settings=dataclasses.replace(FAST, iterations=6))
     start = coral_one.manifest.surface.depth, coral_one.manifest.surface.tilt
     assert calls == [start] * 4 and [r[:2] for r in refined] == [start] * 5  # 1 before the loop, 4 in it
-    assert [h["E_I"] for h in result.history] == [1.0, 0.9, 0.8, 0.85, 0.82] and result.converged
+    assert [h["E_I"] for h in result.history] == [1.0, 0.9, 0.8, 0.85, 0.82] and result.stopped
+    assert not result.converged  # nothing identified
     assert (result.depth, result.tilt) == start and result.best_iteration == 2
     assert result.model is refined[2][2]
 
@@ -271,7 +302,7 @@ def test_a_pose_that_raises_the_image_error_is_not_adopted(coral_one, monkeypatc
     assert [h["E_I"] for h in result.history] == [1.0, 0.9, 0.85, 0.99, 0.8, 0.88, 0.9]
     assert [h["depth_m"] for h in result.history] == pytest.approx([s, s + 0.01, s + 0.01, s + 0.01, s + 0.05,
                                                                      s + 0.05, s + 0.05])
-    assert result.iterations == 6 and result.best_iteration == 4 and result.converged
+    assert result.iterations == 6 and result.best_iteration == 4 and result.stopped
     assert result.depth == pytest.approx(s + 0.05) and result.model is refined[6][2]
     assert completed == [1.0, 0.9, 0.85, 0.99, 0.8, 0.88, 0.9]  # E_mu and truth metrics: recorded trials only
 
@@ -306,7 +337,7 @@ def test_a_shape_step_that_leaves_the_model_unchanged_stops_the_loop(coral_one, 
     monkeypatch.setattr(reconstruct_module, "refine_shape", refine)
     result = reconstruct(coral_one, settings=dataclasses.replace(FAST, iterations=6, patience=3))
     assert len(refined) == 3  # none after the third, which returned its input
-    assert [h["E_I"] for h in result.history] == [1.0, 0.9] and result.converged and result.best_iteration == 1
+    assert [h["E_I"] for h in result.history] == [1.0, 0.9] and result.stopped and result.best_iteration == 1
 
 
 def test_the_loop_hands_one_comparison_to_every_step(coral_one, monkeypatch):
@@ -365,7 +396,7 @@ def test_reconstruct_command_writes_model_result_and_figures(coral_one, tmp_path
     assert done.returncode == 0, done.stderr
     names = sorted(p.relative_to(tmp_path / "r").as_posix() for p in (tmp_path / "r").rglob("*") if p.is_file())
     assert names == ["carved.ply", "figures/carved.png", "figures/contours.png", "figures/history.png",
-                     "figures/model.png", "model.ply", "result.json"]
+                     "figures/model.png", "model.ply", "report.html", "result.json"]
     result = json.loads((tmp_path / "r" / "result.json").read_text())
     assert set(result) == RESULT_KEYS and result["iterations"] == 0
     assert trimesh.load_mesh(tmp_path / "r" / "model.ply").is_watertight
@@ -374,11 +405,14 @@ def test_reconstruct_command_writes_model_result_and_figures(coral_one, tmp_path
 def test_reconstruct_starts_from_a_given_depth_and_tilt(coral_one, tmp_path):
     """--depth/--tilt replace the measured D0/β0 as the start (the paper table's 2° runs)."""
     done = run_cli("reconstruct", str(coral_one.root), "--out", str(tmp_path / "r"), "--iterations", "0",
-                   "--resolution", "32", "--depth", "0.41", "--tilt", "12.3")
+                   "--resolution", "32", "--depth", "0.435", "--tilt", "11.9")
     assert done.returncode == 0, done.stderr
-    first = json.loads((tmp_path / "r" / "result.json").read_text())["history"][0]
-    assert (first["depth_m"], first["tilt_deg"]) == (0.41, pytest.approx(12.3))
-    assert "given D0 = 0.4100 m" in done.stdout
+    result = json.loads((tmp_path / "r" / "result.json").read_text())
+    first = result["history"][0]
+    assert (first["depth_m"], first["tilt_deg"]) == (0.435, pytest.approx(11.9))
+    assert result["start"] == {"depth_m": 0.435, "tilt_deg": pytest.approx(11.9)}
+    assert "given D0 = 0.4350 m" in done.stdout and "started from depth 0.4350 m, tilt 11.90 deg" in done.stdout
+    assert "error against the truth: depth +5.0 mm" in done.stdout
 
 
 @pytest.mark.parametrize("args, field", [
@@ -386,6 +420,8 @@ def test_reconstruct_starts_from_a_given_depth_and_tilt(coral_one, tmp_path):
     (["reconstruct", "DATA", "--out", "OUT", "--depth", "-0.2"], "depth"),
     (["reconstruct", "DATA", "--out", "OUT", "--tilt", "nan"], "tilt"),
     (["reconstruct", "DATA", "--out", "OUT", "--patience", "0"], "patience"),
+    (["reconstruct", "DATA", "--out", "OUT", "--depth", "47"], "--depth = 47.0: is "),  # cm typed as m
+    (["reconstruct", "DATA", "--out", "OUT", "--tilt", "0.19"], "--tilt = 0.19: is "),  # rad typed as deg
     (["demo", "no-such-scene", "--out", "OUT"], "no-such-scene"),
 ])
 def test_bad_input_exits_2_and_writes_nothing(coral_one, tmp_path, args, field):
