@@ -9,7 +9,7 @@ The rule. A voxel is a cube of side h (m) centred at c. A view *sees* it when th
 bounding sphere lies wholly in its window, and *rejects* it when the box of beams and bins the
 sphere projects into holds no feasible pixel (a summed-area table answers in four reads). A
 voxel is kept when at least ``min_views`` views see it, none rejects it, and it does not lie
-wholly above the estimated sea surface plus ``surface_margin``.
+wholly above the estimated sea surface plus ``surface_margin`` (deep water: no surface rule).
 
 Grid. Pass 1 carves the region every view sees (reference frame, below the surface, ∩ an
 optional ``box``, (2, 3) m) at ``domain_resolution`` voxels along its longest side; pass 2
@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .dataset import deep_water_pose
 from .errors import InputError, check_depth_tilt, check_integer, is_finite_number, is_integer
 from .rendering import signed_volume
 from .rig import to_view
@@ -131,7 +132,8 @@ def carve(dataset, depth: float | None = None, tilt: float | None = None, *, res
           backend=None) -> CarveResult:
     """Segment the views of ``dataset``, carve, and extract the mesh S0.
 
-    depth (m), tilt (rad) : default the dataset's measured values (``manifest.surface``)
+    depth (m), tilt (rad) : default the dataset's measured values (``manifest.surface``); for
+        deep water (no surface) ``fsswarp.dataset.deep_water_pose``, and no surface constraint
     resolution : voxels along the longest side of the carving box at the finest level
     box : optional (2, 3) lower and upper corner (reference frame, m) limiting the domain
     views : names to carve with (default all); masks : optional {view: (bins, beams) bool}
@@ -145,8 +147,9 @@ def carve(dataset, depth: float | None = None, tilt: float | None = None, *, res
 
     timings: dict[str, float] = {}
     surface = dataset.manifest.surface
-    depth = surface.depth if depth is None else float(depth)
-    tilt = surface.tilt if tilt is None else float(tilt)
+    default = deep_water_pose(dataset.manifest) if surface is None else (surface.depth, surface.tilt)
+    depth = default[0] if depth is None else float(depth)
+    tilt = default[1] if tilt is None else float(tilt)
     check_depth_tilt(depth, tilt)
     rig = dataset.rig
     names = rig.names if views is None else [rig.views[rig.index(n)].name for n in views]
@@ -178,10 +181,13 @@ def carve(dataset, depth: float | None = None, tilt: float | None = None, *, res
     backend = backend or get_backend()
     index = [rig.index(n) for n in used]
     rotations, translations = (a[index] for a in rig.relative_poses(depth, tilt))
-    normal, offset = surface_in_reference(rig, depth, tilt)
+    plane = None  # deep water: no surface rule
+    if surface is not None:
+        normal, offset = surface_in_reference(rig, depth, tilt)
+        plane = (normal, float(offset) + settings.surface_margin)
     stack = np.stack([feasible[n] for n in used])
     voxels = carve_masks(stack, rotations, translations, dataset.sonar, resolution=resolution, box=box,
-                         plane=(normal, float(offset) + settings.surface_margin), settings=settings,
+                         plane=plane, settings=settings,
                          backend=backend, timings=timings, source=dataset.root)
     start = time.perf_counter()
     mesh = voxel_mesh(voxels, smooth=settings.smooth, faces=settings.faces)

@@ -8,6 +8,8 @@ A dataset folder::
                              <view>_{object,ghost,mirror,mirror2}.tiff
 
 A scene file is the same manifest with a ``[target]`` and a ``[truth]`` table and no images.
+A manifest without ``[surface]`` is deep water (no sea surface in view): ``[rig] depth_m`` and
+``tilt_deg`` give the known shared depth and tilt, and a scene of it has no ``[truth]`` table.
 
 Files hold metres and degrees; the objects here hold metres and radians. Every field that is
 read is validated, and unknown keys are mistakes too (a misspelt key must not fall back to a
@@ -55,7 +57,7 @@ _SONAR_KEYS = ("beams", "bins", "azimuth_fov_deg", "elevation_fov_deg", "range_m
 _SURFACE_KEYS = ("depth_m", "tilt_deg", "depth_sigma_m", "tilt_sigma_deg")
 _TRUTH_KEYS = ("depth_m", "tilt_deg", "model")
 _TARGET_KEYS = ("mesh", "builtin", "scale_m", "position_m", "rotation_deg")
-_RIG_KEYS = ("reference_view",)
+_RIG_KEYS = ("reference_view", "depth_m", "tilt_deg")
 _VIEW_KEYS = ("name", "image", "position_m", "heading_deg", "roll_deg", "depth_offset_m",
               "tilt_offset_deg", "optimize")
 
@@ -80,17 +82,35 @@ class SurfaceEstimate:
 
 
 @dataclass(frozen=True)
-class Truth:
-    """The true depth (m) and tilt (rad) of simulated data, and the true model's file
-    (relative to the manifest's folder), if any."""
+class KnownPose:
+    """The shared sonar depth D (m, below the surface z = 0) and tilt β (rad) of a deep-water
+    dataset (no ``[surface]`` table: no sea surface in view to estimate them from), known and
+    not estimated; the manifest's ``[rig] depth_m`` and ``tilt_deg``."""
 
     depth: float
     tilt: float
+
+    def __post_init__(self) -> None:
+        _check_depth("rig.depth_m", self.depth)
+        _check_tilt("rig.tilt_deg", self.tilt)
+
+
+@dataclass(frozen=True)
+class Truth:
+    """The true depth (m) and tilt (rad) of simulated data, and the true model's file
+    (relative to the manifest's folder), if any. A deep-water dataset's truth has no depth
+    and tilt (None): its poses are known ([rig])."""
+
+    depth: float | None
+    tilt: float | None
     model: str | None = None
 
     def __post_init__(self) -> None:
-        _check_depth("truth.depth_m", self.depth)
-        _check_tilt("truth.tilt_deg", self.tilt)
+        if (self.depth is None) != (self.tilt is None):
+            raise InputError("give depth_m and tilt_deg together", field="truth.depth_m", value=self.depth)
+        if self.depth is not None:
+            _check_depth("truth.depth_m", self.depth)
+            _check_tilt("truth.tilt_deg", self.tilt)
         if self.model is not None:
             _check_inner_path("truth.model", self.model, (".ply",))
 
@@ -139,23 +159,59 @@ class Target:
 class Manifest:
     """Everything a ``dataset.toml`` or a scene file says, in metres and radians.
 
+    surface : the measured D0 and β0; None for deep water (no sea surface in view), whose
+        shared depth and tilt are then ``known_pose`` instead (exactly one of the two is set)
     Equality also compares the sonar's beam-angle table (``SonarSpec`` itself does not).
     """
 
     sonar: SonarSpec
-    surface: SurfaceEstimate
+    surface: SurfaceEstimate | None
     rig: Rig
     truth: Truth | None = None
     target: Target | None = None
+    known_pose: KnownPose | None = None
+
+    def __post_init__(self) -> None:
+        if (self.surface is None) == (self.known_pose is None):
+            raise InputError("give a [surface] table or, for deep water (no sea surface in view), [rig] depth_m "
+                             "and tilt_deg, not both", field="surface")
+        if self.truth is not None and (self.truth.depth is None) != (self.surface is None):
+            raise InputError("a [truth] table gives depth_m and tilt_deg with a [surface] table and not without one "
+                             "(deep water: the depth and tilt are known, [rig] depth_m and tilt_deg)",
+                             field="truth.depth_m", value=self.truth.depth)
+
+    @property
+    def deep_water(self) -> bool:
+        """No sea surface in view: no [surface] table, known depth and tilt, no multipath."""
+        return self.surface is None
 
     def __eq__(self, other: object) -> bool:
         if other.__class__ is not self.__class__:
             return NotImplemented
-        mine = (self.sonar, self.surface, self.rig, self.truth, self.target)
-        theirs = (other.sonar, other.surface, other.rig, other.truth, other.target)
+        mine = (self.sonar, self.surface, self.rig, self.truth, self.target, self.known_pose)
+        theirs = (other.sonar, other.surface, other.rig, other.truth, other.target, other.known_pose)
         a, b = self.sonar.beam_angles, other.sonar.beam_angles
         same_angles = (a is None and b is None) or (a is not None and b is not None and np.array_equal(a, b))
         return mine == theirs and same_angles
+
+
+#: Metres between a deep-water dataset's range window and the surface plane where
+#: :func:`deep_water_pose` puts it.
+SURFACE_CLEARANCE_M = 1.0
+
+
+def deep_water_pose(manifest: Manifest) -> tuple[float, float]:
+    """(D m, β rad) at which the steps synthesize, carve and refine a deep-water dataset: the
+    known tilt, and the known depth or, where the surface z = 0 would then lie within
+    ``SURFACE_CLEARANCE_M`` of some view's range window, the depth that puts it there. An echo by
+    way of the surface has an apparent range of at least the sonar's distance to it, so it falls
+    beyond range_max_m: the synthetic views hold the object alone. The views' relative poses, and
+    so the models' reference frame, do not depend on D."""
+    if manifest.known_pose is None:
+        raise InputError("has a [surface] table: its depth and tilt are estimated, not known", field="surface")
+    reach = manifest.sonar.range_max + SURFACE_CLEARANCE_M
+    lowest = max(reach - view.depth_offset for view in manifest.rig.views)
+    return max(manifest.known_pose.depth, lowest), manifest.known_pose.tilt
 
 
 def image_file(view: View) -> str:
@@ -250,18 +306,19 @@ def parse_manifest(table: dict, *, file) -> Manifest:
     errors. Touches no files: image and mesh files are checked by the loaders."""
     top = _Table(table, "", file, _TOP_KEYS)
     sonar = _parse_sonar(top.table("sonar"), file)
-    surface = _parse_surface(top.table("surface"), file)
-    truth = _parse_truth(top.table("truth", required=False), file)
+    surface = _parse_surface(top.table("surface", required=False), file)
+    truth = _parse_truth(top.table("truth", required=False), file, deep_water=surface is None)
     target = _parse_target(top.table("target", required=False), file)
     views = _parse_views(top, file)
-    rig = _parse_rig(top.table("rig", required=False), views, file)
-    for depth, what in ((surface.depth, "surface.depth_m"), (truth.depth if truth else math.inf, "truth.depth_m")):
+    rig, known = _parse_rig(top.table("rig", required=False), views, file, deep_water=surface is None)
+    shared = (surface.depth, "surface.depth_m") if surface is not None else (known.depth, "rig.depth_m")
+    for depth, what in (shared, (truth.depth if truth and truth.depth is not None else math.inf, "truth.depth_m")):
         for view in views:
             if depth + view.depth_offset <= 0:
                 raise InputError(f"puts the sonar above the surface at {what} = {depth:g} m (it must lie below: "
                                  "depth + offset > 0)", file=file, field=f"views[{view.name}].depth_offset_m",
                                  value=view.depth_offset)
-    return Manifest(sonar=sonar, surface=surface, rig=rig, truth=truth, target=target)
+    return Manifest(sonar=sonar, surface=surface, rig=rig, truth=truth, target=target, known_pose=known)
 
 
 def read_mesh(path: Path, *, field: str, file: Path | None = None, value: str | None = None):
@@ -362,12 +419,13 @@ def manifest_to_toml(manifest: Manifest) -> str:
     if sonar.beam_angles is not None:
         sonar_table["beam_angles_deg"] = [_degrees(a) for a in sonar.beam_angles]
     s = manifest.surface
-    sections = [("sonar", sonar_table),
-                ("surface", {"depth_m": float(s.depth), "tilt_deg": _degrees(s.tilt),
-                             "depth_sigma_m": float(s.depth_sigma), "tilt_sigma_deg": _degrees(s.tilt_sigma)})]
+    sections = [("sonar", sonar_table)]
+    if s is not None:
+        sections.append(("surface", {"depth_m": float(s.depth), "tilt_deg": _degrees(s.tilt),
+                                     "depth_sigma_m": float(s.depth_sigma), "tilt_sigma_deg": _degrees(s.tilt_sigma)}))
     if manifest.truth is not None:
         t = manifest.truth
-        table = {"depth_m": float(t.depth), "tilt_deg": _degrees(t.tilt)}
+        table = {} if t.depth is None else {"depth_m": float(t.depth), "tilt_deg": _degrees(t.tilt)}
         if t.model is not None:
             table["model"] = t.model
         sections.append(("truth", table))
@@ -378,7 +436,10 @@ def manifest_to_toml(manifest: Manifest) -> str:
                      rotation_deg=[_degrees(a) for a in g.rotation])
         sections.append(("target", table))
     rig = manifest.rig
-    sections.append(("rig", {"reference_view": rig.views[rig.reference].name}))
+    rig_table = {"reference_view": rig.views[rig.reference].name}
+    if manifest.known_pose is not None:
+        rig_table.update(depth_m=float(manifest.known_pose.depth), tilt_deg=_degrees(manifest.known_pose.tilt))
+    sections.append(("rig", rig_table))
     for view in rig.views:
         table = {"name": view.name}
         if view.image is not None:
@@ -621,7 +682,9 @@ def _parse_sonar(table: dict, file) -> SonarSpec:
         raise err.with_file(file) from None
 
 
-def _parse_surface(table: dict, file) -> SurfaceEstimate:
+def _parse_surface(table: dict | None, file) -> SurfaceEstimate | None:
+    if table is None:  # deep water: the [rig] table gives the known depth and tilt
+        return None
     t = _Table(table, "surface", file, _SURFACE_KEYS)
     values = dict(depth=t.number("depth_m"), tilt=t.angle("tilt_deg", limit=90, open_limit=True),
                   depth_sigma=t.number("depth_sigma_m", 0.05),
@@ -632,12 +695,19 @@ def _parse_surface(table: dict, file) -> SurfaceEstimate:
         raise err.with_file(file) from None
 
 
-def _parse_truth(table: dict | None, file) -> Truth | None:
+def _parse_truth(table: dict | None, file, *, deep_water: bool) -> Truth | None:
     if table is None:
         return None
     t = _Table(table, "truth", file, _TRUTH_KEYS)
-    values = dict(depth=t.number("depth_m"), tilt=t.angle("tilt_deg", limit=90, open_limit=True),
-                  model=t.string("model", None))
+    if deep_water:  # the poses are known: a deep-water truth is its model alone
+        for key in ("depth_m", "tilt_deg"):
+            if key in t.items:
+                raise t.error(key, "deep water (no [surface]): the depth and tilt are known ([rig] depth_m, "
+                                   "tilt_deg); remove this key")
+        values = dict(depth=None, tilt=None, model=t.string("model", None))
+    else:
+        values = dict(depth=t.number("depth_m"), tilt=t.angle("tilt_deg", limit=90, open_limit=True),
+                      model=t.string("model", None))
     try:
         return Truth(**values)
     except InputError as err:
@@ -698,19 +768,33 @@ def _parse_views(top: _Table, file) -> tuple[View, ...]:
     return tuple(views)
 
 
-def _parse_rig(table: dict | None, views: tuple[View, ...], file) -> Rig:
-    reference = 0
-    if table is not None:
-        t = _Table(table, "rig", file, _RIG_KEYS)
-        name = t.string("reference_view", None)
-        if name is not None:
-            names = [v.name for v in views]
-            if name not in names:
-                shown = ", ".join(names[:6]) + (", ..." if len(names) > 6 else "")
-                raise t.error("reference_view", f"no view of that name (views: {shown})")
-            reference = names.index(name)
+def _parse_rig(table: dict | None, views: tuple[View, ...], file, *,
+               deep_water: bool) -> tuple[Rig, KnownPose | None]:
+    """The rig and, for deep water (no [surface]), the known depth and tilt of [rig]."""
+    reference, known = 0, None
+    t = _Table({} if table is None else table, "rig", file, _RIG_KEYS)
+    name = t.string("reference_view", None)
+    if name is not None:
+        names = [v.name for v in views]
+        if name not in names:
+            shown = ", ".join(names[:6]) + (", ..." if len(names) > 6 else "")
+            raise t.error("reference_view", f"no view of that name (views: {shown})")
+        reference = names.index(name)
+    if not deep_water:
+        for key in ("depth_m", "tilt_deg"):
+            if key in t.items:
+                raise t.error(key, "only without a [surface] table (deep water); with one, the depth and tilt "
+                                   "are [surface]'s")
+    elif "depth_m" not in t.items and "tilt_deg" not in t.items:
+        raise InputError("is required (a [surface] table); for deep water (no sea surface in view) give the "
+                         "known [rig] depth_m and tilt_deg instead", file=file, field="surface")
+    else:
+        try:
+            known = KnownPose(depth=t.number("depth_m"), tilt=t.angle("tilt_deg", limit=90, open_limit=True))
+        except InputError as err:
+            raise err.with_file(file) from None
     try:
-        return Rig(views, reference=reference)
+        return Rig(views, reference=reference), known
     except InputError as err:
         raise err.with_file(file) from None
 
@@ -719,10 +803,13 @@ def _check_scene(manifest: Manifest, file) -> None:
     """The rules a scene file adds to a manifest."""
     if manifest.target is None:
         raise InputError("is required: a scene file needs a [target] table", file=file, field="target")
-    if manifest.truth is None:
+    if manifest.truth is None and not manifest.deep_water:
         raise InputError("is required: a scene file needs a [truth] table (true depth_m, tilt_deg)",
                          file=file, field="truth")
-    if manifest.truth.model is not None:
+    if manifest.truth is not None and manifest.deep_water:
+        raise InputError("a deep-water scene (no [surface]) places its sonar by [rig] depth_m and tilt_deg; "
+                         "remove this table", file=file, field="truth")
+    if manifest.truth is not None and manifest.truth.model is not None:
         raise InputError("a scene's true model is its target; remove this key", file=file,
                          field="truth.model", value=manifest.truth.model)
     for i, view in enumerate(manifest.rig.views):

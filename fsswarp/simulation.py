@@ -3,15 +3,16 @@
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
 from .atomic import check_output_folder
-from .dataset import TRUTH_MODEL, Dataset, Manifest, Truth, load_dataset, load_scene, save_dataset
+from .dataset import TRUTH_MODEL, Dataset, Manifest, Truth, deep_water_pose, load_dataset, load_scene, save_dataset
 from .errors import InputError, check_integer
-from .rendering import LAYERS, RenderSettings, add_noise, render
+from .rendering import LAYERS, RenderSettings, RenderWarning, add_noise, render
 from .rig import world_to_reference
 from .scenes import builtin_scene, target_world_mesh
 from .targets import BUILTIN_TARGETS
@@ -32,7 +33,7 @@ def check_scene(scene: str | Path | Manifest) -> tuple[Manifest, trimesh.Trimesh
     """The manifest of ``scene`` (a built-in name, a scene file or a scene Manifest) and its
     target mesh placed in the world frame, or InputError."""
     manifest, file = (scene, None) if isinstance(scene, Manifest) else resolve_scene(scene)
-    if manifest.target is None or manifest.truth is None:
+    if manifest.target is None or (manifest.truth is None and not manifest.deep_water):
         raise InputError("a scene needs [target] and [truth]", field="scene", value=str(scene))
     return manifest, target_world_mesh(manifest.target, base=file.parent if file else None, file=file)
 
@@ -41,22 +42,29 @@ def simulate(scene: str | Path | Manifest, out: str | Path, *, seed: int = 0,
              settings: RenderSettings = RenderSettings(), noise: bool = True, backend=None) -> Dataset:
     """Synthesize the dataset of ``scene`` (a built-in name, a scene file or a scene Manifest)
     into the folder ``out``: noisy images, the noise-free layers and the truth model (in the
-    reference frame of the true depth and tilt). Returns the saved Dataset."""
+    reference frame of the true depth and tilt). A deep-water scene (no [surface]) is placed at
+    its known [rig] depth and tilt and rendered at ``deep_water_pose``: its images hold the
+    object alone, and truth/ its object layers alone. Returns the saved Dataset."""
     check_integer("--seed", seed, 0)
     check_output_folder(out, marker=TRUTH_MODEL)  # before the rendering; a recording is never replaced
     manifest, world = check_scene(scene)
-    truth = manifest.truth
-    model = trimesh.Trimesh(world_to_reference(world.vertices, manifest.rig, truth.depth, truth.tilt),
+    deep = manifest.deep_water
+    placed = manifest.known_pose if deep else manifest.truth  # the sonar's true depth and tilt
+    model = trimesh.Trimesh(world_to_reference(world.vertices, manifest.rig, placed.depth, placed.tilt),
                             world.faces, process=False)
-    views = render(model, manifest.sonar, manifest.rig, truth.depth, truth.tilt, settings=settings,
-                   backend=backend)
+    depth, tilt = deep_water_pose(manifest) if deep else (placed.depth, placed.tilt)
+    with warnings.catch_warnings():
+        if deep:  # the surface lies beyond every window on purpose (deep_water_pose)
+            warnings.filterwarnings("ignore", "view .*: ghost returns reach", RenderWarning)
+        views = render(model, manifest.sonar, manifest.rig, depth, tilt, settings=settings, backend=backend)
+    kept = ("object",) if deep else tuple(layer for layer in LAYERS if layer != "total")
     images, layers = {}, {}
     for index, (name, stack) in enumerate(views.items()):
         total = stack[LAYERS.index("total")]
         images[name] = add_noise(total, np.random.default_rng([seed, index])) if noise else total
-        layers[name] = {layer: stack[i] for i, layer in enumerate(LAYERS) if layer != "total"}
-    dataset_manifest = dataclasses.replace(manifest, target=None,
-                                           truth=Truth(depth=truth.depth, tilt=truth.tilt))
+        layers[name] = {layer: stack[LAYERS.index(layer)] for layer in kept}
+    dataset_manifest = dataclasses.replace(manifest, target=None, truth=Truth(depth=None, tilt=None) if deep else
+                                           Truth(depth=placed.depth, tilt=placed.tilt))
     dataset = Dataset(dataset_manifest, images)
     save_dataset(dataset, out, truth_layers=layers, truth_mesh=model, marker=TRUTH_MODEL)
     return load_dataset(out)
