@@ -467,8 +467,21 @@ def import_aris(path, out, *, frames=None, elevation_fov_deg: float | None = Non
     manifest and images, ``out/aris.json`` records the source, the per-frame sensor values and
     the computed and stored range windows.
     """
-    path = Path(path)
     check_output_folder(out, marker=ARIS_RECORD)  # before reading the recording
+    dataset, record = aris_dataset(path, frames=frames, elevation_fov_deg=elevation_fov_deg, poses=poses,
+                                   depth_m=depth_m, tilt_deg=tilt_deg)
+    out = Path(out)
+    # the folder appears whole: save_dataset fills the (empty) temporary folder, aris.json joins it
+    with output_folder(out, marker=ARIS_RECORD) as tmp:  # only an earlier import is replaced
+        save_dataset(dataset, tmp)
+        write_text(tmp / ARIS_RECORD, json.dumps(record, indent=2) + "\n")
+    return load_dataset(out)
+
+
+def aris_dataset(path, *, frames=None, elevation_fov_deg: float | None = None, poses=None,
+                 depth_m: float | None = None, tilt_deg: float | None = None) -> tuple[Dataset, dict]:
+    """What ``import_aris`` writes, in memory: the Dataset (no folder) and the aris.json record."""
+    path = Path(path)
     elevation = _elevation(elevation_fov_deg)
     with open_aris(path) as aris:
         chosen = parse_frames(frames, aris.frame_count, file=path)
@@ -492,17 +505,21 @@ def import_aris(path, out, *, frames=None, elevation_fov_deg: float | None = Non
         images = {view_name(i): aris.frame_image(i) for i in chosen}
         record = _record(aris, path, table, elevation, elevation_fov_deg is None, headers,
                          (depth, depth_source), (tilt, tilt_source))
-    manifest = Manifest(sonar=sonar, surface=SurfaceEstimate(depth=depth, tilt=math.radians(tilt)), rig=Rig(views))
-    try:  # validated before writing, as a reader will (else the error would name a temporary manifest)
+    manifest = checked_manifest(sonar, SurfaceEstimate(depth=depth, tilt=math.radians(tilt)), views,
+                                file=path, poses=poses)
+    return Dataset(manifest, images), record
+
+
+def checked_manifest(sonar: SonarSpec, surface: SurfaceEstimate, views: tuple[View, ...], *, file,
+                     poses=None) -> Manifest:
+    """The manifest of an import, validated as a reader of the folder will; an error in a view
+    names the pose file (when given), any other the recording ``file``."""
+    manifest = Manifest(sonar=sonar, surface=surface, rig=Rig(views))
+    try:  # validated before writing (else the error would name a temporary manifest)
         parse_manifest(tomllib.loads(manifest_to_toml(manifest)), file=None)
     except InputError as err:
-        raise err.with_file(poses if poses is not None and (err.field or "").startswith("views") else path) from None
-    out = Path(out)
-    # the folder appears whole: save_dataset fills the (empty) temporary folder, aris.json joins it
-    with output_folder(out, marker=ARIS_RECORD) as tmp:  # only an earlier import is replaced
-        save_dataset(Dataset(manifest, images), tmp)
-        write_text(tmp / ARIS_RECORD, json.dumps(record, indent=2) + "\n")
-    return load_dataset(out)
+        raise err.with_file(poses if poses is not None and (err.field or "").startswith("views") else file) from None
+    return manifest
 
 
 def _elevation(value) -> float:

@@ -1,4 +1,5 @@
-"""One import for every recording format fsswarp reads: ARIS (.aris) and DIDSON (.ddf).
+"""One import for every recording format fsswarp reads: ARIS (.aris) and DIDSON (.ddf), and
+HoloOcean-style folders (Config.json and Data/, ``fsswarp.holoocean``).
 
 :func:`detect_format` names a recording's format from its first bytes ('DDF' and a version
 byte: 5 ARIS, 3 or 4 DIDSON). :func:`import_recording` writes it as a dataset folder with
@@ -17,6 +18,7 @@ from .atomic import check_output_folder, output_folder, write_text
 from .dataset import Dataset, load_dataset, save_dataset
 from .didson import didson_dataset, open_didson
 from .errors import InputError
+from .holoocean import holoocean_dataset, is_holoocean_folder
 
 #: The record every import writes; it marks a folder that a new import may replace.
 SOURCE_RECORD = "source.json"
@@ -25,6 +27,7 @@ FORMATS = {
     "aris": ("ARIS", ("frames", "elevation_fov_deg", "poses", "depth_m", "tilt_deg")),
     "didson": ("DIDSON", ("frames", "elevation_fov_deg", "poses", "depth_m", "tilt_deg", "window_start_m",
                           "window_length_m")),
+    "holoocean": ("HoloOcean", ()),  # a folder: Config.json holds the sonar, each pkl its view's pose
 }
 #: Each option's command-line flag (for messages).
 FLAGS = {"frames": "--frames", "elevation_fov_deg": "--elevation-fov-deg", "poses": "--poses", "depth_m": "--depth",
@@ -38,6 +41,11 @@ def detect_format(path) -> str:
     path = Path(path)
     if not path.exists():
         raise InputError("no such file", file=path)
+    if path.is_dir():
+        if is_holoocean_folder(path):
+            return "holoocean"
+        raise InputError("is a folder without Config.json and Data/ (a HoloOcean-style dataset); or name an ARIS "
+                         "(.aris) or DIDSON (.ddf) recording", file=path)
     if not path.is_file():
         raise InputError("is not a file; name an ARIS (.aris) or DIDSON (.ddf) recording", file=path)
     try:
@@ -77,12 +85,17 @@ def import_recording(path, out, **options) -> Dataset:
     for option, value in given.items():
         if option not in accepted:
             raise InputError(f"does not apply to {name} recordings such as {path} (they take "
-                             f"{', '.join(FLAGS[o] for o in accepted)})", field=FLAGS[option], value=value)
+                             f"{', '.join(FLAGS[o] for o in accepted) or 'no options'})", field=FLAGS[option],
+                             value=value)
     marker = _marker(out)
     check_output_folder(out, marker=marker)  # before reading the recording
+    truth_mesh = None
     if form == "aris":
         dataset, header_values = aris_dataset(path, **given)
         records, version = {ARIS_RECORD: header_values}, 5
+    elif form == "holoocean":
+        dataset, truth_mesh, header_values = holoocean_dataset(path)
+        records, version = {}, None
     else:
         with open_didson(path) as didson:
             dataset, header_values = didson_dataset(didson, **given)
@@ -94,7 +107,7 @@ def import_recording(path, out, **options) -> Dataset:
     }
     out = Path(out)
     with output_folder(out, marker=marker) as tmp:  # the folder appears whole
-        save_dataset(dataset, tmp)
+        save_dataset(dataset, tmp, truth_mesh=truth_mesh)
         for file, record in records.items():
             write_text(tmp / file, json.dumps(record, indent=2) + "\n")
     return load_dataset(out)
