@@ -185,8 +185,14 @@ def check(state: State, path: Path) -> None:
 @click.option("--positions", default=None,
               help="Sonar positions around the target, distinct letters of S, N, E, W, eight rolls at each "
                    "[default: the scene's own, SN for the corals, SNEW for the table].")
+@click.option("--sensors", default="realistic", show_default=True, type=click.Choice(["realistic", "poor"]),
+              help="The measured depth and tilt: 'realistic' (depth sigma 3 mm, within 3 mm of the truth; tilt "
+                   "sigma 0.6 deg, 0.6-1 deg off) or 'poor' (depth sigma 5 cm, 3-5 cm off; tilt sigma 2 deg).")
+@click.option("--deep-water", is_flag=True,
+              help="The same rig and target 20 m deeper with no sea surface in view: no [surface] and no [truth] "
+                   "table, the depth and tilt known ([rig] depth_m, tilt_deg); its images hold the object alone.")
 @click.pass_obj
-def scene(state: State, name: str, out: Path, positions: str | None) -> None:
+def scene(state: State, name: str, out: Path, positions: str | None, sensors: str, deep_water: bool) -> None:
     """Write the built-in scene NAME (coral-one, coral-two or table) as a scene file, to edit
     and simulate."""
     from .dataset import save_scene
@@ -194,9 +200,16 @@ def scene(state: State, name: str, out: Path, positions: str | None) -> None:
 
     if out.suffix != ".toml":
         raise InputError("must name a .toml file", field="--out", value=str(out))
-    manifest = builtin_scene(name, positions)
+    manifest = builtin_scene(name, positions, sensors, deep_water=deep_water)
     save_scene(manifest, out)
-    state.echo(f"wrote {out}: {name}, {len(manifest.rig.views)} views")
+    surface = manifest.surface
+    if surface is None:
+        state.echo(f"wrote {out}: {name}, {len(manifest.rig.views)} views, deep water (depth "
+                   f"{manifest.known_pose.depth:g} m, tilt {math.degrees(manifest.known_pose.tilt):g} deg, known)")
+        return
+    state.echo(f"wrote {out}: {name}, {len(manifest.rig.views)} views, {sensors} sensors (depth "
+               f"{surface.depth:g} +/- {surface.depth_sigma:g} m, tilt {math.degrees(surface.tilt):g} +/- "
+               f"{math.degrees(surface.tilt_sigma):g} deg)")
 
 
 @app.command()
@@ -241,9 +254,10 @@ def simulation_figure(dataset, path: Path, draw) -> Path:
     same = [v for v in views if v.position == ref.position and v.heading == ref.heading]
     chosen = {min(same, key=lambda v: abs(v.roll)).name, max(same, key=lambda v: v.roll).name,
               min(same, key=lambda v: v.roll).name}
-    stacks = {name: np.stack([dataset.truth_layer(name, c) for c in COMPONENTS] + [dataset.images[name]])
+    components = ("object",) if dataset.manifest.deep_water else COMPONENTS  # deep water: no multipath layers
+    stacks = {name: np.stack([dataset.truth_layer(name, c) for c in components] + [dataset.images[name]])
               for name in [v.name for v in same if v.name in chosen]}
-    draw(layers_figure, stacks, dataset.sonar, path, layers=COMPONENTS + ("data",),
+    draw(layers_figure, stacks, dataset.sonar, path, layers=components + ("data",),
          title="simulated layers (noise-free) and data (noisy)")
     return path
 
@@ -273,22 +287,29 @@ def render(state: State, model: Path, dataset_dir: Path, out: Path, depth, tilt,
     import tifffile
 
     from .atomic import check_output_folder, output_folder
-    from .dataset import load_manifest
+    from .dataset import deep_water_pose, load_manifest
     from .figures import layers_figure
-    from .rendering import LAYERS, RenderSettings
+    from .rendering import LAYERS, RenderSettings, RenderWarning
     from .rendering import render as run
     from .rig import with_rolls
 
     manifest = load_manifest(dataset_dir)
     mesh = load_mesh_file(model)
     check_output_folder(out, marker=MARKERS["render"])
-    depth = manifest.surface.depth if depth is None else depth
-    tilt = manifest.surface.tilt if tilt is None else math.radians(tilt)
+    deep = deep_water(manifest, depth, tilt)
+    if deep:  # the surface beyond every range window: the object layer alone
+        depth, tilt = deep_water_pose(manifest)
+    else:
+        depth = manifest.surface.depth if depth is None else depth
+        tilt = manifest.surface.tilt if tilt is None else math.radians(tilt)
     settings = RenderSettings(samples=tuple(samples))
     rig, new_names = with_rolls(manifest.rig, [math.radians(r) for r in rolls], at=at_view)
     names = list(view_names) + new_names if (view_names or new_names) else None
     backend = state.get_backend()
-    views = run(mesh, manifest.sonar, rig, depth, tilt, views=names, settings=settings, backend=backend)
+    with warnings.catch_warnings():
+        if deep:
+            warnings.filterwarnings("ignore", "view .*: ghost returns reach", RenderWarning)
+        views = run(mesh, manifest.sonar, rig, depth, tilt, views=names, settings=settings, backend=backend)
     with output_folder(out, marker=MARKERS["render"]) as tmp:
         for name, stack in views.items():
             for layer, image in zip(LAYERS, stack):
@@ -307,6 +328,18 @@ def render(state: State, model: Path, dataset_dir: Path, out: Path, depth, tilt,
     state.echo(f"wrote {out}: {len(views)} views x {len(LAYERS)} layers, figure {out / 'layers.png'}")
 
 
+def deep_water(manifest, depth=None, tilt=None) -> bool:
+    """Whether ``manifest`` is deep water (no [surface]: known depth and tilt); InputError when
+    --depth or --tilt was given for one."""
+    if manifest.surface is not None:
+        return False
+    if depth is not None or tilt is not None:
+        raise InputError("the dataset has no sea surface (deep water): its depth and tilt are known ([rig] depth_m, "
+                         "tilt_deg)", field="--depth" if depth is not None else "--tilt",
+                         value=depth if depth is not None else tilt)
+    return True
+
+
 def load_mesh_file(path: Path, field: str = "MODEL"):
     """The mesh of the MODEL argument, or of the option ``field`` (``fsswarp.dataset.read_mesh``)."""
     from .dataset import read_mesh
@@ -314,47 +347,110 @@ def load_mesh_file(path: Path, field: str = "MODEL"):
     return read_mesh(path, field=field)
 
 
-@app.command("import-aris")
+@app.command("import")
 @click.argument("file", type=click.Path(path_type=Path))
 @click.option("--out", required=True, type=click.Path(path_type=Path), help="Dataset folder to write.")
-@click.option("--frames", "frames_spec", default="all", show_default=True,
-              help="Frames to import, 0-based positions in the file: 'all' or a list like '0-3,5'.")
+@click.option("--frames", "frames_spec", default=None,
+              help="Frames to import, 0-based positions in the file: 'all' (default) or a list like '0-3,5'.")
 @click.option("--elevation-fov-deg", type=float, default=None,
-              help="Full elevation aperture (deg); the file does not hold it. Default 14 (ARIS 1200/1800/3000 "
-                   "standard lenses; unconfirmed for the telephoto lens).")
+              help="Full elevation aperture (deg); the files do not hold it. Default 14 (ARIS 1200/1800/3000 "
+                   "standard lenses, unconfirmed for the ARIS telephoto lens; the DIDSON's 14 deg beam).")
 @click.option("--poses", type=click.Path(path_type=Path), default=None,
               help="CSV of view poses: frame,x_m,y_m,heading_deg,roll_deg[,depth_offset_m,tilt_offset_deg]. "
                    "Default: every view at the origin, heading 0, roll 0.")
 @click.option("--depth", type=float, default=None,
-              help="Measured sonar depth D0 (m); default: the frames' Depth sensor value (required when "
-                   "the recording has none).")
+              help="Measured sonar depth D0 (m); default: the median of the frames' depth sensor values "
+                   "(ARIS Depth, DIDSON depth; required when the recording has none).")
 @click.option("--tilt", type=float, default=None,
-              help="Measured sonar tilt (deg, positive = up); default: the frames' CompassPitch sensor value.")
+              help="Measured sonar tilt (deg, positive = up); default: the median of the frames' tilt "
+                   "sensor values (ARIS CompassPitch, DIDSON sonartilt).")
+@click.option("--window-start", type=float, default=None,
+              help="DIDSON only: the range of the first sample (m), replacing the one decoded from the "
+                   "frame's start code.")
+@click.option("--window-length", type=float, default=None,
+              help="DIDSON only: the range window's length (m; 512 samples), replacing the one decoded "
+                   "from the frame's length code.")
 @click.pass_obj
-def import_aris(state: State, file: Path, out: Path, frames_spec: str, elevation_fov_deg, poses, depth,
-                tilt) -> None:
-    """Import a Sound Metrics ARIS recording (.aris) as a dataset: one view per frame (f0000,
-    f0001, ...), the lens's beam-angle table, the sensors' depth and tilt as the measured D0
-    and tilt, and figures/frame0_fan.png (the first imported frame)."""
-    from .aris import ARIS_RECORD, import_aris as run
+def import_command(state: State, file: Path, out: Path, frames_spec, elevation_fov_deg, poses, depth, tilt,
+                   window_start, window_length) -> None:
+    """Import a Sound Metrics recording, ARIS (.aris) or DIDSON (.ddf, versions 3 and 4, told
+    apart by their first bytes), as a dataset: one view per frame (f0000, f0001, ...), the
+    lens's beam angles, the sensors' depth and tilt as the measured D0 and tilt, OUT/source.json
+    (format, header values used, the options given; ARIS also aris.json) and
+    figures/frame0_fan.png (the first imported frame). 'import-aris' is another name for it.
+    FILE may also be a HoloOcean-style folder (Config.json and Data/*.pkl, as 'fsswarp export'
+    writes and NeuSIS reads), which takes no options."""
     from .figures import fan_figure
+    from .importing import SOURCE_RECORD, import_recording
 
-    dataset = run(file, out, frames=frames_spec, elevation_fov_deg=elevation_fov_deg, poses=poses,
-                  depth_m=depth, tilt_deg=tilt)
-    record = json.loads((out / ARIS_RECORD).read_text())
+    dataset = import_recording(file, out, frames=frames_spec, elevation_fov_deg=elevation_fov_deg, poses=poses,
+                               depth_m=depth, tilt_deg=tilt, window_start_m=window_start,
+                               window_length_m=window_length)
+    source = json.loads((out / SOURCE_RECORD).read_text())
+    record = source["header_values"]
     first = dataset.rig.views[0].name
+    if source["format"] == "HoloOcean":  # fsswarp.holoocean
+        figure = fan_figure(dataset.images[first], dataset.sonar, out / "figures" / "frame0_fan.png",
+                            title=f"{file.name} {first} (HoloOcean)")
+        at = record["poses_at"]
+        state.echo(f"wrote {out}: {len(dataset.images)} views of {file} (HoloOcean, {dataset.sonar.beams} azimuth x "
+                   f"{dataset.sonar.bins} range bins); figure {figure}")
+        state.echo(f"  {'deep water (no sea surface); ' if record['deep_water'] else ''}poses about depth "
+                   f"{at['depth_m']:.4g} m, tilt {at['tilt_deg']:.4g} deg ({at['source']})"
+                   + ("; truth model from gt.ply" if record["truth_model"] else ""))
+        return
+    if source["format"] == "ARIS":
+        kind = f"{record['system']}, {record['lens']} lens"
+    else:
+        kind = f"DIDSON v{source['version']}, {record['configuration']}, {record['frequency']} frequency"
     figure = fan_figure(dataset.images[first], dataset.sonar, out / "figures" / "frame0_fan.png",
-                        title=f"{file.name} {first} ({record['system']}, {record['lens']} lens)")
-    frame0 = record["frames"][0]
+                        title=f"{file.name} {first} ({kind})")
+    state.echo(f"wrote {out}: {len(dataset.images)} views of {file} ({kind}, {record['beams']} beams x "
+               f"{record['samples_per_beam']} samples); figure {figure}")
+    if source["format"] == "ARIS":
+        frame0 = record["frames"][0]
+        state.echo(f"  range {dataset.sonar.range_min:.4g}-{dataset.sonar.range_max:.4g} m computed; window start "
+                   f"{frame0['window_start_m']:.4g} m, length {frame0['window_length_m']:.4g} m "
+                   f"(stored {frame0['window_start_m_stored']:.4g} m, {frame0['window_length_m_stored']:.4g} m)")
+    else:
+        window = record["window"]
+        state.echo(f"  range {dataset.sonar.range_min:.4g}-{dataset.sonar.range_max:.4g} m; window start "
+                   f"{window['start_m']:.4g} m ({window['start_source']}, code {window['start_code']}), length "
+                   f"{window['length_m']:.4g} m ({window['length_source']}, code {window['length_code']})")
     surface = record["surface"]
-    state.echo(f"wrote {out}: {len(dataset.images)} views of {file} ({record['system']}, {record['lens']} lens, "
-               f"{record['beams']} beams x {record['samples_per_beam']} samples); figure {figure}")
-    state.echo(f"  range {dataset.sonar.range_min:.4g}-{dataset.sonar.range_max:.4g} m computed; window start "
-               f"{frame0['window_start_m']:.4g} m, length {frame0['window_length_m']:.4g} m "
-               f"(stored {frame0['window_start_m_stored']:.4g} m, {frame0['window_length_m_stored']:.4g} m)")
     state.echo(f"  measured depth {surface['depth_m']:.4g} m ({surface['depth_source']}), tilt "
                f"{surface['tilt_deg']:.4g} deg ({surface['tilt_source']}); elevation "
                f"{record['elevation_fov_deg']:g} deg ({record['elevation_source']})")
+
+
+app.add_command(import_command, "import-aris")
+
+
+@app.command()
+@click.argument("dataset_dir", metavar="DIR", type=click.Path(path_type=Path))
+@click.option("--format", "form", type=click.Choice(["holoocean"]), default="holoocean", show_default=True,
+              help="The layout to write: holoocean, the HoloOcean-style folder that NeuSIS and SonarSplat read.")
+@click.option("--out", required=True, type=click.Path(path_type=Path),
+              help="Folder for Config.json, Data/000000.pkl, ... (one per view) and gt.ply (the truth model).")
+@click.pass_obj
+def export(state: State, dataset_dir: Path, form: str, out: Path) -> None:
+    """Write the dataset DIR in another tool's layout. holoocean: OUT/Config.json (the
+    ImagingSonar's configuration), OUT/Data/000000.pkl, ... (per view the image, scaled to
+    [0, 1], and the PoseSensor, its 4 x 4 sensor-to-world pose in HoloOcean's frame) and, for
+    simulated data, OUT/gt.ply (the truth model in the world frame). 'fsswarp import OUT'
+    reads it back."""
+    from .dataset import load_dataset
+    from .holoocean import CONFIG, TRUTH_FILE, export_holoocean
+
+    dataset = load_dataset(dataset_dir)
+    export_holoocean(dataset, out)
+    table = json.loads((out / CONFIG).read_text())["fsswarp"]
+    at = table["poses_at"]
+    state.echo(f"wrote {out}: {CONFIG}, Data/ ({len(dataset.images)} views)"
+               + (f", {TRUTH_FILE}" if (out / TRUTH_FILE).is_file() else ""))
+    state.echo(f"  poses at the {at['source']} depth {at['depth_m']:.4g} m and tilt {at['tilt_deg']:.4g} deg; images "
+               f"divided by {table['intensity_scale']:.6g}"
+               + ("; the beam-angle table resampled to uniform azimuth bins" if table["azimuth_resampled"] else ""))
 
 
 @app.command()
@@ -396,7 +492,9 @@ def carve(state: State, dataset_dir: Path, out: Path, depth, tilt, resolution: i
     given = depth is not None or tilt is not None
     tilt = None if tilt is None else math.radians(tilt)
     surface = dataset.manifest.surface
-    check_depth_tilt(surface.depth if depth is None else depth, surface.tilt if tilt is None else tilt)
+    deep = deep_water(dataset.manifest, depth, tilt)
+    if not deep:
+        check_depth_tilt(surface.depth if depth is None else depth, surface.tilt if tilt is None else tilt)
     box = None if box is None else check_box(np.reshape(box, (2, 3)))
     backend = state.get_backend()
     state.echo(f"carving {dataset_dir}: {len(dataset.images)} views, resolution {resolution} "
@@ -405,11 +503,13 @@ def carve(state: State, dataset_dir: Path, out: Path, depth, tilt, resolution: i
                  settings=dataclasses.replace(CarveSettings(), faces=faces), backend=backend)
     voxels, mesh = result.voxels, result.mesh
     state.echo(f"  depth {result.depth:.4g} m, tilt {math.degrees(result.tilt):.4g} deg "
-               f"({'given' if given else 'measured'}); {voxels.kept} voxels of "
+               f"({'known, deep water' if deep else 'given' if given else 'measured'}); {voxels.kept} voxels of "
                f"{voxels.voxel_size * 1e3:.3g} mm kept; mesh {len(mesh.faces)} triangles, "
                f"{mesh.volume * 1e6:.4g} cm3")
     record = carve_record(dataset_dir, dataset, result, resolution=resolution, given=given, load_s=loaded,
                           truth=truth)
+    if deep:
+        record["depth_tilt_source"] = "known"  # deep water: fsswarp.dataset.deep_water_pose
     metrics = record["metrics"]
     if metrics is not None:
         state.echo(f"  vs truth: E_V {metrics['E_V']:.3f}, true volume kept {metrics['truth_volume_kept']:.3f}, "
@@ -442,16 +542,19 @@ def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, pat
     OUT/result.json and OUT/figures/."""
     from .atomic import check_output_folder
     from .dataset import load_dataset
-    from .pose import check_uncertainties
+    from .pose import Prior, check_start, check_uncertainties
     from .reconstruction import ReconstructSettings
     from .errors import check_depth_tilt
 
     dataset = load_dataset(dataset_dir)
     check_output_folder(out, marker=MARKERS["reconstruct"])
-    surface = dataset.manifest.surface
-    depth0 = surface.depth if depth is None else depth
-    check_depth_tilt(depth0, surface.tilt if tilt is None else math.radians(tilt))
-    check_uncertainties(dataset, depth0)
+    if not deep_water(dataset.manifest, depth, tilt):  # deep water: no start to check, no pose step
+        surface = dataset.manifest.surface
+        depth0, tilt0 = surface.depth if depth is None else depth, surface.tilt if tilt is None else math.radians(tilt)
+        check_depth_tilt(depth0, tilt0)
+        Prior.of(dataset)
+        check_start(dataset, depth0, tilt0)
+        check_uncertainties(dataset, depth0)
     run_reconstruction(state, dataset, out,
                        ReconstructSettings(iterations=iterations, patience=patience, resolution=resolution),
                        state.figure_drawer(), depth0=depth, tilt0=None if tilt is None else math.radians(tilt))
@@ -484,6 +587,33 @@ def batch(state: State, jobs_file: Path, out: Path, address, jobs_per_gpu: int, 
         click.get_current_context().exit(1)
 
 
+@app.command("report")
+@click.argument("folder", metavar="OUT", type=click.Path(path_type=Path))
+@click.option("--dataset", "dataset_dir", type=click.Path(path_type=Path), default=None,
+              help="The dataset folder the reconstruction was made from; default: the one result.json names, "
+                   "or OUT/../dataset of a demo.")
+@click.pass_obj
+def report_command(state: State, folder: Path, dataset_dir) -> None:
+    """Write OUT/report.html, one page that opens offline in a browser: for a reconstruct
+    output, the answer (D and tilt with their intervals, the errors), the history, every view
+    beside its ghost-free data and the synthetic views of the carved and the final model, and
+    a 3-D view of the models; for a batch output, one row per job, linked to each job's page
+    (written too where it is missing)."""
+    from .report import check_folder, report
+
+    check_folder(folder, dataset_dir)  # before the backend starts
+    page = report(folder, dataset_dir=dataset_dir, backend=state.get_backend(), command=command_line(),
+                  drawer=state.figure_drawer())
+    state.echo(f"wrote {page}")
+
+
+def command_line() -> str:
+    """The command line that runs this process, as a user would type it."""
+    import shlex
+
+    return shlex.join(["fsswarp", *sys.argv[1:]])
+
+
 @app.command()
 @click.argument("dataset_dir", metavar="DIR", type=click.Path(path_type=Path))
 @click.option("--model", required=True, type=click.Path(path_type=Path),
@@ -495,16 +625,17 @@ def batch(state: State, jobs_file: Path, out: Path, address, jobs_per_gpu: int, 
 @click.option("--levels", default=3, show_default=True, type=click.IntRange(1, 6),
               help="Grid levels, each 9 x 9 cells around the previous level's best, at half its spacing.")
 @click.option("--depth-range", type=float, default=None,
-              help="Half-width of the searched depths (m), below D0; default: 1.2 depth_sigma_m of the manifest.")
+              help="Half-width of the searched depths (m), below D0; default: 3 depth_sigma_m of the manifest.")
 @click.option("--tilt-range", type=float, default=None,
-              help="Half-width of the searched tilts (deg), below 45; default: 1.2 tilt_sigma_deg of the manifest.")
+              help="Half-width of the searched tilts (deg), below 45; default: 3 tilt_sigma_deg of the manifest.")
 @click.pass_obj
 def pose(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt, levels: int, depth_range,
          tilt_range) -> None:
     """Estimate the sonar's depth D and tilt from the dataset DIR with a given MODEL of the
-    object (the pose step of reconstruct, alone): a grid over D0 ± 1.2 depth_sigma_m and tilt0
-    ± 1.2 tilt_sigma_deg of the manifest (or --depth-range, --tilt-range), refined per level,
-    then a BOBYQA polish on E_mu; the estimate is kept only where E_mu falls. OUT/pose.json,
+    object (the pose step of reconstruct, alone): the posterior cost (E_mu scaled by its noise,
+    plus the sensors' priors) on a grid over D0 ± 3 depth_sigma_m and tilt0 ± 3 tilt_sigma_deg
+    of the manifest (or --depth-range, --tilt-range), refined per level, then a BOBYQA polish;
+    the estimate is kept only where the cost falls, with its 95% intervals. OUT/pose.json,
     OUT/pose.png (the grid levels) and OUT/contours.png (per view, the data's contours and
     the model's at the estimate and at the start)."""
     from .atomic import check_output_folder, output_folder
@@ -512,15 +643,20 @@ def pose(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt, l
     from .dataset import load_dataset
     from .figures import contours_figure, pose_figure
     from .outputs import pose_record, write_pose
-    from .pose import check_uncertainties, estimate_pose
+    from .pose import Prior, check_start, check_uncertainties, estimate_pose
     from .errors import check_depth_tilt
 
     dataset = load_dataset(dataset_dir)
     mesh = load_mesh_file(model, "--model")
     check_output_folder(out, marker=MARKERS["pose"])
+    if deep_water(dataset.manifest):
+        raise InputError("has no sea surface (deep water, no [surface] table): its depth and tilt are known, there is "
+                         "nothing to estimate", file=dataset_dir / "dataset.toml", field="surface")
     surface = dataset.manifest.surface
     depth0, tilt0 = surface.depth if depth is None else depth, surface.tilt if tilt is None else math.radians(tilt)
     check_depth_tilt(depth0, tilt0)
+    Prior.of(dataset)
+    check_start(dataset, depth0, tilt0)
     bounds = check_uncertainties(dataset, depth0, depth_range=depth_range,
                                  tilt_range=None if tilt_range is None else math.radians(tilt_range))
     backend = state.get_backend()
@@ -562,9 +698,11 @@ def pose(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt, l
                    f"(D {result.depth:.4f} m, tilt {math.degrees(result.tilt):.3f} deg) and at the start "
                    f"(D {result.depth0:.4f} m, tilt {math.degrees(result.tilt0):.3f} deg)")
         write_pose(tmp, record)
-    state.echo(f"wrote {out}: D {result.depth:.4f} m, tilt {math.degrees(result.tilt):.3f} deg "
-               f"({'moved' if result.accepted else 'kept: E_mu did not fall'}), pose.json, pose.png, contours.png "
-               f"({result.seconds:.1f} s)")
+    (d0, d1), (t0, t1) = result.posterior.interval(0), result.posterior.interval(1)
+    state.echo(f"wrote {out}: depth {result.depth:.4f} m (95%: {d0:.4f}-{d1:.4f} m), tilt "
+               f"{math.degrees(result.tilt):.2f} deg (95%: {math.degrees(t0):.2f}-{math.degrees(t1):.2f} deg) "
+               f"({'moved' if result.accepted else 'kept: the posterior cost did not fall'}), pose.json, pose.png, "
+               f"contours.png ({result.seconds:.1f} s)")
 
 
 @app.command()
@@ -588,7 +726,9 @@ def demo(state: State, scene_name: str, out: Path, seed: int, iterations: int) -
     from .simulation import simulate as run_simulation
 
     check_output_folder(out, marker=MARKERS["demo"])
-    check_scene(scene_name)
+    if check_scene(scene_name)[0].deep_water:
+        raise InputError("is a deep-water scene (no [surface]): it has no ghosts to remove; run simulate and reconstruct",
+                         field="SCENE", value=scene_name)
     backend = state.get_backend()
     start = time.perf_counter()
     with output_folder(out, marker=MARKERS["demo"]) as tmp:
@@ -599,25 +739,30 @@ def demo(state: State, scene_name: str, out: Path, seed: int, iterations: int) -
             simulation_figure(dataset, tmp / "dataset" / "figures" / "layers.png", draw)
             state.echo(f"  {len(dataset.images)} noisy views in {time.perf_counter() - start:.1f} s")
             result = run_reconstruction(state, dataset, tmp / "reconstruction",
-                                        ReconstructSettings(iterations=iterations), drawer, shown=out / "reconstruction")
+                                        ReconstructSettings(iterations=iterations), drawer, shown=out / "reconstruction",
+                                        name=Path(scene_name).stem)
             run_enhancement(state, dataset, result.model, "the reconstructed model", result.depth, result.tilt,
                             tmp / "enhance", drawer, source="estimated", initial=(result.carved, "the carved model"),
-                            shown=out / "enhance", dataset_label=out / "dataset")
+                            shown=out / "enhance", dataset_label=out / "dataset", name=Path(scene_name).stem)
         (tmp / "demo.json").write_text(json.dumps({"scene": scene_name, "seed": seed,
                                                    "seconds": time.perf_counter() - start}, indent=2))
     state.echo(f"wrote {out}: dataset/, reconstruction/, enhance/ ({time.perf_counter() - start:.1f} s in all)")
+    state.echo(f"report: {out / 'reconstruction' / 'report.html'}")
 
 
 def run_reconstruction(state: State, dataset, out: Path, settings, drawer, *, depth0: float | None = None,
-                       tilt0: float | None = None, shown: Path | None = None):
+                       tilt0: float | None = None, shown: Path | None = None, name: str | None = None):
     """Reconstruct ``dataset`` from (depth0 m, tilt0 rad; default the measured values), write
     OUT/model.ply, carved.ply, result.json and figures (drawn by ``drawer``, a
     ``fsswarp.figures.FigureDrawer``; ``shown``: the folder's name in messages, when OUT is a
-    temporary folder); returns the ReconstructResult."""
+    temporary folder; ``name``: the scene's in titles, default the dataset folder's) and
+    OUT/report.html (``fsswarp.report``); returns the ReconstructResult."""
     from .atomic import output_folder
     from .compare import PoseWarning, view_contours
     from .figures import carve_figure, contours_figure, history_figure, pose_figure
     from .outputs import write_reconstruction
+    from .pose import Z95
+    from .report import REPORT_FILE, write_report
     from .reconstruction import reconstruct as run
 
     backend = state.get_backend()
@@ -633,26 +778,51 @@ def run_reconstruction(state: State, dataset, out: Path, settings, drawer, *, de
     with output_folder(out, marker=MARKERS["reconstruct"]) as tmp, drawer.batch() as draw:
         write_reconstruction(tmp, result)
         draw(carve_figure, result.carved, tmp / "figures" / "carved.png", truth=truth_mesh,
-             title="carved model (iteration 0)")
+             title=f"{name or dataset.root.name}: carved model (iteration 0)")
         draw(carve_figure, result.model, tmp / "figures" / "model.png", truth=truth_mesh, label="final",
-             title=f"final model (iteration {result.best_iteration}, the lowest E_I)")
+             title=f"{name or dataset.root.name}: final model (iteration {result.best_iteration}, the lowest E_I)")
         draw(contours_figure, dataset.images, contours, dataset.sonar, tmp / "figures" / "contours.png",
              labels=("final",),
-             title=f"{dataset.root.name}: frontal contours of the data and of the final model (iteration "
-                   f"{result.best_iteration}) at D {result.depth:.4f} m, tilt {math.degrees(result.tilt):.3f} deg")
+             title=f"{name or dataset.root.name}: frontal contours of the data and of the final model (iteration "
+                   f"{result.best_iteration}) at D {result.depth:.3f} m, tilt {math.degrees(result.tilt):.2f} deg")
         draw(history_figure, result.history, tmp / "figures" / "history.png",
-             truth_depth=None if truth is None else truth.depth,
-             truth_tilt_deg=None if truth is None else math.degrees(truth.tilt),
+             truth_depth=None if truth is None or truth.depth is None else truth.depth,
+             truth_tilt_deg=None if truth is None or truth.depth is None else math.degrees(truth.tilt),
              best_iteration=result.best_iteration,
-             title=f"{dataset.root.name}: depth and tilt, and errors, per iteration")
+             title=f"{name or dataset.root.name}: depth and tilt, and errors, per iteration")
         if result.pose_steps:
             draw(pose_figure, result.pose_steps[0], tmp / "figures" / "pose.png",
                  truth=None if truth is None else (truth.depth, truth.tilt),
                  title="first pose step: the (D, tilt) grid search around the measured values")
+        write_report(tmp, dataset=dataset, backend=backend, command=command_line(), name=name, drawer=drawer)
     best = result.history[result.best_iteration]
-    state.echo(f"wrote {shown or out}: D {result.depth:.4f} m, tilt {math.degrees(result.tilt):.3f} deg, E_I "
-               f"{best['E_I']:.3f} (iteration {result.best_iteration} of {result.iterations}, "
-               f"{'converged' if result.converged else 'iteration limit'}), {result.seconds:.1f} s")
+    if dataset.manifest.deep_water:  # no pose step: the known depth and tilt, no intervals
+        state.echo(f"wrote {shown or out}: E_I {best['E_I']:.3f} (iteration {result.best_iteration} of "
+                   f"{result.iterations}, {'stopping rule met' if result.stopped else 'iteration limit'}), "
+                   f"{result.seconds:.1f} s; no pose step: the dataset has no sea surface (deep water)")
+        return result
+    summary = result.summary()
+    (d0, d1), (t0, t1) = summary["depth_interval_m"], summary["tilt_interval_deg"]
+    stop = "stopping rule met" if result.stopped else "iteration limit"
+    state.echo(f"wrote {shown or out}: depth {result.depth:.4f} m (95%: {d0:.4f}-{d1:.4f} m), tilt "
+               f"{math.degrees(result.tilt):.2f} deg (95%: {t0:.2f}-{t1:.2f} deg), E_I {best['E_I']:.3f} "
+               f"(iteration {result.best_iteration} of {result.iterations}, {stop}; "
+               f"{'converged' if result.converged else 'not converged'}), {result.seconds:.1f} s")
+    start = summary["start"]
+    state.echo(f"  started from depth {start['depth_m']:.4f} m, tilt {start['tilt_deg']:.2f} deg" + (
+        "" if summary["error_vs_truth"] is None else
+        f"; error against the truth: depth {summary['error_vs_truth']['depth_m'] * 1e3:+.1f} mm, tilt "
+        f"{summary['error_vs_truth']['tilt_deg']:+.2f} deg"))
+    unidentified = [name for name, known in summary["identified"].items() if not known]
+    if unidentified:
+        prior = result.posterior.prior
+        widths = {"depth": f"{(d1 - d0) * 1e3:.1f} mm against the sensor's {2 * Z95 * prior.depth_sigma * 1e3:.1f} mm",
+                  "tilt": f"{t1 - t0:.2f} deg against the sensor's {2 * Z95 * math.degrees(prior.tilt_sigma):.2f} deg"}
+        warnings.warn(f"not identified by the images: {' and '.join(unidentified)} (95% interval "
+                      f"{'; '.join(widths[name] for name in unidentified)}: not half as wide), so the run is not "
+                      f"called converged; the estimate of {' and '.join(unidentified)} rests on the sensor",
+                      PoseWarning, stacklevel=2)
+    state.echo(f"report: {(shown or out) / REPORT_FILE}")
     return result
 
 
@@ -690,6 +860,9 @@ def enhance(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt
     mesh = load_mesh_file(model, "--model")
     check_output_folder(out, marker=MARKERS["enhance"])
     check_ghost_sigma(tuple(ghost_sigma))
+    if deep_water(dataset.manifest):
+        raise InputError("has no sea surface (deep water, no [surface] table): its views hold no ghost to remove",
+                         file=dataset_dir / "dataset.toml", field="surface")
     initial = None
     if initial_model is not None:
         initial = (load_mesh_file(initial_model, "--initial-model"), str(initial_model))
@@ -705,7 +878,7 @@ def enhance(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt
 
 def run_enhancement(state: State, dataset, mesh, model_name: str, depth: float, tilt: float, out: Path, drawer, *,
                     views=None, source: str, initial=None, ghost_sigma=(0.0, 0.0), shown: Path | None = None,
-                    dataset_label: Path | None = None) -> None:
+                    dataset_label: Path | None = None, name: str | None = None) -> None:
     """Enhance ``dataset``'s views with ``mesh`` at (depth m, tilt rad) and write OUT/<view>_enhanced.tiff,
     <view>_ghost.tiff, enhance.json, enhance.png and the comparison figures (COMPARISON_FIGURES; a
     group with no view gets none; ``fsswarp.outputs``), the figures drawn by ``drawer`` (a
@@ -713,7 +886,7 @@ def run_enhancement(state: State, dataset, mesh, model_name: str, depth: float, 
     measured depth and tilt for the figures' "initial synthetic" column; ``ghost_sigma``: see
     fsswarp.enhancement.enhance_view. ``shown``, ``dataset_label``:
     the names of OUT and of the dataset's folder in messages and enhance.json, when they are
-    temporary folders."""
+    temporary folders; ``name``: the scene's in titles (default the dataset folder's)."""
     import time
 
     import numpy as np
@@ -750,7 +923,7 @@ def run_enhancement(state: State, dataset, mesh, model_name: str, depth: float, 
             state.echo(f"  isolated ghost vs true ghost: Pearson r {np.mean(correlations):.3f} "
                        f"(mean; min {min(correlations):.3f})")
     figures = comparison_figures(groups, initial=initial is not None)
-    label = (dataset_label or dataset.root).name
+    label = name or (dataset_label or dataset.root).name
     record = enhancement_record(dataset, results, model_name=model_name, depth=depth, tilt=tilt, source=source,
                                 requested=requested, initial_name=None if initial is None else initial[1],
                                 ghost_sigma=ghost_sigma, scores=scores, figures=figures, backend=backend,
@@ -790,9 +963,11 @@ def describe_manifest(manifest) -> str:
         f"elevation {math.degrees(sonar.elevation_fov):.4g} deg, range {sonar.range_min:g}-{sonar.range_max:g} m"
         + (", beam angle table" if sonar.beam_angles is not None else ""),
         f"  surface (measured): depth {surface.depth:.4g} m +/- {surface.depth_sigma:.3g}, "
-        f"tilt {math.degrees(surface.tilt):.4g} deg +/- {math.degrees(surface.tilt_sigma):.3g}",
+        f"tilt {math.degrees(surface.tilt):.4g} deg +/- {math.degrees(surface.tilt_sigma):.3g}" if surface is not None
+        else f"  surface: none in view (deep water); depth {manifest.known_pose.depth:.4g} m, tilt "
+             f"{math.degrees(manifest.known_pose.tilt):.4g} deg known ([rig])",
     ]
-    if manifest.truth is not None:
+    if manifest.truth is not None and manifest.truth.depth is not None:
         lines.append(f"  truth: depth {manifest.truth.depth:.4g} m, tilt {math.degrees(manifest.truth.tilt):.4g} deg")
     if manifest.target is not None:
         target = manifest.target

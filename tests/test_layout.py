@@ -16,9 +16,9 @@ PACKAGE = Path(__file__).resolve().parents[1] / "fsswarp"
 
 MODEL = {"errors", "atomic", "system", "sonar", "rig", "surface", "targets", "dataset", "scenes", "metrics"}
 PIPELINE = {"aris", "segment", "icp", "motion", "compare", "rendering", "simulation", "carving", "pose", "refine",
-            "reconstruction", "enhancement"}
+            "reconstruction", "enhancement", "didson", "importing", "holoocean"}
 READERS = {"figures", "outputs", "benchmark"}
-TOP = {"cli", "__main__", "batch"}
+TOP = {"cli", "__main__", "batch", "report"}
 #: What each layer may import besides itself.
 ALLOWED = {"model": {"model"}, "backends": {"model", "backends"}, "pipeline": {"model", "backends", "pipeline"},
            "readers": {"model", "backends", "pipeline", "readers"},
