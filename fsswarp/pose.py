@@ -97,7 +97,7 @@ class GridLevel:
 class Posterior:
     """The posterior of (D, β) around an estimate (the module docstring).
 
-    depth (m), tilt (rad) : its centre, the estimate; covariance : (2, 2) in (m, rad)
+    depth (m), tilt (rad) : the estimate, the intervals' centre; covariance : (2, 2) in (m, rad)
     prior : the Prior; valley_slope : dD/dβ along the likelihood's long axis (m/rad);
     valley_depth : the depth of that axis at the estimated tilt (m); noise : s (m)
     """
@@ -315,13 +315,14 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
 
 
 def fit_posterior(comparison: ViewComparison, prior: Prior, depth: float, tilt: float, axes: np.ndarray, *,
-              cells: int = POSTERIOR_CELLS, launches: int = 2) -> Posterior:
-    """The Posterior around (depth m, tilt rad) from ``comparison``'s surrogate at the finest
-    settings (``min_cap``, ``samples``) on a ``cells`` × ``cells`` grid x + axes @ u, u in
-    [-1, 1]², in one launch: J = (E − min E)/s + P, weights exp(−J); covariance and mean from
-    the weights. The grid is refitted to ± 4 posterior σ along the posterior's axes and
-    evaluated again while that changes a span (in prior σ) by 1.5× or more (``launches`` at most).
-    The valley: the likelihood-weighted principal axis (in prior-σ units) through its mean.
+              cells: int = POSTERIOR_CELLS, launches: int = 3) -> Posterior:
+    """The Posterior around the estimate (depth m, tilt rad) from ``comparison``'s surrogate at
+    the finest settings (``min_cap``, ``samples``) on a ``cells`` × ``cells`` grid x + axes @ u, u
+    in [-1, 1]², in one launch: J = (E − min E)/s + P, weights exp(−J), their covariance (the
+    intervals: the estimate ± 1.96 σ). The grid is refitted to ± 4 posterior σ along the
+    posterior's axes and evaluated again while it reaches less than 3.5 σ or more than 6 σ
+    along one of them (``launches`` at most). The valley: the least-curved axis of a quadratic
+    fitted to (E − min E)/s (in prior-σ units), through its minimum.
     axes : (2, 2) columns in (m, rad), the first grid's half-spans."""
     settings = comparison.settings
     u = np.linspace(-1.0, 1.0, cells)
@@ -336,19 +337,23 @@ def fit_posterior(comparison: ViewComparison, prior: Prior, depth: float, tilt: 
         costs = per_view.mean(axis=-1)
         noise = noise_level(per_view)
         data = (costs - np.nanmin(costs)) / noise
-        mean, covariance = _moments(grid, data + prior.penalty(dd, tt))
-        wanted = _principal_axes(covariance, 4.0)
-        spans = [np.sort(np.linalg.norm(a / scale[:, None], axis=0)) for a in (axes, wanted)]
-        if not np.all(spans[1] > 0) or np.all(np.abs(np.log(spans[1] / spans[0])) < math.log(1.5)):
+        _, covariance = _moments(grid, data + prior.penalty(dd, tt))
+        sigmas, directions = np.linalg.eigh(covariance / np.outer(scale, scale))  # in prior-σ units
+        sigmas = np.sqrt(np.maximum(sigmas, 0.0))
+        extent = np.abs(directions.T @ (axes / scale[:, None])).sum(axis=1)  # the grid's reach along each
+        if not np.all(sigmas > 0) or np.all((extent >= 3.5 * sigmas) & (extent <= 6.0 * sigmas)):
             break
-        axes = wanted
-    like_mean, like_cov = _moments(grid, data)
-    _, like_vectors = np.linalg.eigh(like_cov / np.outer(scale, scale))
-    along = like_vectors[:, -1] * scale
+        axes = _principal_axes(covariance, 4.0)
+    finite = np.isfinite(data)
+    offsets = (grid[finite] - centre) / scale
+    c = _quadratic_fit(offsets[:, 0], offsets[:, 1], data[finite])
+    hessian = np.array([[2 * c[3], c[4]], [c[4], 2 * c[5]]])
+    curvature, vectors = np.linalg.eigh(hessian)
+    along = vectors[:, 0] * scale  # the least-curved axis, in (m, rad)
+    lowest = np.linalg.pinv(hessian) @ -c[1:3] * scale + centre
     slope = along[0] / along[1] if along[1] != 0 else math.inf
-    valley_depth = like_mean[0] + slope * (tilt - like_mean[1]) if math.isfinite(slope) else math.nan
-    return Posterior(float(mean[0]), float(mean[1]), covariance, prior, float(slope), float(valley_depth),
-                     float(noise))
+    valley_depth = lowest[0] + slope * (tilt - lowest[1]) if math.isfinite(slope) else math.nan
+    return Posterior(depth, tilt, covariance, prior, float(slope), float(valley_depth), float(noise))
 
 
 def _principal_axes(covariance: np.ndarray, sigmas: float) -> np.ndarray:

@@ -72,8 +72,8 @@ def test_recovers_depth_and_tilt(coral_one, estimate):
     assert math.degrees(first.tilts[-1] - first.tilts[0]) == pytest.approx(4.8)
     spacing = [level.depths[1] - level.depths[0] for level in result.levels]
     assert spacing == pytest.approx([0.015, 0.0075, 0.00375])
-    # three levels and the posterior's grid of 11 x 11 cells, once or refitted once
-    assert result.evaluations["grid_cells"] in (243 + 121, 243 + 242) and 3 <= result.evaluations["exact"] <= 32
+    # three levels and the posterior's grid of 11 x 11 cells, refitted at most twice
+    assert result.evaluations["grid_cells"] in (243 + 121, 243 + 242, 243 + 363) and 3 <= result.evaluations["exact"] <= 32
     assert result.anchors == ("Sm90", "Sm67p5", "Sm45", "Sp45", "Sp67p5") and 0.5 < result.shift < 1.5
     assert len(lines) == 6 and lines[0].startswith("start:") and "accepted" in lines[-1]
     assert result.views == tuple(v.name for v in coral_one.rig.views if v.optimize)

@@ -11,26 +11,43 @@ from fsswarp.errors import InputError
 from fsswarp.pose import Prior, Z95, check_start, fit_posterior, noise_level, surface_range
 
 
+#: Each view's deviation pattern (sum 0, sum of squares V − 1), scaled by SIGMA.
+PATTERN = np.array([1.2, -0.4, 0.9, -1.3, 0.5, -0.9])
+PATTERN = (PATTERN - PATTERN.mean()) * math.sqrt((len(PATTERN) - 1) / np.sum((PATTERN - PATTERN.mean()) ** 2))
+SIGMA = 4e-4
+
+
 class ValleyComparison:
     """A stand-in for ViewComparison whose per-view surrogate is a quadratic valley
-    E(x) = ½ (x − c)ᵀ A (x − c) in (m, rad) plus fixed per-view offsets (their standard error
-    is the noise level s): exp(−(E − min E)/s) × prior is then an exact Gaussian."""
+    E(x) = ½ (x − c)ᵀ A (x − c) in (m, rad), plus each view's own offset, plus a cell × view
+    interaction σ·z_v·h (h = ±1 in a checkerboard over the grid): the views' mean is E, and the
+    noise of a cell's mean (``noise_level``) has the closed form of ``expected_noise``, so that
+    exp(−(E − min E)/s) × prior is an exact Gaussian."""
 
-    def __init__(self, centre, hessian, offsets):
-        self.centre, self.hessian = np.asarray(centre, float), np.asarray(hessian, float)
-        self.offsets = np.asarray(offsets, float)
+    def __init__(self, centre, hessian, sigma=SIGMA):
+        self.centre, self.hessian, self.sigma = np.asarray(centre, float), np.asarray(hessian, float), sigma
         self.settings = PoseSettings()
         self.counters = {"grid_cells": 0}
 
     def surrogate_views(self, depths, tilts, *, cap, samples):
         x = np.stack([depths - self.centre[0], tilts - self.centre[1]], axis=-1)
         value = 0.5 * np.einsum("...i,ij,...j->...", x, self.hessian, x)
-        return value[..., None] + self.offsets
+        checker = (-1.0) ** np.add.outer(*map(np.arange, depths.shape))
+        offsets = np.linspace(0.001, 0.003, len(PATTERN))
+        return value[..., None] + offsets + self.sigma * checker[..., None] * PATTERN
 
 
-def analytic(comparison, prior):
+def expected_noise(sigma, shape, views=len(PATTERN)):
+    """σ_ε/√V of the two-way residuals of ValleyComparison's table on a grid of ``shape``: the
+    residual is σ z_v (h − h̄), so σ_ε² = σ² (V − 1) Σ(h − h̄)² / ((G − 1)(V − 1))."""
+    checker = (-1.0) ** np.add.outer(*map(np.arange, shape))
+    cells = checker.size
+    return sigma * math.sqrt(np.sum((checker - checker.mean()) ** 2) / (cells - 1) / views)
+
+
+def analytic(comparison, prior, shape=(11, 11)):
     """Mean (2,) and covariance (2, 2) of the Gaussian posterior of ``ValleyComparison``."""
-    s = noise_level(comparison.offsets)
+    s = expected_noise(comparison.sigma, shape)
     sigma = np.array([prior.depth_sigma, prior.tilt_sigma])
     precision = comparison.hessian / s + np.diag(1.0 / sigma ** 2)
     covariance = np.linalg.inv(precision)
@@ -44,12 +61,12 @@ def test_a_quadratic_valley_gives_the_analytic_interval(slope_m_per_deg):
     slope = slope_m_per_deg * 180.0 / math.pi
     across = np.array([1.0, -slope]) / math.hypot(1.0, slope)
     hessian = 40.0 * np.outer(across, across) + 1e-3 * np.eye(2)
-    offsets = np.array([0.0012, 0.0031, 0.0020, 0.0027, 0.0016, 0.0024])
-    comparison = ValleyComparison((0.431, math.radians(10.35)), hessian, offsets)
+    comparison = ValleyComparison((0.431, math.radians(10.35)), hessian)
     prior = Prior(0.432, math.radians(11.1), 0.003, math.radians(0.6))
     mean, covariance = analytic(comparison, prior)
     axes = np.diag([0.01, math.radians(1.0)])  # a first grid far from the posterior's size: refitted
     post = fit_posterior(comparison, prior, float(mean[0]), float(mean[1]), axes)
+    assert post.noise == pytest.approx(expected_noise(SIGMA, (11, 11)), rel=1e-9)
     np.testing.assert_allclose(post.covariance, covariance, rtol=0.03, atol=1e-3 * np.abs(covariance).max())
     for index in (0, 1):
         lo, hi = post.interval(index)
@@ -58,23 +75,31 @@ def test_a_quadratic_valley_gives_the_analytic_interval(slope_m_per_deg):
         assert hi == pytest.approx(mean[index] + half, rel=1e-4, abs=0.03 * half)
     summary = post.summary()
     assert summary["valley"]["slope_m_per_deg"] == pytest.approx(slope_m_per_deg, abs=0.002)
-    assert comparison.counters["grid_cells"] in (121, 242)  # one launch, or refitted once to ± 4 sigma
+    assert comparison.counters["grid_cells"] in (121, 242, 363)  # refitted to ± 4 sigma at most twice
 
 
 def test_identified_means_half_the_prior_interval():
-    comparison = ValleyComparison((0.43, 0.18), np.diag([1e-9, 1e-9]), [0.001, 0.002, 0.003])  # flat: no data
+    comparison = ValleyComparison((0.43, 0.18), np.diag([1e-9, 1e-9]))  # flat: no data
     prior = Prior(0.43, 0.18, 0.003, 0.01)
     post = fit_posterior(comparison, prior, 0.43, 0.18, np.diag([0.012, 0.04]))
     assert post.identified() == {"depth": False, "tilt": False}
     (d0, d1), (t0, t1) = post.interval(0), post.interval(1)
     assert d1 - d0 == pytest.approx(2 * Z95 * 0.003, rel=0.03) and t1 - t0 == pytest.approx(2 * Z95 * 0.01, rel=0.03)
-    stiff = ValleyComparison((0.43, 0.18), np.diag([1e4, 1e4]), [0.001, 0.002, 0.003])
+    stiff = ValleyComparison((0.43, 0.18), np.diag([1e4, 1e4]))
     assert fit_posterior(stiff, prior, 0.43, 0.18, np.diag([0.012, 0.04])).identified() == {"depth": True,
                                                                                             "tilt": True}
 
 
-def test_noise_level_is_the_standard_error_of_the_views():
-    values = np.array([1.0, 2.0, 4.0, np.nan])
+def test_noise_level_removes_the_views_own_offsets():
+    comparison = ValleyComparison((0.43, 0.18), np.diag([30.0, 2.0]))
+    depths, tilts = np.meshgrid(np.linspace(0.42, 0.44, 7), np.linspace(0.17, 0.19, 5), indexing="ij")
+    table = comparison.surrogate_views(depths, tilts, cap=None, samples=None)
+    assert noise_level(table) == pytest.approx(expected_noise(SIGMA, (7, 5)), rel=1e-9)
+    assert noise_level(table + np.linspace(0.0, 0.05, len(PATTERN))) == pytest.approx(noise_level(table), rel=1e-9)
+    with_nan = table.copy()
+    with_nan[0, 0, 2] = np.nan  # a view without a value in one cell is left out
+    assert noise_level(with_nan) == pytest.approx(noise_level(np.delete(table, 2, axis=-1)), rel=1e-12)
+    values = np.array([1.0, 2.0, 4.0, np.nan])  # one cell: the standard error of its values
     assert noise_level(values) == pytest.approx(np.std([1.0, 2.0, 4.0], ddof=1) / math.sqrt(3))
     assert noise_level(np.array([0.002])) == 0.002 and noise_level(np.zeros(4)) == 1e-6
 
