@@ -818,10 +818,10 @@ def run_reconstruction(state: State, dataset, out: Path, settings, drawer, *, de
         prior = result.posterior.prior
         widths = {"depth": f"{(d1 - d0) * 1e3:.1f} mm against the sensor's {2 * Z95 * prior.depth_sigma * 1e3:.1f} mm",
                   "tilt": f"{t1 - t0:.2f} deg against the sensor's {2 * Z95 * math.degrees(prior.tilt_sigma):.2f} deg"}
-        warnings.warn(f"not identified by the images: {' and '.join(unidentified)} (95% interval "
+        _show_warning(f"not identified by the images: {' and '.join(unidentified)} (95% interval "
                       f"{'; '.join(widths[name] for name in unidentified)}: not half as wide), so the run is not "
                       f"called converged; the estimate of {' and '.join(unidentified)} rests on the sensor",
-                      PoseWarning, stacklevel=2)
+                      PoseWarning, __file__, 0)
     state.echo(f"report: {(shown or out) / REPORT_FILE}")
     return result
 

@@ -322,9 +322,8 @@ def history_figure(history: list[dict], path: str | Path, *, truth_depth: float 
                             label="interval per iteration")
         ax.plot(it, [h[key] for h in history], "o-", color="tab:blue", label="estimate")
         if interval is not None and best_iteration is not None:
-            estimate = history[best_iteration][key]
-            ax.errorbar([best_iteration], [estimate], yerr=[[estimate - interval[0]], [interval[1] - estimate]],
-                        color="tab:red", capsize=4, lw=1.5, label="result's interval")
+            ax.plot([best_iteration] * 2, interval, color="tab:red", lw=1.5, marker="_", markersize=10,
+                    label="result's interval")
         if truth is not None:
             ax.axhline(truth, color="black", linestyle="--", label="truth")
         ax.set_ylabel(unit)
