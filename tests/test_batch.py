@@ -22,7 +22,7 @@ pytestmark = pytest.mark.slow
 #: Reconstruct options of every job: few voxels, the carving alone (a few seconds a job).
 DEFAULTS = {"iterations": 0, "resolution": 32}
 #: name -> per-job overrides of DEFAULTS.
-JOBS = {"plain": {}, "given-start": {"depth": 0.41, "tilt": 12.3}, "finer.v2": {"resolution": 40}}
+JOBS = {"plain": {}, "given-start": {"depth": 0.435, "tilt": 11.9}, "finer.v2": {"resolution": 40}}
 
 
 @pytest.fixture(scope="module")

@@ -223,27 +223,34 @@ def _paper_table():
 
 def test_paper_table_runs_both_starts_and_renders_the_table(tmp_path, capsys):
     """bench/paper_table.py end to end at zero iterations: the record, the two starts (the
-    measured one and β 2° off on the measured side) and the Markdown that report.py renders."""
+    measured one, and a tilt sensor 2° off on the measured side with σ_β 2°), the intervals and
+    the calibration line, and the Markdown that report.py renders."""
     table = _paper_table()
-    assert table.main(["--scenes", "coral-one", "--iterations", "0", "--records", str(tmp_path),
+    assert table.main(["--scenes", "coral-one", "--seeds", "0", "--iterations", "0", "--records", str(tmp_path),
                        "--name", "tiny", "--backend", "opencl"]) == 0
     record = json.loads((tmp_path / "tiny.json").read_text())
     measured, off = record["runs"]
-    assert (measured["depth0_m"], measured["tilt0_deg"]) == (0.47, pytest.approx(11.1))
-    assert off["tilt0_deg"] == pytest.approx(10.3 + 2.0) and off["depth0_m"] == 0.47
+    assert (measured["depth0_m"], measured["tilt0_deg"]) == (0.432, pytest.approx(11.1))
+    assert (measured["depth_sigma_m"], measured["tilt_sigma_deg"]) == (0.003, pytest.approx(0.6))
+    assert off["tilt0_deg"] == pytest.approx(10.3 + 2.0) and off["depth0_m"] == 0.432
+    assert off["tilt_sigma_deg"] == pytest.approx(2.0)
     for run in record["runs"]:
         s = table.summary(run)
-        assert s["depth_error_m"] == pytest.approx(0.04) and s["E_I_change"] == 0.0 and s["E_V_change"] == 0.0
+        assert s["depth_error_m"] == pytest.approx(0.002) and s["E_I_change"] == 0.0 and s["E_V_change"] == 0.0
         assert not (s["pose_ok"] or s["E_I_ok"] or s["E_V_ok"])
+        lo, hi = run["tilt_interval_deg"]
+        assert lo < run["tilt_deg"] < hi and s["tilt_covered"] == (lo <= 10.3 <= hi)
     text = table.table_markdown(record, "tiny")
-    assert "| coral-one (β +2°) | 0.4700, 12.30 | 0.4700, 12.300 | +40.0 | +2.000 | no | 0 of 0 (limit) |" in text
+    assert "| coral-one (0, β +2°, σ_β 2°) | 0.4320, 12.30 | 0.4320, 12.300 | +2.0 | +2.000 | no | " in text
+    assert "Calibration: the 95% intervals hold the true D in " in text and " of 2 runs" in text
     for run in record["runs"]:  # the pose step alone with the true model, from the same starts
         pose = run["true_model_pose"]
         assert abs(pose["depth_m"] - 0.43) <= 0.005 and abs(pose["tilt_deg"] - 10.3) <= 0.2
         assert pose["E_mu_m"] < 0.2 * pose["E_mu_start_m"]
-    assert text.count("| yes | ") == 2 and "with the true model in place of the reconstruction" in text
+    assert "with the true model in place of the reconstruction" in text
     assert record["positions"] is None and "sonar positions" not in text
-    assert "seed 0; sonar positions SNEW; at most 0" in table.table_markdown({**record, "positions": "SNEW"}, "tiny")
+    assert "seeds 0; sonar positions SNEW; realistic sensors" in table.table_markdown({**record, "positions": "SNEW"},
+                                                                                      "tiny")
     assert "### tiny" in capsys.readouterr().out
     rendered = _bench_module("report").report([], None, None, tmp_path, [tmp_path / "tiny.json"])
     assert "## Reconstruction: the paper's table" in rendered and "### tiny" in rendered
@@ -251,12 +258,16 @@ def test_paper_table_runs_both_starts_and_renders_the_table(tmp_path, capsys):
 
 def test_paper_table_summary_judges_the_aims():
     table = _paper_table()
-    run = {"depth_m": 0.433, "truth_depth_m": 0.43, "tilt_deg": 10.45, "truth_tilt_deg": 10.3, "best_iteration": 1,
+    run = {"scene": "coral-one", "depth_m": 0.4329, "truth_depth_m": 0.43, "tilt_deg": 10.449, "truth_tilt_deg": 10.3,
+           "best_iteration": 1, "depth_interval_m": [0.431, 0.436], "tilt_interval_deg": [10.2, 10.6],
            "history": [{"E_I": 1.0, "E_V": 0.40}, {"E_I": 0.75, "E_V": 0.35}, {"E_I": 0.8, "E_V": 0.30}]}
     s = table.summary(run)  # of the kept iteration 1, not the last
-    assert s["depth_error_m"] == pytest.approx(0.003) and s["tilt_error_deg"] == pytest.approx(0.15)
-    assert s["pose_ok"] and s["E_I_ok"] and not s["E_V_ok"]  # E_V down 12.5% < 16%
+    assert s["depth_error_m"] == pytest.approx(0.0029) and s["tilt_error_deg"] == pytest.approx(0.149)
+    assert s["pose_ok"] and s["E_I_ok"] and not s["E_V_ok"]  # E_V down 12.5% < 25%
     assert s["E_V_change"] == pytest.approx(-0.125) and s["E_I_change"] == pytest.approx(-0.25)
+    assert not s["depth_covered"] and s["tilt_covered"]  # 0.43 below [0.431, 0.436]
+    table_run = {**run, "scene": "table", "tilt_deg": 10.6, "depth_m": 0.44}  # the table: β within 0.5°, no D aim
+    assert table.summary(table_run)["pose_ok"] and table.summary(table_run)["E_V_ok"]
 
 
 @pytest.mark.parametrize("args", [["--tilt-offset", "20"], ["--iterations", "-1"], ["--scenes", "nowhere"],
