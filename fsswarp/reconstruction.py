@@ -199,9 +199,7 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
                 best, best_pose, kept, misses = history[-1], (depth, tilt), trial, 0
                 continue
             misses += 1
-            if misses == settings.patience:
-                say(f"iteration {iteration}: E_I has not fallen for {misses} iteration{'s' * (misses > 1)}; "
-                    f"keeping iteration {best['iteration']} and stopping")
+            if _out_of_patience(misses, settings, best, iteration, say):
                 stopped = True
                 break
         posterior = _answer_posterior(comparison, sighting if carved_at == best_pose else carve(
@@ -215,6 +213,15 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
                                  converged=stopped and all(identified.values()), history=history,
                                  seconds=time.perf_counter() - start, backend=backend.name, device=backend.device,
                                  pose_steps=pose_steps, posterior=posterior, start=start_pose, truth=truth_pose)
+
+
+def _out_of_patience(misses: int, settings: ReconstructSettings, best: dict, iteration: int, say) -> bool:
+    """Whether ``misses`` iterations in a row without a new lowest E_I reach the patience (said)."""
+    if misses < settings.patience:
+        return False
+    say(f"iteration {iteration}: E_I has not fallen for {misses} iteration{'s' * (misses > 1)}; keeping iteration "
+        f"{best['iteration']} and stopping")
+    return True
 
 
 def _answer_posterior(comparison: ViewComparison, model, depth: float, tilt: float, prior: Prior, pose_steps):
@@ -505,9 +512,7 @@ def reconstruct_shape_only(dataset, *, depth0: float | None = None, tilt0: float
                 best, kept, misses = history[-1], trial, 0
                 continue
             misses += 1
-            if misses == settings.patience:
-                say(f"iteration {iteration}: E_I has not fallen for {misses} iteration{'s' * (misses > 1)}; "
-                    f"keeping iteration {best['iteration']} and stopping")
+            if _out_of_patience(misses, settings, best, iteration, say):
                 stopped = True
                 break
         truth.collect(wait=True)
