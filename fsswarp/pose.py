@@ -317,11 +317,11 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
 def fit_posterior(comparison: ViewComparison, prior: Prior, depth: float, tilt: float, axes: np.ndarray, *,
               cells: int = POSTERIOR_CELLS, launches: int = 3) -> Posterior:
     """The Posterior around the estimate (depth m, tilt rad) from ``comparison``'s surrogate at
-    the finest settings (``min_cap``, ``samples``) on a ``cells`` × ``cells`` grid x + axes @ u, u
-    in [-1, 1]², in one launch: J = (E − min E)/s + P, weights exp(−J), their covariance (the
-    intervals: the estimate ± 1.96 σ). The grid is refitted to ± 4 posterior σ along the
-    posterior's axes and evaluated again while it reaches less than 3.5 σ or more than 6 σ
-    along one of them (``launches`` at most). The valley: the least-curved axis of a quadratic
+    ``min_cap`` on a ``cells`` × ``cells`` grid x + axes @ u, u in [-1, 1]², one launch each:
+    J = (E − min E)/s + P, weights exp(−J), their covariance (the intervals: the estimate ±
+    1.96 σ). The grid is fitted at the coarse samples, refitted to ± 4 posterior σ along its
+    axes while it reaches less than 3.5 σ or more than 6 σ along one, then evaluated at the
+    finest (``launches`` at most in all). The valley: the least-curved axis of a quadratic
     fitted to (E − min E)/s (in prior-σ units), through its minimum.
     axes : (2, 2) columns in (m, rad), the first grid's half-spans."""
     settings = comparison.settings
@@ -329,19 +329,26 @@ def fit_posterior(comparison: ViewComparison, prior: Prior, depth: float, tilt: 
     centre = np.array([depth, tilt], np.float64)
     scale = np.array([prior.depth_sigma, prior.tilt_sigma])
     scale = np.where(np.isfinite(scale), scale, np.abs(axes).max(axis=1))
-    for launch in range(launches):
+    def evaluate(axes, samples):
         grid = centre + np.einsum("ij,abj->abi", axes, np.stack(np.meshgrid(u, u, indexing="ij"), axis=-1))
         dd, tt = grid[..., 0], grid[..., 1]
-        per_view = comparison.surrogate_views(dd, tt, cap=settings.min_cap, samples=settings.samples)
+        per_view = comparison.surrogate_views(dd, tt, cap=settings.min_cap, samples=samples)
         comparison.counters["grid_cells"] += dd.size
         costs = per_view.mean(axis=-1)
         noise = noise_level(per_view)
         data = (costs - np.nanmin(costs)) / noise
-        _, covariance = _moments(grid, data + prior.penalty(dd, tt))
+        return grid, data, noise, _moments(grid, data + prior.penalty(dd, tt))[1]
+
+    for launch in range(launches):
+        last = launch == launches - 1
+        grid, data, noise, covariance = evaluate(axes, settings.samples if last else settings.coarse_samples)
         sigmas, directions = np.linalg.eigh(covariance / np.outer(scale, scale))  # in prior-σ units
         sigmas = np.sqrt(np.maximum(sigmas, 0.0))
         extent = np.abs(directions.T @ (axes / scale[:, None])).sum(axis=1)  # the grid's reach along each
-        if not np.all(sigmas > 0) or np.all((extent >= 3.5 * sigmas) & (extent <= 6.0 * sigmas)):
+        if last or not np.all(sigmas > 0):
+            break
+        if np.all((extent >= 3.5 * sigmas) & (extent <= 6.0 * sigmas)):
+            grid, data, noise, covariance = evaluate(axes, settings.samples)  # the fitted grid, finely
             break
         axes = _principal_axes(covariance, 4.0)
     finite = np.isfinite(data)

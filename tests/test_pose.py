@@ -373,8 +373,8 @@ def test_grid_levels_before_the_finest_use_the_coarse_samples(coral_one, truth_m
     views = len(result.views)
     grid_launches = [samples for samples, n in spy.launches if n == 9 * views]
     assert grid_launches == [(1, 8), (1, 8), (2, 16)]
-    posterior = [samples for samples, n in spy.launches if n == 121 * views]  # the posterior's grid, finest
-    assert posterior and set(posterior) == {(2, 16)}
+    posterior = [samples for samples, n in spy.launches if n == 121 * views]  # fitted coarsely, then finest
+    assert posterior[-1] == (2, 16) and set(posterior[:-1]) <= {(1, 8)} and 2 <= len(posterior) <= 3
     assert {samples for samples, n in spy.launches if n not in (9 * views, 121 * views)} == {(2, 32)}  # E_mu
 
 
