@@ -310,7 +310,8 @@ def coloured_pixels(png: bytes) -> dict[str, int]:
 def test_the_page_in_a_browser(browser, variants, coral_one, name):
     folder = variants[name]
     page, seen = open_page(browser, folder / "report.html")
-    page.wait_for_function("document.getElementById('viewer').dataset.state === 'drawn'", timeout=30_000)
+    # a selector, not wait_for_function: its polling evaluates a string, which the page's CSP forbids
+    page.wait_for_selector("#viewer[data-state='drawn']", state="attached", timeout=30_000)
     assert seen["failed"] == [] and seen["errors"] == [], seen
     assert [url for url in seen["requests"] if not url.startswith("data:")] == [(folder / "report.html").as_uri()]
     images = page.eval_on_selector_all("img", "all => all.map(i => [i.complete, i.naturalWidth, i.naturalHeight])")
@@ -339,7 +340,7 @@ def test_the_batch_page_in_a_browser(browser, batch_folder):
     rows = page.eval_on_selector_all("table.batch tr", "rows => rows.length")
     assert rows == 4  # the heading and three jobs
     page.click("a[href='c/report.html']")
-    page.wait_for_function("document.getElementById('viewer') && document.getElementById('viewer').dataset.state")
+    page.wait_for_selector("#viewer[data-state]", state="attached", timeout=30_000)
     assert page.url == (batch_folder / "c" / "report.html").as_uri()
     assert page.eval_on_selector("#viewer", "c => c.dataset.state") == "drawn"
     assert seen["failed"] == [] and seen["errors"] == [], seen
