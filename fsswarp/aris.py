@@ -76,19 +76,21 @@ class ArisWarning(UserWarning):
     """A recording that can be read but is not quite whole (e.g. a partial last frame)."""
 
 
-def _at(fmt: str, offset: int, sdk: str):
-    return field(metadata={"at": (fmt, offset), "sdk": sdk})
+def header_field(fmt: str, offset: int, source: str):
+    """A header dataclass field: struct format ``fmt`` at byte ``offset``; ``source`` is its name
+    in the format's documents (used in error messages). ARIS and DIDSON headers use it."""
+    return field(metadata={"at": (fmt, offset), "source": source})
 
 
 @dataclass(frozen=True)
 class FileHeader:
     """The file header fields fsswarp reads (the others are legacy DIDSON fields)."""
 
-    version: int = _at("I", 0, "Version")
-    frame_count_stored: int = _at("I", 4, "FrameCount")
-    num_raw_beams: int = _at("I", 16, "NumRawBeams")
-    samples_per_channel: int = _at("I", 24, "SamplesPerChannel")
-    serial_number: int = _at("I", 44, "SN")
+    version: int = header_field("I", 0, "Version")
+    frame_count_stored: int = header_field("I", 4, "FrameCount")
+    num_raw_beams: int = header_field("I", 16, "NumRawBeams")
+    samples_per_channel: int = header_field("I", 24, "SamplesPerChannel")
+    serial_number: int = header_field("I", 44, "SN")
 
 
 @dataclass(frozen=True)
@@ -98,41 +100,41 @@ class FrameHeader:
     ``window_*_stored`` are the floats the sonar stored; the ``window_start_m`` and
     ``window_length_m`` properties are computed from the timing fields (prefer those)."""
 
-    frame_index: int = _at("I", 0, "FrameIndex")
-    frame_time_us: int = _at("Q", 4, "FrameTime")
-    version: int = _at("I", 12, "Version")
-    window_start_m_stored: float = _at("f", 52, "WindowStart")
-    window_length_m_stored: float = _at("f", 56, "WindowLength")
-    receiver_gain_db: int = _at("I", 68, "ReceiverGain")
-    depth_m: float = _at("f", 128, "Depth")
-    pitch_deg: float = _at("f", 136, "Pitch")
-    roll_deg: float = _at("f", 144, "Roll")
-    heading_deg: float = _at("f", 152, "Heading")
-    compass_heading_deg: float = _at("f", 160, "CompassHeading")
-    compass_pitch_deg: float = _at("f", 164, "CompassPitch")
-    compass_roll_deg: float = _at("f", 168, "CompassRoll")
-    latitude_deg: float = _at("d", 172, "Latitude")
-    longitude_deg: float = _at("d", 180, "Longitude")
-    water_temp_c: float = _at("f", 224, "WaterTemp")
-    sonar_x: float = _at("f", 232, "SonarX")
-    sonar_y: float = _at("f", 236, "SonarY")
-    sonar_z: float = _at("f", 240, "SonarZ")
-    sonar_pan: float = _at("f", 244, "SonarPan")
-    sonar_tilt: float = _at("f", 248, "SonarTilt")
-    sonar_roll: float = _at("f", 252, "SonarRoll")
-    ping_mode: int = _at("I", 436, "PingMode")
-    frequency_hi_low: int = _at("I", 440, "FrequencyHiLow")
-    pulse_width_us: int = _at("I", 444, "PulseWidth")
-    sample_period_us: int = _at("I", 452, "SamplePeriod")
-    frame_rate_hz: float = _at("f", 460, "FrameRate")
-    sound_speed_m_s: float = _at("f", 464, "SoundSpeed")
-    samples_per_beam: int = _at("I", 468, "SamplesPerBeam")
-    sample_start_delay_us: int = _at("I", 476, "SampleStartDelay")
-    large_lens: int = _at("I", 480, "LargeLens")
-    system_type: int = _at("I", 484, "TheSystemType")
-    serial_number: int = _at("I", 488, "SonarSerialNumber")
-    reordered_samples: int = _at("I", 516, "ReorderedSamples")
-    salinity: int = _at("I", 520, "Salinity")
+    frame_index: int = header_field("I", 0, "FrameIndex")
+    frame_time_us: int = header_field("Q", 4, "FrameTime")
+    version: int = header_field("I", 12, "Version")
+    window_start_m_stored: float = header_field("f", 52, "WindowStart")
+    window_length_m_stored: float = header_field("f", 56, "WindowLength")
+    receiver_gain_db: int = header_field("I", 68, "ReceiverGain")
+    depth_m: float = header_field("f", 128, "Depth")
+    pitch_deg: float = header_field("f", 136, "Pitch")
+    roll_deg: float = header_field("f", 144, "Roll")
+    heading_deg: float = header_field("f", 152, "Heading")
+    compass_heading_deg: float = header_field("f", 160, "CompassHeading")
+    compass_pitch_deg: float = header_field("f", 164, "CompassPitch")
+    compass_roll_deg: float = header_field("f", 168, "CompassRoll")
+    latitude_deg: float = header_field("d", 172, "Latitude")
+    longitude_deg: float = header_field("d", 180, "Longitude")
+    water_temp_c: float = header_field("f", 224, "WaterTemp")
+    sonar_x: float = header_field("f", 232, "SonarX")
+    sonar_y: float = header_field("f", 236, "SonarY")
+    sonar_z: float = header_field("f", 240, "SonarZ")
+    sonar_pan: float = header_field("f", 244, "SonarPan")
+    sonar_tilt: float = header_field("f", 248, "SonarTilt")
+    sonar_roll: float = header_field("f", 252, "SonarRoll")
+    ping_mode: int = header_field("I", 436, "PingMode")
+    frequency_hi_low: int = header_field("I", 440, "FrequencyHiLow")
+    pulse_width_us: int = header_field("I", 444, "PulseWidth")
+    sample_period_us: int = header_field("I", 452, "SamplePeriod")
+    frame_rate_hz: float = header_field("f", 460, "FrameRate")
+    sound_speed_m_s: float = header_field("f", 464, "SoundSpeed")
+    samples_per_beam: int = header_field("I", 468, "SamplesPerBeam")
+    sample_start_delay_us: int = header_field("I", 476, "SampleStartDelay")
+    large_lens: int = header_field("I", 480, "LargeLens")
+    system_type: int = header_field("I", 484, "TheSystemType")
+    serial_number: int = header_field("I", 488, "SonarSerialNumber")
+    reordered_samples: int = header_field("I", 516, "ReorderedSamples")
+    salinity: int = header_field("I", 520, "Salinity")
 
     @property
     def sample_length_m(self) -> float:
@@ -155,16 +157,17 @@ class FrameHeader:
         return self.window_start_m + (self.samples_per_beam - 1) * self.sample_length_m
 
 
-def _parse(cls, raw: bytes):
-    values = {}
-    for f in fields(cls):
-        fmt, offset = f.metadata["at"]
-        values[f.name] = struct.unpack_from("<" + fmt, raw, offset)[0]
-    return cls(**values)
+def parse_header(cls, buffer, offset: int = 0, skip=()):
+    """The header dataclass ``cls`` read little-endian from ``buffer`` at ``offset``; the fields
+    named in ``skip`` are None."""
+    return cls(**{f.name: None if f.name in skip else
+                  struct.unpack_from("<" + f.metadata["at"][0], buffer, offset + f.metadata["at"][1])[0]
+                  for f in fields(cls)})
 
 
-def _sdk(cls, name: str) -> str:
-    return next(f.metadata["sdk"] for f in fields(cls) if f.name == name)
+def header_name(cls, name: str) -> str:
+    """The documents' name of the field ``name`` of the header dataclass ``cls``."""
+    return next(f.metadata["source"] for f in fields(cls) if f.name == name)
 
 
 @dataclass(frozen=True)
@@ -233,9 +236,9 @@ class ArisFile:
             raise
 
     def _open(self) -> None:
-        self.file_header = _parse(FileHeader, self._map[:FILE_HEADER_BYTES])
+        self.file_header = parse_header(FileHeader, self._map[:FILE_HEADER_BYTES])
         self._check_version(self.file_header.version, "header.Version")
-        first = _parse(FrameHeader, self._map[FILE_HEADER_BYTES:FILE_HEADER_BYTES + FRAME_HEADER_BYTES])
+        first = parse_header(FrameHeader, self._map[FILE_HEADER_BYTES:FILE_HEADER_BYTES + FRAME_HEADER_BYTES])
         self._check_version(first.version, "frames[0].Version")
         if first.ping_mode not in _BEAMS_BY_PING_MODE:
             raise self._error(0, first, "ping_mode", "must be 1-12 (it sets the beam count)")
@@ -282,7 +285,7 @@ class ArisFile:
         word, and a beam count and sample count equal to frame 0's."""
         i = self._index(frame)
         start = self._offset(i)
-        header = _parse(FrameHeader, self._map[start:start + FRAME_HEADER_BYTES])
+        header = parse_header(FrameHeader, self._map[start:start + FRAME_HEADER_BYTES])
         self._check_version(header.version, f"frames[{i}].Version")
         if _BEAMS_BY_PING_MODE.get(header.ping_mode) != self.beams:
             raise self._error(i, header, "ping_mode", f"changes the beam count (frame 0: {self.beams} beams); "
@@ -344,7 +347,7 @@ class ArisFile:
                              field=where, value=f"{version:#010x}")
 
     def _error(self, frame: int, header: FrameHeader, name: str, message: str) -> InputError:
-        return InputError(message, file=self.path, field=f"frames[{frame}].{_sdk(FrameHeader, name)}",
+        return InputError(message, file=self.path, field=f"frames[{frame}].{header_name(FrameHeader, name)}",
                           value=getattr(header, name))
 
 
@@ -496,9 +499,9 @@ def aris_dataset(path, *, frames=None, elevation_fov_deg: float | None = None, p
                 raise InputError(f"has another lens or range window ({other.range_min:.4g}-{other.range_max:.4g} m) "
                                  f"than frame {chosen[0]} ({sonar.range_min:.4g}-{sonar.range_max:.4g} m); "
                                  "import them separately", file=path, field="--frames", value=i)
-        depth, depth_source = _sensor(path, headers, "depth_m", depth_m, "--depth", "M",
+        depth, depth_source = sensor_value(path, FrameHeader, headers, "depth_m", depth_m, "--depth", "M",
                                       lambda v: v > 0, "must be > 0 m below the surface")
-        tilt, tilt_source = _sensor(path, headers, "compass_pitch_deg", tilt_deg, "--tilt", "DEG",
+        tilt, tilt_source = sensor_value(path, FrameHeader, headers, "compass_pitch_deg", tilt_deg, "--tilt", "DEG",
                                     lambda v: abs(v) < 90, "must lie in (-90, 90) degrees")
         pose_rows = read_poses(poses, chosen) if poses is not None else {}
         views = tuple(View(view_name(i), **pose_rows.get(i, {})) for i in chosen)
@@ -530,19 +533,23 @@ def _elevation(value) -> float:
     return float(value)
 
 
-def _sensor(path: Path, headers: dict[int, FrameHeader], name: str, given, flag: str, unit: str, ok, message: str):
-    """(value, source) of a measured D0 or β0: ``given``, or the median sensor value."""
+def sensor_value(path: Path, header: type, headers: dict, name: str, given, flag: str, unit: str, ok,
+                 message: str):
+    """(value, source) of a measured D0 or β0: ``given`` (the option ``flag``), or the median of
+    the frame headers' field ``name`` (headers: {frame: an instance of the dataclass ``header``});
+    InputError naming ``path`` and the frame where a value is not finite or not ``ok``. ARIS and
+    DIDSON use it."""
     if given is not None:
         if not (is_finite_number(given) and ok(given)):
             raise InputError(message, field=flag, value=given)
         return float(given), flag
-    for i, header in headers.items():
-        value = getattr(header, name)
+    for i, frame in headers.items():
+        value = getattr(frame, name)
         if not (math.isfinite(value) and ok(value)):
             raise InputError(f"{message}; the recording holds no usable sensor value: give {flag} {unit}",
-                             file=path, field=f"frames[{i}].{_sdk(FrameHeader, name)}", value=value)
+                             file=path, field=f"frames[{i}].{header_name(header, name)}", value=value)
     value = float(np.median([getattr(h, name) for h in headers.values()]))
-    return value, f"sensor {_sdk(FrameHeader, name)}, median of {len(headers)} frames"
+    return value, f"sensor {header_name(header, name)}, median of {len(headers)} frames"
 
 
 def _record(aris: ArisFile, path: Path, table: BeamTable, elevation: float, default_elevation: bool,

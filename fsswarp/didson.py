@@ -24,15 +24,15 @@ from __future__ import annotations
 
 import math
 import mmap
-import struct
 import warnings
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
 
 import numpy as np
 
-from .aris import checked_manifest, parse_frames, read_poses, view_name
+from .aris import (checked_manifest, header_field, header_name, parse_frames, parse_header, read_poses,
+                   sensor_value, view_name)
 from .atomic import json_number
 from .dataset import Dataset, SurfaceEstimate
 from .errors import InputError, is_finite_number, is_integer
@@ -77,25 +77,21 @@ class DidsonWarning(UserWarning):
     disagrees with the sample rate)."""
 
 
-def _at(fmt: str, offset: int, source: str):
-    return field(metadata={"at": (fmt, offset), "source": source})
-
-
 @dataclass(frozen=True)
 class FileHeader:
     """The file header fields fsswarp reads (the sources' names in ``source``).
 
     ``sound_speed_m_s`` (Sspd) exists in version 4 only: None in version 3."""
 
-    version: int = _at("B", 3, "version")
-    frame_count_stored: int = _at("i", 4, "numframes")
-    resolution: int = _at("i", 12, "resolution")
-    beams: int = _at("i", 16, "numbeams")
-    sample_rate_hz: float = _at("f", 20, "samplerate")
-    samples_per_channel: int = _at("i", 24, "samplesperchannel")
-    reverse: int = _at("i", 40, "reverse")
-    serial_number: int = _at("i", 44, "serialnumber")
-    sound_speed_m_s: int | None = _at("I", 384, "sspd")
+    version: int = header_field("B", 3, "version")
+    frame_count_stored: int = header_field("i", 4, "numframes")
+    resolution: int = header_field("i", 12, "resolution")
+    beams: int = header_field("i", 16, "numbeams")
+    sample_rate_hz: float = header_field("f", 20, "samplerate")
+    samples_per_channel: int = header_field("i", 24, "samplesperchannel")
+    reverse: int = header_field("i", 40, "reverse")
+    serial_number: int = header_field("i", 44, "serialnumber")
+    sound_speed_m_s: int | None = header_field("I", 384, "sspd")
 
     @property
     def high_frequency(self) -> bool:
@@ -107,25 +103,15 @@ class FileHeader:
 class FrameHeader:
     """One frame header's fields (the sources' names in ``source``; angles in degrees)."""
 
-    frame_number: int = _at("i", 0, "framenumber")
-    window_start_code: int = _at("i", 52, "windowstart")
-    window_length_code: int = _at("i", 56, "windowlength")
-    depth_m: float = _at("f", 128, "depth")
-    heading_deg: float = _at("f", 152, "heading")
-    sonar_pan_deg: float = _at("f", 160, "sonarpan")
-    sonar_tilt_deg: float = _at("f", 164, "sonartilt")
-    sonar_roll_deg: float = _at("f", 168, "sonarroll")
-    config_flags: int = _at("i", 192, "configflags")
-
-
-def _parse(cls, buffer, offset: int, skip=()):
-    return cls(**{f.name: None if f.name in skip else struct.unpack_from("<" + f.metadata["at"][0], buffer,
-                                                                          offset + f.metadata["at"][1])[0]
-                  for f in fields(cls)})
-
-
-def _source(cls, name: str) -> str:
-    return next(f.metadata["source"] for f in fields(cls) if f.name == name)
+    frame_number: int = header_field("i", 0, "framenumber")
+    window_start_code: int = header_field("i", 52, "windowstart")
+    window_length_code: int = header_field("i", 56, "windowlength")
+    depth_m: float = header_field("f", 128, "depth")
+    heading_deg: float = header_field("f", 152, "heading")
+    sonar_pan_deg: float = header_field("f", 160, "sonarpan")
+    sonar_tilt_deg: float = header_field("f", 164, "sonartilt")
+    sonar_roll_deg: float = header_field("f", 168, "sonarroll")
+    config_flags: int = header_field("i", 192, "configflags")
 
 
 @dataclass(frozen=True)
@@ -217,7 +203,7 @@ class DidsonFile:
                              f"and frame headers alone take {head + frame_head})", file=self.file, field="size",
                              value=self.size)
         #: the file header; the frame header size (bytes)
-        self.file_header = _parse(FileHeader, buffer, 0, skip=("sound_speed_m_s",) if version == 3 else ())
+        self.file_header = parse_header(FileHeader, buffer, 0, skip=("sound_speed_m_s",) if version == 3 else ())
         self.frame_header_bytes = frame_head
         header = self.file_header
         if header.beams not in BEAM_COUNTS:
@@ -262,7 +248,7 @@ class DidsonFile:
 
     def frame_header(self, frame: int) -> FrameHeader:
         """The header of frame ``frame`` (0-based position in the file)."""
-        return _parse(FrameHeader, self._buffer, self._offset(frame))
+        return parse_header(FrameHeader, self._buffer, self._offset(frame))
 
     def frame_samples(self, frame: int) -> np.ndarray:
         """(512, beams) uint8 samples of ``frame`` in the order Sound Metrics' software shows
@@ -331,11 +317,11 @@ class DidsonFile:
 
     # --- errors ------------------------------------------------------------------------------
     def _file_error(self, name: str, message: str) -> InputError:
-        return InputError(message, file=self.file, field=f"header.{_source(FileHeader, name)}",
+        return InputError(message, file=self.file, field=f"header.{header_name(FileHeader, name)}",
                           value=getattr(self.file_header, name))
 
     def _frame_error(self, frame: int, header: FrameHeader, name: str, message: str) -> InputError:
-        return InputError(message, file=self.file, field=f"frames[{frame}].{_source(FrameHeader, name)}",
+        return InputError(message, file=self.file, field=f"frames[{frame}].{header_name(FrameHeader, name)}",
                           value=getattr(header, name))
 
 
@@ -401,10 +387,10 @@ def didson_dataset(didson: DidsonFile, *, frames=None, elevation_fov_deg: float 
         if given[name] is None:
             warnings.warn(DidsonWarning(f"{didson.file}: frames[{first}]: the window {name}: {why}; give "
                                         f"--window-{name} M to choose"), stacklevel=2)
-    depth = _sensor(didson, headers, "depth_m", depth_m, "--depth", "M", lambda v: v > 0,
-                    "must be > 0 m below the surface")
-    tilt = _sensor(didson, headers, "sonar_tilt_deg", tilt_deg, "--tilt", "DEG", lambda v: abs(v) < 90,
-                   "must lie in (-90, 90) degrees")
+    depth = sensor_value(didson.file, FrameHeader, headers, "depth_m", depth_m, "--depth", "M", lambda v: v > 0,
+                         "must be > 0 m below the surface")
+    tilt = sensor_value(didson.file, FrameHeader, headers, "sonar_tilt_deg", tilt_deg, "--tilt", "DEG",
+                        lambda v: abs(v) < 90, "must lie in (-90, 90) degrees")
     pose_rows = read_poses(poses, chosen) if poses is not None else {}
     views = tuple(View(view_name(i), **pose_rows.get(i, {})) for i in chosen)
     images = {view_name(i): didson.frame_image(i) for i in chosen}
@@ -417,22 +403,6 @@ def didson_dataset(didson: DidsonFile, *, frames=None, elevation_fov_deg: float 
     record = _record(didson, window, used, disagreements, math.degrees(sonar.elevation_fov),
                      elevation_fov_deg is None, headers, depth, tilt)
     return Dataset(manifest, images), record
-
-
-def _sensor(didson: DidsonFile, headers: dict[int, FrameHeader], name: str, given, flag: str, unit: str, ok,
-            message: str) -> tuple[float, str]:
-    """(value, source) of a measured D0 or β0: ``given``, or the median sensor value."""
-    if given is not None:
-        if not (is_finite_number(given) and ok(given)):
-            raise InputError(message, field=flag, value=given)
-        return float(given), flag
-    for i, header in headers.items():
-        value = getattr(header, name)
-        if not (math.isfinite(value) and ok(value)):
-            raise InputError(f"{message}; the recording holds no usable sensor value: give {flag} {unit}",
-                             file=didson.file, field=f"frames[{i}].{_source(FrameHeader, name)}", value=value)
-    value = float(np.median([getattr(h, name) for h in headers.values()]))
-    return value, f"sensor {_source(FrameHeader, name)}, median of {len(headers)} frames"
 
 
 def _record(didson: DidsonFile, window: Window, used: dict, disagreements: dict, elevation: float,
