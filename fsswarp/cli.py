@@ -542,7 +542,7 @@ def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, pat
     OUT/result.json and OUT/figures/."""
     from .atomic import check_output_folder
     from .dataset import load_dataset
-    from .pose import Prior, check_start, check_uncertainties
+    from .pose import check_start, check_uncertainties
     from .reconstruction import ReconstructSettings
     from .errors import check_depth_tilt
 
@@ -552,8 +552,7 @@ def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, pat
         surface = dataset.manifest.surface
         depth0, tilt0 = surface.depth if depth is None else depth, surface.tilt if tilt is None else math.radians(tilt)
         check_depth_tilt(depth0, tilt0)
-        Prior.of(dataset)
-        check_start(dataset, depth0, tilt0)
+        check_start(dataset, depth0, tilt0)  # the priors' sigmas first (Prior.of)
         check_uncertainties(dataset, depth0)
     run_reconstruction(state, dataset, out,
                        ReconstructSettings(iterations=iterations, patience=patience, resolution=resolution),
@@ -643,7 +642,7 @@ def pose(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt, l
     from .dataset import load_dataset
     from .figures import contours_figure, pose_figure
     from .outputs import pose_record, write_pose
-    from .pose import Prior, check_start, check_uncertainties, estimate_pose
+    from .pose import check_start, check_uncertainties, estimate_pose
     from .errors import check_depth_tilt
 
     dataset = load_dataset(dataset_dir)
@@ -655,8 +654,7 @@ def pose(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt, l
     surface = dataset.manifest.surface
     depth0, tilt0 = surface.depth if depth is None else depth, surface.tilt if tilt is None else math.radians(tilt)
     check_depth_tilt(depth0, tilt0)
-    Prior.of(dataset)
-    check_start(dataset, depth0, tilt0)
+    check_start(dataset, depth0, tilt0)  # the priors' sigmas first (Prior.of)
     bounds = check_uncertainties(dataset, depth0, depth_range=depth_range,
                                  tilt_range=None if tilt_range is None else math.radians(tilt_range))
     backend = state.get_backend()

@@ -337,7 +337,7 @@ def fit_posterior(comparison: ViewComparison, prior: Prior, depth: float, tilt: 
         costs = per_view.mean(axis=-1)
         noise = noise_level(per_view)
         data = (costs - np.nanmin(costs)) / noise
-        return grid, data, noise, _moments(grid, data + prior.penalty(dd, tt))[1]
+        return grid, data, noise, _weighted_covariance(grid, data + prior.penalty(dd, tt))
 
     for launch in range(launches):
         last = launch == launches - 1
@@ -368,14 +368,13 @@ def _principal_axes(covariance: np.ndarray, sigmas: float) -> np.ndarray:
     return vectors * (sigmas * np.sqrt(np.maximum(values, 0.0)))
 
 
-def _moments(grid: np.ndarray, cost: np.ndarray):
-    """Mean (2,) and covariance (2, 2) of the cells grid (..., 2) weighted by exp(−cost)."""
+def _weighted_covariance(grid: np.ndarray, cost: np.ndarray) -> np.ndarray:
+    """(2, 2) covariance of the cells grid (..., 2) weighted by exp(−cost)."""
     finite = np.isfinite(cost)
     points, weights = grid[finite], np.exp(-(cost[finite] - cost[finite].min()))
     weights /= weights.sum()
-    mean = weights @ points
-    offsets = points - mean
-    return mean, (weights[:, None] * offsets).T @ offsets
+    offsets = points - weights @ points
+    return (weights[:, None] * offsets).T @ offsets
 
 
 def noise_level(per_view: np.ndarray) -> float:
