@@ -20,7 +20,7 @@ from __future__ import annotations
 import abc
 import math
 from dataclasses import dataclass
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable, Iterator, NamedTuple
 
 import numpy as np
 
@@ -361,6 +361,44 @@ class Backend(abc.ABC):
                               float(surface_reflection), first, count)
         layers.first_rows = None if rows is None else first.copy()
         return layers
+
+    def render_batches(self, mesh, sonar: SonarSpec, rotations, translations, plane_normals, plane_offsets,
+                       samples: tuple[int, int], *, gamma: float, surface_reflection: float,
+                       batch: int = 256) -> Iterator[tuple[int, np.ndarray]]:
+        """``render`` of N views streamed to the host in batches of ``batch`` views: yields
+        ``(start, layers)`` for each batch in order, layers the (n, 4, bins, beams) float32
+        layers of views start .. start + n − 1, bit for bit those of ``render``.
+
+        ``layers`` is a view of a staging buffer that the next batch reuses: it is valid until
+        the next batch is asked for (copy what you keep). On a GPU the staging buffers are
+        page-locked host memory and the copy of batch k runs on its own stream or queue while
+        batch k + 1 renders (Warp CUDA: pinned ``wp.array`` and a copy stream ordered by events;
+        OpenCL: ``ALLOC_HOST_PTR`` buffers mapped once and a second queue ordered by events).
+        On a CPU device the layers are rendered in host memory and come without a copy (Warp
+        "cpu") or through a host-allocated buffer (OpenCL). Arguments as ``render``; batch >= 1
+        views, with batch × 4 × bins × beams < 2^31. Inputs are checked when this is called,
+        not when the first batch is asked for.
+        """
+        rot, trans, normals, offsets = _view_planes(rotations, translations, plane_normals, plane_offsets)
+        _check_sonar(sonar)
+        k_theta, k_phi = (int(k) for k in samples)
+        if k_theta < 1 or k_phi < 1:
+            raise ValueError(f"samples must be two positive counts, got {tuple(samples)}")
+        if not is_integer(batch) or batch < 1 or batch * 4 * sonar.bins * sonar.beams >= 2**31:
+            raise ValueError(f"batch must be an integer >= 1 with batch x 4 x {sonar.bins} x {sonar.beams} "
+                             f"< 2^31 pixels, got {batch!r}")
+        if rot.shape[0] == 0:
+            return iter(())
+        return self._render_batches(mesh, SonarConstants.of(sonar), sonar.beam_widths, rot, trans, normals,
+                                    offsets, k_theta, k_phi, float(gamma), float(surface_reflection), int(batch))
+
+    @abc.abstractmethod
+    def _render_batches(self, mesh, sonar: SonarConstants, beam_widths: np.ndarray, rotations: np.ndarray,
+                        translations: np.ndarray, plane_normals: np.ndarray, plane_offsets: np.ndarray,
+                        k_theta: int, k_phi: int, gamma: float, surface_reflection: float,
+                        batch: int) -> Iterator[tuple[int, np.ndarray]]:
+        """Generator of ``render_batches``: clean float32 arrays of N >= 1 views, batch >= 1; yields
+        (start, (n, 4, bins, beams) float32 host layers) per batch, valid until the next."""
 
     @abc.abstractmethod
     def _load_mesh(self, vertices: np.ndarray, faces: np.ndarray) -> Any:

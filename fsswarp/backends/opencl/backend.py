@@ -165,36 +165,90 @@ class OpenCLBackend(Backend):
     def _render(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations,
                 plane_normals, plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, rows):
         _check_mesh(mesh)
-        n_views = rotations.shape[0]
+        shape = (rotations.shape[0], 4, rows, sonar.beams)
+        size = int(np.prod(shape))
+        acc_buf = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=4 * size)
+        layers_buf = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=4 * size)
+        with self._lock:
+            self._enqueue_render(mesh, sonar, beam_widths, rotations, translations, plane_normals, plane_offsets,
+                                 k_theta, k_phi, gamma, surface_reflection, first_rows, shape, acc_buf, layers_buf)
+            self.queue.finish()
+        acc_buf.release()
+        return OpenCLLayers(self.queue, layers_buf, shape)
+
+    def _enqueue_render(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations, plane_normals,
+                        plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, shape, acc_buf,
+                        layers_buf, wait_for=None) -> cl.Event:
+        """Enqueue the zeroing of acc_buf, the render and fixed-point kernels of the views given
+        (clean float32 (n, ...) arrays) into layers_buf, of ``shape`` (n, 4, R, beams), after the
+        events ``wait_for``; returns the last kernel's event. Call holding ``_lock``."""
         if sonar.use_table:
             centres = np.ascontiguousarray(sonar.beam_table[0], np.float32)
         else:
             centres = (-np.float64(sonar.half_azimuth)
                        + np.arange(sonar.beams) / np.float64(sonar.beam_scale)).astype(np.float32)
         sub = k_theta * k_phi
-        weight = np.float32(1.0 / sub)
-        shape = (n_views, 4, rows, sonar.beams)
         size = int(np.prod(shape))
-        acc_buf = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=4 * size)
-        layers_buf = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=4 * size)
         group = min(GROUP, 1 << (max(sub, 1) - 1).bit_length())
-        global_size = (-(-sub // group) * group, sonar.beams, n_views)
-        with self._lock:
-            cl.enqueue_fill_buffer(self.queue, acc_buf, np.int32(0), 0, 4 * size)
-            self._render_kernel(
-                self.queue, global_size, (group, 1, 1),
-                mesh.nodes, mesh.children, mesh.triangles,
-                self._input(rotations), self._input(translations), self._input(plane_normals),
-                self._input(plane_offsets), self._input(centres),
-                self._input(np.ascontiguousarray(beam_widths, np.float32)),
-                self._input(sonar.beam_table), sonar.record(), np.int32(k_theta), np.int32(k_phi), weight,
-                np.float32(gamma), np.float32(surface_reflection), np.float32(RAY_EPSILON),
-                np.float32(MAX_DISTANCE), self._input(first_rows), np.int32(rows), acc_buf)
-            self._fixed_kernel(self.queue, (-(-size // GROUP) * GROUP,), None, acc_buf, layers_buf,
-                               np.int32(size))
+        global_size = (-(-sub // group) * group, sonar.beams, shape[0])
+        zeroed = cl.enqueue_fill_buffer(self.queue, acc_buf, np.int32(0), 0, 4 * size, wait_for=wait_for)
+        self._render_kernel(
+            self.queue, global_size, (group, 1, 1),
+            mesh.nodes, mesh.children, mesh.triangles,
+            self._input(rotations), self._input(translations), self._input(plane_normals),
+            self._input(plane_offsets), self._input(centres),
+            self._input(np.ascontiguousarray(beam_widths, np.float32)),
+            self._input(sonar.beam_table), sonar.record(), np.int32(k_theta), np.int32(k_phi),
+            np.float32(1.0 / sub), np.float32(gamma), np.float32(surface_reflection), np.float32(RAY_EPSILON),
+            np.float32(MAX_DISTANCE), self._input(first_rows), np.int32(shape[2]), acc_buf, wait_for=[zeroed])
+        return self._fixed_kernel(self.queue, (-(-size // GROUP) * GROUP,), None, acc_buf, layers_buf,
+                                  np.int32(size))
+
+    def _render_batches(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations, plane_normals,
+                        plane_offsets, k_theta, k_phi, gamma, surface_reflection, batch):
+        """Two slots alternate: batch k renders on the backend's queue into slot k % 2 while a
+        second queue reads batch k − 1 into the slot's host-allocated (``ALLOC_HOST_PTR``:
+        page-locked on NVIDIA) buffer, mapped once; events order the two queues."""
+        _check_mesh(mesh)
+        n_views = rotations.shape[0]
+        shape = (min(batch, n_views), 4, sonar.bins, sonar.beams)
+        nbytes = 4 * int(np.prod(shape))
+        rw = cl.mem_flags.READ_WRITE
+        accs = [cl.Buffer(self.context, rw, size=nbytes) for _ in range(2)]
+        layers = [cl.Buffer(self.context, rw, size=nbytes) for _ in range(2)]
+        staging = [cl.Buffer(self.context, rw | cl.mem_flags.ALLOC_HOST_PTR, size=nbytes) for _ in range(2)]
+        host = [cl.enqueue_map_buffer(self.queue, buf, cl.map_flags.READ | cl.map_flags.WRITE, 0, shape,
+                                      np.float32)[0] for buf in staging]
+        copier = cl.CommandQueue(self.context)
+        first = np.zeros(shape[0], np.int32)
+        copied: list = [None, None]  # the event of each slot's last read
+        pending = None  # (start, count, slot) of the batch read last, not yet handed out
+        try:
+            for k, start in enumerate(range(0, n_views, batch)):
+                stop, slot = min(start + batch, n_views), k % 2
+                n = stop - start
+                with self._lock:
+                    rendered = self._enqueue_render(
+                        mesh, sonar, beam_widths, rotations[start:stop], translations[start:stop],
+                        plane_normals[start:stop], plane_offsets[start:stop], k_theta, k_phi, gamma,
+                        surface_reflection, first[:n], (n, *shape[1:]), accs[slot], layers[slot],
+                        wait_for=None if copied[slot] is None else [copied[slot]])
+                    self.queue.flush()
+                copied[slot] = cl.enqueue_copy(copier, host[slot][:n], layers[slot], is_blocking=False,
+                                               wait_for=[rendered])
+                copier.flush()
+                if pending is not None:
+                    yield _read(host, copied, *pending)
+                pending = (start, n, slot)
+            if pending is not None:
+                yield _read(host, copied, *pending)
+        finally:  # a consumer that stops early: no read may land in unmapped memory
+            copier.finish()
+            for array in host:
+                array.base.release(self.queue)
             self.queue.finish()
-        acc_buf.release()
-        return OpenCLLayers(self.queue, layers_buf, shape)
+            for buf in accs + layers + staging:
+                buf.release()
 
     # --- frontal contours and their distance to the data's ------------------------------------
     def _contour_cost(self, layers, first_rows, view_index, thresholds, windows, masks, range_weights,
@@ -254,6 +308,11 @@ class OpenCLBackend(Backend):
         for buf in buffers + work:
             buf.release()
         return results
+
+
+def _read(host, copied, start, count, slot) -> tuple[int, np.ndarray]:
+    copied[slot].wait()
+    return start, host[slot][:count]
 
 
 class OpenCLLayers(DeviceLayers):

@@ -168,29 +168,90 @@ class WarpBackend(Backend):
     def _render(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations,
                 plane_normals, plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, rows):
         mesh = self._check_mesh(mesh)
-        n_views = rotations.shape[0]
+        shape = (rotations.shape[0], 4, rows, sonar.beams)
+        with wp.ScopedDevice(self._device):
+            poses = self._poses(rotations, translations, plane_normals, plane_offsets)
+            acc = wp.zeros(shape, dtype=wp.int32)
+            layers = wp.empty(shape, dtype=float)
+            self._render_into(mesh, sonar, beam_widths, poses, k_theta, k_phi, gamma, surface_reflection,
+                              self._constant(first_rows, wp.int32), acc, layers)
+            wp.synchronize_device(self._device)
+            return WarpLayers(layers)
+
+    def _poses(self, rotations, translations, plane_normals, plane_offsets) -> tuple[wp.array, ...]:
+        """The (N,) views of a render on the device: rotations, translations, plane normals, offsets."""
+        return (self._array(rotations, wp.mat33), self._array(translations, wp.vec3),
+                self._array(plane_normals, wp.vec3), self._array(plane_offsets, float))
+
+    def _render_into(self, mesh, sonar: SonarConstants, beam_widths, poses, k_theta, k_phi, gamma,
+                     surface_reflection, first_rows, acc, layers) -> None:
+        """Launch the render and fixed-point kernels of the views ``poses`` ((n,) device arrays of
+        ``_poses``) on the device's current stream: acc (n, 4, R, beams) int32, zeroed, receives
+        the deposits and layers (n, 4, R, beams) float32 the result; first_rows (n,) int32 on the
+        device. Returns without waiting."""
         if sonar.use_table:
             centres = np.ascontiguousarray(sonar.beam_table[0], np.float32)
         else:  # the centres of SonarSpec.beam_centres
             half = float(sonar.half_azimuth)
             centres = (-half + np.arange(sonar.beams) * (2.0 * half / max(sonar.beams - 1, 1))).astype(np.float32)
         weight = float(np.float32(1.0 / (k_theta * k_phi)))
-        shape = (n_views, 4, rows, sonar.beams)
+        wp.launch(render_kernel, dim=(acc.shape[0], sonar.beams, k_theta * k_phi),
+                  inputs=[mesh.id, mesh.points, mesh.indices, *poses, self._constant(centres, float),
+                          self._constant(np.asarray(beam_widths, np.float32), float),
+                          self._constant(sonar.beam_table, float), kernel_sonar(sonar), int(k_theta), int(k_phi),
+                          weight, float(gamma), float(surface_reflection), first_rows],
+                  outputs=[acc])
+        wp.launch(fixed_to_float, dim=acc.size, inputs=[acc.flatten()], outputs=[layers.flatten()])
+
+    def _render_batches(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations, plane_normals,
+                        plane_offsets, k_theta, k_phi, gamma, surface_reflection, batch):
+        """On CUDA two slots alternate: batch k renders on the device's stream into slot k % 2
+        while a copy stream takes batch k − 1 to its page-locked host buffer (events order
+        them); on the CPU the layers are host memory already and come as they are."""
+        mesh = self._check_mesh(mesh)
+        n_views = rotations.shape[0]
+        shape = (min(batch, n_views), 4, sonar.bins, sonar.beams)
+        slots = 2 if self.is_gpu else 1
         with wp.ScopedDevice(self._device):
-            acc = wp.zeros(shape, dtype=wp.int32)
-            wp.launch(render_kernel, dim=(n_views, sonar.beams, k_theta * k_phi),
-                      inputs=[mesh.id, mesh.points, mesh.indices, self._array(rotations, wp.mat33),
-                              self._array(translations, wp.vec3), self._array(plane_normals, wp.vec3),
-                              self._array(plane_offsets, float), self._constant(centres, float),
-                              self._constant(np.asarray(beam_widths, np.float32), float),
-                              self._constant(sonar.beam_table, float), kernel_sonar(sonar), int(k_theta), int(k_phi),
-                              weight, float(gamma), float(surface_reflection),
-                              self._constant(first_rows, wp.int32)],
-                      outputs=[acc])
-            layers = wp.empty(shape, dtype=float)
-            wp.launch(fixed_to_float, dim=acc.size, inputs=[acc.flatten()], outputs=[layers.flatten()])
-            wp.synchronize_device(self._device)
-            return WarpLayers(layers)
+            poses = self._poses(rotations, translations, plane_normals, plane_offsets)
+            accs = [wp.empty(shape, dtype=wp.int32) for _ in range(slots)]
+            layers = [wp.empty(shape, dtype=float) for _ in range(slots)]
+            first = self._constant(np.zeros(shape[0], np.int32), wp.int32)
+        host = [wp.empty(shape, dtype=float, device="cpu", pinned=True) for _ in range(slots)] if self.is_gpu else None
+        copier = wp.Stream(self._device) if self.is_gpu else None
+        copied: list = [None] * slots  # the event of each slot's last copy
+        pending = None  # (start, count, slot) of the batch copied last, not yet handed out
+        try:
+            for k, start in enumerate(range(0, n_views, batch)):
+                stop, slot = min(start + batch, n_views), k % slots
+                n = stop - start
+                with wp.ScopedDevice(self._device):
+                    if copied[slot] is not None:  # the slot's layers went to the host first
+                        wp.get_stream(self._device).wait_event(copied[slot])
+                    acc, out = accs[slot][:n], layers[slot][:n]
+                    acc.zero_()
+                    self._render_into(mesh, sonar, beam_widths, tuple(p[start:stop] for p in poses), k_theta,
+                                      k_phi, gamma, surface_reflection, first[:n], acc, out)
+                    if self.is_gpu:
+                        copier.wait_event(wp.get_stream(self._device).record_event())
+                        wp.copy(host[slot][:n], out, stream=copier)
+                        copied[slot] = copier.record_event()
+                if not self.is_gpu:  # launches on the CPU return when done
+                    yield start, out.numpy()
+                    continue
+                if pending is not None:
+                    yield self._copied(host, copied, *pending)
+                pending = (start, n, slot)
+            if pending is not None:
+                yield self._copied(host, copied, *pending)
+        finally:  # a consumer that stops early: no copy may land in freed buffers
+            if copier is not None:
+                wp.synchronize_stream(copier)
+
+    @staticmethod
+    def _copied(host, copied, start, count, slot) -> tuple[int, np.ndarray]:
+        wp.synchronize_event(copied[slot])
+        return start, host[slot].numpy()[:count]
 
     # --- voxel space carving -------------------------------------------------------------------
     def _prepared_carve(self, integral, rotations, translations, sonar: SonarConstants, voxel_size, radius, origin,
