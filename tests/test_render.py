@@ -406,6 +406,56 @@ def test_render_is_deterministic(backend):
     np.testing.assert_array_equal(first, second)
 
 
+@pytest.mark.parametrize("batch", [1, 3, 4, 8])
+def test_render_batches_equal_render_and_the_oracle(backend, batch):
+    """render_batches (pinned staging and a copy stream or queue on a GPU, two slots
+    alternating): the batches come in order, cover every view once, and are bit for bit
+    render's layers (the same kernels; only the way back to the host differs); batch 1 and 3
+    of 4 views reuse each slot, so a copy racing the next render would show. Against the
+    float64 oracle the tolerance of test_backend_matches_oracle_on_coral."""
+    sonar, mesh, rot, trans, normals, offsets = coral_inputs()
+    handle = backend.load_mesh(mesh.vertices, mesh.faces)
+    want = backend.render(handle, sonar, rot, trans, normals, offsets, SAMPLES, gamma=GAMMA, surface_reflection=RS)
+    got, starts = np.full_like(want, np.nan), []
+    for start, layers in backend.render_batches(handle, sonar, rot, trans, normals, offsets, SAMPLES, gamma=GAMMA,
+                                                surface_reflection=RS, batch=batch):
+        assert layers.dtype == np.float32 and layers.shape[1:] == want.shape[1:]
+        starts.append(start)
+        got[start:start + layers.shape[0]] = layers
+    assert starts == list(range(0, len(rot), batch))
+    np.testing.assert_array_equal(got.view(np.uint32), want.view(np.uint32))
+    oracle = coral_oracle()
+    for v in range(len(rot)):
+        for layer, name in enumerate(COMPONENTS):
+            l1 = relative_l1(got[v, layer], oracle[v, layer])
+            assert l1 < 0.02, f"{CORAL_VIEWS[v]} {name}: relative L1 {l1:.4f}"
+
+
+def test_render_batches_stop_early_and_check_inputs_at_once(backend):
+    """A consumer that stops after one batch leaves the backend usable (in-flight copies are
+    waited for); bad inputs raise when render_batches is called, before any batch; no views:
+    no batches."""
+    sonar, mesh, rot, trans, normals, offsets = coral_inputs()
+    handle = backend.load_mesh(mesh.vertices, mesh.faces)
+    args = (handle, sonar, rot, trans, normals, offsets, SAMPLES)
+    batches = backend.render_batches(*args, gamma=GAMMA, surface_reflection=RS, batch=1)
+    start, first = next(batches)
+    assert start == 0 and first.shape == (1, 4, sonar.bins, sonar.beams)
+    first = first.copy()  # valid until the next batch, or the end
+    batches.close()
+    np.testing.assert_array_equal(backend.render(handle, sonar, rot[:1], trans[:1], normals[:1], offsets[:1], SAMPLES,
+                                                 gamma=GAMMA, surface_reflection=RS), first)
+    too_many = 2**31 // (4 * sonar.bins * sonar.beams) + 1
+    for batch in (0, -1, 2.5, too_many):
+        with pytest.raises(ValueError, match="batch"):
+            backend.render_batches(*args, gamma=GAMMA, surface_reflection=RS, batch=batch)
+    with pytest.raises(ValueError, match="samples"):
+        backend.render_batches(handle, sonar, rot, trans, normals, offsets, (0, 4), gamma=GAMMA,
+                               surface_reflection=RS)
+    assert list(backend.render_batches(handle, sonar, rot[:0], trans[:0], normals[:0], offsets[:0], SAMPLES,
+                                       gamma=GAMMA, surface_reflection=RS)) == []
+
+
 # --- input validation --------------------------------------------------------------------------
 def test_load_mesh_rejects_bad_faces(backend):
     vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float64)
