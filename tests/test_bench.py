@@ -65,7 +65,8 @@ def test_every_family_gives_consistent_records(label, carve_scene):
     profiles = harness.probe_machine([backend, peer], quick=True)["profiles"]
     common = dict(profiles=profiles, repeat=2, budget=30.0)
     records = (families.raycast(backend, (1,), rays=2048, **common)
-               + families.synthesis(backend, (1, 2), samples=(1, 4), **common)
+               + families.synthesis(backend, (1, 2), samples=(1, 4), streamed=(3,), batch=2, first_run=True,
+                                    **common)
                + families.carving(backend, (8,), scene=carve_scene, **common)
                + families.pose_grid(backend, (2,), **common)
                + families.reconstruction(backend, ((0, 16),), **common)
@@ -79,6 +80,15 @@ def test_every_family_gives_consistent_records(label, carve_scene):
     ray = next(r for r in records if r["family"] == "raycast")
     assert ray["size"] == {"triangles": 80, "rays": 2048, "hits": ray["size"]["hits"]}
     assert 0 < ray["size"]["hits"] < 2048
+    streamed = {r["kernel"]: r for r in records if r["family"] == "synthesis" and r["x"] == 3}
+    assert set(streamed) == {"render per batch of 2 (pageable, in turn)", "render_batches of 2 (pinned, overlapped)"}
+    for r in streamed.values():
+        assert r["mode"] == "end to end" and r["size"]["batch"] == 2 and r["work"] == 3
+        assert r["rates"]["bytes to the host"] == pytest.approx(3 * 4 * 4 * 512 * 96 / r["median_s"])
+    first = {r["mode"]: r for r in records if r["kernel"] == "render, first call of a new process"}
+    assert set(first) == {"first run (cold cache)", "first run (warm cache)"}
+    for r in first.values():  # the first call includes the backend's creation, a warm call does not
+        assert r["repeat"] == 1 and 0 < r["size"]["backend_s"] < r["median_s"] and r["size"]["again_s"] > 0
     carve = next(r for r in records if r["family"] == "carving" and r["backend"] == backend.name)
     assert carve["work"] == 8**3 * 16 and 1 <= carve["size"]["tests_per_voxel"] <= 16
 
@@ -364,6 +374,46 @@ def test_identifiability_lowest_at_skips_missing_values_and_names_ties():
     assert study.lowest_at([math.nan], [1.0]) == "—"
     assert study.lowest_at([3e-16, 0.0, 1e-15], [-1.0, 0.0, 1.0]) == "all equal"
     assert study.lowest_at([0.2], [1.0]) == "+1°"
+
+
+def test_identifiability_parabola_finds_the_minimum_and_the_noise_of_its_residuals():
+    """A parabola 2 (δ − 0.3)² + 1 plus residuals orthogonal to 1, δ, δ² (so least squares
+    returns it exactly): the minimum 0.3°, the curvature 2, the noise the residuals' RMS over
+    N − 3, and at δ_min ± the resolution the parabola rises by the noise."""
+    study = _identifiability()
+    tilts = np.array([-1.0, -0.5, -0.2, 0.0, 0.2, 0.5, 1.0])
+    basis = np.vander(tilts, 3)
+    rng = np.random.default_rng(3)
+    raw = rng.normal(size=tilts.size)
+    residual = 0.05 * (raw - basis @ np.linalg.lstsq(basis, raw, rcond=None)[0])
+    fit = study.parabola_fit(tilts, 2.0 * (tilts - 0.3) ** 2 + 1.0 + residual)
+    noise = math.sqrt(float(residual @ residual) / (tilts.size - 3))
+    assert fit["minimum_deg"] == pytest.approx(0.3, abs=1e-9) and fit["curvature"] == pytest.approx(2.0, abs=1e-9)
+    assert fit["noise"] == pytest.approx(noise, rel=1e-9)
+    assert 2.0 * fit["resolution_deg"] ** 2 == pytest.approx(noise, rel=1e-9)
+    assert study.parabola_cell(2.0 * (tilts - 0.3) ** 2 + 1.0 + residual, tilts) == \
+        f"+0.30° ± {fit['resolution_deg']:.2f}°"
+    # an exact parabola through NaN gaps: no noise, a resolution of 0
+    values = 0.5 * (tilts + 0.2) ** 2
+    values[1] = math.nan
+    exact = study.parabola_fit(tilts, values)
+    assert exact["minimum_deg"] == pytest.approx(-0.2, abs=1e-9) and exact["resolution_deg"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_identifiability_parabola_without_a_minimum():
+    study = _identifiability()
+    tilts = [-1.0, -0.5, 0.0, 0.5, 1.0]
+    flat = study.parabola_fit(tilts, [0.7] * 5)
+    assert math.isnan(flat["minimum_deg"]) and flat["resolution_deg"] == math.inf and flat["noise"] < 1e-12
+    down = study.parabola_fit(tilts, [-(t ** 2) for t in tilts])
+    assert down["curvature"] == pytest.approx(-1.0) and math.isnan(down["minimum_deg"])
+    assert down["resolution_deg"] == math.inf
+    assert study.parabola_cell([-(t ** 2) for t in tilts], tilts) == "none"
+    three = study.parabola_fit([-1.0, 0.0, 1.0], [1.0, 0.0, 1.0])  # no degrees of freedom left for the noise
+    assert three["minimum_deg"] == pytest.approx(0.0, abs=1e-12) and math.isnan(three["resolution_deg"])
+    assert study.parabola_cell([1.0, 0.0, 3.0], [-1.0, 0.0, 1.0]) == "-0.25°"  # 2δ² + δ
+    assert study.parabola_cell([1.0, math.nan, 1.0], [-1.0, 0.0, 1.0]) == "—"
+    assert math.isnan(study.parabola_fit([0.0, 0.0, 0.0, 0.0], [1.0, 2.0, 3.0, 4.0])["curvature"])
 
 
 @pytest.mark.parametrize("args", [["--tilts", "7"], ["--rounds", "-1"], ["--scenes", "nowhere"]])

@@ -3,7 +3,9 @@ and its minimal operations and bytes (the physical limit; docs/benchmarks.md).
 
 - ``raycast``: ``Backend.cast_rays`` of a fixed ray set on icospheres (sweep: triangles);
   peer ``embree_raycast``.
-- ``synthesis``: ``Backend.render`` / ``render_device`` of coral-one views (sweep: views).
+- ``synthesis``: ``Backend.render`` / ``render_device`` of coral-one views (sweep: views), views
+  streamed in batches (``render_batches`` beside ``render`` per batch) and the first call of a
+  new process with a cold and a warm kernel cache.
 - ``carving``: one carve launch over an N³ grid × 16 views (sweep: voxels); peers
   ``numpy_carving`` (``carve_reference``) and ``array_carving`` (CuPy point projection).
 - ``pose_grid``: the (D, β) grid surrogate of coral-one (sweep: cells).
@@ -26,8 +28,8 @@ from collections.abc import Sequence
 import numpy as np
 
 from ..errors import InputError
-from .harness import (CupyPeer, Peer, Progress, measure, physical_limit, probe_machine, profile_key, record_base,
-                      say, skipped_record, sweep, timed_record, unavailable_record)
+from .harness import (CupyPeer, Peer, Progress, format_value, measure, physical_limit, probe_machine, profile_key,
+                      record_base, say, skipped_record, sweep, timed_record, unavailable_record)
 
 FAMILIES = ("raycast", "synthesis", "carving", "pose", "reconstruction")
 #: Swept values per family: icosphere subdivisions, views, voxels per side, cells per side,
@@ -36,6 +38,9 @@ FULL_SIZES = {"raycast": (3, 4, 5, 6, 7, 8), "synthesis": (1, 4, 16, 64, 256), "
               "pose": (8, 16, 32, 64, 128), "reconstruction": ((1, 128),)}
 QUICK_SIZES = {"raycast": (2, 3), "synthesis": (1, 2), "carving": (16, 24), "pose": (2, 3),
                "reconstruction": ((0, 24),)}
+#: Synthesis streamed to the host in batches (``Backend.render_batches``): views in all, and
+#: the views of a batch (full sizes; --quick: (4,) in batches of 2).
+STREAM_SIZES, STREAM_BATCH = (1024, 4096), 256
 
 NODE_OPS = 44
 TRIANGLE_OPS = 40
@@ -206,10 +211,16 @@ def render_ops(backend, sonar, mesh, rot, t, n, d, samples) -> np.ndarray:
 
 
 def synthesis(backend, view_counts: Sequence[int], *, profiles: dict, repeat: int = 3, budget: float = 20.0,
-              samples: tuple[int, int] = (2, 64), progress: Progress | None = None) -> list[dict]:
-    """Image synthesis of N views in one launch (``view_counts``): "resident"
-    (``render_device``) and "end to end" (``render``, with the read-back of the layers)."""
-    sonar, mesh, rot, t, n, d = coral_batch(max(view_counts))
+              samples: tuple[int, int] = (2, 64), streamed: Sequence[int] = (), batch: int = STREAM_BATCH,
+              first_run: bool = False, progress: Progress | None = None) -> list[dict]:
+    """Image synthesis of coral-one views: N views in one launch (``view_counts``), "resident"
+    (``render_device``) and "end to end" (``render``, with the read-back of the layers); N views
+    in batches of ``batch`` (``streamed``), "end to end" both ways side by side: ``render`` per
+    batch (pageable copies, one after the other: the path before ``render_batches``) and
+    ``render_batches`` (page-locked staging, copies overlapped with the next batch); with
+    ``first_run``, the first call in a fresh process with a cold and a warm kernel cache
+    (``first_run_records``)."""
+    sonar, mesh, rot, t, n, d = coral_batch(max([*view_counts, *streamed]))
     base_ops = render_ops(backend, sonar, mesh, rot[:16], t[:16], n[:16], d[:16], samples)
     handle = backend.load_mesh(mesh.vertices, mesh.faces)
     profile = profiles[profile_key(backend)]
@@ -218,26 +229,136 @@ def synthesis(backend, view_counts: Sequence[int], *, profiles: dict, repeat: in
     rays_per_view = sonar.beams * samples[0] * samples[1]
     kernels = {"resident": ("render_device", backend.render_device), "end to end": ("render", backend.render)}
     bases = {m: record_base("synthesis", k, m, backend, "views") for m, (k, _) in kernels.items()}
+    size = {"triangles": len(mesh.faces), "samples": list(samples), "bins": sonar.bins, "beams": sonar.beams}
+
+    def limit(views, end_to_end):
+        ops = float(sum(base_ops[k % len(base_ops)] for k in range(views)))
+        return physical_limit(profile, bytes_moved=views * layer_bytes + len(mesh.faces) * TRIANGLE_BYTES, ops=ops,
+                              down=views * layer_bytes if link and end_to_end else 0)
 
     def run_point(views):
         args = (handle, sonar, rot[:views], t[:views], n[:views], d[:views], samples)
-        ops = float(sum(base_ops[k % len(base_ops)] for k in range(views)))
         out = []
         for mode, (_, method) in kernels.items():
             timing = measure(lambda: method(*args, gamma=1.0, surface_reflection=0.9), repeat,  # noqa: B023
                              budget=budget)
-            down = views * layer_bytes if link and mode == "end to end" else 0
-            out.append(timed_record(bases[mode], views, timing, views, "views",
-                                    size={"views": views, "triangles": len(mesh.faces), "samples": list(samples),
-                                          "bins": sonar.bins, "beams": sonar.beams},
+            out.append(timed_record(bases[mode], views, timing, views, "views", size=dict(size, views=views),
                                     rates={"primary rays": views * rays_per_view},
-                                    limit=physical_limit(profile, bytes_moved=views * layer_bytes
-                                                         + len(mesh.faces) * TRIANGLE_BYTES, ops=ops, down=down)))
+                                    limit=limit(views, mode == "end to end")))
             say(progress, out[-1])
         return out
 
-    return sweep([(v, v, v) for v in view_counts], run_point,
-                 lambda v, p: [skipped_record(b, v, p, budget) for b in bases.values()], budget=budget)
+    records = sweep([(v, v, v) for v in view_counts], run_point,
+                    lambda v, p: [skipped_record(b, v, p, budget) for b in bases.values()], budget=budget)
+
+    paths = {"pageable": (f"render per batch of {batch} (pageable, in turn)", _batched_render),
+             "pinned": (f"render_batches of {batch} (pinned, overlapped)", _streamed_render)}
+    stream_bases = {k: record_base("synthesis", name, "end to end", backend, "views") for k, (name, _) in paths.items()}
+
+    def run_stream(views):
+        args = (handle, sonar, rot[:views], t[:views], n[:views], d[:views], samples)
+        out = {}
+        for key, (_, call) in paths.items():
+            timing = measure(lambda: call(backend, args, batch), repeat, budget=budget)  # noqa: B023
+            out[key] = timed_record(stream_bases[key], views, timing, views, "views",
+                                    size=dict(size, views=views, batch=batch),
+                                    rates={"primary rays": views * rays_per_view, "bytes to the host":
+                                           views * layer_bytes}, limit=limit(views, True))
+            say(progress, out[key])
+        if progress is not None:
+            before, after = out["pageable"]["throughput"], out["pinned"]["throughput"]
+            progress(f"  synthesis {backend.name} {backend.device[:40]}, {views} views in batches of {batch}, all "
+                     f"layers to the host: {format_value(before)} views/s before (pageable), {format_value(after)} "
+                     f"views/s after (pinned, overlapped): x{after / before:.3g}")
+        return list(out.values())
+
+    records += sweep([(v, v, v) for v in streamed], run_stream,
+                     lambda v, p: [skipped_record(b, v, p, budget) for b in stream_bases.values()], budget=budget)
+    if first_run:
+        records += first_run_records(backend, profiles=profiles, samples=samples, progress=progress)
+    return records
+
+
+def _batched_render(backend, args, batch: int) -> None:
+    """``render`` of the views of ``args`` batch after batch, each read back before the next
+    (pageable host arrays)."""
+    handle, sonar, rot, t, n, d, samples = args
+    for start in range(0, len(rot), batch):
+        views = slice(start, start + batch)
+        backend.render(handle, sonar, rot[views], t[views], n[views], d[views], samples, gamma=1.0,
+                       surface_reflection=0.9)
+
+
+def _streamed_render(backend, args, batch: int) -> None:
+    """``render_batches`` of the views of ``args``, every batch's layers handed to the host."""
+    for _ in backend.render_batches(*args, gamma=1.0, surface_reflection=0.9, batch=batch):
+        pass
+
+
+FIRST_CALL = """
+import json, sys, time
+from fsswarp.backends import get_backend
+from fsswarp.benchmark.families import coral_batch
+sonar, mesh, rot, t, n, d = coral_batch(1)
+args = (sonar, rot, t, n, d, tuple(json.loads(sys.argv[3])))
+begin = time.perf_counter()
+backend = get_backend(sys.argv[1], sys.argv[2])
+made = time.perf_counter()
+handle = backend.load_mesh(mesh.vertices, mesh.faces)
+backend.render(handle, *args, gamma=1.0, surface_reflection=0.9)
+first = time.perf_counter()
+backend.render(handle, *args, gamma=1.0, surface_reflection=0.9)
+print(json.dumps({"backend_s": made - begin, "first_s": first - begin, "again_s": time.perf_counter() - first}))
+"""
+
+
+def first_run_records(backend, *, profiles: dict, samples: tuple[int, int] = (2, 64), timeout: float = 900.0,
+                      progress: Progress | None = None) -> list[dict]:
+    """The first synthesis of one coral-one view in a new process (``FIRST_CALL``): creating the
+    backend, loading the mesh and the first ``render``, which compiles the kernels or loads
+    them from the kernel cache. Twice, in child processes whose kernel caches live in one
+    temporary folder (``cache_environment``): first empty ("first run (cold cache)": kernel
+    compilation), then as the first left it ("first run (warm cache)": cache load). Each
+    record's size holds the backend's creation (``backend_s``) and a second render in the same
+    process (``again_s``, warm); the limit is that of rendering one view."""
+    import json
+    import subprocess
+    import sys
+
+    profile = profiles[profile_key(backend)]
+    sonar, mesh, rot, t, n, d = coral_batch(1)
+    ops = float(render_ops(backend, sonar, mesh, rot, t, n, d, samples).sum())
+    layer_bytes = 4 * sonar.bins * sonar.beams * 4
+    out = []
+    with tempfile.TemporaryDirectory(prefix="fsswarp-cache-") as folder:
+        env = dict(os.environ, **cache_environment(folder))
+        for mode in ("first run (cold cache)", "first run (warm cache)"):
+            done = subprocess.run([sys.executable, "-c", FIRST_CALL, backend.name, backend.device,
+                                   json.dumps(list(samples))], env=env, capture_output=True, text=True,
+                                  timeout=timeout, check=False)
+            base = record_base("synthesis", "render, first call of a new process", mode, backend, "views")
+            if done.returncode != 0:
+                out.append(unavailable_record(base, " ".join((done.stderr or done.stdout).split()[-30:])))
+                continue
+            times = json.loads(done.stdout.strip().splitlines()[-1])
+            timing = {"median_s": times["first_s"], "min_s": times["first_s"], "max_s": times["first_s"],
+                      "repeat": 1, "timed_s": times["first_s"]}
+            out.append(timed_record(base, 1, timing, 1, "views",
+                                    size={"views": 1, "samples": list(samples), "backend_s": times["backend_s"],
+                                          "again_s": times["again_s"]},
+                                    limit=physical_limit(profile, bytes_moved=layer_bytes + len(mesh.faces)
+                                                         * TRIANGLE_BYTES, ops=ops)))
+            say(progress, out[-1])
+    return out
+
+
+def cache_environment(folder) -> dict[str, str]:
+    """Environment variables that put every kernel cache fsswarp's backends use under
+    ``folder``: Warp's (``WARP_CACHE_PATH``), PoCL's and pyopencl's and fsswarp's own records
+    (``XDG_CACHE_HOME``; PoCL also ``POCL_CACHE_DIR``) and NVIDIA's JIT cache
+    (``CUDA_CACHE_PATH``, which its OpenCL driver uses too)."""
+    return {"WARP_CACHE_PATH": f"{folder}/warp", "XDG_CACHE_HOME": f"{folder}/xdg",
+            "POCL_CACHE_DIR": f"{folder}/pocl", "CUDA_CACHE_PATH": f"{folder}/nv"}
 
 
 # --- carving -----------------------------------------------------------------------------------
@@ -539,7 +660,8 @@ def run_suite(backends: Sequence, families: Sequence[str] = FAMILIES, *, quick: 
             if family == "raycast":
                 records += raycast(backend, sizes["raycast"], **common)
             elif family == "synthesis":
-                records += synthesis(backend, sizes["synthesis"], **common)
+                records += synthesis(backend, sizes["synthesis"], streamed=(4,) if quick else STREAM_SIZES,
+                                     batch=2 if quick else STREAM_BATCH, first_run=not quick, **common)
             elif family == "carving":
                 scene = scene or carve_scene(backend)
                 records += carving(backend, sizes["carving"], scene=scene, **common)
