@@ -93,12 +93,20 @@ def start_options(command):
 @app.command()
 @click.pass_obj
 def info(state: State) -> None:
-    """List the kernel backends and devices found, which one 'auto' picks, and how to install
-    what is missing. With --backend/--device, also check that choice."""
+    """List the kernel backends and devices found, which one 'auto' picks, how to install what
+    is missing, and whether each device's kernel cache holds fsswarp's kernels (warm: no
+    compilation on the first run). With --backend/--device, also check that choice."""
     from .backends import describe_backends
+    from .backends.cache import kernel_cache
 
     chosen = state.get_backend() if state.backend != "auto" or state.device is not None else None
-    click.echo(format_backends(describe_backends()))
+    rows = describe_backends()
+    click.echo(format_backends(rows))
+    click.echo("kernel cache (checked without compiling; docs/benchmarks.md):")
+    for row in (r for r in rows if r["available"]):
+        warm, why = kernel_cache(row)
+        index = f"[{row['index']}] " if row["index"] is not None else ""
+        click.echo(f"  - {row['backend']} {index}{row['device']}: {warm} ({why})")
     if chosen is not None:
         click.echo(f"selected: {chosen.name} on {chosen.device}")
 

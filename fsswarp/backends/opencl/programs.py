@@ -4,7 +4,8 @@ The OpenCL C sources (OpenCL 1.2, float32) ship with the wheel as ``fsswarp/kern
 hatchling force-include of the repository's top-level ``kernels/``); an editable install
 reads them from the repository. Our own ``#include "x.h"`` lines are inlined here before
 building, because include paths are not portable across ICDs. Programs are built once per
-context and kept; pyopencl's on-disk binary cache stays on.
+context and kept; pyopencl's on-disk binary cache stays on (PoCL and NVIDIA cache the builds
+themselves), and each build is recorded for ``fsswarp info`` (``backends/cache.py``).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from pathlib import Path
 import pyopencl as cl
 from pyopencl.tools import first_arg_dependent_memoize
 
+from ..cache import record_build
 from ..constants import opencl_defines
 
 #: Options of every build: the shared constants (``constants.opencl_defines``). No fast-math:
@@ -76,8 +78,11 @@ def _inline(name: str, folder: Path, seen: set[str]) -> str:
 # --- programs ----------------------------------------------------------------------------------
 @first_arg_dependent_memoize
 def program(context: cl.Context, name: str, options: tuple[str, ...] = BUILD_OPTIONS) -> cl.Program:
-    """``kernels/<name>`` built for ``context`` (memoized per context, name and options)."""
-    return build(context, kernel_source(name), options, label=name)
+    """``kernels/<name>`` built for ``context`` (memoized per context, name and options), the
+    build recorded for ``fsswarp info`` (``cache.record_build``)."""
+    built = build(context, kernel_source(name), options, label=name)
+    record_build(context.devices, options, kernel_source(name))
+    return built
 
 
 def build(context: cl.Context, source: str, options: tuple[str, ...], *, label: str) -> cl.Program:

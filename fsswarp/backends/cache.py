@@ -1,0 +1,166 @@
+"""Whether a backend's kernels are in its kernel cache, told without compiling (``fsswarp info``).
+
+- Warp compiles each kernel module, at the first launch of one of its kernels, once per module hash, device kind (a CPU target or a CUDA
+  architecture) and Warp version into ``wp.config.kernel_cache_dir`` (``WARP_CACHE_PATH``,
+  default ~/.cache/warp/<version>). ``warp_cache`` hashes fsswarp's Warp modules as Warp
+  would for the device (the hash covers the kernels' code and options; no code is generated
+  for a compiler) and looks for each module's binary and metadata there: exact, as long as
+  Warp keeps its cache layout (private names; anything unexpected gives "unknown").
+- OpenCL: PoCL and NVIDIA's driver cache program binaries themselves (pyopencl then keeps
+  none), under keys of their own that only a build can look up. fsswarp records each program
+  it builds (``record_build``: a file named by pyopencl's key of device, driver, options and
+  source, under ``$XDG_CACHE_HOME/fsswarp/opencl``); ``opencl_cache`` says warm when every
+  program of the backend is recorded with the driver's cache folder as it is now (its path
+  and inode: PoCL's ``POCL_CACHE_DIR``, default ``$XDG_CACHE_HOME/pocl/kcache``; NVIDIA's
+  ``CUDA_CACHE_PATH``, default ~/.nv/ComputeCache), cold when one is missing, the folder was
+  removed or moved since, or the driver's cache is switched off (``POCL_KERNEL_CACHE=0``,
+  ``CUDA_CACHE_DISABLE=1``). Entries removed from inside the folder, or evicted by size,
+  still read warm: the driver alone knows. Other
+  drivers use pyopencl's binary cache, whose entry for each program is looked up exactly.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+from .runtimes import import_warp
+
+#: OpenCL programs that ``OpenCLBackend`` builds (icp.cl only with float64).
+OPENCL_PROGRAMS = ("project.cl", "carve.cl", "raycast.cl", "render.cl", "pose.cl")
+#: Warp modules holding fsswarp's kernels (fsswarp/backends/warp/).
+WARP_MODULES = ("project", "carve", "raycast", "render", "pose", "icp")
+
+
+def _cache_home() -> Path:
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+
+
+# --- Warp ------------------------------------------------------------------------------------
+def warp_cache(device: str) -> tuple[str, str]:
+    """("warm" | "partly warm" | "cold" | "unknown", a one-line reason) for fsswarp's Warp
+    kernel modules on ``device`` ("cpu", "cuda:N"); partly: some modules compiled (Warp compiles
+    a module at the first launch of one of its kernels: a synthesis compiles ``render``)."""
+    wp, why = import_warp()
+    if wp is None:
+        return "unknown", why
+    try:
+        import importlib
+
+        from warp._src.context import _resolve_launch_block_dim
+
+        target = wp.get_device(device)
+        folder = Path(wp.config.kernel_cache_dir)
+        missing = []
+        for name in WARP_MODULES:
+            module = wp.get_module(importlib.import_module(f"fsswarp.backends.warp.{name}").__name__)
+            block_dim = _resolve_launch_block_dim(target, None)
+            ident = module.get_module_identifier(block_dim)
+            binary = module._get_compile_output_name(target, block_dim=block_dim)
+            meta = module._get_meta_name(block_dim)
+            if not ((folder / ident / binary).is_file() and (folder / ident / meta).is_file()):
+                missing.append(name)
+    except Exception as err:  # noqa: BLE001 - Warp's private cache layout changed: say so
+        return "unknown", f"cannot read Warp's cache layout ({' '.join(str(err).split())})"
+    compiled = [name for name in WARP_MODULES if name not in missing]
+    where = f"for {device} in {folder}"
+    if not compiled:
+        return "cold", f"no module compiled {where}"
+    if missing:  # Warp compiles a module when one of its kernels is first launched
+        return "partly warm", f"{', '.join(compiled)} compiled, {', '.join(missing)} not, {where}"
+    return "warm", f"all {len(WARP_MODULES)} modules compiled {where}"
+
+
+# --- OpenCL ----------------------------------------------------------------------------------
+def build_key(device, options: tuple[str, ...], source: str) -> str:
+    """pyopencl's cache key of ``source`` built with ``options`` for ``device`` (its platform,
+    device and driver versions, pyopencl's version)."""
+    from pyopencl.cache import get_cache_key
+
+    return get_cache_key(device, " ".join(options).encode(), source)
+
+
+def _records() -> Path:
+    return _cache_home() / "fsswarp" / "opencl"
+
+
+def record_build(devices, options: tuple[str, ...], source: str) -> None:
+    """Note that ``source`` was built with ``options`` for ``devices`` (``opencl_cache``): the
+    record holds the driver's cache folder and its inode, so that a cache folder removed since
+    (and made anew) reads cold. A folder that cannot be written is passed over."""
+    try:
+        folder = _records()
+        folder.mkdir(parents=True, exist_ok=True)
+        for device in devices:
+            (folder / build_key(device, options, source)).write_text(_driver_identity(device))
+    except OSError:
+        pass
+
+
+def _driver_identity(device) -> str:
+    """"<folder> <inode>" of the device's driver cache as it is now ("-" where none is kept)."""
+    where, off = _driver_cache(device)
+    if where is None or off or not where.is_dir():
+        return "-"
+    return f"{where} {where.stat().st_ino}"
+
+
+def _driver_cache(device) -> tuple[Path | None, str]:
+    """(the folder where the driver of ``device`` (a pyopencl Device) caches binaries, None
+    for pyopencl's own cache; why it is off, else "")."""
+    platform = device.platform.name.lower()
+    if "portable computing language" in platform or "pocl" in platform:
+        if os.environ.get("POCL_KERNEL_CACHE", "1") == "0":
+            return None, "PoCL's kernel cache is off (POCL_KERNEL_CACHE=0)"
+        return Path(os.environ.get("POCL_CACHE_DIR") or _cache_home() / "pocl" / "kcache"), ""
+    from pyopencl.characterize import nv_compute_capability
+
+    if nv_compute_capability(device) is not None:
+        if os.environ.get("CUDA_CACHE_DISABLE", "0") == "1":
+            return None, "NVIDIA's JIT cache is off (CUDA_CACHE_DISABLE=1)"
+        return Path(os.environ.get("CUDA_CACHE_PATH") or Path.home() / ".nv" / "ComputeCache"), ""
+    return None, ""
+
+
+def opencl_cache(found) -> tuple[str, str]:
+    """("warm" | "cold" | "unknown", a one-line reason) for fsswarp's OpenCL programs on
+    ``found`` (an ``OpenCLDevice``)."""
+    from .opencl.programs import BUILD_OPTIONS, kernel_source
+
+    try:
+        names = OPENCL_PROGRAMS + (("icp.cl",) if "cl_khr_fp64" in found.device.extensions.split() else ())
+        keys = {name: build_key(found.device, BUILD_OPTIONS, kernel_source(name)) for name in names}
+        folder, off = _driver_cache(found.device)
+        if off:
+            return "cold", off
+        if folder is None:  # pyopencl's own binary cache: the exact entry
+            import pyopencl as cl
+            import platformdirs
+            from pyopencl.cache import get_cache_key
+
+            base = Path(platformdirs.user_cache_dir("pyopencl", "pyopencl"))
+            where = base / f"pyopencl-compiler-cache-v2-py{'.'.join(str(i) for i in sys.version_info)}"
+            options = cl.Program._process_build_options(cl.Context([found.device]), list(BUILD_OPTIONS))[0]
+            missing = [n for n in names if not (where / get_cache_key(found.device, options, kernel_source(n))).is_dir()]
+            what = f"pyopencl's binary cache {where}"
+        else:
+            now = _driver_identity(found.device)
+            missing = [n for n, key in keys.items()
+                       if not (_records() / key).is_file() or (_records() / key).read_text() != now]
+            what = f"the driver's cache {folder} (fsswarp's build records in {_records()})"
+    except Exception as err:  # noqa: BLE001 - pyopencl's cache layout changed: say so
+        return "unknown", f"cannot check the program cache ({' '.join(str(err).split())})"
+    if missing:
+        return "cold", f"{', '.join(missing)} not built for this device and driver in {what}"
+    return "warm", f"{len(names)} programs built for this device and driver in {what}"
+
+
+def kernel_cache(row: dict) -> tuple[str, str]:
+    """``warp_cache`` or ``opencl_cache`` of one available ``describe_backends()`` row."""
+    if row["backend"] == "warp":
+        return warp_cache(row["device"])
+    from .select import _opencl_devices
+
+    return opencl_cache(_opencl_devices()[0][row["index"]])
+

@@ -1,0 +1,75 @@
+"""``fsswarp info``'s kernel-cache lines (fsswarp/backends/cache.py) on the CPU backends: cold
+on fresh cache folders, without compiling anything itself; warm where a synthesis compiled or
+built the kernels; cold again when the driver's cache is gone. Every step runs in a child
+process whose caches all lie in one temporary folder (``families.cache_environment``)."""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+from fsswarp.benchmark.families import cache_environment
+
+from conftest import backend_for
+
+SYNTHESIS = """
+import sys
+from fsswarp.backends import get_backend
+from fsswarp.benchmark.families import coral_batch
+sonar, mesh, rot, t, n, d = coral_batch(1)
+backend = get_backend(sys.argv[1], sys.argv[2])
+backend.render(backend.load_mesh(mesh.vertices, mesh.faces), sonar, rot, t, n, d, (1, 4), gamma=1.0,
+               surface_reflection=0.9)
+"""
+
+
+def child(env: dict, *args: str) -> str:
+    done = subprocess.run([sys.executable, *args], env=env, capture_output=True, text=True, timeout=600, check=False)
+    assert done.returncode == 0, done.stderr
+    return done.stdout
+
+
+def cache_line(text: str, backend: str, device: str) -> str:
+    """The state ("warm", "partly warm", "cold", "unknown") and reason on info's kernel-cache
+    line for a backend and device."""
+    lines = text.split("\nkernel cache", 1)[1].splitlines()
+    line = next(line for line in lines if line.startswith(f"  - {backend} ") and f" {device}: " in line)
+    return line.split(f" {device}: ", 1)[1]
+
+
+@pytest.fixture()
+def caches(tmp_path) -> dict:
+    return dict(os.environ, **cache_environment(tmp_path))
+
+
+def test_warp_cpu_cache_cold_then_render_compiled(caches, tmp_path):
+    backend_for("warp-cpu")
+    line = cache_line(child(caches, "-m", "fsswarp", "info"), "warp", "cpu")
+    assert line.startswith("cold (no module compiled for cpu in "), line
+    assert not any((tmp_path / "warp").rglob("*.o")), "info compiled a Warp module"
+    child(caches, "-c", SYNTHESIS, "warp", "cpu")
+    line = cache_line(child(caches, "-m", "fsswarp", "info"), "warp", "cpu")
+    assert line.startswith("partly warm (render compiled, project, carve, raycast, pose, icp not"), line
+    # the check names the module folder Warp wrote: remove it and the module reads cold again
+    built = [p.parent for p in (tmp_path / "warp").rglob("*.o")]
+    assert [p.name.rsplit("_", 1)[0] for p in built] == ["wp_fsswarp.backends.warp.render"]
+    shutil.rmtree(built[0])
+    assert cache_line(child(caches, "-m", "fsswarp", "info"), "warp", "cpu").startswith("cold"), line
+
+
+def test_pocl_cache_cold_then_warm_then_cold_without_the_driver_cache(caches, tmp_path):
+    device = backend_for("opencl-cpu").device
+    line = cache_line(child(caches, "-m", "fsswarp", "info"), "opencl", device)
+    assert line.startswith("cold (project.cl, carve.cl, raycast.cl, render.cl, pose.cl"), line
+    assert not any((tmp_path / "xdg" / "fsswarp").rglob("*")), "info built fsswarp's programs"
+    child(caches, "-c", SYNTHESIS, "opencl", device)
+    line = cache_line(child(caches, "-m", "fsswarp", "info"), "opencl", device)
+    assert re.match(r"warm \(\d programs built for this device and driver in the driver's cache ", line), line
+    assert str(tmp_path / "pocl") in line
+    shutil.rmtree(tmp_path / "pocl")  # PoCL's binaries gone: the records alone do not make it warm
+    assert cache_line(child(caches, "-m", "fsswarp", "info"), "opencl", device).startswith("cold"), line
