@@ -17,6 +17,9 @@ a sub-ray that meets the surface first deposits r_s² · c2^γ as mirror2 after 
 Defaults γ = 1, r_s = 0.9. Deposits are summed in fixed point (2^24 per unit) with integer
 atomics, so layers do not depend on the order of the threads. docs/method.md gives every step.
 
+:func:`stream_views` renders views in batches and hands each view to a consumer on a worker
+thread (noise and writing overlap the rendering of the next batches).
+
 :func:`add_noise` draws the simulator's noise (Gamma speckle of ``looks``, an exponential
 floor at ``background`` of the 99th-percentile echo); :func:`log_compress` maps an image to dB
 for figures.
@@ -25,7 +28,10 @@ for figures.
 from __future__ import annotations
 
 import hashlib
+import queue
+import threading
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -117,9 +123,62 @@ def render_views(mesh, sonar: SonarSpec, rotations, translations, plane_normals,
     passes one (pose, plane) pair per cell and view). Returns (N, 5, bins, beams) float32 in
     the order of ``LAYERS``. ``backend`` defaults to ``get_backend("auto")``.
     """
+    backend, handle, rotations, translations, normals, offsets = _prepared(
+        mesh, rotations, translations, plane_normals, plane_offsets, backend)
+    layers = backend.render(handle, sonar, rotations, translations, normals, offsets, settings.samples,
+                            gamma=settings.gamma, surface_reflection=settings.surface_reflection)
+    return with_total(layers)
+
+
+def stream_views(mesh, sonar: SonarSpec, rotations, translations, plane_normals, plane_offsets,
+                 consume: Callable[[int, np.ndarray], None], *, settings: RenderSettings = RenderSettings(),
+                 backend=None, batch: int = 256, queued: int = 2) -> None:
+    """``render_views`` streamed: the views rendered ``batch`` at a time (``Backend.render_batches``:
+    page-locked copies overlapped with the next batch on a GPU) and ``consume(index, layers)``
+    called for every view in order, layers its (5, bins, beams) float32 array (the order of
+    ``LAYERS``, bit for bit ``render_views``'), on one worker thread fed by a queue of at most
+    ``queued`` batches: consuming (noise, encoding, writing to disk) overlaps the rendering of
+    the next batches, and rendering waits when the consumer falls ``queued`` batches behind.
+    The consumer's first exception is raised here, after the worker stopped."""
+    backend, handle, rotations, translations, normals, offsets = _prepared(
+        mesh, rotations, translations, plane_normals, plane_offsets, backend)
+    batches = backend.render_batches(handle, sonar, rotations, translations, normals, offsets, settings.samples,
+                                     gamma=settings.gamma, surface_reflection=settings.surface_reflection,
+                                     batch=batch)
+    work: queue.Queue = queue.Queue(maxsize=queued)
+    failed: list[BaseException] = []
+
+    def worker() -> None:
+        while (item := work.get()) is not None:
+            start, layers = item
+            if not failed:
+                try:
+                    for k, stack in enumerate(with_total(layers)):
+                        consume(start + k, stack)
+                except BaseException as err:  # noqa: BLE001 - raised in the caller's thread
+                    failed.append(err)
+
+    thread = threading.Thread(target=worker, name="fsswarp-consumer", daemon=True)
+    thread.start()
+    try:
+        for start, layers in batches:
+            if failed:
+                break
+            work.put((start, layers.copy()))  # the staging buffer is the next batch's
+    finally:
+        batches.close()
+        work.put(None)
+        thread.join()
+    if failed:
+        raise failed[0]
+
+
+def _prepared(mesh, rotations, translations, plane_normals, plane_offsets, backend):
+    """(backend, mesh handle, checked poses and planes) of ``render_views`` and ``stream_views``,
+    or InputError; ``backend`` None: ``get_backend("auto")``."""
     from .backends import get_backend
 
-    vertices, faces = check_mesh(mesh)
+    vertices, faces = check_mesh(mesh, name="mesh")
     rotations = finite_array("pose rotations", rotations, 3)
     translations = finite_array("pose translations", translations, 2)
     normals = finite_array("plane normals", plane_normals, 2)
@@ -128,10 +187,17 @@ def render_views(mesh, sonar: SonarSpec, rotations, translations, plane_normals,
         raise InputError("the sonar must lie below the surface (offset > 0)", field="plane offsets",
                          value=float(offsets.min()))
     backend = backend or get_backend()
-    handle = backend.load_mesh(vertices, faces)
-    layers = backend.render(handle, sonar, rotations, translations, normals, offsets, settings.samples,
-                            gamma=settings.gamma, surface_reflection=settings.surface_reflection)
-    return with_total(layers)
+    return backend, backend.load_mesh(vertices, faces), rotations, translations, normals, offsets
+
+
+def rig_poses(rig: Rig, depth: float, tilt: float, names) -> tuple[np.ndarray, ...]:
+    """(rotations (N, 3, 3), translations (N, 3), plane normals (N, 3), plane offsets (N,)) of
+    the rig's views ``names`` at (depth m, tilt rad): the inputs of ``render_views``."""
+    check_depth_tilt(depth, tilt)
+    index = [rig.index(name) for name in names]
+    rot, t = rig.relative_poses(depth, tilt)
+    n, d = surface_in_views(rig, depth, tilt)
+    return rot[index], t[index], n[index], d[index]
 
 
 def with_total(layers: np.ndarray) -> np.ndarray:
@@ -147,14 +213,10 @@ def render(mesh, sonar: SonarSpec, rig: Rig, depth: float, tilt: float, *, views
     views : names to render (default: all). Returns ``{view name: (5, bins, beams) float32}``
     with layers in the order of ``LAYERS``. Warns when the mesh falls outside a view's window.
     """
-    check_depth_tilt(depth, tilt)
     names = rig.names if views is None else list(views)
-    index = [rig.index(name) for name in names]
-    rot, t = rig.relative_poses(depth, tilt)
-    n, d = surface_in_views(rig, depth, tilt)
-    warn_outside_window(mesh, sonar, rot[index], t[index], n[index], d[index], names)
-    images = render_views(mesh, sonar, rot[index], t[index], n[index], d[index], settings=settings,
-                          backend=backend)
+    rot, t, n, d = rig_poses(rig, depth, tilt, names)
+    warn_outside_window(mesh, sonar, rot, t, n, d, names)
+    images = render_views(mesh, sonar, rot, t, n, d, settings=settings, backend=backend)
     return dict(zip(names, images))
 
 

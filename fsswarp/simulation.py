@@ -1,4 +1,9 @@
-"""Simulate a dataset from a scene: render the truth layers, add seeded noise, save (DESIGN §12)."""
+"""Simulate a dataset from a scene: render the truth layers, add seeded noise, save (DESIGN §12).
+
+Views are rendered in batches (``rendering.stream_views``); each batch's noise is drawn on a
+worker thread while the next batch renders. The dataset is written whole at the end
+(``save_dataset``: all or nothing).
+"""
 
 from __future__ import annotations
 
@@ -12,10 +17,13 @@ import trimesh
 from .atomic import check_output_folder
 from .dataset import TRUTH_MODEL, Dataset, Manifest, Truth, deep_water_pose, load_dataset, load_scene, save_dataset
 from .errors import InputError, check_integer
-from .rendering import LAYERS, RenderSettings, RenderWarning, add_noise, render
+from .rendering import LAYERS, RenderSettings, RenderWarning, add_noise, rig_poses, stream_views, warn_outside_window
 from .rig import world_to_reference
 from .scenes import builtin_scene, target_world_mesh
 from .targets import BUILTIN_TARGETS
+
+#: Views rendered per batch: the noise of one batch is drawn while the next renders.
+BATCH = 8
 
 
 def resolve_scene(scene: str | Path) -> tuple[Manifest, Path | None]:
@@ -53,16 +61,21 @@ def simulate(scene: str | Path | Manifest, out: str | Path, *, seed: int = 0,
     model = trimesh.Trimesh(world_to_reference(world.vertices, manifest.rig, placed.depth, placed.tilt),
                             world.faces, process=False)
     depth, tilt = deep_water_pose(manifest) if deep else (placed.depth, placed.tilt)
+    names = manifest.rig.names
+    poses = rig_poses(manifest.rig, depth, tilt, names)
     with warnings.catch_warnings():
         if deep:  # the surface lies beyond every window on purpose (deep_water_pose)
             warnings.filterwarnings("ignore", "view .*: ghost returns reach", RenderWarning)
-        views = render(model, manifest.sonar, manifest.rig, depth, tilt, settings=settings, backend=backend)
+        warn_outside_window(model, manifest.sonar, *poses, names)
     kept = ("object",) if deep else tuple(layer for layer in LAYERS if layer != "total")
     images, layers = {}, {}
-    for index, (name, stack) in enumerate(views.items()):
+
+    def keep(index: int, stack: np.ndarray) -> None:  # on stream_views' worker, beside the next batch
         total = stack[LAYERS.index("total")]
-        images[name] = add_noise(total, np.random.default_rng([seed, index])) if noise else total
-        layers[name] = {layer: stack[LAYERS.index(layer)] for layer in kept}
+        images[names[index]] = add_noise(total, np.random.default_rng([seed, index])) if noise else total
+        layers[names[index]] = {layer: stack[LAYERS.index(layer)] for layer in kept}
+
+    stream_views(model, manifest.sonar, *poses, keep, settings=settings, backend=backend, batch=BATCH)
     dataset_manifest = dataclasses.replace(manifest, target=None, truth=Truth(depth=None, tilt=None) if deep else
                                            Truth(depth=placed.depth, tilt=placed.tilt))
     dataset = Dataset(dataset_manifest, images)

@@ -60,6 +60,58 @@ def test_same_seed_same_images_other_seed_other_images(coral, tmp_path):
     assert not np.array_equal(other.images["S0"], dataset.images["S0"])
 
 
+@pytest.mark.parametrize("label", ["warp-cpu", "opencl-cpu"])
+def test_simulate_streams_the_layers_render_gives(label, tmp_path):
+    """simulate renders in batches and draws the noise on a worker thread: its images and truth
+    layers are bit for bit the one-launch render's layers with add_noise's seeded draws."""
+    from conftest import backend_for
+    from fsswarp.rendering import add_noise, render
+    from fsswarp.rig import world_to_reference
+    from fsswarp.simulation import check_scene
+
+    backend = backend_for(label)
+    dataset = simulate("coral-one", tmp_path / "s", seed=5, settings=FAST, backend=backend)
+    manifest, world = check_scene("coral-one")
+    truth = manifest.truth
+    model = trimesh.Trimesh(world_to_reference(world.vertices, manifest.rig, truth.depth, truth.tilt), world.faces,
+                            process=False)
+    views = render(model, manifest.sonar, manifest.rig, truth.depth, truth.tilt, settings=FAST, backend=backend)
+    for index, (name, stack) in enumerate(views.items()):
+        want = add_noise(stack[LAYERS.index("total")], np.random.default_rng([5, index]))
+        np.testing.assert_array_equal(dataset.images[name], want)
+        np.testing.assert_array_equal(dataset.truth_layer(name, "ghost"), stack[LAYERS.index("ghost")])
+
+
+def test_stream_views_hands_every_view_in_order_and_raises_the_consumers_error():
+    from conftest import backend_for
+    from fsswarp.rendering import render, rig_poses, stream_views
+    from fsswarp.rig import world_to_reference
+    from fsswarp.simulation import check_scene
+
+    backend = backend_for("warp-cpu")
+    manifest, world = check_scene("coral-one")
+    truth = manifest.truth
+    model = trimesh.Trimesh(world_to_reference(world.vertices, manifest.rig, truth.depth, truth.tilt), world.faces,
+                            process=False)
+    names = manifest.rig.names[:5]
+    poses = rig_poses(manifest.rig, truth.depth, truth.tilt, names)
+    want = render(model, manifest.sonar, manifest.rig, truth.depth, truth.tilt, views=names, settings=FAST,
+                  backend=backend)
+    seen = []
+    stream_views(model, manifest.sonar, *poses, lambda k, stack: seen.append((k, stack)), settings=FAST,
+                 backend=backend, batch=2, queued=1)
+    assert [k for k, _ in seen] == list(range(5))
+    for k, stack in seen:  # copies: the staging buffer was reused by the later batches
+        np.testing.assert_array_equal(stack, want[names[k]])
+
+    def fail(k, stack):
+        if k == 2:
+            raise OSError("disk full")
+
+    with pytest.raises(OSError, match="disk full"):
+        stream_views(model, manifest.sonar, *poses, fail, settings=FAST, backend=backend, batch=2, queued=1)
+
+
 def test_render_command_writes_every_layer(coral, tmp_path):
     _, out = coral
     done = run_cli("render", str(out / "truth" / "model.ply"), "--dataset", str(out), "--out",

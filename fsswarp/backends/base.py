@@ -388,7 +388,7 @@ class Backend(abc.ABC):
             raise ValueError(f"batch must be an integer >= 1 with batch x 4 x {sonar.bins} x {sonar.beams} "
                              f"< 2^31 pixels, got {batch!r}")
         if rot.shape[0] == 0:
-            return iter(())
+            return (batch for batch in ())
         return self._render_batches(mesh, SonarConstants.of(sonar), sonar.beam_widths, rot, trans, normals,
                                     offsets, k_theta, k_phi, float(gamma), float(surface_reflection), int(batch))
 
