@@ -20,7 +20,9 @@ refined for ``--rounds`` rounds of the loop's shape step (3 updates each,
 After every round it records AIE, ACE, E_mu and E_V (``fsswarp.reconstruction.image_errors``,
 ``fsswarp.pose.pose_objective``, ``fsswarp.metrics.compare``). A shape free to move that
 matches the images equally well at every δ means the images cannot tell the tilt; the tilt
-of the lowest value says which β the images prefer for that family of shapes. Writes
+of the lowest value says which β the images prefer for that family of shapes, and the
+parabola fitted through a row (:func:`parabola_fit`) how sharply: its minimum ± the half-width
+at which it rises by its own residual noise (the tilt resolution). Writes
 ``bench/records/identifiability/NAME.json`` (the machine, the command, the date, every value)
 and regenerates ``bench/RESULTS.md`` with ``bench/report.py``, which renders every such
 record with :func:`table_markdown` and draws it with :func:`plot_record`.
@@ -132,15 +134,53 @@ def lowest_at(values, tilts_deg) -> str:
     return f"{min(finite)[1]:+g}°"
 
 
+def parabola_fit(tilts_deg, values) -> dict:
+    """The least-squares parabola v ≈ a (δ − δ_min)² + c through the finite ``values`` (N,)
+    at tilt errors ``tilts_deg`` (N,) (deg): {"minimum_deg": δ_min, "curvature": a (per deg²),
+    "noise": the residuals' RMS with N − 3 degrees of freedom, "resolution_deg": √(noise / a),
+    the half-width at which the parabola rises by its noise}. A parabola flat to rounding or
+    opening downwards has no minimum: δ_min NaN, the resolution ∞ (the values do not tell the
+    tilt); fewer than three distinct tilts leave every value NaN, fewer than four finite points
+    the noise and the resolution."""
+    import numpy as np
+
+    x, y = np.asarray(tilts_deg, np.float64), np.asarray(values, np.float64)
+    keep = np.isfinite(x) & np.isfinite(y)
+    x, y = x[keep], y[keep]
+    nan = {"minimum_deg": math.nan, "curvature": math.nan, "noise": math.nan, "resolution_deg": math.nan}
+    if x.size < 3 or np.unique(x).size < 3:
+        return nan
+    a, b, c = np.polyfit(x, y, 2)
+    noise = float(np.sqrt(np.sum((np.polyval((a, b, c), x) - y) ** 2) / (x.size - 3))) if x.size > 3 else math.nan
+    if a <= 1e-12 * max(1.0, float(np.max(np.abs(y)))):  # flat to rounding, or opening downwards
+        return {**nan, "curvature": float(a), "noise": noise, "resolution_deg": math.inf}
+    return {"minimum_deg": float(-b / (2.0 * a)), "curvature": float(a), "noise": noise,
+            "resolution_deg": math.sqrt(noise / a) if math.isfinite(noise) else math.nan}
+
+
+def parabola_cell(values, tilts_deg) -> str:
+    """The table's cell of :func:`parabola_fit`: "+0.12° ± 0.30°" (the minimum ± the
+    resolution), "none" for no minimum, "—" for fewer than three points."""
+    fit = parabola_fit(tilts_deg, values)
+    if math.isnan(fit["curvature"]):
+        return "—"
+    if math.isnan(fit["minimum_deg"]):
+        return "none"
+    spread = "" if math.isnan(fit["resolution_deg"]) else f" ± {fit['resolution_deg']:.2f}°"
+    return f"{fit['minimum_deg']:+.2f}°{spread}"
+
+
 def table_markdown(record: dict, name: str) -> str:
     """The Markdown of one record: the machine line and, per scene, one table with a row per
-    (start, metric) at the start (round 0) and after the last round."""
+    (start, metric) at the start (round 0) and after the last round, with the tilt error of
+    the lowest value and of the fitted parabola's minimum (:func:`parabola_cell`)."""
     tilts, rounds = record["tilts_deg"], record["rounds"]
     lines = paper_table.record_header(record, name) + [
         f"- noisy images, seed {record['seed']}{paper_table.rig_note(record)}; {rounds} rounds of the loop's "
         f"shape step (3 updates each) at every point; whole command {record['seconds']:.0f} s", ""]
-    header = "| start | value | round | " + " | ".join(f"{t:+g}°" for t in tilts) + " | lowest at |"
-    rule = "|---|---|---|" + "---|" * len(tilts) + "---|"
+    header = ("| start | value | round | " + " | ".join(f"{t:+g}°" for t in tilts)
+              + " | lowest at | parabola's minimum ± resolution |")
+    rule = "|---|---|---|" + "---|" * len(tilts) + "---|---|"
     for scene, result in record["scenes"].items():
         depths = ", ".join(f"{d:.4f}" for _, d in result["valley"])
         lines += [f"#### {scene}", "", f"Depths along the valley (m): {depths}.", "", header, rule]
@@ -149,7 +189,8 @@ def table_markdown(record: dict, name: str) -> str:
                 for k in sorted({0, rounds}):
                     values = [states[k][metric] * factor for states in series]
                     cells = " | ".join(form.format(v) if math.isfinite(v) else "—" for v in values)
-                    lines.append(f"| {start} | {label} | {k} | {cells} | {lowest_at(values, tilts)} |")
+                    lines.append(f"| {start} | {label} | {k} | {cells} | {lowest_at(values, tilts)} | "
+                                 f"{parabola_cell(values, tilts)} |")
         lines.append("")
     return "\n".join(lines)
 

@@ -43,12 +43,19 @@ _SCENES = {
 #: Sensor classes of the built-in scenes: (depth σ m, tilt σ deg).
 SENSORS = {"realistic": (0.003, 0.6), "poor": (0.05, 2.0)}
 
-# position letter: (x, y) offset from the target's centre in units of STANDOFF_M, heading (rad)
+#: Horizontal distance (m) from the near-south position ``T`` to the target's centre: a second
+#: standoff on the south side. The nearest to 1.2 m at which every vertex of both corals and
+#: its ghost and mirror stay inside the range window, the ±14.4° fan and the ±7° elevation
+#: aperture at all eight rolls (at 1.2 m the object leaves the aperture at rolls −45° to
+#: 45° and its mirror the fan at ±67.5° and −90°); the table fits from 1.65 m.
+NEAR_STANDOFF_M = 1.4
+# position letter: (x, y) offset (m) from the target's centre, heading (rad)
 _POSITIONS = {
-    "S": ((0.0, -1.0), 0.0),
-    "N": ((0.0, 1.0), math.pi),
-    "E": ((1.0, 0.0), math.pi / 2),
-    "W": ((-1.0, 0.0), -math.pi / 2),
+    "S": ((0.0, -STANDOFF_M), 0.0),
+    "N": ((0.0, STANDOFF_M), math.pi),
+    "E": ((STANDOFF_M, 0.0), math.pi / 2),
+    "W": ((-STANDOFF_M, 0.0), -math.pi / 2),
+    "T": ((0.0, -NEAR_STANDOFF_M), 0.0),
 }
 
 
@@ -56,10 +63,12 @@ def builtin_scene(name: str, positions: str | None = None, sensors: str = "reali
                   deep_water: bool = False) -> Manifest:
     """The scene manifest of a built-in target: ``coral-one``, ``coral-two`` or ``table``.
 
-    positions : the sonar positions around the target, distinct letters of ``SNEW`` (south,
-        north, east, west; eight rolls at each, the first position's first view the
-        reference); default the scene's own (DESIGN §11: ``SN`` for the corals, ``SNEW`` for
-        the table). The corals with ``SNEW`` see their south–north extent in azimuth too.
+    positions : the sonar positions around the target, distinct letters of ``SNEWT`` (south,
+        north, east, west at ``STANDOFF_M``; ``T`` near-south, the south side again at
+        ``NEAR_STANDOFF_M``: two standoffs on one side, ``ST``); eight rolls at each, the first
+        position's first view the reference; default the scene's own (DESIGN §11: ``SN`` for
+        the corals, ``SNEW`` for the table). The corals with ``SNEW`` see their south–north
+        extent in azimuth too.
     sensors : a class of ``SENSORS`` (module docstring).
     deep_water : the same rig and target ``DEEP_WATER_M`` deeper, without a surface: no
         [surface] and no [truth] table; the true depth and tilt are the known [rig] ones."""
@@ -76,8 +85,8 @@ def builtin_scene(name: str, positions: str | None = None, sensors: str = "reali
     centre = (0.0, STANDOFF_M, -(drop + TOP_DEPTH_M + 0.5 * height))
     views = []
     for letter in positions:
-        (ux, uy), heading = _POSITIONS[letter]
-        xy = (centre[0] + ux * STANDOFF_M, centre[1] + uy * STANDOFF_M)
+        (dx, dy), heading = _POSITIONS[letter]
+        xy = (centre[0] + dx, centre[1] + dy)
         for roll in ROLLS:
             roll_deg = round(math.degrees(roll), 6)
             views.append(View(name=f"{letter}{_roll_label(roll_deg)}", position=xy, heading=heading,
@@ -97,14 +106,14 @@ def builtin_scene(name: str, positions: str | None = None, sensors: str = "reali
 
 
 def check_positions(positions) -> str | None:
-    """``positions`` (a string of distinct letters of ``SNEW``, upper or lower case) in upper
+    """``positions`` (a string of distinct letters of ``SNEWT``, upper or lower case) in upper
     case, None for None (a scene's own); InputError (field ``--positions``) otherwise."""
     if positions is None:
         return None
     letters = positions.upper() if isinstance(positions, str) else None
     if not letters or any(c not in _POSITIONS for c in letters) or len(set(letters)) != len(letters):
-        raise InputError("must be distinct letters of S, N, E, W (sonar positions south, north, east, west of the "
-                         "target), e.g. SN or SNEW", field="--positions", value=positions)
+        raise InputError("must be distinct letters of S, N, E, W, T (sonar positions south, north, east, west of the "
+                         "target, T near-south), e.g. SN, SNEW or ST", field="--positions", value=positions)
     return letters
 
 

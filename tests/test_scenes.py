@@ -8,7 +8,7 @@ import pytest
 from fsswarp.dataset import Target, load_scene, save_scene
 from fsswarp.errors import InputError
 from fsswarp.rig import to_view, world_to_reference
-from fsswarp.scenes import STANDOFF_M, TOP_DEPTH_M, builtin_scene, target_world_mesh
+from fsswarp.scenes import NEAR_STANDOFF_M, STANDOFF_M, TOP_DEPTH_M, builtin_scene, target_world_mesh
 from fsswarp.sonar import to_polar
 from fsswarp.surface import apparent_returns, surface_in_views
 
@@ -53,7 +53,8 @@ def test_target_sits_just_below_the_surface_ahead_of_the_sonar(name):
 
 
 @pytest.mark.parametrize("name, positions", [("coral-one", None), ("coral-two", None), ("table", None),
-                                             ("coral-one", "SNEW"), ("coral-two", "WE")])
+                                             ("coral-one", "SNEW"), ("coral-two", "WE"),
+                                             ("coral-one", "ST"), ("coral-two", "ST")])
 def test_object_ghost_and_mirror_fall_in_every_view(name, positions):
     """Every vertex lies inside the window and apertures; its ghost and mirror returns land in
     the window; at roll 0 the mirror falls on the object, at ±67.5° it moves five beams or more."""
@@ -98,7 +99,31 @@ def test_positions_put_a_scene_on_another_rig(tmp_path):
     assert load_scene(save_scene(four, tmp_path / "four.toml")) == four
 
 
-@pytest.mark.parametrize("positions", ["", "SX", "SS", "S N", 5, None])
+def test_near_south_is_a_second_standoff_on_the_south_side():
+    """T: eight rolls at NEAR_STANDOFF_M (1.4 m, the nearest to 1.2 m where the corals fit)
+    south of the target's centre, heading north like S; ST keeps S's views and reference."""
+    two, south = builtin_scene("coral-one", "st"), builtin_scene("coral-one", "S")
+    views = two.rig.views
+    assert NEAR_STANDOFF_M == 1.4 and views[:8] == south.rig.views and two.rig.reference == 0
+    assert [v.name for v in views[8:]] == ["Tm90", "Tm67p5", "Tm45", "Tm22p5", "T0", "Tp22p5", "Tp45", "Tp67p5"]
+    assert len({v.name for v in views}) == 16
+    cx, cy, _ = two.target.position
+    for view in views:
+        distance = math.hypot(view.position[0] - cx, view.position[1] - cy)
+        assert view.position[0] == cx and view.position[1] < cy and view.heading == 0.0
+        assert distance == pytest.approx(NEAR_STANDOFF_M if view.name[0] == "T" else STANDOFF_M, abs=1e-12)
+    assert [v.optimize for v in views[8:]] == [v.optimize for v in views[:8]]
+
+
+def test_scene_command_writes_two_standoffs(tmp_path):
+    from fsswarp.cli import main
+
+    assert main(["scene", "coral-two", "--positions", "ST", "--out", str(tmp_path / "st.toml")]) == 0
+    scene = load_scene(tmp_path / "st.toml")
+    assert scene == builtin_scene("coral-two", "ST") and len(scene.rig.views) == 16
+
+
+@pytest.mark.parametrize("positions", ["", "SX", "SS", "S N", "TT", 5, None])
 def test_bad_positions_are_one_line(positions):
     if positions is None:  # None means the scene's own
         assert builtin_scene("coral-one", positions) == builtin_scene("coral-one")
