@@ -46,8 +46,6 @@ def run_table(backend, scenes, *, seeds, iterations: int, tilt_offset_deg: float
     history (DESIGN §12's keys), the wall times of the simulation and the reconstruction, and
     ``true_model_pose``: the estimate of the pose step alone with the true model from the same
     start (D, β, E_mu at the start and at the estimate, seconds)."""
-    import dataclasses
-
     from fsswarp.pose import estimate_pose
     from fsswarp.reconstruction import ReconstructSettings, reconstruct
     from fsswarp.scenes import builtin_scene
@@ -61,13 +59,9 @@ def run_table(backend, scenes, *, seeds, iterations: int, tilt_offset_deg: float
           dataset = simulate(builtin_scene(scene, positions, sensors), Path(folder) / f"{scene}-{seed}", seed=seed,
                              backend=backend)
           simulated = time.perf_counter() - begin
-          surface, truth = dataset.manifest.surface, dataset.manifest.truth
+          truth = dataset.manifest.truth
           model = dataset.truth_mesh()  # for the pose step alone, from both starts
-          offset = math.copysign(tilt_offset_deg, surface.tilt - truth.tilt)
-          tilted = dataclasses.replace(dataset, manifest=dataclasses.replace(dataset.manifest, surface=(
-              dataclasses.replace(surface, tilt=truth.tilt + math.radians(offset),
-                                  tilt_sigma=math.radians(tilt_offset_deg)))))
-          for label, data in (("measured", dataset), (f"β {offset:+g}°, σ_β {tilt_offset_deg:g}°", tilted)):
+          for label, data in starts(dataset, tilt_offset_deg):
               progress(f"{scene}, seed {seed}, start {label}")
               result = reconstruct(data, settings=settings, backend=backend,
                                    progress=lambda line: progress("  " + line))
@@ -92,6 +86,20 @@ def run_table(backend, scenes, *, seeds, iterations: int, tilt_offset_deg: float
                                                "E_mu_start_m": pose.error_before, "E_mu_m": pose.error_after,
                                                **pose.posterior.summary(), "seconds": pose.seconds}})
     return runs
+
+
+def starts(dataset, tilt_offset_deg: float) -> list:
+    """[(label, dataset)] of the table's two starts: ``dataset`` with its measured D0 and β0, and
+    the same with a tilt sensor ``tilt_offset_deg`` (deg) off the truth, on the side of the
+    measured error, with σ_β of the same size."""
+    import dataclasses
+
+    surface, truth = dataset.manifest.surface, dataset.manifest.truth
+    offset = math.copysign(tilt_offset_deg, surface.tilt - truth.tilt)
+    tilted = dataclasses.replace(dataset, manifest=dataclasses.replace(dataset.manifest, surface=(
+        dataclasses.replace(surface, tilt=truth.tilt + math.radians(offset),
+                            tilt_sigma=math.radians(tilt_offset_deg)))))
+    return [("measured", dataset), (f"β {offset:+g}°, σ_β {tilt_offset_deg:g}°", tilted)]
 
 
 def summary(run: dict) -> dict:
