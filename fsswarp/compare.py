@@ -319,12 +319,17 @@ class ViewComparison:
         located estimate, from the device layers of every view to optimize: every pair is
         costed where it lies (a view left out against data view 0, then dropped) rather than
         the data views' layers uploaded again; a pair's cost does not depend on the others."""
-        index = np.zeros(self._layers.shape[0], np.int64)  # each pair's data view
-        index[self._keep] = np.arange(len(self._keep))
         data = self.data
-        found = self.backend.contour_cost(self._layers, index, data.threshold, data.windows, data.masks,
-                                          self._distances, shifts, self.smoothing, cap)
+        found = self.backend.contour_cost(self._layers, self._located_index(), data.threshold, data.windows,
+                                          data.masks, self._distances, shifts, self.smoothing, cap)
         return tuple(a[self._keep] for a in found)
+
+    def _located_index(self) -> np.ndarray:
+        """(pairs of the located layers,) int64 data view of each pair: a view left out is
+        compared with data view 0 (and its pair dropped)."""
+        index = np.zeros(self._layers.shape[0], np.int64)
+        index[self._keep] = np.arange(len(self._keep))
+        return index
 
     def _distance(self, rows: np.ndarray) -> np.ndarray:
         """(bins, beams) distance (m) of every pixel to the contour pixels (row per beam), at
@@ -362,17 +367,19 @@ class ViewComparison:
                                           n.reshape(-1, 3), d.reshape(-1), samples, gamma=ECHO.gamma,
                                           surface_reflection=ECHO.surface_reflection, rows=rows)
 
-    def view_costs(self, depths: np.ndarray, tilts: np.ndarray, samples, cap: float):
+    def view_costs(self, depths: np.ndarray, tilts: np.ndarray, samples, cap: float, *, contours: bool = True):
         """(G, V, S) surrogate view costs of cells (G,) at the detection shift (S = 1) or, without
-        one, at every candidate shift; and (G, V, 2, beams) synthetic contours. One launch unless
-        the layers would exceed ``settings.launch_bytes``.
+        one, at every candidate shift; and (G, V, 2, beams) synthetic contours, or None with
+        ``contours`` false (the costs are then combined on the device, ``Backend.view_costs``,
+        and only they are read back). One launch unless the layers would exceed
+        ``settings.launch_bytes``.
 
         Each pair renders only the band of rows its view's window reads (``render_device``'s
         ``rows``): the window [lo, hi) ± the range smoothing's radius rB, clipped to the image,
         R rows for every pair (the widest view's), started lower where it would pass the last
         row; the contours and costs are those of full layers, bit for bit. One cell at the
         located estimate with the exact samples reads the layers rendered there, on the device
-        (``_located_costs``; no render: the same pixels)."""
+        (``_located_index``; no render: the same pixels)."""
         data, sonar = self.data, self.sonar
         n_views = len(data.views)
         need_lo, need_hi = rows_read(data.windows, len(self.smoothing[0]), sonar.bins)
@@ -380,24 +387,29 @@ class ViewComparison:
         first = np.minimum(need_lo, sonar.bins - rows)
         per = max(1, self.settings.launch_bytes // (32 * rows * sonar.beams * n_views))
         shifts = self.shifts if self.shift is None else [self.shift]
-        costs, contours = [], []
+        costs, found = [], []
         for start in range(0, len(depths), per):
             cell_d, cell_t = depths[start:start + per], tilts[start:start + per]
-            if len(cell_d) == 1 and (float(cell_d[0]), float(cell_t[0])) == self.estimate \
+            g = len(cell_d)
+            if g == 1 and (float(cell_d[0]), float(cell_t[0])) == self.estimate \
                     and tuple(samples) == tuple(self.settings.exact_samples):
-                contour, sums, counts = self._located_costs(shifts, cap)
+                layers, index, keep = self._layers, self._located_index(), self._keep
             else:
                 layers = self.render_pairs(data.views, cell_d, cell_t, samples,
                                            rows=(np.tile(first, len(cell_d)), rows))
-                contour, sums, counts = self.backend.contour_cost(
-                    layers, np.tile(np.arange(n_views), len(cell_d)), data.threshold, data.windows, data.masks,
-                    self._distances, shifts, self.smoothing, cap)
-                del layers
-            g = len(cell_d)
-            costs.append(_view_cost(sums.reshape(g, n_views, 2, -1), counts.reshape(g, n_views, 2), data.counts, cap))
-            contours.append(contour.reshape(g, n_views, 2, -1))
+                index, keep = np.tile(np.arange(n_views), g), slice(None)
+            arguments = (layers, index, data.threshold, data.windows, data.masks, self._distances, shifts,
+                         self.smoothing)
+            if contours:
+                contour, sums, counts = (a[keep] for a in self.backend.contour_cost(*arguments, cap))
+                costs.append(_view_cost(sums.reshape(g, n_views, 2, -1), counts.reshape(g, n_views, 2), data.counts,
+                                        cap))
+                found.append(contour.reshape(g, n_views, 2, -1))
+            else:
+                costs.append(self.backend.view_costs(*arguments, data.counts, cap)[keep].reshape(g, n_views, -1))
+            del layers
         self.counters["surrogate_cells"] += len(depths)
-        return np.concatenate(costs), np.concatenate(contours)
+        return np.concatenate(costs), np.concatenate(found) if contours else None
 
     def surrogate(self, depths, tilts, *, cap: float | None = None, samples=None) -> np.ndarray:
         """Surrogate cost (m) of cells: depths (m), tilts (rad) of one shape -> that shape, the
@@ -415,7 +427,8 @@ class ViewComparison:
             raise InputError(f"must be a distance in (0, {self.reach}] m", field="cap", value=cap)
         depths, tilts = np.broadcast_arrays(np.asarray(depths, np.float64), np.asarray(tilts, np.float64))
         costs, _ = self.view_costs(depths.reshape(-1), tilts.reshape(-1), samples or self.settings.samples,
-                                    self.settings.cap if cap is None else cap)
+                                    self.settings.cap if cap is None else cap, contours=False)
+        costs = costs.astype(np.float64)
         shift = np.argmin(costs.mean(axis=1), axis=-1)
         per_view = np.take_along_axis(costs, shift[:, None, None], axis=-1)[..., 0]
         return per_view.reshape(depths.shape + (costs.shape[1],))

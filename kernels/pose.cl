@@ -20,6 +20,9 @@
  *   min(dist[v][c][·][b], cap) read at y = clamp(x + shift[s], 0, bins − 1) by linear
  *   interpolation between rows floor(y) and floor(y) + 1 (clamped): sums[n][c][s] = Σ_b of it, and
  *   counts[n][c] = the number of such beams (written by s == 0).
+ * view_cost, work-item (s, n) = (shift, pair), v = view_index[n]: the pair's surrogate view cost
+ *   costs[n][s] = Σ_c (sums[n][c][s] + cap · max(0, m − k)) / max(k, m), k = counts[n][c],
+ *   m = data_counts[v][c] (the data's contour points), a term 0 where k = m = 0; c in order.
  *
  * Bands: the clamping is to the image [0, bins − 1], never to the band; the host guarantees
  * that every row a pair's window reads, [max(lo − rB, 0), min(hi + rB, bins)), lies in its
@@ -38,10 +41,13 @@
  *   cap          float            distances above it count as cap (m)
  *   shifts       (S,) float       range shifts (rows)
  *   contour      (N, 2, beams) float  out (frontal_contour), in (contour_cost)
- *   sums         (N, 2, S) float;  counts (N, 2) int   out
+ *   sums         (N, 2, S) float;  counts (N, 2) int   out (contour_cost), in (view_cost)
+ *   data_counts  (V, 2) int       data contour points of each view and component
+ *   costs        (N, S) float     out (view_cost)
  *
- * Work size: 3-D, global (beams or S rounded up to the work-group size, 2, N); items past
- * the first dimension's extent return at once. The host validates everything; no checks here.
+ * Work size: 3-D, global (beams or S rounded up to the work-group size, 2, N); view_cost 2-D,
+ * (S rounded up, N); items past the first dimension's extent return at once. The host
+ * validates everything; no checks here.
  */
 #include "sonar.h"
 
@@ -136,4 +142,28 @@ __kernel void contour_cost(__global const float *contour,
     sums[((size_t)n * 2 + c) * n_shifts + s] = total;
     if (s == 0)
         counts[(size_t)n * 2 + c] = count;
+}
+
+__kernel void view_cost(__global const float *sums,
+                        __global const int *counts,
+                        __global const int *view_index,
+                        __global const int *data_counts,
+                        const float cap,
+                        const int n_shifts,
+                        __global float *costs)
+{
+    const int s = get_global_id(0);
+    const int n = get_global_id(1);
+    if (s >= n_shifts)
+        return;
+    const int v = view_index[n];
+    float total = 0.0f;
+    for (int c = 0; c < 2; ++c) {
+        const int k = counts[(size_t)n * 2 + c];
+        const int m = data_counts[(size_t)v * 2 + c];
+        const int most = max(k, m);
+        if (most > 0)
+            total += (sums[((size_t)n * 2 + c) * n_shifts + s] + cap * (float)max(m - k, 0)) / (float)most;
+    }
+    costs[(size_t)n * n_shifts + s] = total;
 }

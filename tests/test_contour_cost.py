@@ -73,6 +73,63 @@ def test_matches_numpy_oracle(backend, seed):
     assert contours.dtype == np.float32 and sums.dtype == np.float32 and counts.dtype == np.int32
 
 
+def view_cost_reference(sums, counts, view_index, data_counts, cap):
+    """(N, S) float64 object + mirror terms (Σ d + cap · max(0, m − k)) / max(k, m), 0 for an
+    empty term, from the oracle's sums (N, 2, S) and counts (N, 2) and the data's (V, 2) counts."""
+    out = np.zeros((sums.shape[0], sums.shape[2]))
+    for n, v in enumerate(view_index):
+        for c in (0, 1):
+            k, m = int(counts[n, c]), int(data_counts[v, c])
+            if max(k, m) > 0:
+                out[n] += (sums[n, c] + cap * max(m - k, 0)) / max(k, m)
+    return out
+
+
+def view_cost_case(seed):
+    """random_case with one empty object term (no mask, no data point), data counts above,
+    equal to and below the synthetic ones, and a cap among the distances."""
+    case = list(random_case(seed))
+    case[4][0, 1] = False  # view 0: no mirror beams
+    case[1][:2] = 0  # pairs 0 and 1 compare with view 0
+    rng = np.random.default_rng(seed + 100)
+    data_counts = rng.integers(0, case[4].shape[2] + 3, (case[4].shape[0], 2))
+    data_counts[0, 1] = 0
+    return case, data_counts, 0.03
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_view_costs_match_numpy_oracle(backend, seed):
+    """``view_costs`` combines the contour sums on the device as the float64 oracle does, with
+    the cap read into the distances and the missing points."""
+    case, data_counts, cap = view_cost_case(seed)
+    got = backend.view_costs(*case, data_counts, cap)
+    _, sums, counts = contour_cost_reference(*case[:5], np.minimum(case[5], np.float32(cap)), *case[6:])
+    want = view_cost_reference(sums, counts, case[1], data_counts, cap)
+    assert got.dtype == np.float32 and got.shape == (len(case[1]), len(case[6]))
+    assert np.all(want[:2] >= 0) and np.any(want > 0)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_view_costs_are_the_host_combination_of_contour_cost(backend, seed):
+    """The device's view costs equal the host's float64 combination (``compare._view_cost``,
+    the grid's former path) of the same backend's ``contour_cost``, within float32 rounding."""
+    from fsswarp.compare import _view_cost
+
+    case, data_counts, cap = view_cost_case(seed)
+    uploaded = backend.device_distances(case[5])
+    _, sums, counts = backend.contour_cost(*case[:5], uploaded, *case[6:], cap=cap)
+    n_views, n = data_counts.shape[0], len(case[1])
+    # one pair per "cell" of V views: pair p of view v sits at cell p, view v (other views empty)
+    full_sums = np.zeros((n, n_views, 2, len(case[6])))
+    full_counts = np.zeros((n, n_views, 2), np.int64)
+    full_sums[np.arange(n), case[1]] = sums
+    full_counts[np.arange(n), case[1]] = counts
+    want = _view_cost(full_sums, full_counts, data_counts, cap)[np.arange(n), case[1]]
+    got = backend.view_costs(*case[:5], uploaded, *case[6:], data_counts, cap)
+    np.testing.assert_allclose(got, want, rtol=2e-6, atol=1e-7)
+
+
 def test_crossing_rules(backend):
     # one beam, ramp 0, 0, 1, 3 (rows 0..3) against threshold 2: crossing at row 2.5; a window
     # starting above the threshold gives its first row; no crossing gives -1
@@ -105,6 +162,7 @@ def test_warp_and_opencl_agree_on_rendered_views(backend_for_label):
     masks = np.ones((5, 2, sonar.beams), bool)
     distances = np.random.default_rng(0).uniform(0, 0.05, (5, 2, sonar.bins, sonar.beams))
     view_index = np.tile(np.arange(5), 3)
+    data_counts = np.array([[40, 10], [64, 0], [20, 30], [0, 0], [50, 50]])
     first, count = tight_bands(view_index, windows, (len(_gaussian(1.0)) - 1) // 2, sonar.bins)
     out = {}
     for b in (warp, opencl):
@@ -112,8 +170,10 @@ def test_warp_and_opencl_agree_on_rendered_views(backend_for_label):
         for rows in (None, (first, count)):
             layers = b.render_device(handle, sonar, rot.reshape(-1, 3, 3), t.reshape(-1, 3), n.reshape(-1, 3),
                                      d.reshape(-1), (1, 32), gamma=1.0, surface_reflection=0.9, rows=rows)
-            out[b.name, rows is None] = b.contour_cost(layers, view_index, thresholds, windows, masks, distances,
-                                                       [0.0, 0.5], (_gaussian(1.0), _gaussian(0.7)))
+            args = (layers, view_index, thresholds, windows, masks, distances, [0.0, 0.5],
+                    (_gaussian(1.0), _gaussian(0.7)))
+            out[b.name, rows is None] = b.contour_cost(*args)
+            out[b.name, "view costs", rows is None] = b.view_costs(*args, data_counts, 0.04)
         for a, f in zip(out[b.name, False], out[b.name, True]):  # banded layers: bit for bit the full ones'
             np.testing.assert_array_equal(a, f)
     for full in (True, False):
@@ -123,6 +183,9 @@ def test_warp_and_opencl_agree_on_rendered_views(backend_for_label):
         np.testing.assert_allclose(c_w, c_o, rtol=0, atol=1e-4)  # fractional rows
         np.testing.assert_array_equal(n_w, n_o)
         np.testing.assert_allclose(s_w, s_o, rtol=1e-5, atol=1e-6)  # metres
+        np.testing.assert_array_equal(out["warp", "view costs", full], out["warp", "view costs", not full])
+        np.testing.assert_allclose(out["warp", "view costs", full], out["opencl", "view costs", full],
+                                   rtol=1e-5, atol=1e-6)
 
 
 def tight_bands(view_index, windows, radius, bins):
@@ -237,6 +300,24 @@ def test_bad_inputs_raise(backend_for_label, change, message):
     args.update(change)
     with pytest.raises(ValueError, match=message):
         backend.contour_cost(**args)
+
+
+@pytest.mark.parametrize("change, message", [
+    (dict(data_counts=np.zeros((3, 3), int)), "data_counts"),
+    (dict(data_counts=-np.ones((3, 2), int)), "data_counts"),
+    (dict(data_counts=np.zeros((3, 2))), "data_counts"),
+    (dict(cap=float("inf")), "finite"),
+    (dict(cap=0.0), "cap"),
+    (dict(view_index=[0, 5]), "view_index"),
+])
+def test_view_costs_bad_inputs_raise(backend_for_label, change, message):
+    backend = backend_for_label("opencl-cpu")
+    args = dict(layers=np.zeros((2, 4, 8, 4)), view_index=[0, 2], thresholds=np.ones((3, 8)),
+                windows=np.tile([0, 8], (3, 1)), masks=np.ones((3, 2, 4), bool), distances=np.zeros((3, 2, 8, 4)),
+                shifts=[0.0], smoothing=([1.0], [1.0]), data_counts=np.ones((3, 2), int), cap=0.02)
+    args.update(change)
+    with pytest.raises(ValueError, match=message):
+        backend.view_costs(**args)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

@@ -234,6 +234,31 @@ def test_costs_at_the_estimate_read_the_located_layers(coral_one, truth_model, b
         assert (one[1] >= 0).sum() > 100
 
 
+def test_surrogate_views_combine_the_costs_on_the_device_as_the_host_did(coral_one, truth_model, backend):
+    """``surrogate_views`` reads only the device's view costs (``Backend.view_costs``): the per-view
+    costs of the host's float64 combination of the contour sums (``view_costs(contours=True)``,
+    the former path) at the same best shift, within float32 rounding; with the detection shift,
+    without one (each cell's best of every candidate shift), and for the located cell."""
+    truth = coral_one.manifest.truth
+    comparison = ViewComparison(coral_one, backend=backend).use(truth_model, truth.depth, truth.tilt)
+    depths, tilts = np.meshgrid(truth.depth + np.array([-0.02, 0.0, 0.03]), truth.tilt + np.radians([-1.0, 0.5]),
+                                indexing="ij")
+    samples, cap = (1, 32), 0.03
+    assert comparison.shift is not None
+    for shift in (comparison.shift, None):
+        comparison.shift = shift
+        for d, t, sam in ((depths, tilts, samples), (np.array([truth.depth]), np.array([truth.tilt]),
+                                                     comparison.settings.exact_samples)):
+            costs, contours = comparison.view_costs(d.ravel(), t.ravel(), sam, cap, contours=True)
+            best = np.argmin(costs.mean(axis=1), axis=-1)
+            want = costs[np.arange(len(best)), :, best].reshape(d.shape + (costs.shape[1],))
+            got = comparison.surrogate_views(d, t, cap=cap, samples=sam)
+            assert got.shape == want.shape and got.dtype == np.float64
+            assert np.all(want > 0) and (contours >= 0).sum() > 100
+            np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-7)
+        assert costs.shape[-1] == (1 if shift is not None else len(comparison.shifts))
+
+
 def test_a_gpu_locates_without_the_host_copy(coral_one, truth_model, opencl, monkeypatch):
     """On a GPU, locating scans the predicted views from row 0 and leaves their host copy
     unread until ``predicted`` is read: the same data contours, anchors, shift, layers and

@@ -460,6 +460,43 @@ class Backend(abc.ABC):
         layers, -1 where none; (N, 2, S) float32 sums of the distances over the contour
         points; (N, 2) int32 their counts. Float32 on the device, summed in beam order.
         """
+        args = self._contour_inputs(layers, view_index, thresholds, windows, masks, distances, shifts, smoothing,
+                                    cap)
+        n_pairs, n_shifts, beams = args[2].shape[0], args[10].shape[0], args[8].shape[3]
+        if n_pairs == 0:
+            return (np.zeros((0, 2, beams), np.float32), np.zeros((0, 2, n_shifts), np.float32),
+                    np.zeros((0, 2), np.int32))
+        return self._contour_cost(*args)
+
+    def view_costs(self, layers, view_index, thresholds, windows, masks, distances, shifts, smoothing,
+                   data_counts, cap: float) -> np.ndarray:
+        """The grid surrogate's view cost of N synthetic views (fsswarp/compare.py), contours and
+        sums left on the device: ``contour_cost``'s (sums, counts) combined per pair n and shift s
+        into ``Σ_c (sums[n, c, s] + cap · max(0, m − k)) / max(k, m)``, k = counts[n, c], m =
+        data_counts[view_index[n], c], a term 0 where k = m = 0 (kernels/pose.cl ``view_cost``).
+
+        The arguments as ``contour_cost``'s, and data_counts : (V, 2) int >= 0, the data's
+        contour points per view and component; cap : > 0 (m), finite. Returns (N, S) float32,
+        the only array read back.
+        """
+        args = self._contour_inputs(layers, view_index, thresholds, windows, masks, distances, shifts, smoothing,
+                                    cap)
+        n_views = args[3].shape[0]
+        counts = np.asarray(data_counts)
+        if counts.dtype.kind not in "iu" or counts.shape != (n_views, 2) or (counts.size and counts.min() < 0):
+            raise ValueError(f"data_counts must be ({n_views}, 2) integers >= 0, got {counts.dtype} {counts.shape}")
+        if not math.isfinite(cap):
+            raise ValueError(f"cap must be a finite distance (m) for view costs, got {cap!r}")
+        n_pairs, n_shifts = args[2].shape[0], args[10].shape[0]
+        if n_pairs == 0:
+            return np.zeros((0, n_shifts), np.float32)
+        return self._view_costs(*args, np.ascontiguousarray(counts, np.int32))
+
+    def _contour_inputs(self, layers, view_index, thresholds, windows, masks, distances, shifts, smoothing,
+                        cap) -> tuple:
+        """``contour_cost``'s arguments checked and converted: (layers, first_rows, view_index,
+        thresholds, windows, masks, range_weights, beam_weights, distances, cap, shifts), as
+        ``_contour_cost`` takes them, or raise."""
         thr = real_array("thresholds", thresholds, ("V", "bins"))
         if isinstance(distances, DeviceDistances):
             if distances.backend is not self:
@@ -510,13 +547,8 @@ class Backend(abc.ABC):
                 raise ValueError(f"the band of pair {n}, rows [{first[n]}, {first[n] + shape[2]}), misses rows "
                                  f"its window needs, [{need_lo[n]}, {need_hi[n]}) (window {tuple(win[index[n]])} "
                                  f"of view {index[n]}, ± {(weights[0].shape[0] - 1) // 2} rows of smoothing)")
-        n_pairs, n_shifts = index.shape[0], steps.shape[0]
-        if n_pairs == 0:
-            return (np.zeros((0, 2, beams), np.float32), np.zeros((0, 2, n_shifts), np.float32),
-                    np.zeros((0, 2), np.int32))
-        return self._contour_cost(layers, first, index, thr,
-                                  np.ascontiguousarray(win, np.int32), np.ascontiguousarray(mask, np.uint8),
-                                  weights[0], weights[1], dist, float(cap), steps)
+        return (layers, first, index, thr, np.ascontiguousarray(win, np.int32), np.ascontiguousarray(mask, np.uint8),
+                weights[0], weights[1], dist, float(cap), steps)
 
     @abc.abstractmethod
     def _contour_cost(self, layers: "DeviceLayers", first_rows: np.ndarray, view_index: np.ndarray,
@@ -529,6 +561,14 @@ class Backend(abc.ABC):
         the rows its window reads), distances this backend's, clean C-contiguous int32 /
         float32 / uint8 arrays, N >= 1.
         Returns (N, 2, beams) float32 contours, (N, 2, S) float32 sums, (N, 2) int32 counts."""
+
+    @abc.abstractmethod
+    def _view_costs(self, layers: "DeviceLayers", first_rows: np.ndarray, view_index: np.ndarray,
+                    thresholds: np.ndarray, windows: np.ndarray, masks: np.ndarray, range_weights: np.ndarray,
+                    beam_weights: np.ndarray, distances: "DeviceDistances", cap: float, shifts: np.ndarray,
+                    data_counts: np.ndarray) -> np.ndarray:
+        """Kernel launches of ``view_costs``: ``_contour_cost``'s arguments and data_counts (V, 2)
+        int32. Returns (N, S) float32 costs; contours, sums and counts stay on the device."""
 
     def device_distances(self, distances) -> "DeviceDistances":
         """``contour_cost``'s distance maps, (V, 2, bins, beams) float >= 0, checked and

@@ -42,6 +42,7 @@ class OpenCLBackend(Backend):
         self._frontal_rays_kernel = cl.Kernel(program(self.context, "render.cl"), "frontal_rays")
         self._frontal_kernel = cl.Kernel(program(self.context, "pose.cl"), "frontal_contour")
         self._contour_cost_kernel = cl.Kernel(program(self.context, "pose.cl"), "contour_cost")
+        self._view_cost_kernel = cl.Kernel(program(self.context, "pose.cl"), "view_cost")
         self.has_float64 = "cl_khr_fp64" in found.device.extensions.split()
         self._icp_kernel = cl.Kernel(program(self.context, "icp.cl"), "icp_runs") if self.has_float64 else None
         self._lock = threading.Lock()
@@ -253,6 +254,41 @@ class OpenCLBackend(Backend):
     # --- frontal contours and their distance to the data's ------------------------------------
     def _contour_cost(self, layers, first_rows, view_index, thresholds, windows, masks, range_weights,
                       beam_weights, distances, cap, shifts):
+        n_pairs, beams, n_shifts = view_index.shape[0], distances.shape[3], shifts.shape[0]
+        contour = np.empty((n_pairs, 2, beams), np.float32)
+        sums, counts = np.empty((n_pairs, 2, n_shifts), np.float32), np.empty((n_pairs, 2), np.int32)
+        with self._lock:
+            bufs = self._enqueue_contours(layers, first_rows, view_index, thresholds, windows, masks, range_weights,
+                                          beam_weights, distances, cap, shifts)
+            for host, buf in zip((contour, sums, counts), bufs):
+                cl.enqueue_copy(self.queue, host, buf, is_blocking=False)
+            self.queue.finish()
+        for buf in bufs:
+            buf.release()
+        return contour, sums, counts
+
+    def _view_costs(self, layers, first_rows, view_index, thresholds, windows, masks, range_weights,
+                    beam_weights, distances, cap, shifts, data_counts):
+        n_pairs, n_shifts = view_index.shape[0], shifts.shape[0]
+        costs, costs_buf = self._output((n_pairs, n_shifts), np.float32)
+        group = min(GROUP, 1 << (n_shifts - 1).bit_length())
+        with self._lock:
+            bufs = self._enqueue_contours(layers, first_rows, view_index, thresholds, windows, masks, range_weights,
+                                          beam_weights, distances, cap, shifts)
+            self._view_cost_kernel(self.queue, (-(-n_shifts // group) * group, n_pairs), (group, 1), bufs[1], bufs[2],
+                                   self._input(view_index), self._input(data_counts), np.float32(cap),
+                                   np.int32(n_shifts), costs_buf)
+            cl.enqueue_copy(self.queue, costs, costs_buf, is_blocking=False)
+            self.queue.finish()
+        for buf in (*bufs, costs_buf):
+            buf.release()
+        return costs
+
+    def _enqueue_contours(self, layers, first_rows, view_index, thresholds, windows, masks, range_weights,
+                          beam_weights, distances, cap, shifts) -> tuple[cl.Buffer, cl.Buffer, cl.Buffer]:
+        """Enqueue ``frontal_contour`` and ``contour_cost``; returns the buffers of their (N, 2,
+        beams) contours, (N, 2, S) sums and (N, 2) counts, for the caller to read and release.
+        Call holding ``_lock``."""
         n_pairs, bins, beams = view_index.shape[0], distances.shape[2], distances.shape[3]
         n_shifts = shifts.shape[0]
         if isinstance(layers, OpenCLLayers) and layers.queue.context == self.context:
@@ -260,27 +296,22 @@ class OpenCLBackend(Backend):
         else:
             stack = self._input(np.ascontiguousarray(layers.numpy(), np.float32))
         index = self._input(view_index)
-        contour = np.empty((n_pairs, 2, beams), np.float32)
-        contour_buf = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=contour.nbytes)
-        sums, sums_buf = self._output((n_pairs, 2, n_shifts), np.float32)
-        counts, counts_buf = self._output((n_pairs, 2), np.int32)
-        with self._lock:
-            self._frontal_kernel(
-                self.queue, (-(-beams // GROUP) * GROUP, 2, n_pairs), (GROUP, 1, 1),
-                stack, index, self._input(thresholds), self._input(windows), self._input(masks),
-                self._input(range_weights), np.int32((range_weights.shape[0] - 1) // 2),
-                self._input(beam_weights), np.int32((beam_weights.shape[0] - 1) // 2), np.int32(bins),
-                np.int32(beams), self._input(first_rows), np.int32(layers.shape[2]), contour_buf)
-            group = min(GROUP, 1 << (n_shifts - 1).bit_length())
-            self._contour_cost_kernel(
-                self.queue, (-(-n_shifts // group) * group, 2, n_pairs), (group, 1, 1),
-                contour_buf, index, distances.data, np.float32(cap), self._input(shifts), np.int32(n_shifts),
-                np.int32(bins), np.int32(beams), sums_buf, counts_buf)
-            for host, buf in ((contour, contour_buf), (sums, sums_buf), (counts, counts_buf)):
-                cl.enqueue_copy(self.queue, host, buf, is_blocking=False)
-            self.queue.finish()
-        contour_buf.release()
-        return contour, sums, counts
+        rw = cl.mem_flags.READ_WRITE
+        contour_buf = cl.Buffer(self.context, rw, size=4 * n_pairs * 2 * beams)
+        sums_buf = cl.Buffer(self.context, rw, size=4 * n_pairs * 2 * n_shifts)
+        counts_buf = cl.Buffer(self.context, rw, size=4 * n_pairs * 2)
+        self._frontal_kernel(
+            self.queue, (-(-beams // GROUP) * GROUP, 2, n_pairs), (GROUP, 1, 1),
+            stack, index, self._input(thresholds), self._input(windows), self._input(masks),
+            self._input(range_weights), np.int32((range_weights.shape[0] - 1) // 2),
+            self._input(beam_weights), np.int32((beam_weights.shape[0] - 1) // 2), np.int32(bins),
+            np.int32(beams), self._input(first_rows), np.int32(layers.shape[2]), contour_buf)
+        group = min(GROUP, 1 << (n_shifts - 1).bit_length())
+        self._contour_cost_kernel(
+            self.queue, (-(-n_shifts // group) * group, 2, n_pairs), (group, 1, 1),
+            contour_buf, index, distances.data, np.float32(cap), self._input(shifts), np.int32(n_shifts),
+            np.int32(bins), np.int32(beams), sums_buf, counts_buf)
+        return contour_buf, sums_buf, counts_buf
 
     # --- IRLS-ICP runs ----------------------------------------------------------------------
     def _icp_runs(self, source_x, source_y, target_x, target_y, runs, angles, translations, floors, step_tols,

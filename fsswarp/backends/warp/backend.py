@@ -16,7 +16,7 @@ from ..constants import FRONTAL_VISIBLE, MAX_DISTANCE, RAY_EPSILON, WARP_FAR
 from ..runtimes import import_warp
 from .carve import carve_grid, carve_points
 from .icp import icp_runs_kernel
-from .pose import contour_cost_kernel, frontal_contour
+from .pose import contour_cost_kernel, frontal_contour, view_cost_kernel
 from .project import project_points
 from .raycast import cast_rays_kernel
 from .render import fixed_to_float, frontal_rays_kernel, render_kernel
@@ -301,28 +301,48 @@ class WarpBackend(Backend):
     # --- frontal contours and their distance to the data's (kernels after the class) ---------
     def _contour_cost(self, layers, first_rows, view_index, thresholds, windows, masks, range_weights,
                       beam_weights, distances, cap, shifts):
-        n_pairs, beams = view_index.shape[0], distances.shape[3]
         with wp.ScopedDevice(self._device):
-            if isinstance(layers, WarpLayers) and layers.array.device == self._device:
-                stack = layers.array
-            else:
-                stack = self._array(np.ascontiguousarray(layers.numpy(), np.float32), float)
-            index = self._constant(view_index, wp.int32)
-            contour = wp.empty((n_pairs, 2, beams), dtype=float)
-            wp.launch(frontal_contour, dim=(n_pairs, 2, beams),
-                      inputs=[stack, self._constant(first_rows, wp.int32), index, self._constant(thresholds, float),
-                              self._constant(windows, wp.int32),
-                              self._constant(masks, wp.uint8), self._constant(range_weights, float),
-                              (range_weights.shape[0] - 1) // 2, self._constant(beam_weights, float),
-                              (beam_weights.shape[0] - 1) // 2],
-                      outputs=[contour])
-            sums = wp.empty((n_pairs, 2, shifts.shape[0]), dtype=float)
-            counts = wp.empty((n_pairs, 2), dtype=wp.int32)
-            wp.launch(contour_cost_kernel, dim=(n_pairs, 2, shifts.shape[0]),
-                      inputs=[contour, index, distances.data, float(np.float32(cap)), self._constant(shifts, float)],
-                      outputs=[sums, counts])
+            contour, sums, counts = self._contour_launch(layers, first_rows, view_index, thresholds, windows, masks,
+                                                         range_weights, beam_weights, distances, cap, shifts)
             wp.synchronize_device(self._device)
             return contour.numpy(), sums.numpy(), counts.numpy()
+
+    def _view_costs(self, layers, first_rows, view_index, thresholds, windows, masks, range_weights,
+                    beam_weights, distances, cap, shifts, data_counts):
+        with wp.ScopedDevice(self._device):
+            _, sums, counts = self._contour_launch(layers, first_rows, view_index, thresholds, windows, masks,
+                                                   range_weights, beam_weights, distances, cap, shifts)
+            costs = wp.empty((view_index.shape[0], shifts.shape[0]), dtype=float)
+            wp.launch(view_cost_kernel, dim=costs.shape,
+                      inputs=[sums, counts, self._constant(view_index, wp.int32), self._constant(data_counts, wp.int32),
+                              float(np.float32(cap))],
+                      outputs=[costs])
+            return costs.numpy()  # waits for the launches
+
+    def _contour_launch(self, layers, first_rows, view_index, thresholds, windows, masks, range_weights,
+                        beam_weights, distances, cap, shifts) -> tuple[wp.array, wp.array, wp.array]:
+        """Launch ``frontal_contour`` and ``contour_cost_kernel`` on the current device's stream;
+        returns their (N, 2, beams) contours, (N, 2, S) sums and (N, 2) counts without waiting."""
+        n_pairs, beams = view_index.shape[0], distances.shape[3]
+        if isinstance(layers, WarpLayers) and layers.array.device == self._device:
+            stack = layers.array
+        else:
+            stack = self._array(np.ascontiguousarray(layers.numpy(), np.float32), float)
+        index = self._constant(view_index, wp.int32)
+        contour = wp.empty((n_pairs, 2, beams), dtype=float)
+        wp.launch(frontal_contour, dim=(n_pairs, 2, beams),
+                  inputs=[stack, self._constant(first_rows, wp.int32), index, self._constant(thresholds, float),
+                          self._constant(windows, wp.int32),
+                          self._constant(masks, wp.uint8), self._constant(range_weights, float),
+                          (range_weights.shape[0] - 1) // 2, self._constant(beam_weights, float),
+                          (beam_weights.shape[0] - 1) // 2],
+                  outputs=[contour])
+        sums = wp.empty((n_pairs, 2, shifts.shape[0]), dtype=float)
+        counts = wp.empty((n_pairs, 2), dtype=wp.int32)
+        wp.launch(contour_cost_kernel, dim=(n_pairs, 2, shifts.shape[0]),
+                  inputs=[contour, index, distances.data, float(np.float32(cap)), self._constant(shifts, float)],
+                  outputs=[sums, counts])
+        return contour, sums, counts
 
     # --- IRLS-ICP runs (kernels after the class) ------------------------------------------------
     def _icp_runs(self, source_x, source_y, target_x, target_y, runs, angles, translations, floors, step_tols,

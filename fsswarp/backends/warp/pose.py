@@ -1,7 +1,8 @@
 """Warp kernels of ``Backend.contour_cost``: frontal contours and their distances to the data's.
 
 kernels/pose.cl documents the rule. ``frontal_contour`` writes (N, 2, beams) float32 rows
-(-1: none); ``contour_cost_kernel`` (N, 2, S) float32 sums and (N, 2) int32 counts.
+(-1: none); ``contour_cost_kernel`` (N, 2, S) float32 sums and (N, 2) int32 counts;
+``view_cost_kernel`` (N, S) float32 view costs from them.
 """
 
 from __future__ import annotations
@@ -80,3 +81,21 @@ def contour_cost_kernel(contour: wp.array3d(dtype=float), view_index: wp.array(d
     sums[n, c, s] = total
     if s == 0:
         counts[n, c] = count
+
+
+@wp.kernel
+def view_cost_kernel(sums: wp.array3d(dtype=float), counts: wp.array2d(dtype=wp.int32),
+                     view_index: wp.array(dtype=wp.int32), data_counts: wp.array2d(dtype=wp.int32), cap: float,
+                     costs: wp.array2d(dtype=float)):
+    """Thread (n, s): object + mirror terms of pair n at shift s, (Σ d + cap · max(0, m − k)) /
+    max(k, m) with k its contour points and m the data's, 0 for an empty term."""
+    n, s = wp.tid()
+    v = view_index[n]
+    total = float(0.0)
+    for c in range(2):
+        k = counts[n, c]
+        m = data_counts[v, c]
+        most = wp.max(k, m)
+        if most > 0:
+            total += (sums[n, c, s] + cap * float(wp.max(m - k, 0))) / float(most)
+    costs[n, s] = total
