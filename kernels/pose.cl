@@ -10,7 +10,8 @@
  *   separable weights (wB: 2 rB + 1 taps along range, wb: 2 rb + 1 taps across beams; indices
  *   clamped to the image, scipy's "nearest" border):
  *     row_i = Σ_j wb[j] · (L[n][2c][B_i][b_j] + L[n][2c+1][B_i][b_j]),  s(B) = Σ_i wB[i] · row_i
- *   with B_i = clamp(B + i − rB), b_j = clamp(b + j − rb), sums in index order; L[n][l][B] is
+ *   with B_i = clamp(B + i − rB), b_j = clamp(b + j − rb), sums in index order (each row_i is
+ *   summed once per row, kept in a ring of 2 rB + 1 rows up to RING_TAPS); L[n][l][B] is
  *   image row B of pair n, stored at row B − first_rows[n] of its band. The first row B
  *   of the window lo <= B < hi (window[v]) where f(B) = s(B) − threshold[v][B] > 0 gives the
  *   crossing: lo when B == lo, else (B − 1) + f(B − 1) / (f(B − 1) − f(B)) (fractional row,
@@ -51,6 +52,22 @@
  */
 #include "sonar.h"
 
+/* Range taps kept in frontal_contour's ring of beam-smoothed rows (Warp: RING_TAPS); a wider
+ * smoothing sums every tap's row afresh. Either way the same sums in the same order. */
+#define RING_TAPS 33
+
+/* Component planes l0 + l1 in band row Bi smoothed across the beams at beam b. */
+static float beam_row(__global const float *l0, __global const float *l1, const int Bi, const int b,
+                      const int beams, __global const float *wb, const int rb)
+{
+    float row = 0.0f;
+    for (int j = 0; j <= 2 * rb; ++j) {
+        const size_t k = (size_t)Bi * beams + clamp(b + j - rb, 0, beams - 1);
+        row += wb[j] * (l0[k] + l1[k]);
+    }
+    return row;
+}
+
 __kernel void frontal_contour(__global const float *layers,
                               __global const int *view_index,
                               __global const float *threshold,
@@ -84,17 +101,23 @@ __kernel void frontal_contour(__global const float *layers,
     __global const float *thr = threshold + (size_t)v * bins;
     const int lo = window[2 * v];
     const int hi = window[2 * v + 1];
+    const int taps = 2 * rB + 1;
+    const int cached = taps <= RING_TAPS;
+    float ring[RING_TAPS]; /* row k (image row clamp(k), k > -taps) in slot (k + taps) % taps */
+    if (cached)
+        for (int k = lo - rB; k < lo + rB; ++k)
+            ring[(k + taps) % taps] = beam_row(l0, l1, clamp(k, 0, bins - 1) - first, b, beams, wb, rb);
     float previous = 0.0f;
     for (int B = lo; B < hi; ++B) {
         float s = 0.0f;
-        for (int i = 0; i <= 2 * rB; ++i) {
-            const int Bi = clamp(B + i - rB, 0, bins - 1) - first; /* row of the band */
-            float row = 0.0f;
-            for (int j = 0; j <= 2 * rb; ++j) {
-                const size_t k = (size_t)Bi * beams + clamp(b + j - rb, 0, beams - 1);
-                row += wb[j] * (l0[k] + l1[k]);
-            }
-            s += wB[i] * row;
+        if (cached) {
+            const int k = B + rB;
+            ring[(k + taps) % taps] = beam_row(l0, l1, clamp(k, 0, bins - 1) - first, b, beams, wb, rb);
+            for (int i = 0; i < taps; ++i)
+                s += wB[i] * ring[(B + i - rB + taps) % taps];
+        } else {
+            for (int i = 0; i < taps; ++i)
+                s += wB[i] * beam_row(l0, l1, clamp(B + i - rB, 0, bins - 1) - first, b, beams, wb, rb);
         }
         const float f = s - thr[B];
         if (f > 0.0f) {

@@ -61,9 +61,12 @@ def random_case(seed, n_pairs=7, n_views=3, bins=48, beams=14):
     return layers, view_index, thresholds, windows, masks, distances, shifts, (_gaussian(1.0), _gaussian(0.7))
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_matches_numpy_oracle(backend, seed):
+@pytest.mark.parametrize("seed, sigma_bins", [(0, 1.0), (1, 1.0), (2, 1.0), (3, 3.9), (4, 6.0)])
+def test_matches_numpy_oracle(backend, seed, sigma_bins):
+    """Also a range smoothing of 33 taps (as many as the kernels' ring of rows holds) and of 49
+    (summed afresh per tap)."""
     case = random_case(seed)
+    case = (*case[:7], (_gaussian(sigma_bins), case[7][1]))
     contours, sums, counts = backend.contour_cost(*case)
     ref_contours, ref_sums, ref_counts = contour_cost_reference(*case)
     np.testing.assert_array_equal(contours >= 0, ref_contours >= 0)

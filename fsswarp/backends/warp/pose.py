@@ -14,6 +14,23 @@ from .sonar import MODULE_OPTIONS
 wp.set_module_options(MODULE_OPTIONS)
 
 
+#: Range taps of the smoothing that ``frontal_contour`` keeps in a ring of smoothed rows (pose.cl
+#: ``RING_TAPS``); a wider smoothing sums every tap's row afresh (the same sums).
+RING_TAPS = 33
+Ring = wp.types.vector(length=RING_TAPS, dtype=float)
+
+
+@wp.func
+def beam_row(layers: wp.array4d(dtype=float), n: int, c: int, bi: int, b: int, beams: int,
+             w_beam: wp.array(dtype=float), r_beam: int):
+    """Component c of pair n in band row bi smoothed across the beams at beam b."""
+    row = float(0.0)
+    for j in range(2 * r_beam + 1):
+        bj = wp.clamp(b + j - r_beam, 0, beams - 1)
+        row += w_beam[j] * (layers[n, 2 * c, bi, bj] + layers[n, 2 * c + 1, bi, bj])
+    return row
+
+
 @wp.kernel
 def frontal_contour(layers: wp.array4d(dtype=float), first_rows: wp.array(dtype=wp.int32),
                     view_index: wp.array(dtype=wp.int32),
@@ -22,27 +39,39 @@ def frontal_contour(layers: wp.array4d(dtype=float), first_rows: wp.array(dtype=
                     w_beam: wp.array(dtype=float), r_beam: int, contour: wp.array3d(dtype=float)):
     """Thread (n, c, b): first threshold crossing of the smoothed component c of pair n in beam b.
     layers (N, 4, R, beams): image row B of pair n at row B − first_rows[n] (full layers: zeros,
-    R = bins); rows clamp to the image, and the host guarantees the band holds every row read."""
+    R = bins); rows clamp to the image, and the host guarantees the band holds every row read.
+    Each row's beam smoothing is summed once into a ring of the last 2 r_range + 1 rows
+    (at most RING_TAPS; else afresh per tap): the same sums in the same order."""
     n, c, b = wp.tid()
     v = view_index[n]
     bins = threshold.shape[1]
     beams = layers.shape[3]
     first = first_rows[n]
+    taps = 2 * r_range + 1
     result = float(-1.0)
     if mask[v, c, b] != wp.uint8(0):
         lo = window[v, 0]
         hi = window[v, 1]
+        ring = Ring()
+        cached = taps <= RING_TAPS
+        if cached:  # rows lo − r_range .. lo + r_range − 1; row k in slot (k + taps) % taps (k > −taps)
+            for k in range(lo - r_range, lo + r_range):
+                ring[(k + taps) % taps] = beam_row(layers, n, c, wp.clamp(k, 0, bins - 1) - first, b, beams,
+                                                   w_beam, r_beam)
         previous = float(0.0)
         row_index = int(lo)
         while row_index < hi:
             s = float(0.0)
-            for i in range(2 * r_range + 1):
-                bi = wp.clamp(row_index + i - r_range, 0, bins - 1) - first
-                row = float(0.0)
-                for j in range(2 * r_beam + 1):
-                    bj = wp.clamp(b + j - r_beam, 0, beams - 1)
-                    row += w_beam[j] * (layers[n, 2 * c, bi, bj] + layers[n, 2 * c + 1, bi, bj])
-                s += w_range[i] * row
+            if cached:
+                k = row_index + r_range
+                ring[(k + taps) % taps] = beam_row(layers, n, c, wp.clamp(k, 0, bins - 1) - first, b, beams,
+                                                   w_beam, r_beam)
+                for i in range(taps):
+                    s += w_range[i] * ring[(row_index + i - r_range + taps) % taps]
+            else:
+                for i in range(taps):
+                    bi = wp.clamp(row_index + i - r_range, 0, bins - 1) - first
+                    s += w_range[i] * beam_row(layers, n, c, bi, b, beams, w_beam, r_beam)
             f = s - threshold[v, row_index]
             if f > 0.0:
                 if row_index == lo:
