@@ -44,10 +44,10 @@ _SCENES = {
 SENSORS = {"realistic": (0.003, 0.6), "poor": (0.05, 2.0)}
 
 #: Horizontal distance (m) from the near-south position ``T`` to the target's centre: a second
-#: standoff on the south side. The nearest to 1.2 m at which every vertex of both corals and
+#: standoff on the south side. Near 1.2 m but no nearer than every vertex of both corals and
 #: its ghost and mirror stay inside the range window, the ±14.4° fan and the ±7° elevation
-#: aperture at all eight rolls (at 1.2 m the object leaves the aperture at rolls −45° to
-#: 45° and its mirror the fan at ±67.5° and −90°); the table fits from 1.65 m.
+#: aperture at all eight rolls: from 1.39 m (at 1.2 m the corals leave the aperture at rolls
+#: −67.5° to 45° and their mirrors the fan at ±67.5° and −90°); the table fits from 1.62 m.
 NEAR_STANDOFF_M = 1.4
 # position letter: (x, y) offset (m) from the target's centre, heading (rad)
 _POSITIONS = {

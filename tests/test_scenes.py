@@ -100,7 +100,7 @@ def test_positions_put_a_scene_on_another_rig(tmp_path):
 
 
 def test_near_south_is_a_second_standoff_on_the_south_side():
-    """T: eight rolls at NEAR_STANDOFF_M (1.4 m, the nearest to 1.2 m where the corals fit)
+    """T: eight rolls at NEAR_STANDOFF_M (1.4 m, near 1.2 m where the corals still fit)
     south of the target's centre, heading north like S; ST keeps S's views and reference."""
     two, south = builtin_scene("coral-one", "st"), builtin_scene("coral-one", "S")
     views = two.rig.views
