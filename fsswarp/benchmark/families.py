@@ -528,13 +528,15 @@ def array_carving(sides: Sequence[int], *, profiles: dict, scene, repeat: int = 
 def pose_grid(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3, budget: float = 20.0,
               launch_bytes: int | None = None, progress: Progress | None = None) -> list[dict]:
     """The (D, β) grid surrogate over side² cells × 16 views (``sides``): "end to end"
-    (``ViewComparison.surrogate``: render + contour cost per launch, costs read back) and
-    "resident" (``Backend.contour_cost`` alone on layers already rendered, where they fit in
-    one launch of ``launch_bytes``: default 16 GiB on a GPU, 2 GiB on a CPU)."""
+    (``ViewComparison.surrogate``: render + view costs per launch, costs read back), its
+    "render alone" (``render_pairs`` of the same bands of rows in the same launches, layers
+    dropped) and "resident" (``Backend.view_costs`` alone on layers already rendered, where
+    they fit in one launch of ``launch_bytes``: default 16 GiB on a GPU, 2 GiB on a CPU)."""
     import dataclasses
 
     import trimesh
 
+    from ..backends import rows_read
     from ..dataset import Dataset
     from ..compare import PoseSettings, ViewComparison
     from ..rig import Rig
@@ -544,7 +546,8 @@ def pose_grid(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3,
     profile = profiles[profile_key(backend)]
     link = profile.get("link_up_Bps") is not None
     bases = {"end to end": record_base("pose", "surrogate (render + contour cost)", "end to end", backend, "cells"),
-             "resident": record_base("pose", "contour_cost", "resident", backend, "cells")}
+             "render alone": record_base("pose", "render_pairs (window bands)", "render alone", backend, "cells"),
+             "resident": record_base("pose", "view_costs", "resident", backend, "cells")}
     with tempfile.TemporaryDirectory() as folder:
         dataset = simulate("coral-one", f"{folder}/coral-one", seed=1, backend=backend)
         rig = dataset.rig
@@ -562,6 +565,16 @@ def pose_grid(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3,
     pixels = 4 * sonar.bins * sonar.beams
     distance_bytes = data.distances.nbytes
     mesh_bytes = len(model.faces) * TRIANGLE_BYTES
+    need_lo, need_hi = rows_read(data.windows, len(problem.smoothing[0]), sonar.bins)
+    rows = int(np.max(need_hi - need_lo))  # the bands of ViewComparison.view_costs, in its launches
+    first = np.minimum(need_lo, sonar.bins - rows)
+    per = max(1, launch_bytes // (32 * rows * sonar.beams * views))
+
+    def render_alone(depths, tilts):
+        for start in range(0, len(depths), per):
+            cell_d, cell_t = depths[start:start + per], tilts[start:start + per]
+            problem.render_pairs(data.views, cell_d, cell_t, settings.samples,
+                                 rows=(np.tile(first, len(cell_d)), rows))
 
     def cells(side):
         return np.meshgrid(truth.depth + np.linspace(-0.05, 0.05, side),
@@ -579,15 +592,21 @@ def pose_grid(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3,
                                                  ops=side * side * float(per_pair.sum()) + pairs * pixels * CONTOUR_OPS,
                                                  up=distance_bytes if link else 0, down=cost_bytes if link else 0))]
         say(progress, out[-1])
+        timing = measure(lambda: render_alone(depths.ravel(), tilts.ravel()), repeat, budget=budget)
+        out.append(timed_record(bases["render alone"], side * side, timing, pairs, "cell-views", size=size,
+                                limit=physical_limit(profile, bytes_moved=mesh_bytes + pairs * 32 * rows * sonar.beams,
+                                                     ops=side * side * float(per_pair.sum()))))
+        say(progress, out[-1])
         if pairs * 8 * pixels > launch_bytes:
             out.append(skipped_record(bases["resident"], side * side, 0.0, budget,
                                       reason=f"layers of {pairs} pairs exceed one launch ({launch_bytes >> 20} MB)"))
             return out
         layers = problem.render_pairs(data.views, depths.ravel(), tilts.ravel(), settings.samples)
         index = np.tile(np.arange(views), side * side)
-        capped = np.minimum(data.distances, np.float32(settings.cap))
-        timing = measure(lambda: backend.contour_cost(layers, index, data.threshold, data.windows, data.masks,
-                                                      capped, shifts, problem.smoothing), repeat, budget=budget)
+        uploaded = backend.device_distances(data.distances)
+        timing = measure(lambda: backend.view_costs(layers, index, data.threshold, data.windows, data.masks, uploaded,
+                                                    shifts, problem.smoothing, data.counts, settings.cap),
+                         repeat, budget=budget)
         out.append(timed_record(bases["resident"], side * side, timing, pairs, "cell-views", size=size,
                                 limit=physical_limit(profile, bytes_moved=pairs * pixels * 4 + distance_bytes
                                                      + cost_bytes, ops=pairs * pixels * CONTOUR_OPS)))
