@@ -5,8 +5,8 @@
 
 For every scene, seed and start of ``bench/paper_table.py`` (the measured start and a tilt
 sensor 2° off): run ``fsswarp.reconstruction.reconstruct``, then, around its answer c0 =
-(D, β), carve the views again at c0, at c0 ± one prior σ in tilt and in depth, and at the
-truth; for each carving run the pose step from the carving's own pose (its answer f(c)) and
+(D, β), take the answer's model (``fsswarp.reconstruction.sighting``: carved and refined once)
+at c0, at c0 ± one prior σ in tilt and in depth, and at the truth; for each run the pose step from the carving's own pose (its answer f(c)) and
 evaluate the per-view surrogate costs on two 11 × 11 grids around c0 (the answer's posterior
 ± 4 σ, and the prior's ± 3 σ). Writes DIR/SCENE-SEED-START.npz (the carvings' poses, answers,
 posteriors, grids and per-view costs) and DIR/summary.json: the raw material from which the
@@ -44,15 +44,15 @@ def carvings(result, prior, truth) -> dict:
 
 def study_run(data, backend, iterations: int, progress) -> dict:
     """The arrays of one reconstruction and its carvings (module docstring)."""
-    from fsswarp.carving import carve
     from fsswarp.compare import ViewComparison
     from fsswarp.pose import POSTERIOR_CELLS, Prior, estimate_pose
-    from fsswarp.reconstruction import ReconstructSettings, reconstruct
+    from fsswarp.reconstruction import ReconstructSettings, reconstruct, sighting
 
     settings = ReconstructSettings(iterations=iterations)
     result = reconstruct(data, settings=settings, backend=backend)
     prior, truth = Prior.of(data), data.manifest.truth
     comparison = ViewComparison(data, settings=settings.pose, backend=backend)
+    shaping = ViewComparison(data, settings=settings.refine.pose, backend=backend)
     c0 = np.array([result.depth, result.tilt])
     u = np.linspace(-1.0, 1.0, POSTERIOR_CELLS)
     unit = np.stack(np.meshgrid(u, u, indexing="ij"), axis=-1)
@@ -62,7 +62,7 @@ def study_run(data, backend, iterations: int, progress) -> dict:
            "prior": np.array([prior.depth, prior.tilt, prior.depth_sigma, prior.tilt_sigma]),
            "covariance": result.posterior.covariance, "seconds": result.seconds}
     for name, at in carvings(result, prior, truth).items():
-        model = carve(data, *at, resolution=settings.resolution, settings=settings.carve, backend=backend).mesh
+        model = sighting(data, *at, settings, shaping)
         pose = estimate_pose(model, data, depth0=at[0], tilt0=at[1], comparison=comparison, prior=prior)
         out[f"{name}/at"] = np.array(at)
         out[f"{name}/pose"] = np.array([pose.depth, pose.tilt])

@@ -47,6 +47,20 @@ POSTERIOR_CELLS = 11
 MIN_NOISE = 1e-6
 
 
+def _covariance(depth_sigma: float, tilt_sigma: float, correlation: float) -> np.ndarray:
+    off = correlation * depth_sigma * tilt_sigma
+    return np.array([[depth_sigma ** 2, off], [off, tilt_sigma ** 2]])
+
+
+#: (2, 2) covariance (m, rad) of the pose step's own error with the answer's model
+#: (``fsswarp.reconstruction.sighting``: carved and refined once) made at the true pose: the
+#: likelihood's minimum lay 6.1 mm (RMS) deeper and 0.10° steeper than the truth, correlation
+#: 0.83, along the valley (bench/interval_study.py: the built-in scenes, seeds 3–5, both sensor
+#: classes, 36 runs; docs/experiments.md). :func:`self_consistent_posterior` adds it to the
+#: data's noise: the shape's error, which no single grid sees.
+CARVING_ERROR = _covariance(0.0061, math.radians(0.099), 0.83)
+
+
 @dataclass(frozen=True)
 class Prior:
     """The sensors' measured depth (m) and tilt (rad) and their 1-σ uncertainties (m, rad; inf:
@@ -146,7 +160,7 @@ class PoseResult:
     shift : the detection shift (rows; None: per cell); anchors : the anchor views
     evaluations : {"grid_cells", "surrogate_cells", "exact"} counts; seconds : wall time
     views, mirror_views : view names used, and those with a mirror term
-    posterior : the Posterior around (depth, tilt); noise : s of the finest level (m), the
+    posterior : the Posterior around (depth, tilt) (None: not fitted); noise : s of the finest level (m), the
         prior's weight in the polish and the acceptance
     cost_before, cost_after : J (E_mu + noise · P, m) at the start and at the accepted estimate
     """
@@ -205,7 +219,7 @@ class PoseResult:
                 "detection_shift_rows": self.shift, "anchor_views": list(self.anchors), "views": list(self.views),
                 "mirror_views": list(self.mirror_views), "search_box_edges": list(self.box_edges()),
                 "noise_m": json_number(self.noise), "cost_start_m": json_number(self.cost_before),
-                "cost_m": json_number(self.cost_after), **self.posterior.summary(),
+                "cost_m": json_number(self.cost_after), **(self.posterior.summary() if self.posterior else {}),
                 "evaluations": dict(self.evaluations), "seconds": self.seconds}
 
 
@@ -223,7 +237,8 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
                   bounds: tuple[float, float] | None = None, levels: int = 3,
                   settings: PoseSettings | None = None, backend=None,
                   progress: Callable[[str], None] | None = None,
-                  comparison: ViewComparison | None = None, prior: Prior | None = None) -> PoseResult:
+                  comparison: ViewComparison | None = None, prior: Prior | None = None,
+                  with_posterior: bool = True) -> PoseResult:
     """Estimate the sonar depth D and tilt β (paper §2.4, eq. 7) for ``model`` (reference frame)
     by the posterior cost of the module docstring.
 
@@ -238,6 +253,7 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
         (depth0, tilt0) (``ViewComparison.use``), its counters restart, and it is left located
         at the finest level's best cell
     prior : default ``Prior.of(dataset)``, the manifest's sensors
+    with_posterior : False skips :func:`fit_posterior` (the result's posterior is None)
     Returns a PoseResult; the estimate moves from (depth0, tilt0) only where J falls.
     """
     start = time.perf_counter()
@@ -303,14 +319,15 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
     say(f"E_mu {before * 1000:.3f} mm and J {cost_before * 1000:.3f} mm at the start, E_mu "
         f"{polish_error * 1000:.3f} mm and J {after * 1000:.3f} mm at the candidate: "
         f"{'accepted' if accepted else 'rejected (J did not fall)'}")
-    posterior = fit_posterior(comparison, prior, float(depth), float(tilt), _valley(found[-1], step)[1])
+    fitted = fit_posterior(comparison, prior, float(depth), float(tilt), _valley(found[-1], step)[1]) \
+        if with_posterior else None
     return PoseResult(depth=float(depth), tilt=float(tilt), depth0=depth0, tilt0=tilt0,
                       candidate=(float(candidate[0]), float(candidate[1])), accepted=accepted,
                       error_before=float(before), error_after=float(polish_error if accepted else before),
                       levels=tuple(found), polish_error=float(polish_error), shift=comparison.shift,
                       anchors=comparison.anchors, evaluations=dict(comparison.counters),
                       seconds=time.perf_counter() - start, views=comparison.data.names,
-                      mirror_views=comparison.data.mirror_views, posterior=posterior, noise=float(noise),
+                      mirror_views=comparison.data.mirror_views, posterior=fitted, noise=float(noise),
                       cost_before=float(cost_before), cost_after=float(after if accepted else cost_before))
 
 
@@ -361,6 +378,39 @@ def fit_posterior(comparison: ViewComparison, prior: Prior, depth: float, tilt: 
     slope = along[0] / along[1] if along[1] != 0 else math.inf
     valley_depth = lowest[0] + slope * (tilt - lowest[1]) if math.isfinite(slope) else math.nan
     return Posterior(depth, tilt, covariance, prior, float(slope), float(valley_depth), float(noise))
+
+
+def self_consistent_posterior(carved_at, answer, conditional, response, prior: Prior, *,
+                              carving_error: np.ndarray = CARVING_ERROR) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The posterior of (D, β) when the model is made at the pose being estimated.
+
+    carved_at : (2,) c, the pose (m, rad) a model was made at; answer : (2,) f(c), the pose
+        step's estimate with that model; conditional : (2, 2) its posterior covariance (m, rad)
+    response : (2, 2) ∂f/∂c, how that estimate follows c (finite differences)
+    prior : the sensors; carving_error : (2, 2) covariance of the likelihood's minimum with a
+        model made at the truth (``CARVING_ERROR``)
+    Linear-Gaussian model: with the model made at c the likelihood is N(m(c), H⁻¹), m(c) = a +
+    K c; so H = Σ_c⁻¹ − Λ0, K = H⁻¹ (H + Λ0) ∂f/∂c and m(c) = H⁻¹((H + Λ0) f(c) − Λ0 μ0). At
+    the self-consistent pose θ = m(θ), (I − K) θ = a is observed with covariance H⁻¹ +
+    carving_error. Returns (mean (2,), covariance (2, 2), K (2, 2)); the mean is clipped to the
+    sensors' ± ``BOUNDS_FACTOR`` σ box. K → I (a shape that follows its making) leaves the
+    prior; K = 0 and no carving error give f(c) and Σ_c back."""
+    c, f = np.asarray(carved_at, np.float64), np.asarray(answer, np.float64)
+    conditional = np.asarray(conditional, np.float64)
+    mu0 = np.array([prior.depth, prior.tilt])
+    sigma0 = np.array([prior.depth_sigma, prior.tilt_sigma])
+    precision0 = np.diag(sigma0 ** -2.0)  # 0 where σ = inf
+    pulled = precision0 @ np.where(np.isfinite(sigma0), mu0, 0.0)  # Λ0 μ0
+    values, vectors = np.linalg.eigh(np.linalg.inv(conditional) - precision0)
+    likelihood = (vectors * np.maximum(values, 0.0)) @ vectors.T + 1e-9 * np.diag(1.0 / np.diag(conditional))
+    follows = np.linalg.solve(likelihood, (likelihood + precision0) @ np.asarray(response, np.float64))
+    lowest = np.linalg.solve(likelihood, (likelihood + precision0) @ f - pulled)
+    weight = likelihood @ np.linalg.inv(np.eye(2) + np.asarray(carving_error, np.float64) @ likelihood)
+    free = np.eye(2) - follows
+    covariance = np.linalg.inv(free.T @ weight @ free + precision0)
+    mean = covariance @ (free.T @ weight @ (lowest - follows @ c) + pulled)
+    box = BOUNDS_FACTOR * sigma0
+    return np.clip(mean, mu0 - box, mu0 + box), covariance, follows
 
 
 def _principal_axes(covariance: np.ndarray, sigmas: float) -> np.ndarray:

@@ -8,7 +8,8 @@ import pytest
 
 from fsswarp.compare import PoseSettings
 from fsswarp.errors import InputError
-from fsswarp.pose import Prior, Z95, check_start, fit_posterior, noise_level, surface_range
+from fsswarp.pose import (CARVING_ERROR, Prior, Z95, check_start, fit_posterior, noise_level, self_consistent_posterior,
+                          surface_range)
 
 
 #: Each view's deviation pattern (sum 0, sum of squares V − 1), scaled by SIGMA.
@@ -153,3 +154,72 @@ def test_surface_range_is_the_closed_form_for_a_level_sonar(coral_one):
     depth, tilt = 0.5, math.radians(5.0)
     expected = depth / math.sin(tilt + coral_one.sonar.elevation_fov / 2)
     assert surface_range(one, depth, tilt) == pytest.approx(expected, rel=1e-9)
+
+
+def _linear_carving(seed: int):
+    """A linear-Gaussian carving model: carved at c, the likelihood is N(m(c), H⁻¹) with
+    m(c) = t + b + K (c − t); the pose step's answer f(c) and covariance follow in closed form."""
+    rng = np.random.default_rng(seed)
+    truth = np.array([0.43, math.radians(10.3)])
+    prior = Prior(0.432, math.radians(11.0), 0.003, math.radians(0.6))
+    root = rng.normal(size=(2, 2)) * np.array([[1 / 0.002, 0.0], [0.0, 1 / math.radians(0.1)]])
+    likelihood = root @ root.T + np.diag([1 / 0.004 ** 2, 1 / math.radians(0.3) ** 2])
+    follows = np.array([[0.2, 0.01], [1.5, 0.6]]) * rng.uniform(0.5, 1.0, size=(2, 2))
+    bias = np.array([0.004, math.radians(0.2)])
+    precision0 = np.diag([prior.depth_sigma ** -2, prior.tilt_sigma ** -2])
+    mu0 = np.array([prior.depth, prior.tilt])
+    conditional = np.linalg.inv(likelihood + precision0)
+
+    def answer(c):
+        lowest = truth + bias + follows @ (np.asarray(c) - truth)
+        return conditional @ (likelihood @ lowest + precision0 @ mu0)
+
+    return truth, prior, likelihood, follows, bias, conditional, answer
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_self_consistent_posterior_is_the_closed_form(seed):
+    """At θ = m(θ): (I − K) θ = (I − K) t + b, seen with covariance H⁻¹; with the prior, a
+    Gaussian posterior written out here by hand, the same wherever the model was carved."""
+    truth, prior, likelihood, follows, bias, conditional, answer = _linear_carving(seed)
+    free = np.eye(2) - follows
+    precision0 = np.diag([prior.depth_sigma ** -2, prior.tilt_sigma ** -2])
+    expected_cov = np.linalg.inv(free.T @ likelihood @ free + precision0)
+    expected_mean = expected_cov @ (free.T @ likelihood @ (free @ truth + bias)
+                                    + precision0 @ np.array([prior.depth, prior.tilt]))
+    response = conditional @ likelihood @ follows  # ∂f/∂c
+    for carved_at in (truth, truth + np.array([0.002, math.radians(0.5)])):
+        mean, cov, found = self_consistent_posterior(carved_at, answer(carved_at), conditional, response, prior,
+                                                     carving_error=np.zeros((2, 2)))
+        assert np.allclose(found, follows, rtol=1e-6, atol=1e-9)
+        assert np.allclose(mean, expected_mean, rtol=0, atol=1e-9)
+        assert np.allclose(cov, expected_cov, rtol=1e-6)
+
+
+def test_a_shape_that_does_not_follow_its_carving_gives_the_conditional_posterior():
+    truth, prior, likelihood, follows, bias, conditional, answer = _linear_carving(3)
+    carved_at = truth + np.array([0.001, math.radians(0.3)])
+    mean, cov, _ = self_consistent_posterior(carved_at, answer(carved_at), conditional, np.zeros((2, 2)), prior,
+                                             carving_error=np.zeros((2, 2)))
+    assert np.allclose(mean, answer(carved_at), atol=1e-9)
+    assert np.allclose(cov, conditional, rtol=1e-6)
+
+
+def test_a_shape_that_follows_its_carving_leaves_the_prior():
+    """K = I: the images say nothing about the pose the shape was carved at."""
+    truth, prior, likelihood, _, _, conditional, answer = _linear_carving(4)
+    response = conditional @ likelihood  # K = I
+    mean, cov, found = self_consistent_posterior(truth, answer(truth), conditional, response, prior,
+                                                 carving_error=np.zeros((2, 2)))
+    assert np.allclose(found, np.eye(2), atol=1e-6)
+    assert np.allclose(cov, np.diag([prior.depth_sigma ** 2, prior.tilt_sigma ** 2]), rtol=1e-4)
+    assert np.allclose(mean, [prior.depth, prior.tilt], atol=1e-6)
+
+
+def test_the_carving_error_widens_the_interval_toward_the_prior():
+    truth, prior, likelihood, follows, _, conditional, answer = _linear_carving(5)
+    response = conditional @ likelihood @ follows
+    widths = [self_consistent_posterior(truth, answer(truth), conditional, response, prior,
+                                        carving_error=scale * CARVING_ERROR)[1][1, 1] for scale in (0.0, 1.0, 1e6)]
+    assert widths[0] < widths[1] < widths[2] <= prior.tilt_sigma ** 2 * (1 + 1e-6)
+    assert widths[2] == pytest.approx(prior.tilt_sigma ** 2, rel=1e-3)

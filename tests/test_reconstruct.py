@@ -19,8 +19,8 @@ from fsswarp.refine import RefineSettings, refine_shape
 
 HISTORY_KEYS = {"iteration", "depth_m", "tilt_deg", "E_mu", "AIE", "ACE", "E_I", "E_V", "chamfer_m", "fscore"}
 RESULT_KEYS = {"depth_m", "tilt_deg", "depth_interval_m", "tilt_interval_deg", "valley", "identified", "start",
-               "error_vs_truth", "best_iteration", "iterations", "converged", "backend", "device", "seconds",
-               "history"}
+               "error_vs_truth", "follows_carving", "best_iteration", "iterations", "converged", "backend", "device",
+               "seconds", "history"}
 FAST = ReconstructSettings(iterations=1, resolution=64)
 
 
@@ -40,7 +40,11 @@ def one_iteration(coral_one):
 def test_history_follows_the_contract(one_iteration, coral_one):
     result, _ = one_iteration
     assert set(result.summary()) == RESULT_KEYS
-    assert [h["iteration"] for h in result.history] == list(range(result.iterations + 1))
+    assert [h["iteration"] for h in result.history] == list(range(len(result.history)))
+    answer = result.history[-1]  # the kept model refined at the self-consistent answer
+    assert answer["answer"] and len(result.history) == result.iterations + 2
+    assert result.best_iteration == answer["iteration"]
+    assert (answer["depth_m"], answer["tilt_deg"]) == (result.depth, math.degrees(result.tilt))
     first = result.history[0]
     assert set(first) == HISTORY_KEYS
     surface = coral_one.manifest.surface
@@ -244,8 +248,8 @@ def _script_the_loop(monkeypatch, pose_step, errors, completed=None):
 
     for name, fake in (("estimate_pose", posed), ("refine_shape", refine), ("_record", record),
                        ("_complete", complete), ("_line", str),
-                       ("_answer_posterior", lambda comparison, model, depth, tilt, prior, steps: wide(depth, tilt,
-                                                                                                      prior))):
+                       ("_self_consistent_answer", lambda dataset, comparison, shaping, pose, prior, settings, say:
+                        (wide(*pose, prior), np.zeros((2, 2))))):
         monkeypatch.setattr(reconstruct_module, name, fake)
     return refined
 
@@ -414,7 +418,8 @@ def test_reconstruct_starts_from_a_given_depth_and_tilt(coral_one, tmp_path):
     assert (first["depth_m"], first["tilt_deg"]) == (0.435, pytest.approx(11.9))
     assert result["start"] == {"depth_m": 0.435, "tilt_deg": pytest.approx(11.9)}
     assert "given D0 = 0.4350 m" in done.stdout and "started from depth 0.4350 m, tilt 11.90 deg" in done.stdout
-    assert "error against the truth: depth +5.0 mm" in done.stdout
+    error = result["error_vs_truth"]  # the answer's, which moves from the start even without loop iterations
+    assert f"error against the truth: depth {error['depth_m'] * 1000:+.1f} mm" in done.stdout
 
 
 @pytest.mark.parametrize("args, field", [
@@ -516,3 +521,52 @@ def test_the_image_errors_read_the_located_comparison_s_layers(coral_one, monkey
     reconstruct_module._synthetic_views(model, coral_one, truth.depth, truth.tilt, names, coarse, comparison)
     reconstruct_module._synthetic_views(model, coral_one, truth.depth + 0.01, truth.tilt, names, settings, comparison)
     assert rendered[1:] == [names, names]
+
+
+def test_the_answer_moves_to_the_proposal_and_takes_the_self_consistent_posterior(coral_one, monkeypatch):
+    """The answer's orchestration with a scripted pose step: the likelihood of a model made at c
+    has its minimum at m(c) = t + b + K (c − t) (precision H), so the pose step proposes f(c) =
+    (H + Λ0)⁻¹ (H m(c) + Λ0 μ0). The answer moves to the proposals (at most FIXED_POINT_STEPS),
+    measures ∂f/∂c at ± one prior σ, and its posterior is the closed form of the linear model."""
+    from types import SimpleNamespace
+
+    from fsswarp.pose import CARVING_ERROR, Posterior, Prior
+
+    prior = Prior.of(coral_one)
+    truth = np.array([coral_one.manifest.truth.depth, coral_one.manifest.truth.tilt])
+    likelihood = np.diag([1 / 0.002 ** 2, 1 / math.radians(0.1) ** 2])
+    follows = np.array([[0.1, 0.0], [2.0, 0.4]])  # rad per m, and deg per deg
+    bias = np.array([0.001, math.radians(0.05)])
+    precision0 = np.diag([prior.depth_sigma ** -2, prior.tilt_sigma ** -2])
+    mu0 = np.array([prior.depth, prior.tilt])
+    conditional = np.linalg.inv(likelihood + precision0)
+    made, proposed = [], []
+
+    def sighting(dataset, depth, tilt, settings, shaping):
+        made.append((depth, tilt))
+        return np.array([depth, tilt])  # the "model" remembers where it was made
+
+    def pose_step(model, dataset, *, depth0, tilt0, comparison, prior, with_posterior):
+        lowest = truth + bias + follows @ (model - truth)
+        candidate = conditional @ (likelihood @ lowest + precision0 @ mu0)
+        proposed.append(candidate)
+        posterior = Posterior(*candidate, conditional, prior, 0.0, 0.0, 1e-3) if with_posterior else None
+        return SimpleNamespace(candidate=tuple(candidate), posterior=posterior)
+
+    monkeypatch.setattr(reconstruct_module, "sighting", sighting)
+    monkeypatch.setattr(reconstruct_module, "estimate_pose", pose_step)
+    start = (prior.depth, prior.tilt)
+    posterior, found = reconstruct_module._self_consistent_answer(coral_one, None, None, start, prior, FAST,
+                                                                   lambda line: None)
+    steps = reconstruct_module.FIXED_POINT_STEPS
+    assert len(made) <= steps + 1 + 4 and made[0] == start
+    at = np.array(made[-5])  # where the finite differences were centred: the last proposal's model
+    sigmas = np.array([prior.depth_sigma, prior.tilt_sigma])
+    assert np.allclose(np.array(made[-4:]), [at + sigmas * e for e in ((1, 0), (-1, 0), (0, 1), (0, -1))])
+    assert np.allclose(found, follows, atol=1e-9)
+    free = np.eye(2) - follows
+    weight = likelihood @ np.linalg.inv(np.eye(2) + CARVING_ERROR @ likelihood)
+    expected_cov = np.linalg.inv(free.T @ weight @ free + precision0)
+    expected_mean = expected_cov @ (free.T @ weight @ (free @ truth + bias) + precision0 @ mu0)
+    assert np.allclose(posterior.covariance, expected_cov, rtol=1e-6)
+    assert np.allclose([posterior.depth, posterior.tilt], expected_mean, atol=1e-9)
