@@ -31,10 +31,10 @@ WRAPPED = (
     ("fsswarp.refine", None, ("refine_shape",)),
     ("fsswarp.refine", "_Membrane", ("solve",)),
     ("fsswarp.carving", None, ("carve", "voxel_mesh")),
-    ("fsswarp.reconstruction", None, ("_image_errors", "_complete")),
+    ("fsswarp.reconstruction", None, ("_image_errors", "_complete", "sighting", "_self_consistent_answer")),
 )
-BACKEND_METHODS = ("render_device", "contour_cost", "icp_runs", "frontal_faces", "load_mesh", "device_distances",
-                   "carve")
+BACKEND_METHODS = ("render_device", "contour_cost", "view_costs", "icp_runs", "frontal_faces", "load_mesh",
+                   "device_distances", "carve")
 #: Functions that other modules import by name: those modules get the wrapper too.
 REBOUND = {"estimate_pose": ("fsswarp.reconstruction",), "refine_shape": ("fsswarp.reconstruction",),
            "carve": ("fsswarp.reconstruction",)}

@@ -217,7 +217,7 @@ def add_run_options(parser: argparse.ArgumentParser, records: Path, *, seeds: bo
     parser.add_argument("--device", default=None, help="backend device, e.g. cuda:0, cpu, nvidia")
     parser.add_argument("--scenes", nargs="+", choices=SCENES, default=list(SCENES))
     parser.add_argument("--positions", default=None,
-                        help="sonar positions of every scene, letters of SNEW (default: each scene's own)")
+                        help="sonar positions of every scene, letters of SNEWT (default: each scene's own)")
     if seeds:
         parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="noise seeds of the simulations")
     else:

@@ -191,8 +191,8 @@ def check(state: State, path: Path) -> None:
 @click.argument("name")
 @click.option("--out", required=True, type=click.Path(path_type=Path), help="Scene file to write (.toml).")
 @click.option("--positions", default=None,
-              help="Sonar positions around the target, distinct letters of S, N, E, W, eight rolls at each "
-                   "[default: the scene's own, SN for the corals, SNEW for the table].")
+              help="Sonar positions around the target, distinct letters of S, N, E, W (2 m) and T (south, 1.4 m), "
+                   "eight rolls at each [default: the scene's own, SN for the corals, SNEW for the table].")
 @click.option("--sensors", default="realistic", show_default=True, type=click.Choice(["realistic", "poor"]),
               help="The measured depth and tilt: 'realistic' (depth sigma 3 mm, within 3 mm of the truth; tilt "
                    "sigma 0.6 deg, 0.6-1 deg off) or 'poor' (depth sigma 5 cm, 3-5 cm off; tilt sigma 2 deg).")
