@@ -17,8 +17,9 @@ step leaves the model unchanged. The answer (:func:`_self_consistent_answer`): E
 pick the pose (a free shape absorbs the tilt), the carving does: from the lowest E_I's (D, β),
 carve and refine once there (:func:`sighting`) and move to the pose step's proposal
 (``FIXED_POINT_STEPS``), measure how the proposal follows that pose, and take the
-self-consistent posterior (``fsswarp.pose.self_consistent_posterior``); the lowest-E_I model, refined at that answer, is the result (``converged``: stopped, and both
-identified). Image metrics over the
+self-consistent posterior (``fsswarp.pose.self_consistent_posterior``); the lowest-E_I model,
+refined at that answer, is the result (``converged``: stopped, and both identified). Without
+iterations (carving alone) the sensors' pose stays. Image metrics over the
 optimized views: Ω_m, the synthetic object above 1% of its peak where ghost and mirrors stay
 below 10% of it; IE on Ω_m, totals divided by their means there; CE from the comparison's
 contours; E_I = (AIE/AIE⁰ + ACE/ACE⁰)/2 (``fsswarp.metrics.image_error``).
@@ -39,7 +40,8 @@ from .carving import CarveSettings, carve
 from .errors import check_depth_tilt, check_integer
 from .compare import PoseSettings, PoseWarning, ViewComparison
 from .metrics import average_contour_error, average_intensity_error, combine, image_error
-from .pose import Z95, Prior, check_start, check_uncertainties, estimate_pose, self_consistent_posterior
+from .pose import (BOUNDS_FACTOR, Z95, Prior, check_start, check_uncertainties, estimate_pose, fit_posterior,
+                   self_consistent_posterior)
 from .refine import RefineSettings, refine_shape
 from .rendering import RenderSettings, render, with_total
 
@@ -215,14 +217,13 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
             if _out_of_patience(misses, settings, best, iteration, say):
                 stopped = True
                 break
-        posterior, response = _self_consistent_answer(dataset, comparison, shaping, best_pose, prior, settings, say)
+        posterior, response = _self_consistent_answer(dataset, comparison, shaping, best_pose, prior, settings, say) \
+            if settings.iterations else (_carving_posterior(comparison, carved, best_pose, prior), None)
         answer = (posterior.depth, posterior.tilt)
         say(f"the answer: {_intervals(*answer, posterior)}")
         ran = len(history) - 1
-        if answer != best_pose:  # the kept shape refined at the answer (carved there, without shape steps)
-            kept = refine_shape(kept, dataset, *answer, settings=settings.refine, comparison=shaping).mesh \
-                if settings.iterations else carve(dataset, *answer, resolution=settings.resolution,
-                                                  settings=settings.carve, backend=backend).mesh
+        if answer != best_pose:  # the kept shape, refined at the answer
+            kept = refine_shape(kept, dataset, *answer, settings=settings.refine, comparison=shaping).mesh
             history.append(_complete(dict(_record(len(history), kept, dataset, *answer, settings, comparison, first),
                                           answer=True, recarved=False, **_interval_fields(posterior)),
                                      comparison, kept, *answer, truth))
@@ -292,6 +293,15 @@ def _self_consistent_answer(dataset, comparison: ViewComparison, shaping: ViewCo
         f"{follows[0, 0]:.2f} m/m")
     return dataclasses.replace(conditional, depth=float(mean[0]), tilt=float(mean[1]), covariance=covariance), \
         follows
+
+
+def _carving_posterior(comparison: ViewComparison, carved, pose: tuple[float, float], prior: Prior):
+    """Without loop iterations (``--iterations 0``: carving alone) no answer step runs: the
+    Posterior at the sensors' ``pose`` (m, rad) with the ``carved`` model, its first grid ±
+    ``BOUNDS_FACTOR`` prior σ."""
+    comparison.use(carved, *pose)
+    return fit_posterior(comparison, prior, *pose, np.diag([BOUNDS_FACTOR * prior.depth_sigma,
+                                                            BOUNDS_FACTOR * prior.tilt_sigma]))
 
 
 def _outside(pose: tuple[float, float], posterior) -> bool:

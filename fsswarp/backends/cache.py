@@ -8,7 +8,7 @@
   Warp keeps its cache layout (private names; anything unexpected gives "unknown").
 - OpenCL: PoCL and NVIDIA's driver cache program binaries themselves (pyopencl then keeps
   none), under keys of their own that only a build can look up. fsswarp records each program
-  it builds (``record_build``: a file named by pyopencl's key of device, driver, options and
+  it builds (``builds.record_build``: a file named by pyopencl's key of device, driver, options and
   source, under ``$XDG_CACHE_HOME/fsswarp/opencl``); ``opencl_cache`` says warm when every
   program of the backend is recorded with the driver's cache folder as it is now (its path
   and inode: PoCL's ``POCL_CACHE_DIR``, default ``$XDG_CACHE_HOME/pocl/kcache``; NVIDIA's
@@ -21,20 +21,16 @@
 
 from __future__ import annotations
 
-import os
 import sys
 from pathlib import Path
 
+from .builds import build_key, driver_cache, driver_identity, records
 from .runtimes import import_warp
 
 #: OpenCL programs that ``OpenCLBackend`` builds (icp.cl only with float64).
 OPENCL_PROGRAMS = ("project.cl", "carve.cl", "raycast.cl", "render.cl", "pose.cl")
 #: Warp modules holding fsswarp's kernels (fsswarp/backends/warp/).
 WARP_MODULES = ("project", "carve", "raycast", "render", "pose", "icp")
-
-
-def _cache_home() -> Path:
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
 
 
 # --- Warp ------------------------------------------------------------------------------------
@@ -73,56 +69,6 @@ def warp_cache(device: str) -> tuple[str, str]:
 
 
 # --- OpenCL ----------------------------------------------------------------------------------
-def build_key(device, options: tuple[str, ...], source: str) -> str:
-    """pyopencl's cache key of ``source`` built with ``options`` for ``device`` (its platform,
-    device and driver versions, pyopencl's version)."""
-    from pyopencl.cache import get_cache_key
-
-    return get_cache_key(device, " ".join(options).encode(), source)
-
-
-def _records() -> Path:
-    return _cache_home() / "fsswarp" / "opencl"
-
-
-def record_build(devices, options: tuple[str, ...], source: str) -> None:
-    """Note that ``source`` was built with ``options`` for ``devices`` (``opencl_cache``): the
-    record holds the driver's cache folder and its inode, so that a cache folder removed since
-    (and made anew) reads cold. A folder that cannot be written is passed over."""
-    try:
-        folder = _records()
-        folder.mkdir(parents=True, exist_ok=True)
-        for device in devices:
-            (folder / build_key(device, options, source)).write_text(_driver_identity(device))
-    except OSError:
-        pass
-
-
-def _driver_identity(device) -> str:
-    """"<folder> <inode>" of the device's driver cache as it is now ("-" where none is kept)."""
-    where, off = _driver_cache(device)
-    if where is None or off or not where.is_dir():
-        return "-"
-    return f"{where} {where.stat().st_ino}"
-
-
-def _driver_cache(device) -> tuple[Path | None, str]:
-    """(the folder where the driver of ``device`` (a pyopencl Device) caches binaries, None
-    for pyopencl's own cache; why it is off, else "")."""
-    platform = device.platform.name.lower()
-    if "portable computing language" in platform or "pocl" in platform:
-        if os.environ.get("POCL_KERNEL_CACHE", "1") == "0":
-            return None, "PoCL's kernel cache is off (POCL_KERNEL_CACHE=0)"
-        return Path(os.environ.get("POCL_CACHE_DIR") or _cache_home() / "pocl" / "kcache"), ""
-    from pyopencl.characterize import nv_compute_capability
-
-    if nv_compute_capability(device) is not None:
-        if os.environ.get("CUDA_CACHE_DISABLE", "0") == "1":
-            return None, "NVIDIA's JIT cache is off (CUDA_CACHE_DISABLE=1)"
-        return Path(os.environ.get("CUDA_CACHE_PATH") or Path.home() / ".nv" / "ComputeCache"), ""
-    return None, ""
-
-
 def opencl_cache(found) -> tuple[str, str]:
     """("warm" | "cold" | "unknown", a one-line reason) for fsswarp's OpenCL programs on
     ``found`` (an ``OpenCLDevice``)."""
@@ -131,7 +77,7 @@ def opencl_cache(found) -> tuple[str, str]:
     try:
         names = OPENCL_PROGRAMS + (("icp.cl",) if "cl_khr_fp64" in found.device.extensions.split() else ())
         keys = {name: build_key(found.device, BUILD_OPTIONS, kernel_source(name)) for name in names}
-        folder, off = _driver_cache(found.device)
+        folder, off = driver_cache(found.device)
         if off:
             return "cold", off
         if folder is None:  # pyopencl's own binary cache: the exact entry
@@ -145,10 +91,10 @@ def opencl_cache(found) -> tuple[str, str]:
             missing = [n for n in names if not (where / get_cache_key(found.device, options, kernel_source(n))).is_dir()]
             what = f"pyopencl's binary cache {where}"
         else:
-            now = _driver_identity(found.device)
+            now = driver_identity(found.device)
             missing = [n for n, key in keys.items()
-                       if not (_records() / key).is_file() or (_records() / key).read_text() != now]
-            what = f"the driver's cache {folder} (fsswarp's build records in {_records()})"
+                       if not (records() / key).is_file() or (records() / key).read_text() != now]
+            what = f"the driver's cache {folder} (fsswarp's build records in {records()})"
     except Exception as err:  # noqa: BLE001 - pyopencl's cache layout changed: say so
         return "unknown", f"cannot check the program cache ({' '.join(str(err).split())})"
     if missing:

@@ -5,7 +5,7 @@ hatchling force-include of the repository's top-level ``kernels/``); an editable
 reads them from the repository. Our own ``#include "x.h"`` lines are inlined here before
 building, because include paths are not portable across ICDs. Programs are built once per
 context and kept; pyopencl's on-disk binary cache stays on (PoCL and NVIDIA cache the builds
-themselves), and each build is recorded for ``fsswarp info`` (``backends/cache.py``).
+themselves), and each build is recorded for ``fsswarp info`` (``backends/builds.py``, read by ``backends/cache.py``).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from pathlib import Path
 import pyopencl as cl
 from pyopencl.tools import first_arg_dependent_memoize
 
-from ..cache import record_build
+from ..builds import record_build
 from ..constants import opencl_defines
 
 #: Options of every build: the shared constants (``constants.opencl_defines``). No fast-math:
@@ -79,7 +79,7 @@ def _inline(name: str, folder: Path, seen: set[str]) -> str:
 @first_arg_dependent_memoize
 def program(context: cl.Context, name: str, options: tuple[str, ...] = BUILD_OPTIONS) -> cl.Program:
     """``kernels/<name>`` built for ``context`` (memoized per context, name and options), the
-    build recorded for ``fsswarp info`` (``cache.record_build``)."""
+    build recorded for ``fsswarp info`` (``builds.record_build``)."""
     built = build(context, kernel_source(name), options, label=name)
     record_build(context.devices, options, kernel_source(name))
     return built

@@ -1,0 +1,62 @@
+"""Records of fsswarp's OpenCL builds, for ``fsswarp info`` (``cache.opencl_cache``): each
+build writes a file named by pyopencl's cache key (device, driver, options, source) holding
+the driver's cache folder and its inode at the time (``programs.program`` writes them)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+
+def cache_home() -> Path:
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+
+
+def build_key(device, options: tuple[str, ...], source: str) -> str:
+    """pyopencl's cache key of ``source`` built with ``options`` for ``device`` (its platform,
+    device and driver versions, pyopencl's version)."""
+    from pyopencl.cache import get_cache_key
+
+    return get_cache_key(device, " ".join(options).encode(), source)
+
+
+def records() -> Path:
+    return cache_home() / "fsswarp" / "opencl"
+
+
+def record_build(devices, options: tuple[str, ...], source: str) -> None:
+    """Note that ``source`` was built with ``options`` for ``devices`` (``opencl_cache``): the
+    record holds the driver's cache folder and its inode, so that a cache folder removed since
+    (and made anew) reads cold. A folder that cannot be written is passed over."""
+    try:
+        folder = records()
+        folder.mkdir(parents=True, exist_ok=True)
+        for device in devices:
+            (folder / build_key(device, options, source)).write_text(driver_identity(device))
+    except OSError:
+        pass
+
+
+def driver_identity(device) -> str:
+    """"<folder> <inode>" of the device's driver cache as it is now ("-" where none is kept)."""
+    where, off = driver_cache(device)
+    if where is None or off or not where.is_dir():
+        return "-"
+    return f"{where} {where.stat().st_ino}"
+
+
+def driver_cache(device) -> tuple[Path | None, str]:
+    """(the folder where the driver of ``device`` (a pyopencl Device) caches binaries, None
+    for pyopencl's own cache; why it is off, else "")."""
+    platform = device.platform.name.lower()
+    if "portable computing language" in platform or "pocl" in platform:
+        if os.environ.get("POCL_KERNEL_CACHE", "1") == "0":
+            return None, "PoCL's kernel cache is off (POCL_KERNEL_CACHE=0)"
+        return Path(os.environ.get("POCL_CACHE_DIR") or cache_home() / "pocl" / "kcache"), ""
+    from pyopencl.characterize import nv_compute_capability
+
+    if nv_compute_capability(device) is not None:
+        if os.environ.get("CUDA_CACHE_DISABLE", "0") == "1":
+            return None, "NVIDIA's JIT cache is off (CUDA_CACHE_DISABLE=1)"
+        return Path(os.environ.get("CUDA_CACHE_PATH") or Path.home() / ".nv" / "ComputeCache"), ""
+    return None, ""
