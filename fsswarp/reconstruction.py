@@ -276,8 +276,8 @@ def _self_consistent_answer(dataset, comparison: ViewComparison, shaping: ViewCo
     for _ in range(FIXED_POINT_STEPS):
         moved, conditional = proposal(at)
         half = Z95 * np.sqrt(np.diag(conditional.covariance))
-        say(f"the answer: carved and refined at D {at[0]:.4f} m, tilt {math.degrees(at[1]):.3f} deg, the pose step proposes "
-            f"D {moved[0]:.4f} m, tilt {math.degrees(moved[1]):.3f} deg")
+        say(f"the answer: carved and refined at D {at[0]:.4f} m, tilt {math.degrees(at[1]):.3f} deg, the pose step "
+            f"proposes D {moved[0]:.4f} m, tilt {math.degrees(moved[1]):.3f} deg")
         if np.all(np.abs(moved - at) <= half):
             break
         at = moved
