@@ -31,6 +31,7 @@ from .atomic import json_number
 from .compare import PoseSettings, PoseWarning, ViewComparison
 from .dataset import MANIFEST_NAME
 from .errors import InputError, check_depth_tilt, check_integer
+from .surface import surface_in_reference
 
 #: Half-width of the polish box in cells of the finest grid level.
 POLISH_CELLS = 2
@@ -56,8 +57,8 @@ def _covariance(depth_sigma: float, tilt_sigma: float, correlation: float) -> np
 #: (``fsswarp.reconstruction.sighting``: carved and refined once) made at the true pose: the
 #: likelihood's minimum lay 6.1 mm (RMS) deeper and 0.10° steeper than the truth, correlation
 #: 0.83, along the valley (bench/interval_study.py: the built-in scenes, seeds 3–5, both sensor
-#: classes, 36 runs; docs/experiments.md). :func:`self_consistent_posterior` adds it to the
-#: data's noise: the shape's error, which no single grid sees.
+#: classes, 36 runs; docs/experiments.md). :func:`valley_posterior` adds its part along the
+#: surface's height to the data's noise: the shape's error, which no single grid sees.
 CARVING_ERROR = _covariance(0.0061, math.radians(0.099), 0.83)
 
 
@@ -380,37 +381,54 @@ def fit_posterior(comparison: ViewComparison, prior: Prior, depth: float, tilt: 
     return Posterior(depth, tilt, covariance, prior, float(slope), float(valley_depth), float(noise))
 
 
-def self_consistent_posterior(carved_at, answer, conditional, response, prior: Prior, *,
-                              carving_error: np.ndarray = CARVING_ERROR) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The posterior of (D, β) when the model is made at the pose being estimated.
+def valley_posterior(conditional: Posterior, lever: float, *,
+                     carving_error: np.ndarray = CARVING_ERROR) -> Posterior:
+    """The posterior of (D, β) when the shape is free: the data keep only the surface's height
+    above the object, h = D − L·β (DESIGN §7), and the sensors tell the rest.
 
-    carved_at : (2,) c, the pose (m, rad) a model was made at; answer : (2,) f(c), the pose
-        step's estimate with that model; conditional : (2, 2) its posterior covariance (m, rad)
-    response : (2, 2) ∂f/∂c, how that estimate follows c (finite differences)
-    prior : the sensors; carving_error : (2, 2) covariance of the likelihood's minimum with a
-        model made at the truth (``CARVING_ERROR``)
-    Linear-Gaussian model: with the model made at c the likelihood is N(m(c), H⁻¹), m(c) = a +
-    K c; so H = Σ_c⁻¹ − Λ0, K = H⁻¹ (H + Λ0) ∂f/∂c and m(c) = H⁻¹((H + Λ0) f(c) − Λ0 μ0). At
-    the self-consistent pose θ = m(θ), (I − K) θ = a is observed with covariance H⁻¹ +
-    carving_error. Returns (mean (2,), covariance (2, 2), K (2, 2)); the mean is clipped to the
-    sensors' ± ``BOUNDS_FACTOR`` σ box. K → I (a shape that follows its making) leaves the
-    prior; K = 0 and no carving error give f(c) and Σ_c back."""
-    c, f = np.asarray(carved_at, np.float64), np.asarray(answer, np.float64)
-    conditional = np.asarray(conditional, np.float64)
+    conditional : the pose step's Posterior with one model held fixed (its mean f, covariance
+        Σ_c, its Prior: μ0, Σ0); lever : L = ∂h/∂β · (−1), the horizontal distance (m) from
+        the reference sonar to the model, in m/rad
+    carving_error : (2, 2) covariance of the pose step's error with a model made at the truth
+        (``CARVING_ERROR``); its variance along a = (1, −L) widens the height's
+    With a = (1, −L): the height's likelihood is the conditional's marginal of aᵀθ with the
+    prior's divided out, N(g, v) with 1/v = 1/(aᵀΣ_c a) − 1/(aᵀΣ0 a), g = v (aᵀf/(aᵀΣ_c a) −
+    aᵀμ0/(aᵀΣ0 a)), plus aᵀ carving_error a; the posterior is N(μ0, Σ0) × N(aᵀθ; g, v):
+    precision Λ0 + a aᵀ/v, mean by the same weights, clipped to the sensors' ± ``BOUNDS_FACTOR``
+    σ box. Returns a Posterior with that mean and covariance, the valley (slope L, the depth
+    g + L·β at the estimated tilt) and the conditional's noise. A conditional that adds nothing
+    to the prior on h gives the prior back."""
+    prior = conditional.prior
+    a = np.array([1.0, -float(lever)])
     mu0 = np.array([prior.depth, prior.tilt])
     sigma0 = np.array([prior.depth_sigma, prior.tilt_sigma])
-    precision0 = np.diag(sigma0 ** -2.0)  # 0 where σ = inf
-    pulled = precision0 @ np.where(np.isfinite(sigma0), mu0, 0.0)  # Λ0 μ0
-    values, vectors = np.linalg.eigh(np.linalg.inv(conditional) - precision0)
-    likelihood = (vectors * np.maximum(values, 0.0)) @ vectors.T + 1e-9 * np.diag(1.0 / np.diag(conditional))
-    follows = np.linalg.solve(likelihood, (likelihood + precision0) @ np.asarray(response, np.float64))
-    lowest = np.linalg.solve(likelihood, (likelihood + precision0) @ f - pulled)
-    weight = likelihood @ np.linalg.inv(np.eye(2) + np.asarray(carving_error, np.float64) @ likelihood)
-    free = np.eye(2) - follows
-    covariance = np.linalg.inv(free.T @ weight @ free + precision0)
-    mean = covariance @ (free.T @ weight @ (lowest - follows @ c) + pulled)
+    cov0 = np.diag(sigma0 ** 2)
+    f = np.array([conditional.depth, conditional.tilt])
+    v_c, v_0 = float(a @ conditional.covariance @ a), float(a @ cov0 @ a)
+    gained = 1.0 / v_c - 1.0 / v_0
+    precision = np.diag(sigma0 ** -2.0)
+    pulled = precision @ mu0
+    if gained > 0:
+        variance = 1.0 / gained + float(a @ np.asarray(carving_error, np.float64) @ a)
+        height = (a @ f / v_c - a @ mu0 / v_0) / gained
+        precision = precision + np.outer(a, a) / variance
+        pulled = pulled + a * height / variance
+    else:
+        height = float(a @ mu0)
+    covariance = np.linalg.inv(precision)
     box = BOUNDS_FACTOR * sigma0
-    return np.clip(mean, mu0 - box, mu0 + box), covariance, follows
+    mean = np.clip(covariance @ pulled, mu0 - box, mu0 + box)
+    return Posterior(float(mean[0]), float(mean[1]), covariance, prior, float(lever),
+                     float(height + lever * mean[1]), conditional.noise)
+
+
+def model_lever(model, rig, depth: float, tilt: float, *, step: float = 1e-4) -> float:
+    """L (m/rad): how fast the surface's height above ``model``'s centroid (reference frame)
+    falls as the tilt grows, −∂(D − n(β)·c)/∂β at (depth m, tilt rad); for the usual reference
+    the horizontal distance from the reference sonar to the centroid."""
+    centroid = np.asarray(model.vertices, np.float64).mean(axis=0)
+    normals = [surface_in_reference(rig, depth, tilt + s)[0] for s in (step, -step)]
+    return float((normals[0] - normals[1]) @ centroid / (2 * step))
 
 
 def _principal_axes(covariance: np.ndarray, sigmas: float) -> np.ndarray:

@@ -13,13 +13,14 @@
 
 One ``fsswarp.compare.ViewComparison`` serves both steps and the metrics. The loop stops
 after ``iterations``, after ``patience`` iterations without a new lowest E_I, or when a shape
-step leaves the model unchanged. The answer (:func:`_self_consistent_answer`): E_I does not
-pick the pose (a free shape absorbs the tilt), the carving does: from the lowest E_I's (D, β),
-carve and refine once there (:func:`sighting`) and move to the pose step's proposal
-(``FIXED_POINT_STEPS``), measure how the proposal follows that pose, and take the
-self-consistent posterior (``fsswarp.pose.self_consistent_posterior``); the lowest-E_I model,
-refined at that answer, is the result (``converged``: stopped, and both identified). Without
-iterations (carving alone) the sensors' pose stays. Image metrics over the
+step leaves the model unchanged. The answer (:func:`_valley_answer`): E_I does not pick the
+pose, and a free shape absorbs the tilt, so the images keep only the surface's height above
+the object, D − L·β (DESIGN §7): from the lowest E_I's (D, β), carve and refine once there
+(:func:`sighting`), take the pose step's height and its error, and the sensors' priors the
+rest (``fsswarp.pose.valley_posterior``), made again at that estimate while it moves
+(``FIXED_POINT_STEPS``); the lowest-E_I model, refined at the answer, is the result
+(``converged``: stopped, and both identified). Without iterations (carving alone) the
+sensors' pose stays. Image metrics over the
 optimized views: Ω_m, the synthetic object above 1% of its peak where ghost and mirrors stay
 below 10% of it; IE on Ω_m, totals divided by their means there; CE from the comparison's
 contours; E_I = (AIE/AIE⁰ + ACE/ACE⁰)/2 (``fsswarp.metrics.image_error``).
@@ -40,12 +41,12 @@ from .carving import CarveSettings, carve
 from .errors import check_depth_tilt, check_integer
 from .compare import PoseSettings, PoseWarning, ViewComparison
 from .metrics import average_contour_error, average_intensity_error, combine, image_error
-from .pose import (BOUNDS_FACTOR, Z95, Prior, check_start, check_uncertainties, estimate_pose, fit_posterior,
-                   self_consistent_posterior)
+from .pose import (BOUNDS_FACTOR, Prior, check_start, check_uncertainties, estimate_pose, fit_posterior, model_lever,
+                   valley_posterior)
 from .refine import RefineSettings, refine_shape
 from .rendering import RenderSettings, render, with_total
 
-#: Most carvings at the pose step's proposal before the answer's response is measured.
+#: Most times the answer's model is made again at its own estimate.
 FIXED_POINT_STEPS = 2
 
 
@@ -87,10 +88,8 @@ class ReconstructResult:
     history : one dict per iteration run (0 = the carved model), the keys of DESIGN §12
     seconds : wall time; backend, device : where the kernels ran
     pose_steps : the PoseResult of every pose step (grid levels, for figures)
-    posterior : the fsswarp.pose.Posterior of (depth, tilt), self-consistent with the carving
+    posterior : the fsswarp.pose.Posterior of (depth, tilt): the sensors and the surface's height
     start : (depth m, tilt rad) the loop started from; truth : (depth, tilt) or None
-    response : (2, 2) K, how the pose step's likelihood follows the carving pose (m/m, m/rad;
-        rad/m, rad/rad); None without a pose step
     """
 
     model: object
@@ -109,7 +108,6 @@ class ReconstructResult:
     posterior: object = None
     start: tuple[float, float] = (math.nan, math.nan)
     truth: tuple[float, float] | None = None
-    response: np.ndarray | None = None
 
     def summary(self) -> dict:
         """``result.json`` (DESIGN §12)."""
@@ -120,8 +118,6 @@ class ReconstructResult:
                                                  "tilt_deg": math.degrees(self.tilt) - math.degrees(self.truth[1])}
         return {"depth_m": self.depth, "tilt_deg": math.degrees(self.tilt), **self.posterior.summary(),
                 "start": point(*self.start), "error_vs_truth": error,
-                "follows_carving": None if self.response is None else {
-                    "depth": float(self.response[0, 0]), "tilt": float(self.response[1, 1])},
                 "best_iteration": self.best_iteration,
                 "iterations": self.iterations, "converged": self.converged, "backend": self.backend,
                 "device": self.device, "seconds": self.seconds, "history": self.history}
@@ -217,8 +213,8 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
             if _out_of_patience(misses, settings, best, iteration, say):
                 stopped = True
                 break
-        posterior, response = _self_consistent_answer(dataset, comparison, shaping, best_pose, prior, settings, say) \
-            if settings.iterations else (_carving_posterior(comparison, carved, best_pose, prior), None)
+        posterior = _valley_answer(dataset, comparison, shaping, best_pose, prior, settings, say) \
+            if settings.iterations else _carving_posterior(comparison, carved, best_pose, prior)
         answer = (posterior.depth, posterior.tilt)
         say(f"the answer: {_intervals(*answer, posterior)}")
         ran = len(history) - 1
@@ -235,8 +231,7 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
                                  best_iteration=best["iteration"], iterations=ran, stopped=stopped,
                                  converged=stopped and all(identified.values()), history=history,
                                  seconds=time.perf_counter() - start, backend=backend.name, device=backend.device,
-                                 pose_steps=pose_steps, posterior=posterior, start=start_pose, truth=truth_pose,
-                                 response=response)
+                                 pose_steps=pose_steps, posterior=posterior, start=start_pose, truth=truth_pose)
 
 
 def _out_of_patience(misses: int, settings: ReconstructSettings, best: dict, iteration: int, say) -> bool:
@@ -259,40 +254,28 @@ def sighting(dataset, depth: float, tilt: float, settings: ReconstructSettings, 
     return refine_shape(carved, dataset, depth, tilt, settings=settings.refine, comparison=shaping).mesh
 
 
-def _self_consistent_answer(dataset, comparison: ViewComparison, shaping: ViewComparison, pose: tuple[float, float],
-                            prior: Prior, settings: ReconstructSettings, say):
-    """The answer's Posterior and K, how the likelihood follows the pose its model was made at
-    (2, 2): from ``pose`` (m, rad), up to ``FIXED_POINT_STEPS`` times take the :func:`sighting`
-    model there and move to the pose step's proposal f(c) until it lies within the 95%
-    intervals of c; then the same at c ± one prior σ along each axis gives ∂f/∂c, and
-    ``fsswarp.pose.self_consistent_posterior`` the posterior (its mean the estimate)."""
-    def proposal(at, with_posterior: bool = True):
+def _valley_answer(dataset, comparison: ViewComparison, shaping: ViewComparison, pose: tuple[float, float],
+                  prior: Prior, settings: ReconstructSettings, say):
+    """The answer's Posterior (``fsswarp.pose.valley_posterior``: the data keep only the
+    surface's height above the object, the sensors the rest): from ``pose`` (m, rad) take the
+    :func:`sighting` model there, its pose step's posterior and the valley posterior; while its
+    mean lies more than half a posterior σ from where the model was made, make it there again
+    (``FIXED_POINT_STEPS`` at most)."""
+    at = np.array(pose, np.float64)
+    for _ in range(FIXED_POINT_STEPS + 1):
         model = sighting(dataset, float(at[0]), float(at[1]), settings, shaping)
         step = estimate_pose(model, dataset, depth0=float(at[0]), tilt0=float(at[1]), comparison=comparison,
-                             prior=prior, with_posterior=with_posterior)
-        return np.array(step.candidate), step.posterior
-
-    at = np.array(pose, np.float64)
-    for _ in range(FIXED_POINT_STEPS):
-        moved, conditional = proposal(at)
-        half = Z95 * np.sqrt(np.diag(conditional.covariance))
-        say(f"the answer: carved and refined at D {at[0]:.4f} m, tilt {math.degrees(at[1]):.3f} deg, the pose step "
-            f"proposes D {moved[0]:.4f} m, tilt {math.degrees(moved[1]):.3f} deg")
-        if np.all(np.abs(moved - at) <= half):
+                             prior=prior)
+        posterior = valley_posterior(step.posterior, model_lever(model, dataset.rig, *at))
+        mean = np.array([posterior.depth, posterior.tilt])
+        say(f"the answer: made at D {at[0]:.4f} m, tilt {math.degrees(at[1]):.3f} deg, the surface's height fixed at "
+            f"{posterior.valley_depth - posterior.valley_slope * posterior.tilt:.4f} m + "
+            f"{posterior.valley_slope * math.pi / 180 * 100:.2f} cm/deg: D {mean[0]:.4f} m, tilt "
+            f"{math.degrees(mean[1]):.3f} deg")
+        if np.all(np.abs(mean - at) <= 0.5 * np.sqrt(np.diag(posterior.covariance))):
             break
-        at = moved
-    else:
-        moved, conditional = proposal(at)
-    sigmas = np.array([prior.depth_sigma, prior.tilt_sigma])
-    response = np.empty((2, 2))
-    for axis in (0, 1):
-        step = np.eye(2)[axis] * sigmas[axis]
-        response[:, axis] = (proposal(at + step, False)[0] - proposal(at - step, False)[0]) / (2 * sigmas[axis])
-    mean, covariance, follows = self_consistent_posterior(at, moved, conditional.covariance, response, prior)
-    say(f"the answer: the pose step's tilt follows the model's by {follows[1, 1]:.2f} deg/deg, its depth by "
-        f"{follows[0, 0]:.2f} m/m")
-    return dataclasses.replace(conditional, depth=float(mean[0]), tilt=float(mean[1]), covariance=covariance), \
-        follows
+        at = mean
+    return posterior
 
 
 def _carving_posterior(comparison: ViewComparison, carved, pose: tuple[float, float], prior: Prior):

@@ -8,8 +8,8 @@ import pytest
 
 from fsswarp.compare import PoseSettings
 from fsswarp.errors import InputError
-from fsswarp.pose import (CARVING_ERROR, Prior, Z95, check_start, fit_posterior, noise_level, self_consistent_posterior,
-                          surface_range)
+from fsswarp.pose import (CARVING_ERROR, Posterior, Prior, Z95, check_start, fit_posterior, model_lever, noise_level,
+                          surface_range, valley_posterior)
 
 
 #: Each view's deviation pattern (sum 0, sum of squares V − 1), scaled by SIGMA.
@@ -156,70 +156,79 @@ def test_surface_range_is_the_closed_form_for_a_level_sonar(coral_one):
     assert surface_range(one, depth, tilt) == pytest.approx(expected, rel=1e-9)
 
 
-def _linear_carving(seed: int):
-    """A linear-Gaussian carving model: carved at c, the likelihood is N(m(c), H⁻¹) with
-    m(c) = t + b + K (c − t); the pose step's answer f(c) and covariance follow in closed form."""
+def _height_only(seed: int, lever: float = 2.0, sensors=(0.003, 0.6)):
+    """A pose step whose likelihood fixes only the height h = D − L·β: N(aᵀθ; g, v), a =
+    (1, −L), with the sensors' prior; its conditional Posterior in closed form, and the exact
+    Gaussian posterior (mean, covariance) written out by hand."""
     rng = np.random.default_rng(seed)
-    truth = np.array([0.43, math.radians(10.3)])
-    prior = Prior(0.432, math.radians(11.0), 0.003, math.radians(0.6))
-    root = rng.normal(size=(2, 2)) * np.array([[1 / 0.002, 0.0], [0.0, 1 / math.radians(0.1)]])
-    likelihood = root @ root.T + np.diag([1 / 0.004 ** 2, 1 / math.radians(0.3) ** 2])
-    follows = np.array([[0.2, 0.01], [1.5, 0.6]]) * rng.uniform(0.5, 1.0, size=(2, 2))
-    bias = np.array([0.004, math.radians(0.2)])
+    prior = Prior(0.432 + rng.normal(0, 0.002), math.radians(11.0 + rng.normal(0, 0.3)), sensors[0],
+                  math.radians(sensors[1]))
+    a = np.array([1.0, -lever])
+    g, v = 0.43 - lever * math.radians(10.3) + rng.normal(0, 0.002), rng.uniform(0.5, 3.0) * 1e-3 ** 2
     precision0 = np.diag([prior.depth_sigma ** -2, prior.tilt_sigma ** -2])
-    mu0 = np.array([prior.depth, prior.tilt])
-    conditional = np.linalg.inv(likelihood + precision0)
-
-    def answer(c):
-        lowest = truth + bias + follows @ (np.asarray(c) - truth)
-        return conditional @ (likelihood @ lowest + precision0 @ mu0)
-
-    return truth, prior, likelihood, follows, bias, conditional, answer
+    covariance = np.linalg.inv(precision0 + np.outer(a, a) / v)
+    mean = covariance @ (precision0 @ np.array([prior.depth, prior.tilt]) + a * g / v)
+    conditional = Posterior(float(mean[0]), float(mean[1]), covariance, prior, math.nan, math.nan, 1e-4)
+    return prior, a, g, v, conditional, mean, covariance
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_the_self_consistent_posterior_is_the_closed_form(seed):
-    """At θ = m(θ): (I − K) θ = (I − K) t + b, seen with covariance H⁻¹; with the prior, a
-    Gaussian posterior written out here by hand, the same wherever the model was carved."""
-    truth, prior, likelihood, follows, bias, conditional, answer = _linear_carving(seed)
-    free = np.eye(2) - follows
-    precision0 = np.diag([prior.depth_sigma ** -2, prior.tilt_sigma ** -2])
-    expected_cov = np.linalg.inv(free.T @ likelihood @ free + precision0)
-    expected_mean = expected_cov @ (free.T @ likelihood @ (free @ truth + bias)
-                                    + precision0 @ np.array([prior.depth, prior.tilt]))
-    response = conditional @ likelihood @ follows  # ∂f/∂c
-    for carved_at in (truth, truth + np.array([0.002, math.radians(0.5)])):
-        mean, cov, found = self_consistent_posterior(carved_at, answer(carved_at), conditional, response, prior,
-                                                     carving_error=np.zeros((2, 2)))
-        assert np.allclose(found, follows, rtol=1e-6, atol=1e-9)
-        assert np.allclose(mean, expected_mean, rtol=0, atol=1e-9)
-        assert np.allclose(cov, expected_cov, rtol=1e-6)
+def test_the_valley_posterior_of_a_height_only_likelihood_is_the_closed_form(seed):
+    """Without the carving error, a conditional posterior that already is prior × N(aᵀθ; g, v)
+    comes back unchanged, and the valley is the line D = g + L·β."""
+    lever = 1.9 + 0.1 * seed
+    prior, a, g, v, conditional, mean, covariance = _height_only(seed, lever)
+    found = valley_posterior(conditional, lever, carving_error=np.zeros((2, 2)))
+    assert np.allclose([found.depth, found.tilt], mean, rtol=0, atol=1e-10)
+    assert np.allclose(found.covariance, covariance, rtol=1e-8)
+    assert found.valley_slope == lever
+    assert found.valley_depth == pytest.approx(g + lever * found.tilt, abs=1e-10)
 
 
-def test_a_shape_that_does_not_follow_its_carving_gives_the_conditional_posterior():
-    truth, prior, likelihood, follows, bias, conditional, answer = _linear_carving(3)
-    carved_at = truth + np.array([0.001, math.radians(0.3)])
-    mean, cov, _ = self_consistent_posterior(carved_at, answer(carved_at), conditional, np.zeros((2, 2)), prior,
-                                             carving_error=np.zeros((2, 2)))
-    assert np.allclose(mean, answer(carved_at), atol=1e-9)
-    assert np.allclose(cov, conditional, rtol=1e-6)
-
-
-def test_a_shape_that_follows_its_carving_leaves_the_prior():
-    """K = I: the images say nothing about the pose the shape was carved at."""
-    truth, prior, likelihood, _, _, conditional, answer = _linear_carving(4)
-    response = conditional @ likelihood  # K = I
-    mean, cov, found = self_consistent_posterior(truth, answer(truth), conditional, response, prior,
-                                                 carving_error=np.zeros((2, 2)))
-    assert np.allclose(found, np.eye(2), atol=1e-6)
-    assert np.allclose(cov, np.diag([prior.depth_sigma ** 2, prior.tilt_sigma ** 2]), rtol=1e-4)
-    assert np.allclose(mean, [prior.depth, prior.tilt], atol=1e-6)
+def test_the_valley_posterior_drops_the_tilt_a_fixed_shape_claims():
+    """A conditional posterior that pins β too (a fixed shape) keeps only what it says about the
+    height: the tilt interval is the prior's narrowed by the depth sensor through the valley."""
+    lever = 2.0
+    prior, a, g, v, _, _, _ = _height_only(4, lever, sensors=(0.05, 2.0))
+    sharp = np.diag([0.001, math.radians(0.05)]) ** 2  # a fixed shape: both pinned
+    conditional = Posterior(0.43, math.radians(10.3), sharp, prior, math.nan, math.nan, 1e-4)
+    found = valley_posterior(conditional, lever, carving_error=np.zeros((2, 2)))
+    v_c, v_0 = a @ sharp @ a, a @ np.diag([prior.depth_sigma, prior.tilt_sigma]) ** 2 @ a
+    v_h = 1 / (1 / v_c - 1 / v_0)
+    expected = np.linalg.inv(np.diag([prior.depth_sigma ** -2, prior.tilt_sigma ** -2]) + np.outer(a, a) / v_h)
+    assert np.allclose(found.covariance, expected, rtol=1e-8)
+    # the poor sensors (5 cm, 2°) at a 2 m standoff: 1/σ_β² = 1/(2°)² + (L/5 cm)², not identified
+    tilt_sigma = math.degrees(math.sqrt(found.covariance[1, 1]))
+    assert tilt_sigma == pytest.approx((0.25 + (lever * math.pi / 180 / 0.05) ** 2) ** -0.5, rel=0.01)
+    assert found.identified() == {"depth": False, "tilt": False}  # D = h + L·β: as loose as β
 
 
 def test_the_carving_error_widens_the_interval_toward_the_prior():
-    truth, prior, likelihood, follows, _, conditional, answer = _linear_carving(5)
-    response = conditional @ likelihood @ follows
-    widths = [self_consistent_posterior(truth, answer(truth), conditional, response, prior,
-                                        carving_error=scale * CARVING_ERROR)[1][1, 1] for scale in (0.0, 1.0, 1e6)]
+    prior, a, g, v, conditional, _, _ = _height_only(5)
+    widths = [valley_posterior(conditional, 2.0, carving_error=scale * CARVING_ERROR).covariance[1, 1]
+              for scale in (0.0, 1.0, 1e9)]
     assert widths[0] < widths[1] < widths[2] <= prior.tilt_sigma ** 2 * (1 + 1e-6)
     assert widths[2] == pytest.approx(prior.tilt_sigma ** 2, rel=1e-3)
+
+
+def test_a_conditional_that_adds_nothing_on_the_height_leaves_the_prior():
+    prior = Prior(0.45, math.radians(10.9), 0.003, math.radians(0.6))
+    same = Posterior(0.45, math.radians(10.9), np.diag([0.003, math.radians(0.6)]) ** 2, prior, math.nan, math.nan,
+                     1e-4)
+    found = valley_posterior(same, 2.0)
+    assert np.allclose([found.depth, found.tilt], [prior.depth, prior.tilt], atol=1e-12)
+    assert np.allclose(found.covariance, same.covariance, rtol=1e-9)
+
+
+def test_the_lever_is_the_horizontal_distance_to_the_model(coral_one):
+    """For the usual reference, −∂(D − n(β)·c)/∂β = c_y cos β − c_z sin β: the centroid's
+    horizontal distance ahead of the reference sonar (closed form, n = (0, sin β, cos β))."""
+    import trimesh
+
+    tilt = math.radians(10.3)
+    ahead = np.array([0.0, 2.0 * math.cos(tilt) + 0.3 * math.sin(tilt), 0.3 * math.cos(tilt) - 2.0 * math.sin(tilt)])
+    box = trimesh.creation.box(extents=(0.2, 0.2, 0.2))
+    box.apply_translation(ahead)
+    lever = model_lever(box, coral_one.rig, 0.43, tilt)
+    assert lever == pytest.approx(ahead[1] * math.cos(tilt) - ahead[2] * math.sin(tilt), rel=1e-6)
+    assert lever == pytest.approx(2.0, rel=1e-6)

@@ -19,7 +19,7 @@ from fsswarp.refine import RefineSettings, refine_shape
 
 HISTORY_KEYS = {"iteration", "depth_m", "tilt_deg", "E_mu", "AIE", "ACE", "E_I", "E_V", "chamfer_m", "fscore"}
 RESULT_KEYS = {"depth_m", "tilt_deg", "depth_interval_m", "tilt_interval_deg", "valley", "identified", "start",
-               "error_vs_truth", "follows_carving", "best_iteration", "iterations", "converged", "backend", "device",
+               "error_vs_truth", "best_iteration", "iterations", "converged", "backend", "device",
                "seconds", "history"}
 FAST = ReconstructSettings(iterations=1, resolution=64)
 
@@ -248,8 +248,8 @@ def _script_the_loop(monkeypatch, pose_step, errors, completed=None):
 
     for name, fake in (("estimate_pose", posed), ("refine_shape", refine), ("_record", record),
                        ("_complete", complete), ("_line", str),
-                       ("_self_consistent_answer", lambda dataset, comparison, shaping, pose, prior, settings, say:
-                        (wide(*pose, prior), np.zeros((2, 2))))):
+                       ("_valley_answer", lambda dataset, comparison, shaping, pose, prior, settings, say:
+                        wide(*pose, prior))):
         monkeypatch.setattr(reconstruct_module, name, fake)
     return refined
 
@@ -522,50 +522,46 @@ def test_the_image_errors_read_the_located_comparison_s_layers(coral_one, monkey
     assert rendered[1:] == [names, names]
 
 
-def test_the_answer_moves_to_the_proposal_and_takes_the_self_consistent_posterior(coral_one, monkeypatch):
-    """The answer's orchestration with a scripted pose step: the likelihood of a model made at c
-    has its minimum at m(c) = t + b + K (c − t) (precision H), so the pose step proposes f(c) =
-    (H + Λ0)⁻¹ (H m(c) + Λ0 μ0). The answer moves to the proposals (at most FIXED_POINT_STEPS),
-    measures ∂f/∂c at ± one prior σ, and its posterior is the closed form of the linear model."""
+def test_the_answer_keeps_the_height_and_is_made_again_where_it_moves(coral_one, monkeypatch):
+    """The answer's orchestration with a scripted pose step: a model made at c fixes the height
+    h = D − L·β at g(c) = g + k (aᵀc − g), a = (1, −L) (a shape partly follows its making),
+    with variance v, and the pose step's posterior is the prior × N(aᵀθ; g(c), v). The answer
+    is made again at its own mean while that moves (at most FIXED_POINT_STEPS times); its
+    posterior is the prior × N(aᵀθ; g(c), v + aᵀ CARVING_ERROR a), written out here."""
     from types import SimpleNamespace
 
     from fsswarp.pose import CARVING_ERROR, Posterior, Prior
 
     prior = Prior.of(coral_one)
-    truth = np.array([coral_one.manifest.truth.depth, coral_one.manifest.truth.tilt])
-    likelihood = np.diag([1 / 0.002 ** 2, 1 / math.radians(0.1) ** 2])
-    follows = np.array([[0.1, 0.0], [2.0, 0.4]])  # rad per m, and deg per deg
-    bias = np.array([0.001, math.radians(0.05)])
+    lever, follows, v = 2.0, 0.3, 0.001 ** 2
+    a = np.array([1.0, -lever])
+    g = coral_one.manifest.truth.depth - lever * coral_one.manifest.truth.tilt
     precision0 = np.diag([prior.depth_sigma ** -2, prior.tilt_sigma ** -2])
     mu0 = np.array([prior.depth, prior.tilt])
-    conditional = np.linalg.inv(likelihood + precision0)
-    made, proposed = [], []
+    made = []
+
+    def posterior_of(height, variance):
+        covariance = np.linalg.inv(precision0 + np.outer(a, a) / variance)
+        return covariance @ (precision0 @ mu0 + a * height / variance), covariance
 
     def sighting(dataset, depth, tilt, settings, shaping):
-        made.append((depth, tilt))
-        return np.array([depth, tilt])  # the "model" remembers where it was made
+        made.append(np.array([depth, tilt]))
+        return made[-1]  # the "model" remembers where it was made
 
-    def pose_step(model, dataset, *, depth0, tilt0, comparison, prior, with_posterior):
-        lowest = truth + bias + follows @ (model - truth)
-        candidate = conditional @ (likelihood @ lowest + precision0 @ mu0)
-        proposed.append(candidate)
-        posterior = Posterior(*candidate, conditional, prior, 0.0, 0.0, 1e-3) if with_posterior else None
-        return SimpleNamespace(candidate=tuple(candidate), posterior=posterior)
+    def pose_step(model, dataset, *, depth0, tilt0, comparison, prior):
+        mean, covariance = posterior_of(g + follows * (a @ model - g), v)
+        return SimpleNamespace(posterior=Posterior(*mean, covariance, prior, math.nan, math.nan, 1e-3))
 
     monkeypatch.setattr(reconstruct_module, "sighting", sighting)
     monkeypatch.setattr(reconstruct_module, "estimate_pose", pose_step)
-    start = (prior.depth, prior.tilt)
-    posterior, found = reconstruct_module._self_consistent_answer(coral_one, None, None, start, prior, FAST,
-                                                                   lambda line: None)
-    steps = reconstruct_module.FIXED_POINT_STEPS
-    assert len(made) <= steps + 1 + 4 and made[0] == start
-    at = np.array(made[-5])  # where the finite differences were centred: the last proposal's model
-    sigmas = np.array([prior.depth_sigma, prior.tilt_sigma])
-    assert np.allclose(np.array(made[-4:]), [at + sigmas * e for e in ((1, 0), (-1, 0), (0, 1), (0, -1))])
-    assert np.allclose(found, follows, atol=1e-9)
-    free = np.eye(2) - follows
-    weight = likelihood @ np.linalg.inv(np.eye(2) + CARVING_ERROR @ likelihood)
-    expected_cov = np.linalg.inv(free.T @ weight @ free + precision0)
-    expected_mean = expected_cov @ (free.T @ weight @ (free @ truth + bias) + precision0 @ mu0)
-    assert np.allclose(posterior.covariance, expected_cov, rtol=1e-6)
-    assert np.allclose([posterior.depth, posterior.tilt], expected_mean, atol=1e-9)
+    monkeypatch.setattr(reconstruct_module, "model_lever", lambda model, rig, depth, tilt: lever)
+    start = (prior.depth + 0.002, prior.tilt + math.radians(1.5))
+    posterior = reconstruct_module._valley_answer(coral_one, None, None, start, prior, FAST, lambda line: None)
+    assert 2 <= len(made) <= reconstruct_module.FIXED_POINT_STEPS + 1 and np.allclose(made[0], start)
+    widened = v + a @ CARVING_ERROR @ a
+    for before, after in zip(made, made[1:]):  # each model made at the previous answer's mean
+        assert np.allclose(after, posterior_of(g + follows * (a @ before - g), widened)[0], atol=1e-12)
+    mean, covariance = posterior_of(g + follows * (a @ made[-1] - g), widened)
+    assert np.allclose([posterior.depth, posterior.tilt], mean, atol=1e-12)
+    assert np.allclose(posterior.covariance, covariance, rtol=1e-8)
+    assert posterior.valley_slope == lever
