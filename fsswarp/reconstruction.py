@@ -258,7 +258,8 @@ def _valley_answer(dataset, comparison: ViewComparison, shaping: ViewComparison,
                   prior: Prior, settings: ReconstructSettings, say):
     """The answer's Posterior (``fsswarp.pose.valley_posterior``: the data keep only the
     surface's height above the object, the sensors the rest): from ``pose`` (m, rad) take the
-    :func:`sighting` model there, its pose step's posterior and the valley posterior; while its
+    :func:`sighting` model there, its pose step's posterior about its proposal (the least
+    posterior cost, kept even where greedy acceptance refuses it) and the valley posterior; while its
     mean lies more than half a posterior σ from where the model was made, make it there again
     (``FIXED_POINT_STEPS`` at most)."""
     at = np.array(pose, np.float64)
@@ -266,7 +267,8 @@ def _valley_answer(dataset, comparison: ViewComparison, shaping: ViewComparison,
         model = sighting(dataset, float(at[0]), float(at[1]), settings, shaping)
         step = estimate_pose(model, dataset, depth0=float(at[0]), tilt0=float(at[1]), comparison=comparison,
                              prior=prior)
-        posterior = valley_posterior(step.posterior, model_lever(model, dataset.rig, *at))
+        conditional = dataclasses.replace(step.posterior, depth=step.candidate[0], tilt=step.candidate[1])
+        posterior = valley_posterior(conditional, model_lever(model, dataset.rig, *at))
         mean = np.array([posterior.depth, posterior.tilt])
         say(f"the answer: made at D {at[0]:.4f} m, tilt {math.degrees(at[1]):.3f} deg, the surface's height fixed at "
             f"{posterior.valley_depth - posterior.valley_slope * posterior.tilt:.4f} m + "

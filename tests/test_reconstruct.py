@@ -526,7 +526,8 @@ def test_the_answer_keeps_the_height_and_is_made_again_where_it_moves(coral_one,
     """The answer's orchestration with a scripted pose step: a model made at c fixes the height
     h = D − L·β at g(c) = g + k (aᵀc − g), a = (1, −L) (a shape partly follows its making),
     with variance v, and the pose step's posterior is the prior × N(aᵀθ; g(c), v). The answer
-    is made again at its own mean while that moves (at most FIXED_POINT_STEPS times); its
+    is made again at its own mean while that moves (at most FIXED_POINT_STEPS times), from the
+    pose step's proposal even where greedy acceptance refused it; its
     posterior is the prior × N(aᵀθ; g(c), v + aᵀ CARVING_ERROR a), written out here."""
     from types import SimpleNamespace
 
@@ -550,7 +551,9 @@ def test_the_answer_keeps_the_height_and_is_made_again_where_it_moves(coral_one,
 
     def pose_step(model, dataset, *, depth0, tilt0, comparison, prior):
         mean, covariance = posterior_of(g + follows * (a @ model - g), v)
-        return SimpleNamespace(posterior=Posterior(*mean, covariance, prior, math.nan, math.nan, 1e-3))
+        # greedy acceptance refused the proposal: the posterior is centred at the start
+        return SimpleNamespace(candidate=tuple(mean),
+                               posterior=Posterior(depth0, tilt0, covariance, prior, math.nan, math.nan, 1e-3))
 
     monkeypatch.setattr(reconstruct_module, "sighting", sighting)
     monkeypatch.setattr(reconstruct_module, "estimate_pose", pose_step)
