@@ -1,0 +1,170 @@
+"""Where one E_mu evaluation (``ViewComparison.exact``, paper eq. 6) spends its time, one command:
+
+    python bench/exact_profile.py [--scene NAME] [--backend B] [--device D] [--calls N]
+                                  [--seed S] [--out FILE.json]
+
+Simulates the scene (noisy, ``--seed``), takes its true model (``Dataset.truth_mesh``), puts it
+in a ``ViewComparison`` at the measured (D0, β0) and evaluates ``exact`` ``--calls`` times,
+cycling through the poses of ``POSES`` near the start (as the BOBYQA polish does: never the
+located estimate itself), after one untimed round to fill the kernel caches. Each call's stages
+are timed inclusively by wrappers: ``synthetic_contours`` (render + contour kernels),
+``align`` (ICP set-up, iterations, results), ``frontal_motions`` (the frontal-patch search),
+``patch_motions`` (the 3-D least squares), and the rest (bookkeeping, μ_m), plus the backend
+calls inside them (device time as the host waits for it, with the backend's own host work) and
+``host``, the call less those backend calls. Prints one Markdown table of the
+medians per stage (ms) and writes ``--out``: the machine, the command, the medians, every
+call's times, and each pose's E_mu and μ_m (to compare results before and after a change).
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import math
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+#: (ΔD m, Δβ deg) of the timed poses about the measured start.
+POSES = ((0.004, 0.0), (-0.004, 0.25), (0.0, -0.25), (0.002, 0.1), (-0.002, -0.1))
+#: ViewComparison methods and compare-module functions timed as stages, in call order.
+STAGES = ("synthetic_contours", "align", "frontal_motions", "patch_motions")
+BACKEND_CALLS = ("render_device", "contour_cost", "icp_runs", "frontal_faces")
+
+
+class StageTimes:
+    """Inclusive wall seconds per wrapped callable within the current call (``current``)."""
+
+    def __init__(self):
+        self.current: dict[str, float] = {}
+        self.undo = []
+
+    def wrap(self, owner, name: str, label: str) -> None:
+        original = getattr(owner, name)
+
+        @functools.wraps(original)
+        def timed(*args, **kwargs):
+            start = time.perf_counter()
+            try:
+                return original(*args, **kwargs)
+            finally:
+                self.current[label] = self.current.get(label, 0.0) + time.perf_counter() - start
+
+        self.undo.append((owner, name, original))
+        setattr(owner, name, timed)
+
+    def restore(self) -> None:
+        for owner, name, original in reversed(self.undo):
+            setattr(owner, name, original)
+        self.undo.clear()
+
+
+def profile(dataset, backend, calls: int):
+    """(per-call stage times [{label: s}], {pose index: (E_mu, μ_m list)}) of ``calls`` exact
+    evaluations of ``dataset``'s true model about its measured start, after one untimed round."""
+    import fsswarp.compare as compare
+
+    surface = dataset.manifest.surface
+    comparison = compare.ViewComparison(dataset, backend=backend).use(dataset.truth_mesh(), surface.depth,
+                                                                       surface.tilt)
+    poses = [(surface.depth + dd, surface.tilt + math.radians(db)) for dd, db in POSES]
+    results = {}
+    for k, pose in enumerate(poses):  # warm-up: kernel caches, first-use copies
+        found = comparison.exact(*pose)
+        results[k] = (found.value, [float(v) for v in found.per_view])
+    times = StageTimes()
+    for name in STAGES:
+        owner = compare if name == "patch_motions" else compare.ViewComparison
+        times.wrap(owner, name, name)
+    for name in BACKEND_CALLS:
+        if hasattr(type(backend), name):
+            times.wrap(type(backend), name, f"backend.{name}")
+    rows = []
+    try:
+        for call in range(calls):
+            k = call % len(poses)
+            times.current = {}
+            start = time.perf_counter()
+            found = comparison.exact(*poses[k])
+            total = time.perf_counter() - start
+            if found.value != results[k][0] and not (math.isnan(found.value) and math.isnan(results[k][0])):
+                raise RuntimeError(f"pose {k}: E_mu {found.value} differs from its first evaluation {results[k][0]}")
+            row = dict(times.current, total=total)
+            row["rest"] = total - sum(row.get(name, 0.0) for name in STAGES)
+            row["host"] = total - sum(row.get(f"backend.{name}", 0.0) for name in BACKEND_CALLS)
+            rows.append(row)
+    finally:
+        times.restore()
+    return rows, results, poses
+
+
+def medians(rows) -> dict[str, float]:
+    """Median seconds per label over the calls (0 where a call lacks it)."""
+    labels = sorted({label for row in rows for label in row})
+    return {label: statistics.median(row.get(label, 0.0) for row in rows) for label in labels}
+
+
+def table(med: dict[str, float]) -> str:
+    order = ["total", *STAGES, "rest", *[f"backend.{n}" for n in BACKEND_CALLS], "host"]
+    lines = ["| stage | median ms | share |", "|---|---|---|"]
+    for label in order:
+        if label in med:
+            lines.append(f"| `{label}` | {1e3 * med[label]:.2f} | {100 * med[label] / med['total']:.1f}% |")
+    return "\n".join(lines)
+
+
+def cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scene", default="coral-one", choices=("coral-one", "coral-two", "table"))
+    parser.add_argument("--backend", default=None, help="warp or opencl (default: fsswarp's choice)")
+    parser.add_argument("--device", default=None, help="backend device, e.g. cuda:0, cpu, pocl, nvidia")
+    parser.add_argument("--calls", type=int, default=25, help="timed exact calls (>= 1)")
+    parser.add_argument("--seed", type=int, default=0, help="noise seed of the simulation")
+    parser.add_argument("--out", default=None, help="JSON record to write")
+    args = parser.parse_args(argv)
+    from fsswarp.atomic import json_number, write_text
+    from fsswarp.backends import get_backend
+    from fsswarp.errors import InputError, check_integer
+    from fsswarp.simulation import simulate
+
+    try:
+        backend = get_backend(args.backend or "auto", args.device)
+        check_integer("--calls", args.calls, 1)
+        check_integer("--seed", args.seed, 0)
+    except InputError as err:
+        print(f"exact_profile: error: {err}", file=sys.stderr)
+        return 2
+    with tempfile.TemporaryDirectory() as folder:
+        dataset = simulate(args.scene, Path(folder) / args.scene, seed=args.seed, backend=backend)
+        rows, results, poses = profile(dataset, backend, args.calls)
+    med = medians(rows)
+    print(f"{args.scene} exact on {backend.name} {backend.device} ({cpu_model()}), median of {args.calls} calls:\n")
+    print(table(med))
+    if args.out:
+        record = dict(scene=args.scene, backend=backend.name, device=str(backend.device), cpu=cpu_model(),
+                      command=" ".join(sys.argv), date=time.strftime("%Y-%m-%d %H:%M:%S"), calls=args.calls,
+                      seed=args.seed, median_ms={k: 1e3 * v for k, v in med.items()},
+                      rows_ms=[{k: 1e3 * v for k, v in row.items()} for row in rows],
+                      poses=[dict(depth=d, tilt=t, E_mu=json_number(results[k][0]),
+                                  per_view=[json_number(v) for v in results[k][1]])
+                             for k, (d, t) in enumerate(poses)])
+        write_text(args.out, json.dumps(record, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
