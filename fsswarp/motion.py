@@ -127,30 +127,43 @@ def patch_motions(centres, motions, visible, rotations, translations, *, plane: 
     if not np.all(np.isfinite(m[np.broadcast_to(vis, m.shape[:-1])])):
         raise ValueError("motions of visible views hold non-finite values")
 
-    p_view = np.einsum("...kvi,...vij->...kvj", c[..., :, None, :] - t[..., None, :, :], rot)
+    shape = np.broadcast_shapes(c.shape[:-2] + (k, 1), rot.shape[:-3] + (1, v), t.shape[:-2] + (1, v),
+                                m.shape[:-1], vis.shape)
+    lead, vis = shape[:-2], np.broadcast_to(vis, shape)
+    views = vis.sum(axis=-1)
+    motion, rank, residual = np.zeros(shape[:-1] + (3,)), np.zeros(shape[:-1], np.intp), np.zeros(shape[:-1])
+    seen = np.nonzero(vis)  # the (patch, view) pairs that count, patch after patch, each its views in order
+    if not len(seen[0]):
+        return PatchMotions(motion=motion, rank=rank, views=views, residual=residual)
+    at_patch, at_view = seen[:-1], seen[:-2] + seen[-1:]
+    rot_s = np.broadcast_to(rot, lead + (v, 3, 3))[at_view]
+    p_view = np.einsum("ni,nij->nj", np.broadcast_to(c, lead + (k, 3))[at_patch]
+                       - np.broadcast_to(t, lead + (v, 3))[at_view], rot_s)
     view_surface = None
     if surface is not None:
         normal, offset = check_plane(surface)
         n_view = np.einsum("...vij,...i->...vj", rot, normal)
         d_view = offset[..., None] - np.einsum("...vi,...i->...v", t, normal)
-        view_surface = (n_view[..., None, :, :], d_view[..., None, :])
-    shape = np.broadcast_shapes(p_view.shape[:-1], m.shape[:-1], vis.shape)
-    vis = np.broadcast_to(vis, shape)
-    # invisible views take a harmless stand-in point (their rows are zeroed below)
-    p_view = np.where(vis[..., None], p_view, (0.0, 1.0, 0.0))
-    jac = np.einsum("...kvaj,...vij->...kvai", image_jacobian(p_view, plane=plane, surface=view_surface),
-                    rot)
-    a = np.where(vis[..., None, None], np.broadcast_to(jac, shape + (2, 3)), 0.0)
-    b = np.where(vis[..., None], np.broadcast_to(m, shape + (2,)), 0.0)
-    a = a.reshape(shape[:-1] + (2 * v, 3))
-    b = b.reshape(shape[:-1] + (2 * v,))
-
-    delta, rank = truncated_lstsq(a, b, rcond)
-    views = vis.sum(axis=-1)
+        view_surface = (np.broadcast_to(n_view, lead + (v, 3))[at_view], np.broadcast_to(d_view, lead + (v,))[at_view])
+    jac = np.einsum("naj,nij->nai", image_jacobian(p_view, plane=plane, surface=view_surface), rot_s)
+    # each patch's rows (2 per view that sees it, in the views' order), padded with zero rows:
+    # the sums over rows of truncated_lstsq are those over all 2V rows with the others zero
+    patch = np.ravel_multi_index(at_patch, shape[:-1])
+    patches, first, count = np.unique(patch, return_index=True, return_counts=True)
+    row = np.repeat(np.arange(len(patches)), count)
+    slot = np.arange(len(patch)) - first[row]
+    a = np.zeros((len(patches), int(count.max()), 2, 3))
+    b = np.zeros((len(patches), int(count.max()), 2))
+    a[row, slot], b[row, slot] = jac, np.broadcast_to(m, shape + (2,))[seen]
+    a, b = a.reshape(len(patches), -1, 3), b.reshape(len(patches), -1)
+    delta, kept = truncated_lstsq(a, b, rcond)
     misfit = np.einsum("...ri,...i->...r", a, delta) - b
-    residual = np.sqrt(np.divide(np.sum(misfit * misfit, axis=-1), 2 * views,
-                                 out=np.zeros(views.shape), where=views > 0))
-    return PatchMotions(motion=delta, rank=rank, views=views, residual=residual)
+    squares = np.zeros((len(patches), v, 2))  # in the rows of all V views, summed as they are
+    squares[row, seen[-1]] = (misfit * misfit).reshape(len(patches), -1, 2)[row, slot]
+    motion.reshape(-1, 3)[patches], rank.reshape(-1)[patches] = delta, kept
+    residual.reshape(-1)[patches] = np.sqrt(np.sum(squares.reshape(len(patches), -1), axis=-1)
+                                            / (2 * views.reshape(-1)[patches]))
+    return PatchMotions(motion=motion, rank=rank, views=views, residual=residual)
 
 
 def truncated_lstsq(a: np.ndarray, b: np.ndarray, rcond: float) -> tuple[np.ndarray, np.ndarray]:

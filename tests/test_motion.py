@@ -225,6 +225,58 @@ def test_grid_of_candidates_broadcasts(rig_case):
         np.testing.assert_array_equal(batch.rank[g], one.rank)
 
 
+def dense_patch_motions(centres, motions, visible, rot, trans, plane="fan", surface=None, rcond=1e-2):
+    """patch_motions' systems written out whole: every patch's 2V rows, those of the views
+    that do not see it zero, solved by ``truncated_lstsq``; (motion, rank, views, residual)."""
+    p_view = np.einsum("...kvi,...vij->...kvj", centres[..., :, None, :] - trans[..., None, :, :], rot)
+    view_surface = None
+    if surface is not None:
+        n_view = np.einsum("...vij,...i->...vj", rot, surface[0])
+        d_view = surface[1][..., None] - np.einsum("...vi,...i->...v", trans, surface[0])
+        view_surface = (n_view[..., None, :, :], d_view[..., None, :])
+    shape = np.broadcast_shapes(p_view.shape[:-1], motions.shape[:-1], visible.shape)
+    seen = np.broadcast_to(visible, shape)
+    p_view = np.where(seen[..., None], p_view, (0.0, 1.0, 0.0))  # a stand-in where not seen
+    jac = np.einsum("...kvaj,...vij->...kvai", image_jacobian(p_view, plane=plane, surface=view_surface), rot)
+    a = np.where(seen[..., None, None], jac, 0.0).reshape(shape[:-1] + (-1, 3))
+    b = np.where(seen[..., None], motions, 0.0).reshape(shape[:-1] + (-1,))
+    delta, rank = truncated_lstsq(a, b, rcond)
+    views = seen.sum(axis=-1)
+    misfit = np.einsum("...ri,...i->...r", a, delta) - b
+    residual = np.sqrt(np.divide(np.sum(misfit * misfit, axis=-1), 2 * views, out=np.zeros(views.shape),
+                                 where=views > 0))
+    return delta, rank, views, residual
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_patch_motions_solve_the_dense_systems_bit_for_bit(rig_case, seed):
+    """Only the (patch, view) pairs that count are computed, and each patch's rows are packed:
+    the dense systems' results exactly (their sums run over the same rows in the same order,
+    the zero rows adding nothing), lone and on a grid of two, object and mirror, both planes,
+    from no pair seen to every pair."""
+    rng = np.random.default_rng(seed)
+    scene = rig_case["scene"]
+    depth = rig_case["depth"] + rng.uniform(-0.05, 0.05, 2)
+    tilt = rig_case["tilt"] + rng.uniform(-0.05, 0.05, 2)
+    rot, trans = scene.rig.relative_poses(depth, tilt)  # (2, V, 3, 3)
+    n, d = surface_in_reference(scene.rig, depth, tilt)
+    share = (0.0, 0.03, 0.1, 0.3, 0.7, 1.0)[seed % 6]
+    k = int(rng.integers(1, 40))
+    centres = rig_case["centres"][:k] + rng.normal(0.0, 0.01, (k, 3))
+    motions = rng.normal(0.0, 0.003, (2, k, rot.shape[1], 2))
+    seen = rng.random((k, rot.shape[1])) < share
+    plane = ("fan", "polar")[seed % 2]
+    for g, surface in ((0, None), (1, (n[1], d[1])), (slice(None), None),
+                       (slice(None), (n, d))):
+        points = centres if surface is None else mirror_points(centres, surface[0][..., None, :],
+                                                               np.asarray(surface[1])[..., None])
+        got = patch_motions(points, motions[g], seen, rot[g], trans[g], plane=plane, surface=surface)
+        want = dense_patch_motions(points, motions[g], seen, rot[g], trans[g], plane=plane, surface=surface)
+        for name, value in zip(("motion", "rank", "views", "residual"), want):
+            assert getattr(got, name).shape == value.shape, name
+            np.testing.assert_array_equal(getattr(got, name), value, err_msg=name)
+
+
 @pytest.mark.parametrize("kwargs, message", [
     (dict(motions=np.zeros((4, 16, 3))), r"motions \(\.\.\., K, V, 2\)"),
     (dict(visible=np.ones((4, 15), dtype=bool)), "shapes disagree"),
