@@ -208,6 +208,7 @@ class ViewComparison:
         check_depth_tilt(depth, tilt)
         self.data, self._layers, self._keep, self._predicted = self._data_contours(depth, tilt)
         self._distances = self.backend.device_distances(self.data.distances)  # read at every cap
+        self._goals = self._data_points(self.data)
         self.anchors, self.shift = self._detection_shift(depth, tilt)
         self.estimate = (float(depth), float(tilt))
 
@@ -313,6 +314,18 @@ class ViewComparison:
         counts_data[:, 1] = 0
         cost = _view_cost(sums[None], counts[None], counts_data, self.settings.min_cap)[0].mean(axis=0)
         return tuple(data.names[k] for k in fixed), _parabola_minimum(self.shifts, cost)
+
+    def _data_points(self, data: DataContours) -> dict[tuple[int, int], np.ndarray]:
+        """{(component, view k): (M, 2) fan-plane points of the data's contour} for the contours of
+        two points or more (the ICP goals of ``align``)."""
+        theta, sonar = self.sonar.beam_centres, self.sonar
+        goals = {}
+        for k, c in zip(*np.nonzero(data.counts >= 2)):
+            target = np.flatnonzero(data.rows[k, c] >= 0)
+            goal = fan_points(theta[target], sonar.bin_range(data.rows[k, c, target]))
+            goal.setflags(write=False)
+            goals[int(c), int(k)] = goal
+        return goals
 
     def _located_costs(self, shifts, cap: float):
         """``Backend.contour_cost`` (contours, sums, counts) of the data views' layers at the
@@ -447,17 +460,15 @@ class ViewComparison:
         component, view, face, vectors = self.frontal_motions(rot, t, n_view, d_view, aligned)
         if not np.any(component == 0):
             return ExactError(math.nan, np.full(n_views, np.nan), shift, 0, 0)
-        faces = np.unique(face)
-        column = np.searchsorted(faces, face)
+        faces, column = np.unique(face, return_inverse=True)
         centres = self.vertices[self.faces[faces]].mean(axis=1)
-        fields = []
-        for c in (0, 1):  # the mean 2-D motion of each (face, view)
-            mine = component == c
-            sums, counts = np.zeros((len(faces), n_views, 2)), np.zeros((len(faces), n_views))
-            np.add.at(sums, (column[mine], view[mine]), vectors[mine])
-            np.add.at(counts, (column[mine], view[mine]), 1.0)
-            seen = counts > 0
-            fields.append((np.where(seen[..., None], sums / np.maximum(counts, 1.0)[..., None], np.nan), seen))
+        # the mean 2-D motion of each (component, face, view): sums in the beams' order
+        cell, shape = (component * len(faces) + column) * n_views + view, (2, len(faces), n_views)
+        counts = np.bincount(cell, minlength=math.prod(shape)).reshape(shape)
+        sums = np.stack([np.bincount(cell, vectors[:, a], math.prod(shape)) for a in (0, 1)], axis=-1)
+        seen = counts > 0
+        mean = np.where(seen[..., None], sums.reshape(shape + (2,)) / np.maximum(counts, 1)[..., None], np.nan)
+        fields = list(zip(mean, seen))
         obj = patch_motions(centres, *fields[0], rot, t).motion
         object_seen = fields[0][1].any(axis=1)
         if not object_seen.all():  # mirror-only patches: the nearest object patch's motion
@@ -503,17 +514,18 @@ class ViewComparison:
         thread per run; else on the host): (component, view, beams, source (N, 2), goal (M, 2),
         ICPResult) each."""
         data, sonar = self.data, self.sonar
-        theta = sonar.beam_centres
-        requests = []
-        for c in components:
-            for k in range(len(data.views)):
-                beams = np.flatnonzero((contours[k, c] >= 0) & data.masks[k, c])
-                target = np.flatnonzero(data.rows[k, c] >= 0)
-                if len(beams) < 2 or len(target) < 2:
-                    continue
-                source = fan_points(theta[beams], sonar.bin_range(contours[k, c, beams] + shift))
-                goal = fan_points(theta[target], sonar.bin_range(data.rows[k, c, target]))
-                requests.append((c, k, beams, source, goal))
+        order = list(components)
+        # (C, V, beams): the beams of each synthetic contour that its data mask keeps, in request order
+        kept = ((contours[:, order] >= 0) & data.masks[:, order]).transpose(1, 0, 2)
+        sizes = kept.sum(axis=-1)
+        used = (sizes >= 2) & (data.counts[:, order].T >= 2)
+        pair_c, pair_k = np.nonzero(used)
+        point_c, point_k, beam = np.nonzero(kept & used[..., None])  # pairs in order, each its beams in order
+        component = np.asarray(order)[point_c]
+        sources = fan_points(sonar.beam_centres[beam], sonar.bin_range(contours[point_k, component, beam] + shift))
+        ends = np.cumsum(sizes[used]).tolist()
+        requests = [(order[c], k, beam[a:b], sources[a:b], self._goals[order[c], k])
+                    for c, k, a, b in zip(pair_c.tolist(), pair_k.tolist(), [0] + ends[:-1], ends)]
         results = icp_many([(source, goal) for *_, source, goal in requests], tol=CONTOUR_TOL,
                            backend=self.backend if self.backend.has_float64 else None)
         return [request + (result,) for request, result in zip(requests, results)]
@@ -528,14 +540,15 @@ class ViewComparison:
         parts = [(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)))]
         for c in (0, 1):
             mine = [m for m in motions if m[0] == c]
+            if not mine:
+                continue
             v = [k for _, k, _, _ in mine]
-            found = self.frontal_faces(rot[v], t[v], n[v], d[v], [theta[beams] for _, _, beams, _ in mine],
-                                       mirror=c == 1)
-            for (_, k, _, vectors), faces in zip(mine, found):
-                ok = faces >= 0
-                size = int(ok.sum())
-                parts.append((np.full(size, c), np.full(size, k), faces[ok].astype(np.int64),
-                              np.asarray(vectors, np.float64)[ok]))
+            found = np.concatenate(self.frontal_faces(rot[v], t[v], n[v], d[v],
+                                                      [theta[beams] for _, _, beams, _ in mine], mirror=c == 1))
+            ok = found >= 0
+            vectors = np.concatenate([np.asarray(vectors, np.float64) for *_, vectors in mine])
+            parts.append((np.full(int(ok.sum()), c), np.repeat(v, [len(beams) for _, _, beams, _ in mine])[ok],
+                          found[ok].astype(np.int64), vectors[ok]))
         return tuple(np.concatenate(columns) for columns in zip(*parts))
 
     def frontal_faces(self, rot, t, n, d, thetas, *, mirror: bool) -> list[np.ndarray]:
