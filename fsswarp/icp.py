@@ -114,7 +114,11 @@ def icp_many(problems, *, max_iterations: int = 200, tol: float = 1e-10, gate: f
     backend : None to iterate on the host (NumPy, a k-d tree), or a Backend with float64
         (``has_float64``) to iterate on its device, one thread per run (``Backend.icp_runs``:
         brute-force matching); the same results up to rounding and ties of the nearest target."""
-    pairs = [(_points("source", s, minimum=2), _points("target", t, minimum=2)) for s, t in problems]
+    pairs = [(_points("source", s, minimum=2, finite=False), _points("target", t, minimum=2, finite=False))
+             for s, t in problems]
+    for name, side in (("source", 0), ("target", 1)):
+        if pairs and not np.isfinite(np.concatenate([pair[side] for pair in pairs])).all():
+            raise ValueError(f"{name} holds non-finite values")
     if not (is_integer(max_iterations) and max_iterations >= 1):
         raise ValueError(f"max_iterations must be an integer >= 1, got {max_iterations!r}")
     for name, value in (("tol", tol), ("gate", gate), ("tuning", tuning)):
@@ -142,20 +146,23 @@ def _results(pairs, runs: _Runs, final, tuning: float, gate: float) -> list[ICPR
     best = 3 * np.arange(len(pairs)) + np.argmin(sigma.reshape(-1, 3), axis=1)  # the first of equal scales
     dist = near[best]  # (P, N), +inf where not usable
     weights = 1.0 / (1.0 + (dist / (tuning * sigma[best])[:, None]) ** 2)
-    inliers = dist <= (gate * sigma[best])[:, None]
+    sizes = runs.lengths[best]
+    pair, kept = np.nonzero((dist <= (gate * sigma[best])[:, None]) & (np.arange(dist.shape[1]) < sizes[:, None]))
+    inliers = np.column_stack([kept, index[kept, best[pair]] - runs.first[best[pair]]]).astype(np.int64)
+    near_in = dist[pair, kept]
     moved = np.column_stack([runs.moved_x, runs.moved_y])
+    column = np.arange(len(runs.sources)) - np.repeat(np.cumsum(sizes) - sizes, sizes)
+    motions = moved[np.repeat(runs.offsets[best], sizes) + column] - runs.sources
+    ends, inlier_ends = np.cumsum(sizes).tolist(), np.cumsum(np.bincount(pair, minlength=len(pairs))).tolist()
     results = []
-    for p, ((src, _), r) in enumerate(zip(pairs, best)):
-        n = len(src)
-        k, kept = index[:n, r] - runs.first[r], np.flatnonzero(inliers[p, :n])
+    spans = zip(best.tolist(), [0] + ends[:-1], ends, [0] + inlier_ends[:-1], inlier_ends)
+    for p, (r, a, b, i, j) in enumerate(spans):  # pair p: source points a:b, inlier pairs i:j
         rot = _rotation(runs.angle[r])
+        error = float(near_in[i:j].sum() / (j - i)) if j > i else math.nan  # np.mean's sum and division
         results.append(ICPResult(rotation=rot, angle=float(math.atan2(rot[1, 0], rot[0, 0])),
-                                 translation=np.array([runs.trans_x[r], runs.trans_y[r]]),
-                                 pairs=np.stack([kept, k[kept]], axis=1).astype(np.int64),
-                                 motions=moved[runs.offsets[r]:runs.offsets[r] + n] - src,
-                                 error=float(np.mean(dist[p, kept])) if len(kept) else math.nan,
-                                 scale=float(sigma[r]), weights=weights[p, :n], iterations=int(runs.iterations[r]),
-                                 converged=bool(runs.converged[r])))
+                                 translation=np.array([runs.trans_x[r], runs.trans_y[r]]), pairs=inliers[i:j],
+                                 motions=motions[a:b], error=error, scale=float(sigma[r]), weights=weights[p, :b - a],
+                                 iterations=int(runs.iterations[r]), converged=bool(runs.converged[r])))
     return results
 
 
@@ -163,8 +170,9 @@ class _Runs:
     """Three IRLS-ICP runs per pair (the identity and ±START_ANGLE about the source's centroid):
     R = 3P runs, of sources of up to N points.
 
-    Their F source points, run after run: ``x``, ``y`` (F,), run r's ``lengths[r]`` from
-    ``offsets[r]``; the same padded with zeros: ``src`` (N, 2, R). Each run's transform
+    The pairs' source points, pair after pair: ``sources`` (F/3, 2). Their F source points, run
+    after run: ``x``, ``y`` (F,), run r's ``lengths[r]`` from ``offsets[r]``; the same padded
+    with zeros: ``src`` (N, 2, R). Each run's transform
     (``angle``, ``trans_x``, ``trans_y``, (R,)), moved points (``moved_x``, ``moved_y``, (F,)),
     what they know of their nearest targets (``nearest``, ``anchor_x``, ``anchor_y``,
     ``room2``, (F,): see :class:`_Active`), iterations run, and whether it converged or stopped.
@@ -189,7 +197,9 @@ class _Runs:
         turns = np.array([_rotation(angle) for angle in starts])
         self.trans_x, self.trans_y = np.concatenate([centre - turns @ centre for centre in centres]).T.copy()
         run = np.repeat(np.arange(len(self.lengths)), self.lengths)  # of each point
-        self.x, self.y = np.concatenate([src for src, _ in pairs for _ in range(3)]).T
+        self.sources = sources
+        pair_first = np.repeat(np.cumsum(sizes) - sizes, 3)  # each run's pair's first source point
+        self.x, self.y = sources[np.arange(len(run)) - self.offsets[run] + pair_first[run]].T
         self.src = np.zeros((max(sizes), 2, len(self.lengths)))
         self.src[np.arange(len(run)) - self.offsets[run], :, run] = np.column_stack([self.x, self.y])
         x, y = _turn(np.cos(self.angle)[run], np.sin(self.angle)[run], self.x, self.y)
@@ -399,16 +409,19 @@ def _rms_radii(points: np.ndarray, lengths: np.ndarray, centres: np.ndarray) -> 
     ``centres`` (P, 2)."""
     d = points - np.repeat(centres, lengths, axis=0)
     squares = np.sum(d * d, axis=1)
-    return np.array([math.sqrt(part.sum() / len(part)) for part in np.split(squares, np.cumsum(lengths)[:-1])])
+    ends = np.cumsum(lengths).tolist()
+    return np.array([math.sqrt(squares[a:b].sum() / (b - a)) for a, b in zip([0] + ends[:-1], ends)])
 
 
-def _points(name: str, value, *, minimum: int) -> np.ndarray:
+def _points(name: str, value, *, minimum: int, finite: bool = True) -> np.ndarray:
+    """``value`` as (N, 2) float64 points, N >= ``minimum``, finite unless ``finite`` is False
+    (the caller checks), or ValueError naming ``name``."""
     array = np.asarray(value, dtype=np.float64)
     if array.ndim != 2 or array.shape[1] != 2:
         raise ValueError(f"{name} must have shape (N, 2), got {array.shape}")
     if len(array) < minimum:
         raise ValueError(f"{name} needs at least {minimum} points, got {len(array)}")
-    if not np.all(np.isfinite(array)):
+    if finite and not np.all(np.isfinite(array)):
         raise ValueError(f"{name} holds non-finite values")
     return array
 
