@@ -396,32 +396,53 @@ def carve_reference(masks, rotations, translations, sonar: SonarSpec, voxel_size
     return seen.astype(np.uint8), rejected.astype(np.uint8)
 
 
-def voxel_mesh(voxels: VoxelCarving, *, smooth: int = 10, faces: int = 20_000):
+def voxel_mesh(voxels: VoxelCarving, *, smooth: int = 10, faces: int = 20_000, timings: dict | None = None):
     """The closed, outward-oriented, watertight surface of the kept voxels (module docstring:
     Mesh). Smoothing or decimation that would break watertightness is skipped with a
-    CarveWarning."""
+    CarveWarning. ``timings`` (a dict) receives each stage's seconds: fill_s, components_s,
+    marching_cubes_s, trimesh_s, orient_s, smooth_s, smooth_check_s, decimate_s, decimate_check_s."""
     import trimesh
     from scipy import ndimage
     from skimage.measure import marching_cubes
 
-    solid = _major_components(ndimage.binary_fill_holes(voxels.occupancy))
+    timings = {} if timings is None else timings
+    clock = time.perf_counter()
+
+    def lap(stage: str) -> None:
+        nonlocal clock
+        now = time.perf_counter()
+        timings[stage] = now - clock
+        clock = now
+
+    filled = ndimage.binary_fill_holes(voxels.occupancy)
+    lap("fill_s")
+    solid = _major_components(filled)
+    lap("components_s")
     h = voxels.voxel_size
     padded = np.pad(solid, 1).astype(np.float32)
     with warnings.catch_warnings():  # scikit-image <= 0.25 sets .shape of its tables (NumPy 2.5 deprecates it)
         warnings.filterwarnings("ignore", "Setting the shape on a NumPy array", DeprecationWarning)
         vertices, triangles, _, _ = marching_cubes(padded, level=MC_LEVEL, spacing=(h, h, h), method="lewiner",
                                                    allow_degenerate=False)
+    lap("marching_cubes_s")
     mesh = trimesh.Trimesh(vertices + (voxels.origin - h), triangles, process=True)
+    lap("trimesh_s")
     if signed_volume(mesh.triangles) < 0:
         mesh.invert()
     if not mesh.is_watertight:
         raise RuntimeError(f"marching cubes gave a mesh that is not watertight ({len(mesh.faces)} faces)")
+    lap("orient_s")
     if smooth:
         smoothed = mesh.copy()
         trimesh.smoothing.filter_taubin(smoothed, iterations=int(smooth))
+        lap("smooth_s")
         mesh = _accept(mesh, smoothed, "Taubin smoothing")
+        lap("smooth_check_s")
     if faces and len(mesh.faces) > faces:
-        mesh = _accept(mesh, _decimate(mesh, faces, 2.0 * h), "decimation")
+        decimated = _decimate(mesh, faces, 2.0 * h)
+        lap("decimate_s")
+        mesh = _accept(mesh, decimated, "decimation")
+        lap("decimate_check_s")
         if len(mesh.faces) > faces:
             warnings.warn(f"decimation stopped at {len(mesh.faces)} faces, above the {faces} asked for: it moves "
                           "the surface by at most 2 voxels", CarveWarning, stacklevel=2)

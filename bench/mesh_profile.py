@@ -1,0 +1,130 @@
+"""Where the carving's mesh extraction (``fsswarp.carving.voxel_mesh``) spends its time, one command:
+
+    python bench/mesh_profile.py [--scene NAME] [--backend B] [--device D] [--seed S]
+                                 [--resolution N] [--repeats K] [--out FILE]
+
+Simulates the scene (noisy, ``--seed``), carves it at its measured pose (``fsswarp.carving.carve``
+at ``--resolution``, default ``ReconstructSettings().resolution``, and the default CarveSettings),
+then meshes the carving's voxels ``--repeats`` times (after one uncounted call that imports the
+libraries) with ``voxel_mesh``'s ``timings``. Prints one Markdown table: per stage the median,
+minimum and maximum milliseconds, and the mesh (faces, vertices, SHA-256 of its float64 vertices
+and int64 faces: equal hashes, the same mesh bit for bit). ``--out`` writes the same as JSON
+(atomically).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+#: voxel_mesh's stages, in order (its docstring).
+STAGES = ("fill_s", "components_s", "marching_cubes_s", "trimesh_s", "orient_s", "smooth_s", "smooth_check_s",
+          "decimate_s", "decimate_check_s")
+
+
+def mesh_digest(mesh) -> str:
+    """SHA-256 of the mesh's float64 vertices and int64 faces (C order)."""
+    import numpy as np
+
+    digest = hashlib.sha256(np.ascontiguousarray(mesh.vertices, np.float64).tobytes())
+    digest.update(np.ascontiguousarray(mesh.faces, np.int64).tobytes())
+    return digest.hexdigest()
+
+
+def cpu_model() -> str:
+    """The CPU's model name (Linux /proc/cpuinfo), else ``platform.processor()``."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def profile(voxels, repeats: int) -> tuple[dict[str, list[float]], object]:
+    """(stage -> seconds of each counted call, with "total_s"; the last mesh) of ``repeats``
+    calls of ``voxel_mesh`` after one uncounted call."""
+    from fsswarp.carving import voxel_mesh
+
+    voxel_mesh(voxels)
+    runs: dict[str, list[float]] = {stage: [] for stage in (*STAGES, "total_s")}
+    for _ in range(repeats):
+        timings: dict[str, float] = {}
+        start = time.perf_counter()
+        mesh = voxel_mesh(voxels, timings=timings)
+        runs["total_s"].append(time.perf_counter() - start)
+        for stage in STAGES:
+            runs[stage].append(timings.get(stage, 0.0))
+    return runs, mesh
+
+
+def table_markdown(runs: dict[str, list[float]]) -> str:
+    """Markdown: one row per stage (median, min, max ms) and the total."""
+    lines = ["| stage | median ms | min ms | max ms |", "|---|---|---|---|"]
+    for stage, seconds in runs.items():
+        lines.append(f"| {stage.removesuffix('_s')} | {1e3 * statistics.median(seconds):.1f} | "
+                     f"{1e3 * min(seconds):.1f} | {1e3 * max(seconds):.1f} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scene", default="coral-one", choices=("coral-one", "coral-two", "table"))
+    parser.add_argument("--backend", default=None, help="warp or opencl (default: fsswarp's choice)")
+    parser.add_argument("--device", default=None, help="backend device, e.g. cuda:0, cpu, pocl")
+    parser.add_argument("--seed", type=int, default=0, help="noise seed of the simulation")
+    parser.add_argument("--resolution", type=int, default=None,
+                        help="carving resolution (default: ReconstructSettings().resolution)")
+    parser.add_argument("--repeats", type=int, default=7, help="counted voxel_mesh calls (at least 5)")
+    parser.add_argument("--out", type=Path, default=None, help="also write the record as JSON here")
+    args = parser.parse_args(argv)
+    from fsswarp.atomic import write_text
+    from fsswarp.backends import get_backend
+    from fsswarp.carving import carve
+    from fsswarp.errors import InputError, check_integer
+    from fsswarp.reconstruction import ReconstructSettings
+    from fsswarp.simulation import simulate
+
+    resolution = ReconstructSettings().resolution if args.resolution is None else args.resolution
+    try:
+        check_integer("--seed", args.seed, 0)
+        check_integer("--repeats", args.repeats, 5)
+        check_integer("--resolution", resolution, 8)
+        backend = get_backend(args.backend or "auto", args.device)
+    except InputError as err:
+        print(f"mesh_profile: error: {err}", file=sys.stderr)
+        return 2
+    with tempfile.TemporaryDirectory() as folder:
+        dataset = simulate(args.scene, Path(folder) / args.scene, seed=args.seed, backend=backend)
+        carved = carve(dataset, resolution=resolution, backend=backend)
+    voxels = carved.voxels
+    runs, mesh = profile(voxels, args.repeats)
+    record = {"scene": args.scene, "seed": args.seed, "resolution": resolution, "backend": backend.name,
+              "device": backend.device, "cpu": cpu_model(), "date": time.strftime("%Y-%m-%d"),
+              "grid": list(voxels.occupancy.shape), "kept_voxels": voxels.kept, "repeats": args.repeats,
+              "median_ms": {stage: 1e3 * statistics.median(s) for stage, s in runs.items()},
+              "runs_ms": {stage: [1e3 * v for v in s] for stage, s in runs.items()},
+              "faces": len(mesh.faces), "vertices": len(mesh.vertices), "mesh_sha256": mesh_digest(mesh)}
+    print(f"{args.scene} (seed {args.seed}) carved at resolution {resolution}: grid {voxels.occupancy.shape}, "
+          f"{voxels.kept} voxels kept; voxel_mesh on {record['cpu']}, {args.repeats} calls\n")
+    print(table_markdown(runs))
+    print(f"\nmesh: {record['faces']} faces, {record['vertices']} vertices, sha256 {record['mesh_sha256']}")
+    if args.out is not None:
+        try:
+            write_text(args.out, json.dumps(record, indent=1))
+        except InputError as err:
+            print(f"mesh_profile: error: {err}", file=sys.stderr)
+            return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
