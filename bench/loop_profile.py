@@ -31,7 +31,7 @@ WRAPPED = (
     ("fsswarp.refine", None, ("refine_shape",)),
     ("fsswarp.refine", "_Membrane", ("solve",)),
     ("fsswarp.carving", None, ("carve", "voxel_mesh")),
-    ("fsswarp.reconstruction", None, ("_image_errors", "_complete", "sighting", "_self_consistent_answer")),
+    ("fsswarp.reconstruction", None, ("_image_errors", "_complete", "sighting", "_valley_answer")),
 )
 BACKEND_METHODS = ("render_device", "contour_cost", "view_costs", "icp_runs", "frontal_faces", "load_mesh",
                    "device_distances", "carve")

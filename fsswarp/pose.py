@@ -381,8 +381,8 @@ def fit_posterior(comparison: ViewComparison, prior: Prior, depth: float, tilt: 
     return Posterior(depth, tilt, covariance, prior, float(slope), float(valley_depth), float(noise))
 
 
-def valley_posterior(conditional: Posterior, lever: float, *,
-                     carving_error: np.ndarray = CARVING_ERROR) -> Posterior:
+def valley_posterior(conditional: Posterior, lever: float, *, carving_error: np.ndarray = CARVING_ERROR,
+                     unsettled: float = 0.0) -> Posterior:
     """The posterior of (D, β) when the shape is free: the data keep only the surface's height
     above the object, h = D − L·β (DESIGN §7), and the sensors tell the rest.
 
@@ -391,6 +391,8 @@ def valley_posterior(conditional: Posterior, lever: float, *,
         the reference sonar to the model, in m/rad
     carving_error : (2, 2) covariance of the pose step's error with a model made at the truth
         (``CARVING_ERROR``); its variance along a = (1, −L) widens the height's
+    unsettled : a further variance of the height (m²): how far it still moved when the model
+        was made again (``fsswarp.reconstruction``)
     With a = (1, −L): the height's likelihood is the conditional's marginal of aᵀθ with the
     prior's divided out, N(g, v) with 1/v = 1/(aᵀΣ_c a) − 1/(aᵀΣ0 a), g = v (aᵀf/(aᵀΣ_c a) −
     aᵀμ0/(aᵀΣ0 a)), plus aᵀ carving_error a; the posterior is N(μ0, Σ0) × N(aᵀθ; g, v):
@@ -409,7 +411,7 @@ def valley_posterior(conditional: Posterior, lever: float, *,
     precision = np.diag(sigma0 ** -2.0)
     pulled = precision @ mu0
     if gained > 0:
-        variance = 1.0 / gained + float(a @ np.asarray(carving_error, np.float64) @ a)
+        variance = 1.0 / gained + float(a @ np.asarray(carving_error, np.float64) @ a) + float(unsettled)
         height = (a @ f / v_c - a @ mu0 / v_0) / gained
         precision = precision + np.outer(a, a) / variance
         pulled = pulled + a * height / variance

@@ -259,25 +259,29 @@ def _valley_answer(dataset, comparison: ViewComparison, shaping: ViewComparison,
     """The answer's Posterior (``fsswarp.pose.valley_posterior``: the data keep only the
     surface's height above the object, the sensors the rest): from ``pose`` (m, rad) take the
     :func:`sighting` model there, its pose step's posterior about its proposal (the least
-    posterior cost, kept even where greedy acceptance refuses it) and the valley posterior; while its
-    mean lies more than half a posterior σ from where the model was made, make it there again
-    (``FIXED_POINT_STEPS`` at most)."""
-    at = np.array(pose, np.float64)
+    posterior cost, kept even where greedy acceptance refuses it) and the valley posterior; while
+    its mean lies more than half a posterior σ from where the model was made, make it there
+    again (``FIXED_POINT_STEPS`` at most). The height's last change between two models counts
+    as a further error (``unsettled``): a shape that follows its making leaves it unsettled."""
+    at, heights = np.array(pose, np.float64), []
     for _ in range(FIXED_POINT_STEPS + 1):
         model = sighting(dataset, float(at[0]), float(at[1]), settings, shaping)
         step = estimate_pose(model, dataset, depth0=float(at[0]), tilt0=float(at[1]), comparison=comparison,
                              prior=prior)
         conditional = dataclasses.replace(step.posterior, depth=step.candidate[0], tilt=step.candidate[1])
-        posterior = valley_posterior(conditional, model_lever(model, dataset.rig, *at))
+        lever = model_lever(model, dataset.rig, *at)
+        posterior = valley_posterior(conditional, lever)
+        heights.append(posterior.valley_depth - lever * posterior.tilt)
         mean = np.array([posterior.depth, posterior.tilt])
         say(f"the answer: made at D {at[0]:.4f} m, tilt {math.degrees(at[1]):.3f} deg, the surface's height fixed at "
-            f"{posterior.valley_depth - posterior.valley_slope * posterior.tilt:.4f} m + "
-            f"{posterior.valley_slope * math.pi / 180 * 100:.2f} cm/deg: D {mean[0]:.4f} m, tilt "
+            f"{heights[-1]:.4f} m + {lever * math.pi / 180 * 100:.2f} cm/deg: D {mean[0]:.4f} m, tilt "
             f"{math.degrees(mean[1]):.3f} deg")
         if np.all(np.abs(mean - at) <= 0.5 * np.sqrt(np.diag(posterior.covariance))):
             break
         at = mean
-    return posterior
+    if len(heights) < 2:
+        return posterior
+    return valley_posterior(conditional, lever, unsettled=(heights[-1] - heights[-2]) ** 2)
 
 
 def _carving_posterior(comparison: ViewComparison, carved, pose: tuple[float, float], prior: Prior):

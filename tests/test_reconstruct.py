@@ -528,7 +528,8 @@ def test_the_answer_keeps_the_height_and_is_made_again_where_it_moves(coral_one,
     with variance v, and the pose step's posterior is the prior × N(aᵀθ; g(c), v). The answer
     is made again at its own mean while that moves (at most FIXED_POINT_STEPS times), from the
     pose step's proposal even where greedy acceptance refused it; its
-    posterior is the prior × N(aᵀθ; g(c), v + aᵀ CARVING_ERROR a), written out here."""
+    posterior is the prior × N(aᵀθ; g(c), v + aᵀ CARVING_ERROR a + (last change of g)²),
+    written out here."""
     from types import SimpleNamespace
 
     from fsswarp.pose import CARVING_ERROR, Posterior, Prior
@@ -564,7 +565,8 @@ def test_the_answer_keeps_the_height_and_is_made_again_where_it_moves(coral_one,
     widened = v + a @ CARVING_ERROR @ a
     for before, after in zip(made, made[1:]):  # each model made at the previous answer's mean
         assert np.allclose(after, posterior_of(g + follows * (a @ before - g), widened)[0], atol=1e-12)
-    mean, covariance = posterior_of(g + follows * (a @ made[-1] - g), widened)
+    heights = [g + follows * (a @ c - g) for c in made]
+    mean, covariance = posterior_of(heights[-1], widened + (heights[-1] - heights[-2]) ** 2)  # still moving
     assert np.allclose([posterior.depth, posterior.tilt], mean, atol=1e-12)
     assert np.allclose(posterior.covariance, covariance, rtol=1e-8)
     assert posterior.valley_slope == lever
