@@ -45,7 +45,12 @@ def image_jacobian(points, *, plane: str = "fan", surface=None) -> np.ndarray:
     """
     if plane not in PLANES:
         raise ValueError(f"plane must be one of {PLANES}, got {plane!r}")
-    p = finite_vectors("points", points, 3)
+    return _jacobian(finite_vectors("points", points, 3), plane, None if surface is None else check_plane(surface))
+
+
+def _jacobian(p: np.ndarray, plane: str, surface) -> np.ndarray:
+    """:func:`image_jacobian` of checked float64 points (..., 3) and plane (or None); raises
+    ValueError for points on the vertical axis alone."""
     x, y = p[..., 0], p[..., 1]
     rho2 = x * x + y * y
     rng = np.linalg.norm(p, axis=-1)
@@ -54,7 +59,7 @@ def image_jacobian(points, *, plane: str = "fan", surface=None) -> np.ndarray:
     d_theta = np.stack([y / rho2, -x / rho2, np.zeros_like(x)], axis=-1)
     d_rng = p / rng[..., None]
     if surface is not None:
-        normal, offset = check_plane(surface)
+        normal, offset = surface
         q = mirror_points(p, normal, offset)
         q_rng = np.linalg.norm(q, axis=-1)
         d_rng = 0.5 * (d_rng + mirror_vectors(q / q_rng[..., None], normal))
@@ -108,6 +113,8 @@ def patch_motions(centres, motions, visible, rotations, translations, *, plane: 
     """
     if not (np.isfinite(rcond) and 0 < rcond < 1):
         raise ValueError(f"rcond must lie in (0, 1), got {rcond!r}")
+    if plane not in PLANES:
+        raise ValueError(f"plane must be one of {PLANES}, got {plane!r}")
     c = finite_vectors("centres", centres, 3)
     rot = finite_vectors("rotations", rotations, 3)
     t = finite_vectors("translations", translations, 3)
@@ -145,7 +152,7 @@ def patch_motions(centres, motions, visible, rotations, translations, *, plane: 
         n_view = np.einsum("...vij,...i->...vj", rot, normal)
         d_view = offset[..., None] - np.einsum("...vi,...i->...v", t, normal)
         view_surface = (np.broadcast_to(n_view, lead + (v, 3))[at_view], np.broadcast_to(d_view, lead + (v,))[at_view])
-    jac = np.einsum("naj,nij->nai", image_jacobian(p_view, plane=plane, surface=view_surface), rot_s)
+    jac = np.einsum("naj,nij->nai", _jacobian(p_view, plane, view_surface), rot_s)  # the unit normals turned
     # each patch's rows (2 per view that sees it, in the views' order), padded with zero rows:
     # the sums over rows of truncated_lstsq are those over all 2V rows with the others zero
     patch = np.ravel_multi_index(at_patch, shape[:-1])
