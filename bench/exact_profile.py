@@ -1,7 +1,7 @@
 """Where one E_mu evaluation (``ViewComparison.exact``, paper eq. 6) spends its time, one command:
 
     python bench/exact_profile.py [--scene NAME] [--backend B] [--device D] [--calls N]
-                                  [--seed S] [--out FILE.json]
+                                  [--seed S] [--replay] [--out FILE.json]
 
 Simulates the scene (noisy, ``--seed``), takes its true model (``Dataset.truth_mesh``), puts it
 in a ``ViewComparison`` at the measured (D0, β0) and evaluates ``exact`` ``--calls`` times,
@@ -14,6 +14,8 @@ calls inside them (device time as the host waits for it, with the backend's own 
 ``host``, the call less those backend calls. Prints one Markdown table of the
 medians per stage (ms) and writes ``--out``: the machine, the command, the medians, every
 call's times, and each pose's E_mu and μ_m (to compare results before and after a change).
+With ``--replay`` the backend's calls answer from a recording of the untimed round (the same
+results, no device work): ``total`` is then the host's work alone, free of the device's noise.
 """
 
 from __future__ import annotations
@@ -63,9 +65,44 @@ class StageTimes:
         self.undo.clear()
 
 
-def profile(dataset, backend, calls: int):
-    """(per-call stage times [{label: s}], {pose index: (E_mu, μ_m list)}) of ``calls`` exact
-    evaluations of ``dataset``'s true model about its measured start, after one untimed round."""
+class Tape:
+    """The backend's ``BACKEND_CALLS`` recorded (``record``: their results, call after call) and
+    then answered from the recording in the same order (``replay``), with no device work."""
+
+    def __init__(self, backend):
+        self.results: dict[str, list] = {name: [] for name in BACKEND_CALLS if hasattr(type(backend), name)}
+        self.played = dict.fromkeys(self.results, 0)
+        self.replaying = False
+        self.undo = []
+        for name in self.results:
+            self.wrap(type(backend), name)
+
+    def wrap(self, owner, name: str) -> None:
+        original = getattr(owner, name)
+
+        @functools.wraps(original)
+        def taped(*args, **kwargs):
+            if self.replaying:
+                tape = self.results[name]
+                self.played[name] += 1
+                return tape[(self.played[name] - 1) % len(tape)]
+            result = original(*args, **kwargs)
+            self.results[name].append(result)
+            return result
+
+        self.undo.append((owner, name, original))
+        setattr(owner, name, taped)
+
+    def restore(self) -> None:
+        for owner, name, original in reversed(self.undo):
+            setattr(owner, name, original)
+        self.undo.clear()
+
+
+def profile(dataset, backend, calls: int, *, replay: bool = False):
+    """(per-call stage times [{label: s}], {pose index: (E_mu, μ_m list)}, poses) of ``calls``
+    exact evaluations of ``dataset``'s true model about its measured start, after one untimed
+    round; with ``replay`` the backend's calls answer from that round's recording (``Tape``)."""
     import fsswarp.compare as compare
 
     surface = dataset.manifest.surface
@@ -73,9 +110,25 @@ def profile(dataset, backend, calls: int):
                                                                        surface.tilt)
     poses = [(surface.depth + dd, surface.tilt + math.radians(db)) for dd, db in POSES]
     results = {}
-    for k, pose in enumerate(poses):  # warm-up: kernel caches, first-use copies
-        found = comparison.exact(*pose)
-        results[k] = (found.value, [float(v) for v in found.per_view])
+    tape = Tape(backend) if replay else None
+    try:
+        for k, pose in enumerate(poses):  # warm-up: kernel caches, first-use copies
+            found = comparison.exact(*pose)
+            results[k] = (found.value, [float(v) for v in found.per_view])
+        if tape is not None:
+            tape.replaying = True
+        rows = timed_calls(comparison, backend, poses, results, calls)
+    finally:
+        if tape is not None:
+            tape.restore()
+    return rows, results, poses
+
+
+def timed_calls(comparison, backend, poses, results, calls: int) -> list[dict[str, float]]:
+    """Per-call stage times (s) of ``calls`` exact evaluations cycling through ``poses``;
+    RuntimeError where one's E_mu is not ``results``' (the warm-up's) for its pose."""
+    import fsswarp.compare as compare
+
     times = StageTimes()
     for name in STAGES:
         owner = compare if name == "patch_motions" else compare.ViewComparison
@@ -99,7 +152,7 @@ def profile(dataset, backend, calls: int):
             rows.append(row)
     finally:
         times.restore()
-    return rows, results, poses
+    return rows
 
 
 def medians(rows) -> dict[str, float]:
@@ -134,6 +187,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default=None, help="backend device, e.g. cuda:0, cpu, pocl, nvidia")
     parser.add_argument("--calls", type=int, default=25, help="timed exact calls (>= 1)")
     parser.add_argument("--seed", type=int, default=0, help="noise seed of the simulation")
+    parser.add_argument("--replay", action="store_true",
+                        help="the backend's calls answer from a recording of the untimed round: the host's work alone")
     parser.add_argument("--out", default=None, help="JSON record to write")
     args = parser.parse_args(argv)
     from fsswarp.atomic import json_number, write_text
@@ -150,13 +205,15 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     with tempfile.TemporaryDirectory() as folder:
         dataset = simulate(args.scene, Path(folder) / args.scene, seed=args.seed, backend=backend)
-        rows, results, poses = profile(dataset, backend, args.calls)
+        rows, results, poses = profile(dataset, backend, args.calls, replay=args.replay)
     med = medians(rows)
-    print(f"{args.scene} exact on {backend.name} {backend.device} ({cpu_model()}), median of {args.calls} calls:\n")
+    print(f"{args.scene} exact on {backend.name} {backend.device} ({cpu_model()}), median of {args.calls} calls"
+          f"{', backend calls replayed' if args.replay else ''}:\n")
     print(table(med))
     if args.out:
         record = dict(scene=args.scene, backend=backend.name, device=str(backend.device), cpu=cpu_model(),
                       command=" ".join(sys.argv), date=time.strftime("%Y-%m-%d %H:%M:%S"), calls=args.calls,
+                      replay=args.replay,
                       seed=args.seed, median_ms={k: 1e3 * v for k, v in med.items()},
                       rows_ms=[{k: 1e3 * v for k, v in row.items()} for row in rows],
                       poses=[dict(depth=d, tilt=t, E_mu=json_number(results[k][0]),
