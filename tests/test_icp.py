@@ -204,6 +204,17 @@ def test_bad_inputs_raise(source, target, kwargs, message):
         icp(source, target, **kwargs)
 
 
+@pytest.mark.parametrize("side", ["source", "target"])
+def test_a_non_finite_point_of_any_pair_raises(side):
+    """icp_many checks the pairs' points together: a NaN in the last pair's source or target."""
+    good = curve(12)
+    bad = good.copy()
+    bad[7, 1] = np.nan
+    last = (bad, good) if side == "source" else (good, bad)
+    with pytest.raises(ValueError, match=f"{side} holds non-finite values"):
+        icp_many([(good, good), (good + 0.01, good), last])
+
+
 @settings(deadline=None, max_examples=50)
 @given(st.lists(st.lists(st.floats(0.0, 1.0, allow_nan=False), max_size=40), min_size=1, max_size=5))
 def test_the_robust_scale_medians_are_numpys(rows):
