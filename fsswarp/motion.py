@@ -99,7 +99,8 @@ def patch_motions(centres, motions, visible, rotations, translations, *, plane: 
     Solved by a truncated SVD of the stacked (2V, 3) system: singular values below
     ``rcond × the largest`` are dropped (pseudo-inverse, minimum-norm solution), so a patch seen
     in one view, or in views that share its elevation direction, gets zero motion along what
-    they cannot observe.
+    they cannot observe. Only the (patch, view) pairs seen are computed: each patch's system
+    holds the rows of its views, in their order (those of the others would be zero).
 
     centres : (..., K, 3) patch centres in the reference frame (virtual mirror centres Q when
         ``surface`` is given). motions : (..., K, V, 2) 2-D motions in ``plane``; entries of
