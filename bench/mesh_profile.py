@@ -25,8 +25,8 @@ import time
 from pathlib import Path
 
 #: voxel_mesh's stages, in order (its docstring).
-STAGES = ("fill_s", "components_s", "marching_cubes_s", "trimesh_s", "orient_s", "smooth_s", "smooth_check_s",
-          "decimate_s", "decimate_check_s")
+STAGES = ("fill_s", "components_s", "marching_cubes_s", "orient_s", "smooth_s", "smooth_check_s", "decimate_s",
+          "decimate_check_s", "trimesh_s")
 
 
 def mesh_digest(mesh) -> str:
@@ -98,6 +98,8 @@ def main(argv: list[str] | None = None) -> int:
         check_integer("--seed", args.seed, 0)
         check_integer("--repeats", args.repeats, 5)
         check_integer("--resolution", resolution, 8)
+        if args.out is not None and args.out.is_dir():
+            raise InputError("is a folder; name a file", file=args.out)
         backend = get_backend(args.backend or "auto", args.device)
     except InputError as err:
         print(f"mesh_profile: error: {err}", file=sys.stderr)

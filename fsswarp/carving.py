@@ -26,6 +26,7 @@ Masks: view name -> (bins, beams) bool. Why each rule: docs/decisions.md ("Space
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 import warnings
@@ -400,9 +401,9 @@ def voxel_mesh(voxels: VoxelCarving, *, smooth: int = 10, faces: int = 20_000, t
     """The closed, outward-oriented, watertight surface of the kept voxels (module docstring:
     Mesh). Smoothing or decimation that would break watertightness is skipped with a
     CarveWarning. ``timings`` (a dict) receives each stage's seconds: fill_s, components_s,
-    marching_cubes_s, trimesh_s, orient_s, smooth_s, smooth_check_s, decimate_s, decimate_check_s."""
+    marching_cubes_s, orient_s, smooth_s, smooth_check_s, decimate_s, decimate_check_s and
+    trimesh_s (making the Trimesh)."""
     import trimesh
-    from scipy import ndimage
     from skimage.measure import marching_cubes
 
     timings = {} if timings is None else timings
@@ -414,7 +415,8 @@ def voxel_mesh(voxels: VoxelCarving, *, smooth: int = 10, faces: int = 20_000, t
         timings[stage] = now - clock
         clock = now
 
-    filled = ndimage.binary_fill_holes(voxels.occupancy)
+    occupied, lower = _crop(voxels.occupancy)
+    filled = _fill_holes(occupied)
     lap("fill_s")
     solid = _major_components(filled)
     lap("components_s")
@@ -422,60 +424,166 @@ def voxel_mesh(voxels: VoxelCarving, *, smooth: int = 10, faces: int = 20_000, t
     padded = np.pad(solid, 1).astype(np.float32)
     with warnings.catch_warnings():  # scikit-image <= 0.25 sets .shape of its tables (NumPy 2.5 deprecates it)
         warnings.filterwarnings("ignore", "Setting the shape on a NumPy array", DeprecationWarning)
-        vertices, triangles, _, _ = marching_cubes(padded, level=MC_LEVEL, spacing=(h, h, h), method="lewiner",
-                                                   allow_degenerate=False)
+        vertices, triangles, _, _ = marching_cubes(padded, level=MC_LEVEL, method="lewiner", allow_degenerate=False)
+    # Lewiner's vertices: grid index + 31/64 or 33/64 along an edge, exact in float32, so that
+    # adding the crop's corner and scaling as marching_cubes(spacing=h) scales give the whole
+    # grid's vertices bit for bit; distinct (0.68 h or more apart) and all used, so trimesh's
+    # process (merging vertices) would change nothing
+    vertices = ((vertices + lower.astype(np.float32)) * np.full(3, h)).astype(np.float32)
     lap("marching_cubes_s")
-    mesh = trimesh.Trimesh(vertices + (voxels.origin - h), triangles, process=True)
-    lap("trimesh_s")
-    if signed_volume(mesh.triangles) < 0:
-        mesh.invert()
-    if not mesh.is_watertight:
-        raise RuntimeError(f"marching cubes gave a mesh that is not watertight ({len(mesh.faces)} faces)")
+    vertices = vertices + (voxels.origin - h)
+    triangles = triangles.astype(np.int64)
+    if signed_volume(vertices[triangles]) < 0:
+        triangles = np.ascontiguousarray(triangles[:, ::-1])
+    if not _closed(triangles):
+        raise RuntimeError(f"marching cubes gave a mesh that is not watertight and consistently wound "
+                           f"({len(triangles)} faces)")
     lap("orient_s")
     if smooth:
-        smoothed = mesh.copy()
-        trimesh.smoothing.filter_taubin(smoothed, iterations=int(smooth))
+        smoothed = _taubin(vertices, triangles, int(smooth))
         lap("smooth_s")
-        mesh = _accept(mesh, smoothed, "Taubin smoothing")
+        if _accept(smoothed, triangles, "Taubin smoothing", closed=True):  # the faces did not change
+            vertices = smoothed
         lap("smooth_check_s")
-    if faces and len(mesh.faces) > faces:
-        decimated = _decimate(mesh, faces, 2.0 * h)
+    if faces and len(triangles) > faces:
+        decimated = _decimate(vertices, triangles, faces, 2.0 * h)
         lap("decimate_s")
-        mesh = _accept(mesh, decimated, "decimation")
+        if _accept(*decimated, "decimation"):
+            vertices, triangles = decimated
         lap("decimate_check_s")
-        if len(mesh.faces) > faces:
-            warnings.warn(f"decimation stopped at {len(mesh.faces)} faces, above the {faces} asked for: it moves "
+        if len(triangles) > faces:
+            warnings.warn(f"decimation stopped at {len(triangles)} faces, above the {faces} asked for: it moves "
                           "the surface by at most 2 voxels", CarveWarning, stacklevel=2)
+    mesh = trimesh.Trimesh(vertices, triangles, process=False)
+    lap("trimesh_s")
     return mesh
 
 
-def _decimate(mesh, faces: int, max_tolerance: float):
-    """``mesh`` simplified by manifold3d (edge collapses within a tolerance; the result stays
-    a closed 2-manifold) with the smallest tolerance in [0, max_tolerance] (bisection, 8 steps)
-    that reaches ``faces`` triangles, else with max_tolerance."""
+def _crop(occupancy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(the smallest box of ``occupancy`` that holds every kept voxel, its (3,) lower corner's
+    index); the whole grid where none is kept."""
+    lower, upper = np.zeros(3, np.int64), np.array(occupancy.shape)
+    for axis in range(3):
+        used = np.flatnonzero(occupancy.any(axis=tuple(a for a in range(3) if a != axis)))
+        if len(used):
+            lower[axis], upper[axis] = used[0], used[-1] + 1
+    return occupancy[tuple(map(slice, lower, upper))], lower
+
+
+def _fill_holes(occupancy: np.ndarray) -> np.ndarray:
+    """``scipy.ndimage.binary_fill_holes`` of ``occupancy`` by one labelling (a third of its
+    time): the empty voxels 6-connected to the grid's edge stay empty, every other is filled."""
+    from scipy import ndimage
+
+    labels, _ = ndimage.label(np.pad(~occupancy, 1, constant_values=True))
+    return labels[1:-1, 1:-1, 1:-1] != labels[0, 0, 0]
+
+
+def _closed(triangles: np.ndarray) -> bool:
+    """Whether every edge of the (F, 3) triangles joins exactly two of them, which run along it
+    in opposite directions (trimesh's is_watertight and is_winding_consistent together)."""
+    if len(triangles) == 0 or len(triangles) % 2:
+        return False
+    start = triangles.astype(np.int64)
+    end = start[:, [1, 2, 0]]
+    count = int(start.max()) + 1
+    keys = np.sort((2 * (np.minimum(start, end) * count + np.maximum(start, end)) + (start > end)).ravel())
+    return bool(np.all(keys[0::2] % 2 == 0) and np.all(keys[1::2] == keys[0::2] + 1))
+
+
+def _taubin(vertices: np.ndarray, triangles: np.ndarray, iterations: int) -> np.ndarray:
+    """(V, 3) vertices after ``trimesh.smoothing.filter_taubin`` (λ = ν = 0.5, the mean of the
+    edge neighbours) of a closed mesh, bit for bit: the same operator, each row's entries in
+    column order, built once rather than from the mesh's cached graphs."""
+    from scipy import sparse
+
+    count = len(vertices)
+    keys = np.sort((triangles * count + triangles[:, [1, 2, 0]]).ravel())  # the edges (row, column)
+    rows, cols = np.divmod(keys, count)
+    degree = np.bincount(rows, minlength=count)
+    operator = sparse.csr_matrix((1.0 / degree[rows], cols, np.concatenate(([0], np.cumsum(degree)))),
+                                 shape=(count, count))
+    out = vertices.copy()
+    for index in range(iterations):
+        step = operator @ out - out
+        if index % 2 == 0:
+            out += 0.5 * step
+        else:
+            out -= 0.5 * step
+    return out
+
+
+#: First guess of _decimate's step k (of 256) from r, the faces to reach over the faces asked
+#: for: k ≈ 9.5 (r - 1)^0.9, and the slope of log(faces) over log(k) it then assumes (0.9); both
+#: fitted to coral-one, coral-two and table carvings at 96 to 160 voxels. They set how many
+#: simplifications the search takes (2.9 on average there, against 9 by bisection), not its result.
+_GUESS = (9.5, 0.9)
+_SLOPE = 0.9
+#: Guided steps of _decimate's search before it halves its bracket (at most 4 + 8 simplifications).
+_GUIDED = 4
+
+
+def _decimate(vertices: np.ndarray, triangles: np.ndarray, faces: int, max_tolerance: float):
+    """(vertices (V, 3), triangles (F, 3)) of the mesh simplified by manifold3d (edge collapses
+    within a tolerance; the result stays a closed 2-manifold) with tolerance k/256 of
+    ``max_tolerance`` (``_step_tolerance``) at a step k in 1..256 where the face count reaches
+    ``faces``: at most ``faces`` at k and more at k - 1 (k = 1: the mesh itself); else
+    ``max_tolerance``'s mesh, where no step reaches it.
+
+    The count mostly falls as k grows. The search keeps a bracket (more than ``faces`` at its
+    bottom, at most at its top) and steps into it from a guess (``_GUESS``) by secants of
+    log(count) over log(k), then by halving (``_GUIDED``): about three simplifications. Where
+    the count crosses ``faces`` once, as in every carving measured (bench/mesh_profile.py),
+    bisection over the same steps (8 halvings) finds the same k and this is the same mesh."""
     import manifold3d
-    import trimesh
 
-    solid = manifold3d.Manifold(manifold3d.Mesh(vert_properties=np.asarray(mesh.vertices, np.float32),
-                                                tri_verts=np.asarray(mesh.faces, np.uint32)))
-    low, high = 0.0, max_tolerance
-    best = solid.simplify(high)
-    if best.num_tri() <= faces:
-        for _ in range(8):
-            middle = 0.5 * (low + high)
-            trial = solid.simplify(middle)
-            if trial.num_tri() <= faces:
-                high, best = middle, trial
-            else:
-                low = middle
-    out = best.to_mesh()
-    return trimesh.Trimesh(np.asarray(out.vert_properties[:, :3], np.float64), np.asarray(out.tri_verts), process=False)
+    solid = manifold3d.Manifold(manifold3d.Mesh(vert_properties=np.asarray(vertices, np.float32),
+                                                tri_verts=np.asarray(triangles, np.uint32)))
+    counts = {0: len(triangles)}
+    low, top, best = 0, 257, None  # above faces at low, at most faces at top (257: no such step yet)
+    step = min(256, max(1, round(_GUESS[0] * max(len(triangles) / faces - 1.0, 0.01) ** _GUESS[1])))
+    for guided in itertools.count(1):
+        trial = solid.simplify(_step_tolerance(step, max_tolerance))
+        counts[step] = trial.num_tri()
+        if counts[step] <= faces:
+            top, best = step, trial
+        else:
+            low = step
+        if top - low == 1:
+            break
+        if guided >= _GUIDED:
+            guess = 0.5 * (low + top)
+        elif top < 257 and low > 0:  # a secant between the bracket's ends
+            x0, x1 = math.log(low), math.log(top)
+            y0, y1 = math.log(counts[low]), math.log(counts[top])
+            guess = math.exp(x0 + (math.log(faces) - y0) * (x1 - x0) / (y1 - y0))
+        else:
+            guess = step * (counts[step] / faces) ** (1.0 / _SLOPE)
+        step = min(max(math.ceil(guess), low + 1), top - 1)
+    out = (trial if best is None else best).to_mesh()
+    return np.asarray(out.vert_properties[:, :3], np.float64), np.asarray(out.tri_verts, np.int64)
 
 
-def _accept(before, after, what: str):
-    """``after`` if it is still a watertight, outward volume, else ``before`` with a warning."""
-    if after.is_watertight and after.is_winding_consistent and signed_volume(after.triangles) > 0:
-        return after
+def _step_tolerance(step: int, max_tolerance: float) -> float:
+    """``step``/256 of ``max_tolerance`` as bisection over [0, max_tolerance] reaches it: the
+    mean of the ends it has narrowed to, rounded at every halving as bisection rounds."""
+    low, high, lo, hi = 0, 256, 0.0, float(max_tolerance)
+    while step != high:
+        middle, value = (low + high) // 2, 0.5 * (lo + hi)
+        if step == middle:
+            return value
+        if step < middle:
+            high, hi = middle, value
+        else:
+            low, lo = middle, value
+    return hi
+
+
+def _accept(vertices: np.ndarray, triangles: np.ndarray, what: str, *, closed: bool | None = None) -> bool:
+    """Whether the mesh is still a watertight, consistently wound, outward volume (``closed``:
+    known already); if not, a CarveWarning that ``what`` was skipped."""
+    if (_closed(triangles) if closed is None else closed) and signed_volume(vertices[triangles]) > 0:
+        return True
     warnings.warn(f"{what} broke the carved mesh's watertightness; kept the mesh without it",
                   CarveWarning, stacklevel=3)
-    return before
+    return False

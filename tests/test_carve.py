@@ -21,10 +21,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from fsswarp.carving import (CarveSettings, CarveWarning, carve, carve_masks, carve_reference, common_region,
-                           voxel_mesh, _Carver)
+from fsswarp.carving import (MC_LEVEL, CarveSettings, CarveWarning, VoxelCarving, carve, carve_masks,
+                           carve_reference, common_region, voxel_mesh, _Carver, _closed, _fill_holes,
+                           _step_tolerance)
 from fsswarp.errors import InputError
 from fsswarp.metrics import inside_grid
+from fsswarp.rendering import signed_volume
 from fsswarp.rig import rotation_x, rotation_y, rotation_z, to_view
 from fsswarp.segment import from_highlight
 from fsswarp.sonar import SonarSpec, to_polar
@@ -221,6 +223,173 @@ def test_common_region_of_the_sphere_scene():
     away = rot.copy()
     away[3] = rotation_z(math.pi) @ away[3]  # one view looks the other way
     assert common_region(sonar, away, trans) is None
+
+
+# --- the mesh ----------------------------------------------------------------------------------
+def blob_voxels(seed: int, shape=(44, 40, 34), voxel_size: float = 0.0125) -> VoxelCarving:
+    """Seeded voxels: five random balls (one through the grid's edge) with a hollow in the first
+    (binary_fill_holes fills it) and a lone voxel apart (under 1% of the largest component:
+    dropped), at an origin and voxel size that round."""
+    rng = np.random.default_rng(seed)
+    idx = np.stack(np.meshgrid(*(np.arange(n) for n in shape), indexing="ij"), -1).astype(float)
+    occupancy = np.zeros(shape, bool)
+    centres = rng.uniform(10, np.array(shape) - 10, (5, 3))
+    centres[4, 0] = shape[0] - 3
+    radii = rng.uniform(5, 9, 5)
+    for centre, radius in zip(centres, radii):
+        occupancy |= np.linalg.norm(idx - centre, axis=-1) <= radius
+    occupancy &= np.linalg.norm(idx - centres[0], axis=-1) > 0.4 * radii[0]
+    occupancy[1, 1, 1] = True
+    return VoxelCarving(occupancy=occupancy, origin=rng.uniform(-1, 1, 3), voxel_size=voxel_size,
+                        domain=np.zeros((2, 3)), tested=0)
+
+
+def bisection_tolerances(max_tolerance: float) -> dict[int, float]:
+    """Step k (1..256) -> the tolerance that the former bisection (0.5 (low + high) from
+    [0, max_tolerance], 8 halvings) tries at k/256 of max_tolerance, every path walked."""
+    found = {256: max_tolerance}
+
+    def walk(low, high, lo, hi):
+        if high - low > 1:
+            middle, value = (low + high) // 2, 0.5 * (lo + hi)
+            found[middle] = value
+            walk(low, middle, lo, value)
+            walk(middle, high, value, hi)
+
+    walk(0, 256, 0.0, max_tolerance)
+    return found
+
+
+def former_surface(voxels: VoxelCarving, smooth: int):
+    """The former voxel_mesh up to decimation, written with the libraries' own functions
+    (scipy's binary_fill_holes and label, scikit-image's marching cubes at spacing h, trimesh's
+    process, invert, is_watertight and filter_taubin)."""
+    from scipy import ndimage
+    from skimage.measure import marching_cubes
+
+    filled = ndimage.binary_fill_holes(voxels.occupancy)
+    labels, _ = ndimage.label(filled, structure=np.ones((3, 3, 3), bool))
+    sizes = np.bincount(labels.ravel())[1:]
+    solid = np.isin(labels, 1 + np.flatnonzero(sizes >= 0.01 * sizes.max()))
+    h = voxels.voxel_size
+    vertices, triangles, _, _ = marching_cubes(np.pad(solid, 1).astype(np.float32), level=MC_LEVEL,
+                                               spacing=(h, h, h), method="lewiner", allow_degenerate=False)
+    mesh = trimesh.Trimesh(vertices + (voxels.origin - h), triangles, process=True)
+    if signed_volume(mesh.triangles) < 0:
+        mesh.invert()
+    assert mesh.is_watertight and mesh.is_winding_consistent
+    if smooth:
+        trimesh.smoothing.filter_taubin(mesh, iterations=smooth)
+    return mesh
+
+
+def former_decimation(mesh, faces: int, max_tolerance: float):
+    """(the former decimation of ``mesh``: manifold3d's simplify at the tolerance that
+    bisection of [0, max_tolerance] finds in 8 halvings, the Manifold it simplified)."""
+    import manifold3d
+
+    manifold = manifold3d.Manifold(manifold3d.Mesh(vert_properties=np.asarray(mesh.vertices, np.float32),
+                                                   tri_verts=np.asarray(mesh.faces, np.uint32)))
+    low, high = 0.0, max_tolerance
+    best = manifold.simplify(high)
+    assert best.num_tri() <= faces
+    for _ in range(8):
+        middle = 0.5 * (low + high)
+        trial = manifold.simplify(middle)
+        if trial.num_tri() <= faces:
+            high, best = middle, trial
+        else:
+            low = middle
+    out = best.to_mesh()
+    return trimesh.Trimesh(np.asarray(out.vert_properties[:, :3], np.float64), out.tri_verts, process=False), manifold
+
+
+def same_mesh(a, b) -> bool:
+    return (a.vertices.dtype == b.vertices.dtype and a.faces.dtype == b.faces.dtype
+            and np.array_equal(a.vertices, b.vertices) and np.array_equal(a.faces, b.faces))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_voxel_mesh_is_the_former_pipelines_bit_for_bit(seed):
+    """Holes filled, specks dropped, marching cubes, orientation and Taubin smoothing give the
+    former pipeline's vertices and faces bit for bit; decimation gives the mesh of a step k
+    where the face count reaches the budget (at most it at k, more at k - 1), and where the
+    count crosses the budget once (counted at all 256 steps) the former bisection's mesh."""
+    voxels = blob_voxels(seed)
+    smoothed = former_surface(voxels, 10)
+    assert same_mesh(voxel_mesh(voxels, faces=0), smoothed)
+    assert same_mesh(voxel_mesh(voxels, smooth=0, faces=0), former_surface(voxels, 0))
+    budget = len(smoothed.faces) // 3
+    decimated, manifold = former_decimation(smoothed, budget, 2.0 * voxels.voxel_size)
+    mesh = voxel_mesh(voxels, faces=budget)
+    assert mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0 and len(mesh.faces) <= budget
+    tolerances = bisection_tolerances(2.0 * voxels.voxel_size)
+    counts = {k: manifold.simplify(tolerances[k]).num_tri() for k in range(1, 257)}
+    counts[0] = len(smoothed.faces)
+    crossings = [k for k in range(1, 257) if counts[k] <= budget < counts[k - 1]]
+    print(f"seed {seed}: {len(smoothed.faces)} faces -> {len(mesh.faces)} (budget {budget}), crossings {crossings}")
+    assert len(mesh.faces) in {counts[k] for k in crossings}
+    if len(crossings) == 1:
+        assert same_mesh(mesh, decimated)
+
+
+def test_step_tolerance_is_the_bisections():
+    for max_tolerance in (2 * 0.0024093313731700836, 0.1, 3.0e-3 / 7):
+        tolerances = bisection_tolerances(max_tolerance)
+        assert sorted(tolerances) == list(range(1, 257))
+        assert all(_step_tolerance(k, max_tolerance) == tolerances[k] for k in range(1, 257))
+
+
+def test_fill_holes_and_closed_agree_with_scipy_and_trimesh():
+    """_fill_holes is scipy's binary_fill_holes (seeded random solids with cavities, some at
+    the grid's edge); _closed is trimesh's is_watertight and is_winding_consistent on closed
+    meshes and on ones with a face flipped, removed or doubled."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        occupancy = ndimage.binary_dilation(rng.random((17, 13, 11)) < 0.08, iterations=int(rng.integers(1, 3)))
+        occupancy &= rng.random(occupancy.shape) > 0.05
+        assert np.array_equal(_fill_holes(occupancy), ndimage.binary_fill_holes(occupancy))
+    for mesh in (trimesh.creation.icosphere(2), trimesh.creation.box(), trimesh.creation.torus(1.0, 0.3)):
+        flipped, removed, doubled = (np.array(mesh.faces) for _ in range(3))
+        flipped[3] = flipped[3, ::-1]
+        for faces in (mesh.faces, flipped, removed[1:], np.concatenate([doubled, doubled[:2]])):
+            other = trimesh.Trimesh(mesh.vertices, faces, process=False)
+            assert _closed(np.asarray(faces)) == (other.is_watertight and other.is_winding_consistent)
+        assert _closed(np.asarray(mesh.faces)) and not _closed(flipped)
+
+
+def test_voxel_mesh_of_a_ball_and_a_box():
+    """Against the analytic solids that the voxels sample (centres inside): a ball of radius
+    17.3 voxels and the 21 x 14 x 9 cubes of a box of voxels. Marching cubes puts the surface
+    ½ voxel past the kept centres; Taubin smoothing and decimation move it a little: every
+    vertex within 3/4 voxel of the solid's surface, the volume within 2%, the area within 7%
+    (marching cubes cuts the box's edges and corners)."""
+    h = 0.01
+    idx = np.stack(np.meshgrid(*(np.arange(n) for n in (44, 42, 40)), indexing="ij"), -1).astype(float)
+    centre, radius = np.array([21.3, 20.6, 19.8]), 17.3
+    ball = np.linalg.norm(idx - centre, axis=-1) <= radius
+    low, high = np.array([5, 9, 12]), np.array([25, 22, 20])  # kept centres 5..25, 9..22, 12..20
+    box = np.all((idx >= low) & (idx <= high), axis=-1)
+    origin = np.array([0.3, -1.2, 0.7])
+    for occupancy, faces in ((ball, 3000), (box, 600)):
+        mesh = voxel_mesh(VoxelCarving(occupancy, origin, h, np.zeros((2, 3)), 0), faces=faces)
+        assert mesh.is_watertight and mesh.is_winding_consistent and len(mesh.faces) <= faces
+        p = (mesh.vertices - origin) / h  # voxel index units
+        if occupancy is ball:
+            gap = np.abs(np.linalg.norm(p - centre, axis=-1) - radius)
+            volume, area = 4 / 3 * math.pi * radius**3, 4 * math.pi * radius**2
+        else:
+            lo, hi = low - 0.5, high + 0.5  # the box of the kept voxels' cubes
+            inside = np.all((p > lo) & (p < hi), axis=1)
+            gap = np.where(inside, np.min(np.concatenate([p - lo, hi - p], axis=1), axis=1),
+                           np.linalg.norm(np.maximum(np.maximum(lo - p, p - hi), 0.0), axis=1))
+            volume, area = np.prod(hi - lo), 2 * (np.prod(hi - lo) * np.sum(1 / (hi - lo)))
+        print(f"{'ball' if occupancy is ball else 'box'}: {len(mesh.faces)} faces, largest gap {gap.max():.2f} "
+              f"voxels, volume {mesh.volume / h**3 / volume:.4f}, area {mesh.area / h**2 / area:.4f} x the solid's")
+        assert gap.max() <= 0.75
+        assert abs(mesh.volume / h**3 / volume - 1) <= 0.02 and abs(mesh.area / h**2 / area - 1) <= 0.07
 
 
 # --- simulated coral-one -------------------------------------------------------------------------
