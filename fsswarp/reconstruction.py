@@ -15,9 +15,8 @@ One ``fsswarp.compare.ViewComparison`` serves both steps and the metrics. The lo
 after ``iterations``, after ``patience`` iterations without a new lowest E_I, or when a shape
 step leaves the model unchanged. The answer (:func:`_valley_answer`): E_I does not pick the
 pose, and a free shape absorbs the tilt, so the images keep only the surface's height above
-the object, D − L·β (DESIGN §7). Its first model is made at the sensors' D0 and the tilt whose
-carving best agrees with the views (:func:`carving_scan`); carved and refined once there
-(:func:`sighting`), the pose step gives the height and its error, the sensors' priors the
+the object, D − L·β (DESIGN §7): from the lowest E_I's (D, β), carve and refine once there
+(:func:`sighting`), take the pose step's height and its error, and the sensors' priors the
 rest (``fsswarp.pose.valley_posterior``), made again at that estimate while it moves
 (``FIXED_POINT_STEPS``); the lowest-E_I model, refined at the answer, is the result
 (``converged``: stopped, and both identified). Without iterations (carving alone) the
@@ -49,9 +48,6 @@ from .rendering import RenderSettings, render, with_total
 
 #: Most times the answer's model is made again at its own estimate.
 FIXED_POINT_STEPS = 2
-#: The answer's first model is made at the tilt, of β0 + k σ_β for these k at the sensors' D0,
-#: whose carving agrees best with the views (least E_mu at its own pose), refined by a parabola.
-SCAN_SIGMAS = (-2.0, -1.0, 0.0, 1.0, 2.0)
 
 
 @dataclass(frozen=True)
@@ -217,9 +213,7 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
             if _out_of_patience(misses, settings, best, iteration, say):
                 stopped = True
                 break
-        posterior = _valley_answer(dataset, comparison, shaping,
-                                   (prior.depth, carving_scan(dataset, comparison, prior, settings, say)), prior,
-                                   settings, say) \
+        posterior = _valley_answer(dataset, comparison, shaping, best_pose, prior, settings, say) \
             if settings.iterations else _carving_posterior(comparison, carved, best_pose, prior)
         answer = (posterior.depth, posterior.tilt)
         say(f"the answer: {_intervals(*answer, posterior)}")
@@ -258,35 +252,6 @@ def sighting(dataset, depth: float, tilt: float, settings: ReconstructSettings, 
     carved = carve(dataset, depth, tilt, resolution=settings.resolution, settings=settings.carve,
                    backend=shaping.backend).mesh
     return refine_shape(carved, dataset, depth, tilt, settings=settings.refine, comparison=shaping).mesh
-
-
-def carving_scan(dataset, comparison: ViewComparison, prior: Prior, settings: ReconstructSettings, say) -> float:
-    """The tilt (rad) whose carving at the sensors' depth D0 agrees best with the views: E_mu of
-    the views carved at (D0, β0 + k σ_β), k in ``SCAN_SIGMAS``, each at its own pose; the vertex
-    of the parabola through the least and its two neighbours (the least itself at an end, or
-    where the three do not curve upward). A carving at a wrong tilt is inconsistent with the
-    views that made it (DESIGN §2), which a refined shape hides."""
-    tilts = prior.tilt + np.asarray(SCAN_SIGMAS) * prior.tilt_sigma
-    errors = []
-    for tilt in tilts:
-        carved = carve(dataset, prior.depth, float(tilt), resolution=settings.resolution, settings=settings.carve,
-                       backend=comparison.backend).mesh
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", PoseWarning)  # views without a contour are left out
-            comparison.use(carved, prior.depth, float(tilt))
-        errors.append(comparison.exact(prior.depth, float(tilt)).value)
-    errors = np.where(np.isfinite(errors), errors, np.inf)
-    least = int(np.argmin(errors))
-    found = float(tilts[least])
-    if 0 < least < len(tilts) - 1 and np.all(np.isfinite(errors[least - 1:least + 2])):
-        left, middle, right = errors[least - 1:least + 2]
-        curvature = left - 2 * middle + right
-        if curvature > 0:
-            step = tilts[1] - tilts[0]
-            found = float(tilts[least] + 0.5 * step * (left - right) / curvature)
-    say("the answer: carvings at D0 " + ", ".join(f"{math.degrees(t):.2f}" for t in tilts) + " deg: E_mu "
-        + ", ".join(f"{e * 1000:.2f}" for e in errors) + f" mm; the first model at {math.degrees(found):.3f} deg")
-    return found
 
 
 def _valley_answer(dataset, comparison: ViewComparison, shaping: ViewComparison, pose: tuple[float, float],
