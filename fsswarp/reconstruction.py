@@ -13,14 +13,13 @@
 
 One ``fsswarp.compare.ViewComparison`` serves both steps and the metrics. The loop stops
 after ``iterations``, after ``patience`` iterations without a new lowest E_I, or when a shape
-step leaves the model unchanged. The answer (:func:`_valley_answer`): E_I does not pick the
-pose, and a free shape absorbs the tilt, so the images keep only the surface's height above
-the object, D − L·β (DESIGN §7): from the lowest E_I's (D, β), carve and refine once there
-(:func:`sighting`), take the pose step's height and its error, and the sensors' priors the
-rest (``fsswarp.pose.valley_posterior``), made again at that estimate while it moves
-(``FIXED_POINT_STEPS``); the lowest-E_I model, refined at the answer, is the result
-(``converged``: stopped, and both identified). Without iterations (carving alone) the
-sensors' pose stays. Image metrics over the
+step leaves the model unchanged. The answer (:func:`_valley_answer`): a free shape absorbs the
+tilt, so the images keep only the surface's height above the object, D − L·β (DESIGN §7): at
+the lowest E_I's (D, β), carve and refine once (:func:`sighting`), take the pose step's height
+and its error, the sensors' priors the rest (``fsswarp.pose.valley_posterior``), made again at
+that estimate while it moves (``FIXED_POINT_STEPS``); the lowest-E_I model, refined at the
+answer, is the result (``converged``: stopped, both identified). Without iterations (carving
+alone) the sensors' pose stays. Image metrics over the
 optimized views: Ω_m, the synthetic object above 1% of its peak where ghost and mirrors stay
 below 10% of it; IE on Ω_m, totals divided by their means there; CE from the comparison's
 contours; E_I = (AIE/AIE⁰ + ACE/ACE⁰)/2 (``fsswarp.metrics.image_error``).
