@@ -13,7 +13,8 @@ from fsswarp.carving import carve
 from fsswarp.compare import ViewComparison
 from fsswarp.errors import InputError
 from fsswarp.metrics import compare
-from fsswarp.refine import RefineSettings, _graph_laplacian, _Membrane, _last_echo_rows, refine_shape, smoothed_rows
+from fsswarp.refine import (RefineSettings, _graph_laplacian, _Membrane, _last_echo_rows, _topology, refine_shape,
+                            smoothed_rows)
 
 
 @pytest.fixture(scope="module")
@@ -32,9 +33,15 @@ def test_true_model_stays(scene):
     assert result.ace_after < result.ace_before + 5e-4
 
 
-def test_carved_model_improves(scene):
+@pytest.fixture(scope="module")
+def carved(scene):
+    """coral-one carved at the true (D, β)."""
     dataset, truth, depth, tilt, backend = scene
-    carved = carve(dataset, depth, tilt, backend=backend).mesh
+    return carve(dataset, depth, tilt, backend=backend).mesh
+
+
+def test_carved_model_improves(scene, carved):
+    dataset, truth, depth, tilt, backend = scene
     comparison = ViewComparison(dataset, backend=backend)
     result = refine_shape(carved, dataset, depth, tilt, settings=RefineSettings(iterations=3), comparison=comparison)
     before, after = compare(carved, truth, samples=5000), compare(result.mesh, truth, samples=5000)
@@ -48,6 +55,30 @@ def test_carved_model_improves(scene):
     assert np.array_equal(comparison.vertices, result.mesh.vertices)
     errors = dict(zip(comparison.data.names, comparison.contour_errors(depth, tilt)))
     np.testing.assert_allclose([errors[name] for name in result.views], result.ce_after, rtol=1e-12)
+
+
+def test_refinement_matches_one_with_every_membrane_system_solved_afresh(scene, carved, monkeypatch):
+    """The reconstruction's shape step (3 updates) on the carved model against the same step
+    whose membrane systems scipy's spsolve assembles and solves afresh (its own ordering, no
+    remembered topology): the same steps, and vertices within 1e-9 m."""
+    from scipy.sparse import diags
+    from scipy.sparse.linalg import spsolve
+
+    import fsswarp.refine as refine
+
+    dataset, truth, depth, tilt, backend = scene
+    settings = RefineSettings(iterations=3)
+    comparison = ViewComparison(dataset, backend=backend)
+    got = refine_shape(carved, dataset, depth, tilt, settings=settings, comparison=comparison)
+    laplacian = _graph_laplacian(carved.edges_unique, len(carved.vertices))
+    monkeypatch.setattr(refine._Membrane, "solve", lambda self, weights, rhs: spsolve(
+        (diags(weights) + settings.smoothing * laplacian).tocsc(), rhs))
+    want = refine_shape(carved, dataset, depth, tilt, settings=settings, comparison=comparison)
+    assert [s.step for s in got.steps] == [s.step for s in want.steps] and got.steps[-1].step > 0
+    np.testing.assert_array_equal(got.mesh.faces, want.mesh.faces)
+    assert np.abs(got.mesh.vertices - want.mesh.vertices).max() < 1e-9
+    assert np.abs(got.mesh.vertices - carved.vertices).max() > 1e-4  # it did move
+    np.testing.assert_allclose(got.ce_after, want.ce_after, rtol=1e-6)
 
 
 def test_refinement_does_not_eat_into_the_object(scene):
@@ -228,27 +259,55 @@ def test_graph_laplacian_is_degree_less_adjacency_of_the_faces():
     np.testing.assert_array_equal(_graph_laplacian(mesh.edges_unique, n).toarray(), want)
 
 
-def test_membrane_solves_match_spsolve_and_keep_the_first_order():
-    """The membrane system (diag(w) + λ L) x = b against scipy's spsolve, for the first solve
-    (which finds SuperLU's order) and later ones with other weights (which reuse it); the
-    order is found once."""
-    from scipy.sparse import diags
-    from scipy.sparse.linalg import spsolve
+def _dense_membrane(mesh, weights, smoothing):
+    """(Nv, Nv) dense diag(w) + λ L, L from the faces' sides (degree − adjacency)."""
+    n = len(mesh.vertices)
+    adjacency = np.zeros((n, n))
+    for a, b in ((0, 1), (1, 2), (2, 0)):
+        adjacency[mesh.faces[:, a], mesh.faces[:, b]] = adjacency[mesh.faces[:, b], mesh.faces[:, a]] = 1.0
+    return np.diag(weights) + smoothing * (np.diag(adjacency.sum(axis=1)) - adjacency)
 
+
+def test_membrane_solves_match_a_dense_solve():
+    """The membrane system (diag(w) + λ L) x = b against numpy's dense solve of the same system
+    built from the faces, with weights as refinement makes them (most vertices 1e-9, the
+    rest in (0, 1]); relative residual at the rounding of a backward-stable solve."""
     mesh = trimesh.creation.icosphere(subdivisions=3)
     n = len(mesh.vertices)
-    laplacian = _graph_laplacian(mesh.edges_unique, n)
-    membrane = _Membrane(laplacian, 4.0)
+    membrane = _Membrane(_topology(mesh), 4.0)
     rng = np.random.default_rng(3)
-    orders = []
     for _ in range(3):
         weights = np.where(rng.random(n) < 0.3, rng.random(n), 0.0) + 1e-9
         rhs = rng.normal(size=(n, 3)) * (weights > 1e-6)[:, None]
-        want = spsolve((diags(weights) + 4.0 * laplacian).tocsc(), rhs)
+        dense = _dense_membrane(mesh, weights, 4.0)
+        want = np.linalg.solve(dense, rhs)
         got = membrane.solve(weights, rhs)
         np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12 * np.abs(want).max())
-        orders.append(membrane.order)
-    assert orders[0] is orders[1] is orders[2] and sorted(orders[0]) == list(range(n))
+        assert np.abs(dense @ got - rhs).max() <= 1e-12 * np.abs(rhs).max()
+
+
+def test_topology_is_remembered_by_the_faces_and_its_order_is_the_systems():
+    """One topology per face list (a moved mesh of the same faces gets it again; other faces
+    another): trimesh's unique edges and watertightness, and the fill-reducing order that
+    SuperLU's MMD finds on the weighted system itself (it reads the pattern alone)."""
+    from scipy.sparse import diags
+    from scipy.sparse.linalg import splu
+
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    topology = _topology(mesh)
+    moved = trimesh.Trimesh(mesh.vertices * 1.1 + 0.01, mesh.faces.copy(), process=False)
+    assert _topology(moved) is topology
+    assert _topology(trimesh.creation.icosphere(subdivisions=2)) is not topology
+    np.testing.assert_array_equal(topology.edges, mesh.edges_unique)
+    holed = trimesh.Trimesh(mesh.vertices, mesh.faces[1:], process=False)
+    assert topology.watertight and not _topology(holed).watertight
+    n = len(mesh.vertices)
+    weights = np.where(np.random.default_rng(5).random(n) < 0.2, 0.7, 0.0) + 1e-9
+    system = (diags(weights) + 4.0 * _graph_laplacian(mesh.edges_unique, n)).tocsc()
+    found = splu(system, permc_spec="MMD_AT_PLUS_A", options=dict(SymmetricMode=True))
+    order = topology.system[0]
+    np.testing.assert_array_equal(order, np.argsort(found.perm_c))
+    assert sorted(order) == list(range(n))
 
 
 @pytest.mark.parametrize("lo, hi", [(0, 1), (0, 40), (3, 9), (100, 180), (250, 256), (255, 256), (0, 256)])

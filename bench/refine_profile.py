@@ -1,0 +1,218 @@
+"""Where one shape step (``fsswarp.refine.refine_shape``) spends its time, one command:
+
+    python bench/refine_profile.py [--scene NAME] [--backend B] [--device D] [--calls N]
+                                   [--iterations T] [--seed S] [--out FILE.json]
+
+Simulates the scene (noisy, ``--seed``), carves it at its measured (D0, β0) (resolution 128)
+and refines the carving there ``--calls`` times with ``RefineSettings(iterations=T)`` (the
+reconstruction's shape step: T = 3) through one ``ViewComparison``, as the reconstruction does,
+after one untimed call to fill the kernel caches. Every call starts from the same carving, so
+every call must give the same mesh (checked, bit for bit). Each call's stages are timed
+inclusively by wrappers: locating the model (``use``), the synthetic contours, the ICP
+(``align``), the frontal patches and their 3-D least squares (``contour_motions``), the
+overshoot term, the vertex displacements (of which ``membrane``, the sparse solve), the step
+checks (``apply``), the closing CE (``contour_errors``) and the rest; plus the backend calls
+inside them (device time as the host waits for it, with the backend's own host work) and
+``host``, the call less those backend calls. Prints one Markdown table of the medians per stage
+(ms) and writes ``--out``: the machine, the command, the medians, every call's times, and the
+refined mesh's digest, ACE and steps (to compare results before and after a change).
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import hashlib
+import json
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+#: (module, class name or None, function name, label) of the stages, in call order; a name that
+#: a version of the code lacks is skipped.
+STAGES = (
+    ("fsswarp.compare", "ViewComparison", "use", "use"),
+    ("fsswarp.compare", "ViewComparison", "synthetic_contours", "synthetic_contours"),
+    ("fsswarp.compare", "ViewComparison", "align", "align"),
+    ("fsswarp.refine", "_Update", "_contour_motions", "contour_motions"),
+    ("fsswarp.refine", "_Update", "_overshoot", "overshoot"),
+    ("fsswarp.refine", "_Update", "displacement", "displacement"),
+    ("fsswarp.refine", None, "_apply", "apply"),
+    ("fsswarp.compare", "ViewComparison", "contour_errors", "contour_errors"),
+)
+#: Stages timed within others (not summed into ``rest``).
+INNER = (
+    ("fsswarp.compare", "ViewComparison", "frontal_motions", "contour_motions.frontal_motions"),
+    ("fsswarp.refine", "_Membrane", "solve", "displacement.membrane"),
+)
+BACKEND_CALLS = ("load_mesh", "device_distances", "render_device", "contour_cost", "view_costs", "icp_runs",
+                 "frontal_faces", "cast_rays")
+#: Stages whose time holds other stages' (``contour_errors`` calls ``synthetic_contours`` and ``align``).
+NESTED = {"synthetic_contours", "align"}
+
+
+class StageTimes:
+    """Inclusive wall seconds per wrapped callable within the current call (``current``); a
+    stage called inside another timed one (``NESTED`` within ``contour_errors``) is counted
+    under the outer one only."""
+
+    def __init__(self):
+        self.current: dict[str, float] = {}
+        self.depth = 0  # > 0 inside contour_errors
+        self.undo = []
+
+    def wrap(self, owner, name: str, label: str) -> None:
+        original = getattr(owner, name)
+
+        @functools.wraps(original)
+        def timed(*args, **kwargs):
+            outer = label == "contour_errors"
+            if label in NESTED and self.depth:
+                return original(*args, **kwargs)
+            self.depth += outer
+            start = time.perf_counter()
+            try:
+                return original(*args, **kwargs)
+            finally:
+                self.current[label] = self.current.get(label, 0.0) + time.perf_counter() - start
+                self.depth -= outer
+
+        self.undo.append((owner, name, original))
+        setattr(owner, name, timed)
+
+    def restore(self) -> None:
+        for owner, name, original in reversed(self.undo):
+            setattr(owner, name, original)
+        self.undo.clear()
+
+
+def digest(mesh) -> str:
+    """sha256 of the mesh's float64 vertices and int64 faces."""
+    import numpy as np
+
+    h = hashlib.sha256(np.ascontiguousarray(mesh.vertices, np.float64).tobytes())
+    h.update(np.ascontiguousarray(mesh.faces, np.int64).tobytes())
+    return h.hexdigest()
+
+
+def profile(dataset, backend, calls: int, iterations: int):
+    """(per-call stage times [{label: s}], the refined mesh, the RefineResult, the carving) of
+    ``calls`` shape steps on the carving of ``dataset`` at its measured pose, after one untimed
+    call; RuntimeError where a call's mesh differs from the untimed one's."""
+    import importlib
+
+    from fsswarp.carving import carve
+    from fsswarp.compare import ViewComparison
+    from fsswarp.refine import RefineSettings, refine_shape
+
+    surface = dataset.manifest.surface
+    depth, tilt = surface.depth, surface.tilt
+    carved = carve(dataset, depth, tilt, resolution=128, backend=backend).mesh
+    settings = RefineSettings(iterations=iterations)
+    comparison = ViewComparison(dataset, settings=settings.pose, backend=backend)
+    first = refine_shape(carved, dataset, depth, tilt, settings=settings, comparison=comparison)
+    want = digest(first.mesh)
+    times = StageTimes()
+    for module, owner, name, label in STAGES + INNER:
+        target = importlib.import_module(module)
+        target = getattr(target, owner) if owner else target
+        if hasattr(target, name):
+            times.wrap(target, name, label)
+    for name in BACKEND_CALLS:
+        if hasattr(type(backend), name):
+            times.wrap(type(backend), name, f"backend.{name}")
+    rows = []
+    try:
+        for _ in range(calls):
+            times.current = {}
+            start = time.perf_counter()
+            result = refine_shape(carved, dataset, depth, tilt, settings=settings, comparison=comparison)
+            total = time.perf_counter() - start
+            if digest(result.mesh) != want:
+                raise RuntimeError("a timed call's mesh differs from the untimed call's")
+            row = dict(times.current, total=total)
+            row["rest"] = total - sum(row.get(label, 0.0) for *_, label in STAGES)
+            row["host"] = total - sum(row.get(f"backend.{name}", 0.0) for name in BACKEND_CALLS)
+            rows.append(row)
+    finally:
+        times.restore()
+    return rows, first, carved
+
+
+def medians(rows) -> dict[str, float]:
+    """Median seconds per label over the calls (0 where a call lacks it)."""
+    labels = sorted({label for row in rows for label in row})
+    return {label: statistics.median(row.get(label, 0.0) for row in rows) for label in labels}
+
+
+def table(med: dict[str, float]) -> str:
+    order = ["total", *[label for *_, label in STAGES], "rest", *[label for *_, label in INNER],
+             *[f"backend.{n}" for n in BACKEND_CALLS], "host"]
+    lines = ["| stage | median ms | share |", "|---|---|---|"]
+    for label in order:
+        if label in med:
+            lines.append(f"| `{label}` | {1e3 * med[label]:.2f} | {100 * med[label] / med['total']:.1f}% |")
+    return "\n".join(lines)
+
+
+def cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scene", default="coral-one", choices=("coral-one", "coral-two", "table"))
+    parser.add_argument("--backend", default=None, help="warp or opencl (default: fsswarp's choice)")
+    parser.add_argument("--device", default=None, help="backend device, e.g. cuda:0, cpu, pocl, nvidia")
+    parser.add_argument("--calls", type=int, default=5, help="timed refine_shape calls (>= 1)")
+    parser.add_argument("--iterations", type=int, default=3, help="shape updates per call (>= 1)")
+    parser.add_argument("--seed", type=int, default=0, help="noise seed of the simulation")
+    parser.add_argument("--out", default=None, help="JSON record to write")
+    args = parser.parse_args(argv)
+    from fsswarp.atomic import json_number, write_text
+    from fsswarp.backends import get_backend
+    from fsswarp.errors import InputError, check_integer
+    from fsswarp.simulation import simulate
+
+    try:
+        check_integer("--calls", args.calls, 1)
+        check_integer("--iterations", args.iterations, 1)
+        check_integer("--seed", args.seed, 0)
+        backend = get_backend(args.backend or "auto", args.device)
+    except InputError as err:
+        print(f"refine_profile: error: {err}", file=sys.stderr)
+        return 2
+    with tempfile.TemporaryDirectory() as folder:
+        dataset = simulate(args.scene, Path(folder) / args.scene, seed=args.seed, backend=backend)
+        rows, result, carved = profile(dataset, backend, args.calls, args.iterations)
+    med = medians(rows)
+    print(f"{args.scene} refine_shape (iterations={args.iterations}, {len(carved.vertices)} vertices) on "
+          f"{backend.name} {backend.device} ({cpu_model()}), median of {args.calls} calls:\n")
+    print(table(med))
+    print(f"\nmesh {digest(result.mesh)[:16]}, ACE {result.ace_before:.6g} -> {result.ace_after:.6g} m")
+    if args.out:
+        record = dict(scene=args.scene, backend=backend.name, device=str(backend.device), cpu=cpu_model(),
+                      command=" ".join(sys.argv), date=time.strftime("%Y-%m-%d %H:%M:%S"), calls=args.calls,
+                      iterations=args.iterations, seed=args.seed, vertices=len(carved.vertices),
+                      faces=len(carved.faces), median_ms={k: 1e3 * v for k, v in med.items()},
+                      rows_ms=[{k: 1e3 * v for k, v in row.items()} for row in rows],
+                      mesh_sha256=digest(result.mesh), carving_sha256=digest(carved),
+                      ace_before=json_number(result.ace_before), ace_after=json_number(result.ace_after),
+                      steps=[dict(contour_patches=s.contour_patches, shrink_patches=s.shrink_patches,
+                                  mean_displacement=s.mean_displacement, step=s.step, ace=json_number(s.ace))
+                             for s in result.steps])
+        write_text(args.out, json.dumps(record, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
