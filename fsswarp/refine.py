@@ -219,7 +219,7 @@ class _Update:
         np.add.at(counts, (row, component, view), 1.0)
         seen = counts > 0
         moves = np.divide(moves, counts[..., None], out=np.zeros_like(moves), where=counts[..., None] > 0)
-        centres = self.mesh.triangles_center[chosen]
+        centres = self.mesh.vertices[self.mesh.faces[chosen]].mean(axis=1)  # trimesh's triangles_center, of these
         normal, offset = surface_in_reference(comparison.rig, self.depth, self.tilt)
         h = np.eye(3) - 2.0 * np.outer(normal, normal)
         virtual = centres @ h + 2.0 * float(offset) * normal
