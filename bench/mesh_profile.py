@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import platform
 import statistics
 import sys
 import tempfile
@@ -39,14 +38,10 @@ def mesh_digest(mesh) -> str:
 
 
 def cpu_model() -> str:
-    """The CPU's model name (Linux /proc/cpuinfo), else ``platform.processor()``."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
+    """The CPU's model name (``fsswarp.benchmark.cpu_info``)."""
+    from fsswarp.benchmark import cpu_info
+
+    return cpu_info()["model"]
 
 
 def profile(voxels, repeats: int) -> tuple[dict[str, list[float]], object]:
