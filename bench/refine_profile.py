@@ -24,7 +24,6 @@ import argparse
 import functools
 import hashlib
 import json
-import platform
 import statistics
 import sys
 import tempfile
@@ -159,13 +158,10 @@ def table(med: dict[str, float]) -> str:
 
 
 def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
+    """The CPU's model name (``fsswarp.benchmark.cpu_info``)."""
+    from fsswarp.benchmark import cpu_info
+
+    return cpu_info()["model"]
 
 
 def main(argv: list[str] | None = None) -> int:
