@@ -46,7 +46,7 @@ from .refine import RefineSettings, refine_shape
 from .rendering import RenderSettings, render, with_total
 
 #: Most times the answer's model is made again at its own estimate.
-FIXED_POINT_STEPS = 2
+FIXED_POINT_STEPS = 4
 
 
 @dataclass(frozen=True)
