@@ -249,7 +249,8 @@ def _script_the_loop(monkeypatch, pose_step, errors, completed=None):
     for name, fake in (("estimate_pose", posed), ("refine_shape", refine), ("_record", record),
                        ("_complete", complete), ("_line", str),
                        ("_valley_answer", lambda dataset, comparison, shaping, pose, prior, settings, say:
-                        wide(*pose, prior))):
+                        wide(*pose, prior)),
+                       ("carving_descent", lambda dataset, comparison, depth, tilt, settings, say: tilt)):
         monkeypatch.setattr(reconstruct_module, name, fake)
     return refined
 
@@ -570,3 +571,41 @@ def test_the_answer_keeps_the_height_and_is_made_again_where_it_moves(coral_one,
     assert np.allclose([posterior.depth, posterior.tilt], mean, atol=1e-12)
     assert np.allclose(posterior.covariance, covariance, rtol=1e-8)
     assert posterior.valley_slope == lever
+
+
+@pytest.mark.parametrize("vertex_steps, wall, expected_steps",
+                         [(0.2, None, 0), (-2.3, None, -2), (3.6, -0.5, 4), (20.0, None, 8), (-2.3, -1.5, -1)])
+def test_the_carving_descent_walks_to_the_least_self_disagreement(coral_one, monkeypatch, vertex_steps, wall,
+                                                                   expected_steps):
+    """A scripted carving whose E_mu at its own pose is a parabola in tilt with its vertex
+    ``vertex_steps`` DESCENT_STEPs from the start: the descent carves at the answer's depth and
+    stops at the step nearest the vertex, or after DESCENT_STEPS; a carving that loses every voxel
+    (beyond ``wall`` steps) counts as worse."""
+    from types import SimpleNamespace
+
+    from fsswarp.errors import InputError
+
+    step, start, depth = reconstruct_module.DESCENT_STEP, math.radians(11.0), 0.4321
+    vertex = start + vertex_steps * step
+    carved_at = []
+
+    def carve(dataset, at_depth, tilt, *, resolution, settings, backend):
+        carved_at.append((at_depth, tilt))
+        if wall is not None and tilt < start + wall * step:  # beyond the wall: nothing left
+            raise InputError("every voxel was carved away", field="views", value=16)
+        return SimpleNamespace(mesh=tilt)
+
+    class Comparison:
+        backend = None
+
+        def use(self, model, at_depth, tilt):
+            self.model = model
+
+        def exact(self, at_depth, tilt):
+            return SimpleNamespace(value=0.004 + 30.0 * (self.model - vertex) ** 2)
+
+    monkeypatch.setattr(reconstruct_module, "carve", carve)
+    found = reconstruct_module.carving_descent(coral_one, Comparison(), depth, start, FAST, lambda line: None)
+    assert found == pytest.approx(start + expected_steps * step, abs=1e-12)
+    assert all(d == depth for d, _ in carved_at)
+    assert len(carved_at) == 3 + abs(expected_steps)  # start, both neighbours, then one ahead per step
