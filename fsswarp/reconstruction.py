@@ -225,10 +225,9 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
         say(f"the answer: {_intervals(*answer, posterior)}")
         ran = len(history) - 1
         if answer != best_pose:  # the kept shape, refined at the answer
-            kept = refine_shape(kept, dataset, *answer, settings=settings.refine, comparison=shaping).mesh
-            history.append(_complete(dict(_record(len(history), kept, dataset, *answer, settings, comparison, first),
-                                          answer=True, recarved=False, **_interval_fields(posterior)),
-                                     comparison, kept, *answer, truth))
+            kept, entry = _answer_model(kept, dataset, answer, len(history), settings, comparison, shaping, first, say)
+            history.append(_complete(dict(entry, answer=True, **_interval_fields(posterior)), comparison, kept,
+                                     *answer, truth))
             best = history[-1]
             say(_line(best))
         truth.collect(wait=True)
@@ -238,6 +237,24 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
                                  converged=stopped and all(identified.values()), history=history,
                                  seconds=time.perf_counter() - start, backend=backend.name, device=backend.device,
                                  pose_steps=pose_steps, posterior=posterior, start=start_pose, truth=truth_pose)
+
+
+def _answer_model(kept, dataset, answer: tuple[float, float], iteration: int, settings: ReconstructSettings,
+                  comparison: ViewComparison, shaping: ViewComparison, first: dict, say):
+    """(model, its history entry) at the ``answer`` (depth m, tilt rad): of ``kept`` refined there
+    and the views carved afresh there, refined once (:func:`sighting`), the lower E_I (greedy, as
+    in the loop; ``recarved`` tells which). A shape carved at a wrong tilt does not become right by
+    refining: the table carved 2° off kept E_V 0.95."""
+    moved = refine_shape(kept, dataset, *answer, settings=settings.refine, comparison=shaping).mesh
+    entry = dict(_record(iteration, moved, dataset, *answer, settings, comparison, first), recarved=False)
+    fresh = sighting(dataset, *answer, settings, shaping)
+    again = _record(iteration, fresh, dataset, *answer, settings, comparison, first)
+    say(f"the answer: the kept model refined there has E_I {entry['E_I']:.3f}, the views carved and refined there "
+        f"{again['E_I']:.3f}")
+    if again["E_I"] < entry["E_I"]:
+        return fresh, dict(again, recarved=True)
+    comparison.use(moved, *answer)  # _record left it on the fresh model
+    return moved, entry
 
 
 def _out_of_patience(misses: int, settings: ReconstructSettings, best: dict, iteration: int, say) -> bool:

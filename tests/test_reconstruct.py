@@ -609,3 +609,42 @@ def test_the_carving_descent_walks_to_the_least_self_disagreement(coral_one, mon
     assert found == pytest.approx(start + expected_steps * step, abs=1e-12)
     assert all(d == depth for d, _ in carved_at)
     assert len(carved_at) == 3 + abs(expected_steps)  # start, both neighbours, then one ahead per step
+
+
+@pytest.mark.parametrize("moved_error, fresh_error", [(0.7, 0.8), (0.9, 0.6)])
+def test_the_answer_model_is_the_lower_image_error_of_the_kept_and_a_fresh_carving(coral_one, monkeypatch,
+                                                                                    moved_error, fresh_error):
+    """At the answer the kept model refined there competes, by E_I, with the views carved and
+    refined there (greedy, as in the loop): the lower one is the result, ``recarved`` says which,
+    and the comparison is left on it."""
+    from types import SimpleNamespace
+
+    answer, made = (0.4321, math.radians(10.4)), []
+    errors = {"moved": moved_error, "fresh": fresh_error}
+
+    def refine(model, dataset, depth, tilt, *, settings, comparison):
+        made.append(("refined", model, (depth, tilt)))
+        return SimpleNamespace(mesh="moved")
+
+    def sighting(dataset, depth, tilt, settings, shaping):
+        made.append(("sighted", None, (depth, tilt)))
+        return "fresh"
+
+    def record(iteration, model, dataset, depth, tilt, settings, comparison, first):
+        comparison.on = model
+        return {"iteration": iteration, "E_I": errors[model]}
+
+    class Comparison:
+        def use(self, model, depth, tilt):
+            self.on = model
+
+    monkeypatch.setattr(reconstruct_module, "refine_shape", refine)
+    monkeypatch.setattr(reconstruct_module, "sighting", sighting)
+    monkeypatch.setattr(reconstruct_module, "_record", record)
+    comparison = Comparison()
+    model, entry = reconstruct_module._answer_model("kept", coral_one, answer, 7, FAST, comparison, comparison, {},
+                                                    lambda line: None)
+    winner = "fresh" if fresh_error < moved_error else "moved"
+    assert made == [("refined", "kept", answer), ("sighted", None, answer)]
+    assert model == winner and comparison.on == winner
+    assert entry == {"iteration": 7, "E_I": min(errors.values()), "recarved": winner == "fresh"}
