@@ -17,12 +17,12 @@ step leaves the model unchanged. The answer (:func:`_valley_answer`): a free sha
 tilt, so the images keep only the surface's height above the object, D − L·β (DESIGN §7): at
 the lowest E_I's (D, β), carve and refine once (:func:`sighting`), take the pose step's height
 and its error, the sensors' priors the rest (``fsswarp.pose.valley_posterior``), made again at
-that estimate while it moves (``FIXED_POINT_STEPS``); the lowest-E_I model, refined at the
-answer, is the result (``converged``: stopped, both identified). Without iterations (carving
-alone) the sensors' pose stays. Image metrics over the
-optimized views: Ω_m, the synthetic object above 1% of its peak where ghost and mirrors stay
-below 10% of it; IE on Ω_m, totals divided by their means there; CE from the comparison's
-contours; E_I = (AIE/AIE⁰ + ACE/ACE⁰)/2 (``fsswarp.metrics.image_error``).
+that estimate while it moves (``FIXED_POINT_STEPS``), its tilt checked by carvings
+(:func:`carving_descent`); the lowest-E_I model refined at the answer, or the views carved there
+if lower in E_I, is the result (``converged``: stopped, both identified). Without iterations the
+sensors' pose stays. Image metrics over the optimized views: Ω_m, the synthetic object above
+1% of its peak where ghost and mirrors stay below 10% of it; IE on Ω_m, totals divided by their
+means there; CE from the comparison's contours; E_I = (AIE/AIE⁰ + ACE/ACE⁰)/2.
 """
 
 from __future__ import annotations
@@ -79,8 +79,8 @@ class ReconstructSettings:
 class ReconstructResult:
     """What :func:`reconstruct` made.
 
-    model : the mesh of the best iteration, the one with the lowest E_I (reference frame of
-        (depth, tilt)); carved : the iteration-0 mesh
+    model : the mesh of the best iteration, the one with the lowest E_I, at the answer
+        (:func:`_answer_model`; reference frame of (depth, tilt)); carved : the iteration-0 mesh
     depth (m), tilt (rad) : the best iteration's estimate; best_iteration : its number
     iterations : pose + shape iterations of the loop (the history's last entry, ``"answer"``,
         is the kept model refined at the answer, one more)
