@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import importlib.util
 import json
 import math
 import statistics
@@ -35,6 +36,10 @@ POSES = ((0.004, 0.0), (-0.004, 0.25), (0.0, -0.25), (0.002, 0.1), (-0.002, -0.1
 #: ViewComparison methods and compare-module functions timed as stages, in call order.
 STAGES = ("synthetic_contours", "align", "frontal_motions", "patch_motions")
 BACKEND_CALLS = ("render_device", "contour_cost", "icp_runs", "frontal_faces")
+
+_spec = importlib.util.spec_from_file_location("bench_profiling", Path(__file__).resolve().parent / "profiling.py")
+profiling = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(profiling)
 
 
 class StageTimes:
@@ -162,18 +167,7 @@ def medians(rows) -> dict[str, float]:
 
 def table(med: dict[str, float]) -> str:
     order = ["total", *STAGES, "rest", *[f"backend.{n}" for n in BACKEND_CALLS], "host"]
-    lines = ["| stage | median ms | share |", "|---|---|---|"]
-    for label in order:
-        if label in med:
-            lines.append(f"| `{label}` | {1e3 * med[label]:.2f} | {100 * med[label] / med['total']:.1f}% |")
-    return "\n".join(lines)
-
-
-def cpu_model() -> str:
-    """The CPU's model name (``fsswarp.benchmark.cpu_info``)."""
-    from fsswarp.benchmark import cpu_info
-
-    return cpu_info()["model"]
+    return profiling.stage_table(med, order)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -203,11 +197,11 @@ def main(argv: list[str] | None = None) -> int:
         dataset = simulate(args.scene, Path(folder) / args.scene, seed=args.seed, backend=backend)
         rows, results, poses = profile(dataset, backend, args.calls, replay=args.replay)
     med = medians(rows)
-    print(f"{args.scene} exact on {backend.name} {backend.device} ({cpu_model()}), median of {args.calls} calls"
+    print(f"{args.scene} exact on {backend.name} {backend.device} ({profiling.cpu_model()}), median of {args.calls} calls"
           f"{', backend calls replayed' if args.replay else ''}:\n")
     print(table(med))
     if args.out:
-        record = dict(scene=args.scene, backend=backend.name, device=str(backend.device), cpu=cpu_model(),
+        record = dict(scene=args.scene, backend=backend.name, device=str(backend.device), cpu=profiling.cpu_model(),
                       command=" ".join(sys.argv), date=time.strftime("%Y-%m-%d %H:%M:%S"), calls=args.calls,
                       replay=args.replay,
                       seed=args.seed, median_ms={k: 1e3 * v for k, v in med.items()},

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import importlib.util
 import json
 import statistics
 import sys
@@ -27,6 +28,10 @@ from pathlib import Path
 STAGES = ("fill_s", "components_s", "marching_cubes_s", "orient_s", "smooth_s", "smooth_check_s", "decimate_s",
           "decimate_check_s", "trimesh_s")
 
+_spec = importlib.util.spec_from_file_location("bench_profiling", Path(__file__).resolve().parent / "profiling.py")
+profiling = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(profiling)
+
 
 def mesh_digest(mesh) -> str:
     """SHA-256 of the mesh's float64 vertices and int64 faces (C order)."""
@@ -35,13 +40,6 @@ def mesh_digest(mesh) -> str:
     digest = hashlib.sha256(np.ascontiguousarray(mesh.vertices, np.float64).tobytes())
     digest.update(np.ascontiguousarray(mesh.faces, np.int64).tobytes())
     return digest.hexdigest()
-
-
-def cpu_model() -> str:
-    """The CPU's model name (``fsswarp.benchmark.cpu_info``)."""
-    from fsswarp.benchmark import cpu_info
-
-    return cpu_info()["model"]
 
 
 def profile(voxels, repeats: int) -> tuple[dict[str, list[float]], object]:
@@ -105,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
     voxels = carved.voxels
     runs, mesh = profile(voxels, args.repeats)
     record = {"scene": args.scene, "seed": args.seed, "resolution": resolution, "backend": backend.name,
-              "device": backend.device, "cpu": cpu_model(), "date": time.strftime("%Y-%m-%d"),
+              "device": backend.device, "cpu": profiling.cpu_model(), "date": time.strftime("%Y-%m-%d"),
               "grid": list(voxels.occupancy.shape), "kept_voxels": voxels.kept, "repeats": args.repeats,
               "median_ms": {stage: 1e3 * statistics.median(s) for stage, s in runs.items()},
               "runs_ms": {stage: [1e3 * v for v in s] for stage, s in runs.items()},

@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import functools
 import hashlib
+import importlib.util
 import json
 import statistics
 import sys
@@ -51,6 +52,10 @@ BACKEND_CALLS = ("load_mesh", "device_distances", "render_device", "contour_cost
                  "frontal_faces", "cast_rays")
 #: Stages whose time holds other stages' (``contour_errors`` calls ``synthetic_contours`` and ``align``).
 NESTED = {"synthetic_contours", "align"}
+
+_spec = importlib.util.spec_from_file_location("bench_profiling", Path(__file__).resolve().parent / "profiling.py")
+profiling = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(profiling)
 
 
 class StageTimes:
@@ -150,18 +155,7 @@ def medians(rows) -> dict[str, float]:
 def table(med: dict[str, float]) -> str:
     order = ["total", *[label for *_, label in STAGES], "rest", *[label for *_, label in INNER],
              *[f"backend.{n}" for n in BACKEND_CALLS], "host"]
-    lines = ["| stage | median ms | share |", "|---|---|---|"]
-    for label in order:
-        if label in med:
-            lines.append(f"| `{label}` | {1e3 * med[label]:.2f} | {100 * med[label] / med['total']:.1f}% |")
-    return "\n".join(lines)
-
-
-def cpu_model() -> str:
-    """The CPU's model name (``fsswarp.benchmark.cpu_info``)."""
-    from fsswarp.benchmark import cpu_info
-
-    return cpu_info()["model"]
+    return profiling.stage_table(med, order)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -192,11 +186,11 @@ def main(argv: list[str] | None = None) -> int:
         rows, result, carved = profile(dataset, backend, args.calls, args.iterations)
     med = medians(rows)
     print(f"{args.scene} refine_shape (iterations={args.iterations}, {len(carved.vertices)} vertices) on "
-          f"{backend.name} {backend.device} ({cpu_model()}), median of {args.calls} calls:\n")
+          f"{backend.name} {backend.device} ({profiling.cpu_model()}), median of {args.calls} calls:\n")
     print(table(med))
     print(f"\nmesh {digest(result.mesh)[:16]}, ACE {result.ace_before:.6g} -> {result.ace_after:.6g} m")
     if args.out:
-        record = dict(scene=args.scene, backend=backend.name, device=str(backend.device), cpu=cpu_model(),
+        record = dict(scene=args.scene, backend=backend.name, device=str(backend.device), cpu=profiling.cpu_model(),
                       command=" ".join(sys.argv), date=time.strftime("%Y-%m-%d %H:%M:%S"), calls=args.calls,
                       iterations=args.iterations, seed=args.seed, vertices=len(carved.vertices),
                       faces=len(carved.faces), median_ms={k: 1e3 * v for k, v in med.items()},

@@ -522,3 +522,18 @@ def test_batch_throughput_bad_options_exit_2(args, capsys):
     assert _bench_module("batch_throughput").main(args) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("bench/batch_throughput.py: error:") and "\n" not in err
+
+
+@pytest.mark.parametrize("script, options", [("exact_profile", ["--calls", "0"]), ("refine_profile", ["--seed", "-1"]),
+                                             ("mesh_profile", ["--repeats", "0"])])
+def test_the_profile_scripts_refuse_bad_options_with_exit_2(script, options, capsys):
+    assert _bench_module(script).main(options) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"{script}: error: ")
+
+
+def test_the_stage_table_lists_the_ordered_stages_present_with_their_share():
+    table = _bench_module("profiling").stage_table({"total": 0.004, "align": 0.001, "host": 0.003},
+                                                   ["total", "render", "align", "host"])
+    assert table.splitlines() == ["| stage | median ms | share |", "|---|---|---|", "| `total` | 4.00 | 100.0% |",
+                                  "| `align` | 1.00 | 25.0% |", "| `host` | 3.00 | 75.0% |"]
