@@ -161,7 +161,7 @@ class PoseResult:
     shift : the detection shift (rows; None: per cell); anchors : the anchor views
     evaluations : {"grid_cells", "surrogate_cells", "exact"} counts; seconds : wall time
     views, mirror_views : view names used, and those with a mirror term
-    posterior : the Posterior around (depth, tilt) (None: not fitted); noise : s of the finest level (m), the
+    posterior : the Posterior around (depth, tilt); noise : s of the finest level (m), the
         prior's weight in the polish and the acceptance
     cost_before, cost_after : J (E_mu + noise · P, m) at the start and at the accepted estimate
     """
@@ -220,7 +220,7 @@ class PoseResult:
                 "detection_shift_rows": self.shift, "anchor_views": list(self.anchors), "views": list(self.views),
                 "mirror_views": list(self.mirror_views), "search_box_edges": list(self.box_edges()),
                 "noise_m": json_number(self.noise), "cost_start_m": json_number(self.cost_before),
-                "cost_m": json_number(self.cost_after), **(self.posterior.summary() if self.posterior else {}),
+                "cost_m": json_number(self.cost_after), **self.posterior.summary(),
                 "evaluations": dict(self.evaluations), "seconds": self.seconds}
 
 
@@ -238,8 +238,7 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
                   bounds: tuple[float, float] | None = None, levels: int = 3,
                   settings: PoseSettings | None = None, backend=None,
                   progress: Callable[[str], None] | None = None,
-                  comparison: ViewComparison | None = None, prior: Prior | None = None,
-                  with_posterior: bool = True) -> PoseResult:
+                  comparison: ViewComparison | None = None, prior: Prior | None = None) -> PoseResult:
     """Estimate the sonar depth D and tilt β (paper §2.4, eq. 7) for ``model`` (reference frame)
     by the posterior cost of the module docstring.
 
@@ -254,7 +253,6 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
         (depth0, tilt0) (``ViewComparison.use``), its counters restart, and it is left located
         at the finest level's best cell
     prior : default ``Prior.of(dataset)``, the manifest's sensors
-    with_posterior : False skips :func:`fit_posterior` (the result's posterior is None)
     Returns a PoseResult; the estimate moves from (depth0, tilt0) only where J falls.
     """
     start = time.perf_counter()
@@ -320,15 +318,14 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
     say(f"E_mu {before * 1000:.3f} mm and J {cost_before * 1000:.3f} mm at the start, E_mu "
         f"{polish_error * 1000:.3f} mm and J {after * 1000:.3f} mm at the candidate: "
         f"{'accepted' if accepted else 'rejected (J did not fall)'}")
-    fitted = fit_posterior(comparison, prior, float(depth), float(tilt), _valley(found[-1], step)[1]) \
-        if with_posterior else None
+    posterior = fit_posterior(comparison, prior, float(depth), float(tilt), _valley(found[-1], step)[1])
     return PoseResult(depth=float(depth), tilt=float(tilt), depth0=depth0, tilt0=tilt0,
                       candidate=(float(candidate[0]), float(candidate[1])), accepted=accepted,
                       error_before=float(before), error_after=float(polish_error if accepted else before),
                       levels=tuple(found), polish_error=float(polish_error), shift=comparison.shift,
                       anchors=comparison.anchors, evaluations=dict(comparison.counters),
                       seconds=time.perf_counter() - start, views=comparison.data.names,
-                      mirror_views=comparison.data.mirror_views, posterior=fitted, noise=float(noise),
+                      mirror_views=comparison.data.mirror_views, posterior=posterior, noise=float(noise),
                       cost_before=float(cost_before), cost_after=float(after if accepted else cost_before))
 
 
@@ -408,7 +405,7 @@ def valley_posterior(conditional: Posterior, lever: float, *, carving_error: np.
     f = np.array([conditional.depth, conditional.tilt])
     v_c, v_0 = float(a @ conditional.covariance @ a), float(a @ cov0 @ a)
     gained = 1.0 / v_c - 1.0 / v_0
-    precision = np.diag(sigma0 ** -2.0)
+    precision = prior.curvature()
     pulled = precision @ mu0
     if gained > 0:
         variance = 1.0 / gained + float(a @ np.asarray(carving_error, np.float64) @ a) + float(unsettled)
