@@ -118,8 +118,7 @@ class ReconstructResult:
         error = None if self.truth is None else {"depth_m": self.depth - self.truth[0],
                                                  "tilt_deg": math.degrees(self.tilt) - math.degrees(self.truth[1])}
         return {"depth_m": self.depth, "tilt_deg": math.degrees(self.tilt), **self.posterior.summary(),
-                "start": point(*self.start), "error_vs_truth": error,
-                "best_iteration": self.best_iteration,
+                "start": point(*self.start), "error_vs_truth": error, "best_iteration": self.best_iteration,
                 "iterations": self.iterations, "converged": self.converged, "backend": self.backend,
                 "device": self.device, "seconds": self.seconds, "history": self.history}
 
@@ -156,8 +155,7 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
     with _TruthMetrics(dataset.truth_mesh(), say) as truth:
         given = "given" if depth0 is not None or tilt0 is not None else "measured"
         say(f"iteration 0: carving at the {given} D0 = {depth:.4f} m, tilt0 = {math.degrees(tilt):.3f} deg")
-        carved = carve(dataset, depth, tilt, resolution=settings.resolution, settings=settings.carve,
-                       backend=backend).mesh
+        carved = _carving(dataset, depth, tilt, settings, backend)
         kept = carved  # the model of the best iteration
         first = _complete(_record(0, kept, dataset, depth, tilt, settings, comparison, None), comparison, kept, depth,
                           tilt, truth)
@@ -186,10 +184,11 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
                 entry["recarved"] = False
                 if (depth_tried, tilt_tried) != (depth, tilt) and _outside(carved_at, pose.posterior):
                     carved_at = (depth_tried, tilt_tried)  # again only once the pose moves far from here
-                    sighting = carve(dataset, *carved_at, resolution=settings.resolution, settings=settings.carve,
-                                     backend=backend).mesh
+                    sighting = _carving(dataset, *carved_at, settings, backend)
                     trial, entry = _recarved(sighting, trial, entry, iteration, dataset, depth_tried, tilt_tried,
-                                             settings, comparison, shaping, first, say)
+                                             settings, comparison, shaping, first, say,
+                                             f"iteration {iteration}: the model was carved outside the new 95% "
+                                             "intervals")
                 improved = entry["E_I"] < best["E_I"]
                 if improved:
                     break
@@ -242,19 +241,13 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
 def _answer_model(kept, dataset, answer: tuple[float, float], iteration: int, settings: ReconstructSettings,
                   comparison: ViewComparison, shaping: ViewComparison, first: dict, say):
     """(model, its history entry) at the ``answer`` (depth m, tilt rad): of ``kept`` refined there
-    and the views carved afresh there, refined once (:func:`sighting`), the lower E_I (greedy, as
-    in the loop; ``recarved`` tells which). A shape carved at a wrong tilt does not become right by
+    and the views carved afresh there, refined once, the lower E_I (:func:`_recarved`, as in the
+    loop; ``recarved`` tells which). A shape carved at a wrong tilt does not become right by
     refining: the table carved 2° off kept E_V 0.95."""
     moved = refine_shape(kept, dataset, *answer, settings=settings.refine, comparison=shaping).mesh
     entry = dict(_record(iteration, moved, dataset, *answer, settings, comparison, first), recarved=False)
-    fresh = sighting(dataset, *answer, settings, shaping)
-    again = _record(iteration, fresh, dataset, *answer, settings, comparison, first)
-    say(f"the answer: the kept model refined there has E_I {entry['E_I']:.3f}, the views carved and refined there "
-        f"{again['E_I']:.3f}")
-    if again["E_I"] < entry["E_I"]:
-        return fresh, dict(again, recarved=True)
-    comparison.use(moved, *answer)  # _record left it on the fresh model
-    return moved, entry
+    return _recarved(_carving(dataset, *answer, settings, shaping.backend), moved, entry, iteration, dataset,
+                     *answer, settings, comparison, shaping, first, say, "the answer: the kept model refined there")
 
 
 def _out_of_patience(misses: int, settings: ReconstructSettings, best: dict, iteration: int, say) -> bool:
@@ -272,9 +265,8 @@ def sighting(dataset, depth: float, tilt: float, settings: ReconstructSettings, 
     the carving alone the pose step lay +0.14…+0.24° off on the corals when carved at the
     truth; refined, within 0.12°, and it followed a carving 0.6° off less (0.22–0.26 against
     0.11–0.48 deg/deg)."""
-    carved = carve(dataset, depth, tilt, resolution=settings.resolution, settings=settings.carve,
-                   backend=shaping.backend).mesh
-    return refine_shape(carved, dataset, depth, tilt, settings=settings.refine, comparison=shaping).mesh
+    return refine_shape(_carving(dataset, depth, tilt, settings, shaping.backend), dataset, depth, tilt,
+                        settings=settings.refine, comparison=shaping).mesh
 
 
 def carving_descent(dataset, comparison: ViewComparison, depth: float, tilt: float, settings: ReconstructSettings,
@@ -287,8 +279,7 @@ def carving_descent(dataset, comparison: ViewComparison, depth: float, tilt: flo
     13–20 mm at ±0.5°), not over degrees (docs/experiments.md), hence a local descent."""
     def error(at: float) -> float:
         try:
-            carved = carve(dataset, depth, at, resolution=settings.resolution, settings=settings.carve,
-                           backend=comparison.backend).mesh
+            carved = _carving(dataset, depth, at, settings, comparison.backend)
         except InputError:  # every voxel carved away: the views disagree there
             return math.inf
         with warnings.catch_warnings():
@@ -349,19 +340,25 @@ def _carving_posterior(comparison: ViewComparison, carved, pose: tuple[float, fl
                                                             BOUNDS_FACTOR * prior.tilt_sigma]))
 
 
+def _carving(dataset, depth: float, tilt: float, settings: ReconstructSettings, backend):
+    """The mesh of the views carved at (depth m, tilt rad) at ``settings``' resolution."""
+    return carve(dataset, depth, tilt, resolution=settings.resolution, settings=settings.carve, backend=backend).mesh
+
+
 def _outside(pose: tuple[float, float], posterior) -> bool:
     """Whether (depth m, tilt rad) lies outside either 95% interval of ``posterior``."""
     return any(not lo <= value <= hi for value, (lo, hi) in zip(pose, (posterior.interval(0), posterior.interval(1))))
 
 
 def _recarved(carved, trial, entry: dict, iteration: int, dataset, depth: float, tilt: float,
-              settings: ReconstructSettings, comparison: ViewComparison, shaping: ViewComparison, first: dict, say):
+              settings: ReconstructSettings, comparison: ViewComparison, shaping: ViewComparison, first: dict, say,
+              why: str):
     """The better, by E_I, of (``trial``, ``entry``) and ``carved``, carved afresh at (depth m,
-    tilt rad), refined there: (model, its entry, ``recarved`` set)."""
+    tilt rad), refined there: (model, its entry, ``recarved`` set); ``why`` opens the line said."""
     fresh = refine_shape(carved, dataset, depth, tilt, settings=settings.refine, comparison=shaping).mesh
     again = _record(iteration, fresh, dataset, depth, tilt, settings, comparison, first)
-    say(f"iteration {iteration}: the model was carved outside the new 95% intervals; carved again at D {depth:.4f} m, "
-        f"tilt {math.degrees(tilt):.3f} deg: E_I {again['E_I']:.3f} against {entry['E_I']:.3f} for the moved model")
+    say(f"{why}; carved again at D {depth:.4f} m, tilt {math.degrees(tilt):.3f} deg: E_I {again['E_I']:.3f} against "
+        f"{entry['E_I']:.3f} for the moved model")
     if again["E_I"] < entry["E_I"]:
         return fresh, dict(again, recarved=True)
     comparison.use(trial, depth, tilt)  # _record left it on the fresh model
@@ -611,8 +608,7 @@ def reconstruct_shape_only(dataset, *, depth0: float | None = None, tilt0: float
         warnings.filterwarnings("ignore", "view .*: ghost returns reach", RenderWarning)  # beyond the windows on purpose
         say(f"iteration 0: carving at the known D = {known[0]:.4f} m, tilt = {math.degrees(known[1]):.3f} deg "
             f"({NO_POSE_STEP}: no pose step, no ghost or mirror)")
-        carved = carve(dataset, depth, tilt, resolution=settings.resolution, settings=settings.carve,
-                       backend=backend).mesh
+        carved = _carving(dataset, depth, tilt, settings, backend)
         first = _complete(_record(0, carved, dataset, depth, tilt, settings, comparison, None), comparison, carved,
                           depth, tilt, truth)
         history, best, kept, working, misses, stopped = [first], first, carved, carved, 0, False

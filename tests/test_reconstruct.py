@@ -624,27 +624,29 @@ def test_the_answer_model_is_the_lower_image_error_of_the_kept_and_a_fresh_carvi
 
     def refine(model, dataset, depth, tilt, *, settings, comparison):
         made.append(("refined", model, (depth, tilt)))
-        return SimpleNamespace(mesh="moved")
+        return SimpleNamespace(mesh="fresh" if model == "carved" else "moved")
 
-    def sighting(dataset, depth, tilt, settings, shaping):
-        made.append(("sighted", None, (depth, tilt)))
-        return "fresh"
+    def carve(dataset, depth, tilt, *, resolution, settings, backend):
+        made.append(("carved", None, (depth, tilt)))
+        return SimpleNamespace(mesh="carved")
 
     def record(iteration, model, dataset, depth, tilt, settings, comparison, first):
         comparison.on = model
         return {"iteration": iteration, "E_I": errors[model]}
 
     class Comparison:
+        backend = None
+
         def use(self, model, depth, tilt):
             self.on = model
 
     monkeypatch.setattr(reconstruct_module, "refine_shape", refine)
-    monkeypatch.setattr(reconstruct_module, "sighting", sighting)
+    monkeypatch.setattr(reconstruct_module, "carve", carve)
     monkeypatch.setattr(reconstruct_module, "_record", record)
     comparison = Comparison()
     model, entry = reconstruct_module._answer_model("kept", coral_one, answer, 7, FAST, comparison, comparison, {},
                                                     lambda line: None)
     winner = "fresh" if fresh_error < moved_error else "moved"
-    assert made == [("refined", "kept", answer), ("sighted", None, answer)]
+    assert made == [("refined", "kept", answer), ("carved", None, answer), ("refined", "carved", answer)]
     assert model == winner and comparison.on == winner
     assert entry == {"iteration": 7, "E_I": min(errors.values()), "recarved": winner == "fresh"}
