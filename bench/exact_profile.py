@@ -25,7 +25,6 @@ import functools
 import importlib.util
 import json
 import math
-import statistics
 import sys
 import tempfile
 import time
@@ -42,42 +41,15 @@ profiling = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(profiling)
 
 
-class StageTimes:
-    """Inclusive wall seconds per wrapped callable within the current call (``current``)."""
-
-    def __init__(self):
-        self.current: dict[str, float] = {}
-        self.undo = []
-
-    def wrap(self, owner, name: str, label: str) -> None:
-        original = getattr(owner, name)
-
-        @functools.wraps(original)
-        def timed(*args, **kwargs):
-            start = time.perf_counter()
-            try:
-                return original(*args, **kwargs)
-            finally:
-                self.current[label] = self.current.get(label, 0.0) + time.perf_counter() - start
-
-        self.undo.append((owner, name, original))
-        setattr(owner, name, timed)
-
-    def restore(self) -> None:
-        for owner, name, original in reversed(self.undo):
-            setattr(owner, name, original)
-        self.undo.clear()
-
-
-class Tape:
+class Tape(profiling.Patches):
     """The backend's ``BACKEND_CALLS`` recorded (``record``: their results, call after call) and
     then answered from the recording in the same order (``replay``), with no device work."""
 
     def __init__(self, backend):
+        super().__init__()
         self.results: dict[str, list] = {name: [] for name in BACKEND_CALLS if hasattr(type(backend), name)}
         self.played = dict.fromkeys(self.results, 0)
         self.replaying = False
-        self.undo = []
         for name in self.results:
             self.wrap(type(backend), name)
 
@@ -94,13 +66,7 @@ class Tape:
             self.results[name].append(result)
             return result
 
-        self.undo.append((owner, name, original))
-        setattr(owner, name, taped)
-
-    def restore(self) -> None:
-        for owner, name, original in reversed(self.undo):
-            setattr(owner, name, original)
-        self.undo.clear()
+        self.replace(owner, name, taped)
 
 
 def profile(dataset, backend, calls: int, *, replay: bool = False):
@@ -133,7 +99,7 @@ def timed_calls(comparison, backend, poses, results, calls: int) -> list[dict[st
     RuntimeError where one's E_mu is not ``results``' (the warm-up's) for its pose."""
     import fsswarp.compare as compare
 
-    times = StageTimes()
+    times = profiling.StageTimes()
     for name in STAGES:
         owner = compare if name == "patch_motions" else compare.ViewComparison
         times.wrap(owner, name, name)
@@ -159,12 +125,6 @@ def timed_calls(comparison, backend, poses, results, calls: int) -> list[dict[st
     return rows
 
 
-def medians(rows) -> dict[str, float]:
-    """Median seconds per label over the calls (0 where a call lacks it)."""
-    labels = sorted({label for row in rows for label in row})
-    return {label: statistics.median(row.get(label, 0.0) for row in rows) for label in labels}
-
-
 def table(med: dict[str, float]) -> str:
     order = ["total", *STAGES, "rest", *[f"backend.{n}" for n in BACKEND_CALLS], "host"]
     return profiling.stage_table(med, order)
@@ -172,11 +132,8 @@ def table(med: dict[str, float]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scene", default="coral-one", choices=("coral-one", "coral-two", "table"))
-    parser.add_argument("--backend", default=None, help="warp or opencl (default: fsswarp's choice)")
-    parser.add_argument("--device", default=None, help="backend device, e.g. cuda:0, cpu, pocl, nvidia")
+    profiling.add_scene_options(parser)
     parser.add_argument("--calls", type=int, default=25, help="timed exact calls (>= 1)")
-    parser.add_argument("--seed", type=int, default=0, help="noise seed of the simulation")
     parser.add_argument("--replay", action="store_true",
                         help="the backend's calls answer from a recording of the untimed round: the host's work alone")
     parser.add_argument("--out", default=None, help="JSON record to write")
@@ -196,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as folder:
         dataset = simulate(args.scene, Path(folder) / args.scene, seed=args.seed, backend=backend)
         rows, results, poses = profile(dataset, backend, args.calls, replay=args.replay)
-    med = medians(rows)
+    med = profiling.medians(rows)
     print(f"{args.scene} exact on {backend.name} {backend.device} ({profiling.cpu_model()}), median of {args.calls} calls"
           f"{', backend calls replayed' if args.replay else ''}:\n")
     print(table(med))

@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import collections
 import functools
+import importlib.util
 import sys
 import tempfile
 import time
@@ -39,13 +40,17 @@ BACKEND_METHODS = ("render_device", "contour_cost", "view_costs", "icp_runs", "f
 REBOUND = {"estimate_pose": ("fsswarp.reconstruction",), "refine_shape": ("fsswarp.reconstruction",),
            "carve": ("fsswarp.reconstruction",)}
 
+_spec = importlib.util.spec_from_file_location("bench_profiling", Path(__file__).resolve().parent / "profiling.py")
+profiling = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(profiling)
 
-class CallTimes:
+
+class CallTimes(profiling.Patches):
     """Calls and inclusive wall seconds per wrapped function (``totals``: label -> [calls, s])."""
 
     def __init__(self):
+        super().__init__()
         self.totals = collections.defaultdict(lambda: [0, 0.0])
-        self.undo = []
 
     def wrap(self, owner, name: str, label: str):
         """Replace ``owner.name`` by a timed wrapper, and return it."""
@@ -63,16 +68,6 @@ class CallTimes:
 
         self.replace(owner, name, timed)
         return timed
-
-    def replace(self, owner, name: str, value) -> None:
-        """Set ``owner.name`` to ``value`` until ``restore``."""
-        self.undo.append((owner, name, getattr(owner, name)))
-        setattr(owner, name, value)
-
-    def restore(self) -> None:
-        for owner, name, original in reversed(self.undo):
-            setattr(owner, name, original)
-        self.undo.clear()
 
     def table(self, total: float) -> str:
         """Markdown: one row per function, slowest first; shares of ``total`` seconds."""
@@ -104,11 +99,8 @@ def instrument(times: CallTimes, backend) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scene", default="coral-one", choices=("coral-one", "coral-two", "table"))
-    parser.add_argument("--backend", default=None, help="warp or opencl (default: fsswarp's choice)")
-    parser.add_argument("--device", default=None, help="backend device, e.g. cuda:0, cpu, nvidia")
+    profiling.add_scene_options(parser)
     parser.add_argument("--iterations", type=int, default=10)
-    parser.add_argument("--seed", type=int, default=0, help="noise seed of the simulation")
     args = parser.parse_args(argv)
     from fsswarp.backends import get_backend
     from fsswarp.errors import InputError, check_integer

@@ -70,10 +70,7 @@ def table_markdown(runs: dict[str, list[float]]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scene", default="coral-one", choices=("coral-one", "coral-two", "table"))
-    parser.add_argument("--backend", default=None, help="warp or opencl (default: fsswarp's choice)")
-    parser.add_argument("--device", default=None, help="backend device, e.g. cuda:0, cpu, pocl")
-    parser.add_argument("--seed", type=int, default=0, help="noise seed of the simulation")
+    profiling.add_scene_options(parser)
     parser.add_argument("--resolution", type=int, default=None,
                         help="carving resolution (default: ReconstructSettings().resolution)")
     parser.add_argument("--repeats", type=int, default=7, help="counted voxel_mesh calls (at least 5)")

@@ -1,7 +1,27 @@
-"""Pieces shared by the profile scripts of bench/ (exact_profile, refine_profile, mesh_profile):
-the CPU's name for a record and the per-stage Markdown table of medians."""
+"""Pieces shared by the profile scripts of bench/ (exact_profile, refine_profile, mesh_profile,
+loop_profile): their scene options, functions replaced until restored (timed stages), the
+CPU's name for a record, and per-stage medians and their Markdown table."""
 
 from __future__ import annotations
+
+import argparse
+import functools
+import statistics
+import time
+
+
+def add_scene_options(parser: argparse.ArgumentParser) -> None:
+    """--scene (a built-in scene), --backend, --device and --seed (the simulation's noise)."""
+    parser.add_argument("--scene", default="coral-one", choices=("coral-one", "coral-two", "table"))
+    parser.add_argument("--backend", default=None, help="warp or opencl (default: fsswarp's choice)")
+    parser.add_argument("--device", default=None, help="backend device, e.g. cuda:0, cpu, pocl, nvidia")
+    parser.add_argument("--seed", type=int, default=0, help="noise seed of the simulation")
+
+
+def medians(rows) -> dict[str, float]:
+    """Median seconds per label over the calls (rows: label -> seconds; 0 where a call lacks it)."""
+    labels = sorted({label for row in rows for label in row})
+    return {label: statistics.median(row.get(label, 0.0) for row in rows) for label in labels}
 
 
 def cpu_model() -> str:
@@ -19,3 +39,49 @@ def stage_table(med: dict[str, float], order: list[str]) -> str:
         if label in med:
             lines.append(f"| `{label}` | {1e3 * med[label]:.2f} | {100 * med[label] / med['total']:.1f}% |")
     return "\n".join(lines)
+
+
+class Patches:
+    """Attributes replaced (:meth:`replace`) until :meth:`restore` puts the originals back, the
+    last replaced first."""
+
+    def __init__(self):
+        self.undo = []
+
+    def replace(self, owner, name: str, value) -> None:
+        """Set ``owner.name`` to ``value`` until :meth:`restore`."""
+        self.undo.append((owner, name, getattr(owner, name)))
+        setattr(owner, name, value)
+
+    def restore(self) -> None:
+        for owner, name, original in reversed(self.undo):
+            setattr(owner, name, original)
+        self.undo.clear()
+
+
+class StageTimes(Patches):
+    """Inclusive wall seconds per wrapped callable within the current call (``current``: label
+    -> s); a ``nested`` label called inside the ``outer`` one is counted under the outer only."""
+
+    def __init__(self, outer: str | None = None, nested=()):
+        super().__init__()
+        self.current: dict[str, float] = {}
+        self.outer, self.nested, self.depth = outer, frozenset(nested), 0  # depth > 0 inside outer
+
+    def wrap(self, owner, name: str, label: str) -> None:
+        original = getattr(owner, name)
+
+        @functools.wraps(original)
+        def timed(*args, **kwargs):
+            if label in self.nested and self.depth:
+                return original(*args, **kwargs)
+            outer = label == self.outer
+            self.depth += outer
+            start = time.perf_counter()
+            try:
+                return original(*args, **kwargs)
+            finally:
+                self.current[label] = self.current.get(label, 0.0) + time.perf_counter() - start
+                self.depth -= outer
+
+        self.replace(owner, name, timed)

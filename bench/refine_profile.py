@@ -21,11 +21,9 @@ refined mesh's digest, ACE and steps (to compare results before and after a chan
 from __future__ import annotations
 
 import argparse
-import functools
 import hashlib
 import importlib.util
 import json
-import statistics
 import sys
 import tempfile
 import time
@@ -58,41 +56,6 @@ profiling = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(profiling)
 
 
-class StageTimes:
-    """Inclusive wall seconds per wrapped callable within the current call (``current``); a
-    stage called inside another timed one (``NESTED`` within ``contour_errors``) is counted
-    under the outer one only."""
-
-    def __init__(self):
-        self.current: dict[str, float] = {}
-        self.depth = 0  # > 0 inside contour_errors
-        self.undo = []
-
-    def wrap(self, owner, name: str, label: str) -> None:
-        original = getattr(owner, name)
-
-        @functools.wraps(original)
-        def timed(*args, **kwargs):
-            outer = label == "contour_errors"
-            if label in NESTED and self.depth:
-                return original(*args, **kwargs)
-            self.depth += outer
-            start = time.perf_counter()
-            try:
-                return original(*args, **kwargs)
-            finally:
-                self.current[label] = self.current.get(label, 0.0) + time.perf_counter() - start
-                self.depth -= outer
-
-        self.undo.append((owner, name, original))
-        setattr(owner, name, timed)
-
-    def restore(self) -> None:
-        for owner, name, original in reversed(self.undo):
-            setattr(owner, name, original)
-        self.undo.clear()
-
-
 def digest(mesh) -> str:
     """sha256 of the mesh's float64 vertices and int64 faces."""
     import numpy as np
@@ -119,7 +82,7 @@ def profile(dataset, backend, calls: int, iterations: int):
     comparison = ViewComparison(dataset, settings=settings.pose, backend=backend)
     first = refine_shape(carved, dataset, depth, tilt, settings=settings, comparison=comparison)
     want = digest(first.mesh)
-    times = StageTimes()
+    times = profiling.StageTimes("contour_errors", NESTED)
     for module, owner, name, label in STAGES + INNER:
         target = importlib.import_module(module)
         target = getattr(target, owner) if owner else target
@@ -146,12 +109,6 @@ def profile(dataset, backend, calls: int, iterations: int):
     return rows, first, carved
 
 
-def medians(rows) -> dict[str, float]:
-    """Median seconds per label over the calls (0 where a call lacks it)."""
-    labels = sorted({label for row in rows for label in row})
-    return {label: statistics.median(row.get(label, 0.0) for row in rows) for label in labels}
-
-
 def table(med: dict[str, float]) -> str:
     order = ["total", *[label for *_, label in STAGES], "rest", *[label for *_, label in INNER],
              *[f"backend.{n}" for n in BACKEND_CALLS], "host"]
@@ -160,12 +117,9 @@ def table(med: dict[str, float]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scene", default="coral-one", choices=("coral-one", "coral-two", "table"))
-    parser.add_argument("--backend", default=None, help="warp or opencl (default: fsswarp's choice)")
-    parser.add_argument("--device", default=None, help="backend device, e.g. cuda:0, cpu, pocl, nvidia")
+    profiling.add_scene_options(parser)
     parser.add_argument("--calls", type=int, default=5, help="timed refine_shape calls (>= 1)")
     parser.add_argument("--iterations", type=int, default=3, help="shape updates per call (>= 1)")
-    parser.add_argument("--seed", type=int, default=0, help="noise seed of the simulation")
     parser.add_argument("--out", default=None, help="JSON record to write")
     args = parser.parse_args(argv)
     from fsswarp.atomic import json_number, write_text
@@ -184,7 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as folder:
         dataset = simulate(args.scene, Path(folder) / args.scene, seed=args.seed, backend=backend)
         rows, result, carved = profile(dataset, backend, args.calls, args.iterations)
-    med = medians(rows)
+    med = profiling.medians(rows)
     print(f"{args.scene} refine_shape (iterations={args.iterations}, {len(carved.vertices)} vertices) on "
           f"{backend.name} {backend.device} ({profiling.cpu_model()}), median of {args.calls} calls:\n")
     print(table(med))

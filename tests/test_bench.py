@@ -10,6 +10,7 @@ import math
 import os
 import re
 import subprocess
+import time
 from pathlib import Path
 
 import numpy as np
@@ -537,3 +538,22 @@ def test_the_stage_table_lists_the_ordered_stages_present_with_their_share():
                                                    ["total", "render", "align", "host"])
     assert table.splitlines() == ["| stage | median ms | share |", "|---|---|---|", "| `total` | 4.00 | 100.0% |",
                                   "| `align` | 1.00 | 25.0% |", "| `host` | 3.00 | 75.0% |"]
+
+
+def test_stage_times_count_a_nested_stage_under_its_outer_one_and_restore_the_originals():
+    from types import SimpleNamespace
+
+    profiling = _bench_module("profiling")
+    owner = SimpleNamespace()
+    owner.inner = lambda: time.sleep(0.01)
+    owner.outer = lambda: owner.inner()
+    originals = (owner.inner, owner.outer)
+    times = profiling.StageTimes("outer", {"inner"})
+    times.wrap(owner, "inner", "inner")
+    times.wrap(owner, "outer", "outer")
+    owner.outer()
+    assert set(times.current) == {"outer"} and times.current["outer"] >= 0.01  # inner counted under outer
+    owner.inner()
+    assert times.current["inner"] >= 0.01  # alone, it counts
+    times.restore()
+    assert (owner.inner, owner.outer) == originals and times.undo == []
