@@ -103,9 +103,7 @@ def timed_calls(comparison, backend, poses, results, calls: int) -> list[dict[st
     for name in STAGES:
         owner = compare if name == "patch_motions" else compare.ViewComparison
         times.wrap(owner, name, name)
-    for name in BACKEND_CALLS:
-        if hasattr(type(backend), name):
-            times.wrap(type(backend), name, f"backend.{name}")
+    times.wrap_backend(backend, BACKEND_CALLS)
     rows = []
     try:
         for call in range(calls):

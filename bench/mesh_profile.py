@@ -15,7 +15,6 @@ and int64 faces: equal hashes, the same mesh bit for bit). ``--out`` writes the 
 from __future__ import annotations
 
 import argparse
-import hashlib
 import importlib.util
 import json
 import statistics
@@ -31,15 +30,6 @@ STAGES = ("fill_s", "components_s", "marching_cubes_s", "orient_s", "smooth_s", 
 _spec = importlib.util.spec_from_file_location("bench_profiling", Path(__file__).resolve().parent / "profiling.py")
 profiling = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(profiling)
-
-
-def mesh_digest(mesh) -> str:
-    """SHA-256 of the mesh's float64 vertices and int64 faces (C order)."""
-    import numpy as np
-
-    digest = hashlib.sha256(np.ascontiguousarray(mesh.vertices, np.float64).tobytes())
-    digest.update(np.ascontiguousarray(mesh.faces, np.int64).tobytes())
-    return digest.hexdigest()
 
 
 def profile(voxels, repeats: int) -> tuple[dict[str, list[float]], object]:
@@ -104,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
               "grid": list(voxels.occupancy.shape), "kept_voxels": voxels.kept, "repeats": args.repeats,
               "median_ms": {stage: 1e3 * statistics.median(s) for stage, s in runs.items()},
               "runs_ms": {stage: [1e3 * v for v in s] for stage, s in runs.items()},
-              "faces": len(mesh.faces), "vertices": len(mesh.vertices), "mesh_sha256": mesh_digest(mesh)}
+              "faces": len(mesh.faces), "vertices": len(mesh.vertices), "mesh_sha256": profiling.mesh_digest(mesh)}
     print(f"{args.scene} (seed {args.seed}) carved at resolution {resolution}: grid {voxels.occupancy.shape}, "
           f"{voxels.kept} voxels kept; voxel_mesh on {record['cpu']}, {args.repeats} calls\n")
     print(table_markdown(runs))

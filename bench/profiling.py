@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import hashlib
 import statistics
 import time
 
@@ -16,6 +17,15 @@ def add_scene_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--backend", default=None, help="warp or opencl (default: fsswarp's choice)")
     parser.add_argument("--device", default=None, help="backend device, e.g. cuda:0, cpu, pocl, nvidia")
     parser.add_argument("--seed", type=int, default=0, help="noise seed of the simulation")
+
+
+def mesh_digest(mesh) -> str:
+    """SHA-256 of the mesh's float64 vertices and int64 faces (C order)."""
+    import numpy as np
+
+    digest = hashlib.sha256(np.ascontiguousarray(mesh.vertices, np.float64).tobytes())
+    digest.update(np.ascontiguousarray(mesh.faces, np.int64).tobytes())
+    return digest.hexdigest()
 
 
 def medians(rows) -> dict[str, float]:
@@ -85,3 +95,9 @@ class StageTimes(Patches):
                 self.depth -= outer
 
         self.replace(owner, name, timed)
+
+    def wrap_backend(self, backend, names) -> None:
+        """Time those of ``names`` that ``backend``'s class has, as ``backend.NAME``."""
+        for name in names:
+            if hasattr(type(backend), name):
+                self.wrap(type(backend), name, f"backend.{name}")

@@ -21,7 +21,6 @@ refined mesh's digest, ACE and steps (to compare results before and after a chan
 from __future__ import annotations
 
 import argparse
-import hashlib
 import importlib.util
 import json
 import sys
@@ -56,15 +55,6 @@ profiling = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(profiling)
 
 
-def digest(mesh) -> str:
-    """sha256 of the mesh's float64 vertices and int64 faces."""
-    import numpy as np
-
-    h = hashlib.sha256(np.ascontiguousarray(mesh.vertices, np.float64).tobytes())
-    h.update(np.ascontiguousarray(mesh.faces, np.int64).tobytes())
-    return h.hexdigest()
-
-
 def profile(dataset, backend, calls: int, iterations: int):
     """(per-call stage times [{label: s}], the refined mesh, the RefineResult, the carving) of
     ``calls`` shape steps on the carving of ``dataset`` at its measured pose, after one untimed
@@ -81,16 +71,14 @@ def profile(dataset, backend, calls: int, iterations: int):
     settings = RefineSettings(iterations=iterations)
     comparison = ViewComparison(dataset, settings=settings.pose, backend=backend)
     first = refine_shape(carved, dataset, depth, tilt, settings=settings, comparison=comparison)
-    want = digest(first.mesh)
+    want = profiling.mesh_digest(first.mesh)
     times = profiling.StageTimes("contour_errors", NESTED)
     for module, owner, name, label in STAGES + INNER:
         target = importlib.import_module(module)
         target = getattr(target, owner) if owner else target
         if hasattr(target, name):
             times.wrap(target, name, label)
-    for name in BACKEND_CALLS:
-        if hasattr(type(backend), name):
-            times.wrap(type(backend), name, f"backend.{name}")
+    times.wrap_backend(backend, BACKEND_CALLS)
     rows = []
     try:
         for _ in range(calls):
@@ -98,7 +86,7 @@ def profile(dataset, backend, calls: int, iterations: int):
             start = time.perf_counter()
             result = refine_shape(carved, dataset, depth, tilt, settings=settings, comparison=comparison)
             total = time.perf_counter() - start
-            if digest(result.mesh) != want:
+            if profiling.mesh_digest(result.mesh) != want:
                 raise RuntimeError("a timed call's mesh differs from the untimed call's")
             row = dict(times.current, total=total)
             row["rest"] = total - sum(row.get(label, 0.0) for *_, label in STAGES)
@@ -142,14 +130,14 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{args.scene} refine_shape (iterations={args.iterations}, {len(carved.vertices)} vertices) on "
           f"{backend.name} {backend.device} ({profiling.cpu_model()}), median of {args.calls} calls:\n")
     print(table(med))
-    print(f"\nmesh {digest(result.mesh)[:16]}, ACE {result.ace_before:.6g} -> {result.ace_after:.6g} m")
+    print(f"\nmesh {profiling.mesh_digest(result.mesh)[:16]}, ACE {result.ace_before:.6g} -> {result.ace_after:.6g} m")
     if args.out:
         record = dict(scene=args.scene, backend=backend.name, device=str(backend.device), cpu=profiling.cpu_model(),
                       command=" ".join(sys.argv), date=time.strftime("%Y-%m-%d %H:%M:%S"), calls=args.calls,
                       iterations=args.iterations, seed=args.seed, vertices=len(carved.vertices),
                       faces=len(carved.faces), median_ms={k: 1e3 * v for k, v in med.items()},
                       rows_ms=[{k: 1e3 * v for k, v in row.items()} for row in rows],
-                      mesh_sha256=digest(result.mesh), carving_sha256=digest(carved),
+                      mesh_sha256=profiling.mesh_digest(result.mesh), carving_sha256=profiling.mesh_digest(carved),
                       ace_before=json_number(result.ace_before), ace_after=json_number(result.ace_after),
                       steps=[dict(contour_patches=s.contour_patches, shrink_patches=s.shrink_patches,
                                   mean_displacement=s.mean_displacement, step=s.step, ace=json_number(s.ace))
