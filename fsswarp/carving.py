@@ -26,6 +26,7 @@ Masks: view name -> (bins, beams) bool. Why each rule: docs/decisions.md ("Space
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 import time
@@ -395,6 +396,15 @@ def carve_reference(masks, rotations, translations, sonar: SonarSpec, voxel_size
         seen += whole & ~rejected
         rejected |= whole & (count == 0)
     return seen.astype(np.uint8), rejected.astype(np.uint8)
+
+
+def within(voxels: VoxelCarving, mesh) -> VoxelCarving:
+    """``voxels`` keeping only the voxels whose centres lie inside the closed ``mesh`` (same
+    frame): a model held to the space that the views see (``fsswarp.metrics.inside_grid``)."""
+    from .metrics import inside_grid
+
+    inside = inside_grid(mesh, voxels.origin, voxels.voxel_size, voxels.occupancy.shape)
+    return dataclasses.replace(voxels, occupancy=voxels.occupancy & inside)
 
 
 def voxel_mesh(voxels: VoxelCarving, *, smooth: int = 10, faces: int = 20_000, timings: dict | None = None):

@@ -22,7 +22,7 @@ import pytest
 import trimesh
 
 from fsswarp.carving import (MC_LEVEL, CarveSettings, CarveWarning, VoxelCarving, carve, carve_masks,
-                           carve_reference, common_region, voxel_mesh, _Carver, _closed, _fill_holes,
+                           carve_reference, common_region, voxel_mesh, within, _Carver, _closed, _fill_holes,
                            _step_tolerance)
 from fsswarp.errors import InputError
 from fsswarp.metrics import inside_grid
@@ -390,6 +390,28 @@ def test_voxel_mesh_of_a_ball_and_a_box():
               f"voxels, volume {mesh.volume / h**3 / volume:.4f}, area {mesh.area / h**2 / area:.4f} x the solid's")
         assert gap.max() <= 0.75
         assert abs(mesh.volume / h**3 / volume - 1) <= 0.02 and abs(mesh.area / h**2 / area - 1) <= 0.07
+
+
+def test_within_keeps_the_kept_voxels_whose_centres_lie_inside_the_mesh():
+    """Against trimesh's ray-parity ``contains`` on the voxel centres: a box of kept voxels
+    with a hole, held to an icosphere that cuts it (centres within 1e-6 m of the sphere left
+    out); the other fields are unchanged and the input is not modified."""
+    h = 0.01
+    occupancy = np.ones((30, 26, 22), bool)
+    occupancy[12:16, 10:14, :] = False  # a shaft through it: stays empty
+    origin = np.array([0.1, -0.2, -0.15])
+    voxels = VoxelCarving(occupancy.copy(), origin, h, np.array([[0.0, 0, 0], [1, 1, 1]]), 1234)
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.13)
+    sphere.apply_translation([0.25, -0.06, -0.04])
+    held = within(voxels, sphere)
+    centres = origin + h * np.argwhere(np.ones(occupancy.shape, bool))
+    inside = sphere.contains(centres).reshape(occupancy.shape)
+    clear = np.abs(trimesh.proximity.signed_distance(sphere, centres)).reshape(occupancy.shape) > 1e-6
+    assert np.array_equal((held.occupancy == (occupancy & inside))[clear], np.ones(clear.sum(), bool))
+    assert 0 < held.kept < voxels.kept and not held.occupancy[12:16, 10:14, :].any()
+    assert np.array_equal(voxels.occupancy, occupancy)
+    assert held.voxel_size == h and held.tested == 1234 and np.array_equal(held.origin, origin)
+    assert np.array_equal(held.domain, voxels.domain)
 
 
 # --- simulated coral-one -------------------------------------------------------------------------

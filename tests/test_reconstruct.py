@@ -248,7 +248,7 @@ def _script_the_loop(monkeypatch, pose_step, errors, completed=None):
 
     for name, fake in (("estimate_pose", posed), ("refine_shape", refine), ("_record", record),
                        ("_complete", complete), ("_line", str),
-                       ("_valley_answer", lambda dataset, comparison, shaping, pose, prior, settings, say:
+                       ("_valley_answer", lambda dataset, comparison, shaping, pose, prior, settings, say, heights:
                         wide(*pose, prior)),
                        ("carving_descent", lambda dataset, comparison, depth, tilt, settings, say: tilt)):
         monkeypatch.setattr(reconstruct_module, name, fake)
@@ -523,13 +523,15 @@ def test_the_image_errors_read_the_located_comparison_s_layers(coral_one, monkey
     assert rendered[1:] == [names, names]
 
 
-def test_the_answer_keeps_the_height_and_is_made_again_where_it_moves(coral_one, monkeypatch):
+@pytest.mark.parametrize("earlier", [[], [0.004]])
+def test_the_answer_keeps_the_height_and_is_made_again_where_it_moves(coral_one, monkeypatch, earlier):
     """The answer's orchestration with a scripted pose step: a model made at c fixes the height
     h = D − L·β at g(c) = g + k (aᵀc − g), a = (1, −L) (a shape partly follows its making),
     with variance v, and the pose step's posterior is the prior × N(aᵀθ; g(c), v). The answer
     is made again at its own mean while that moves (at most FIXED_POINT_STEPS times), from the
-    pose step's proposal even where greedy acceptance refused it; its
-    posterior is the prior × N(aᵀθ; g(c), v + aᵀ CARVING_ERROR a + (last change of g)²),
+    pose step's proposal even where greedy acceptance refused it; its posterior is the prior ×
+    N(aᵀθ; g(c), v + aᵀ CARVING_ERROR a + s²), s² the sample variance of the heights of every
+    model made for the answer (``earlier``: offsets from g of heights made before this call),
     written out here."""
     from types import SimpleNamespace
 
@@ -561,13 +563,18 @@ def test_the_answer_keeps_the_height_and_is_made_again_where_it_moves(coral_one,
     monkeypatch.setattr(reconstruct_module, "estimate_pose", pose_step)
     monkeypatch.setattr(reconstruct_module, "model_lever", lambda model, rig, depth, tilt: lever)
     start = (prior.depth + 0.002, prior.tilt + math.radians(1.5))
-    posterior = reconstruct_module._valley_answer(coral_one, None, None, start, prior, FAST, lambda line: None)
+    heights_seen = [g + h for h in earlier]
+    posterior = reconstruct_module._valley_answer(coral_one, None, None, start, prior, FAST, lambda line: None,
+                                                  heights_seen)
     assert 2 <= len(made) <= reconstruct_module.FIXED_POINT_STEPS + 1 and np.allclose(made[0], start)
     widened = v + a @ CARVING_ERROR @ a
     for before, after in zip(made, made[1:]):  # each model made at the previous answer's mean
         assert np.allclose(after, posterior_of(g + follows * (a @ before - g), widened)[0], atol=1e-12)
-    heights = [g + follows * (a @ c - g) for c in made]
-    mean, covariance = posterior_of(heights[-1], widened + (heights[-1] - heights[-2]) ** 2)  # still moving
+    heights = [g + h for h in earlier] + [g + follows * (a @ c - g) for c in made]
+    assert np.allclose(heights_seen, heights, atol=1e-15)
+    mean = np.mean(heights)
+    spread = sum((h - mean) ** 2 for h in heights) / (len(heights) - 1)
+    mean, covariance = posterior_of(heights[-1], widened + spread)
     assert np.allclose([posterior.depth, posterior.tilt], mean, atol=1e-12)
     assert np.allclose(posterior.covariance, covariance, rtol=1e-8)
     assert posterior.valley_slope == lever
@@ -611,24 +618,38 @@ def test_the_carving_descent_walks_to_the_least_self_disagreement(coral_one, mon
     assert len(carved_at) == 3 + abs(expected_steps)  # start, both neighbours, then one ahead per step
 
 
-@pytest.mark.parametrize("moved_error, fresh_error", [(0.7, 0.8), (0.9, 0.6)])
-def test_the_answer_model_is_the_lower_image_error_of_the_kept_and_a_fresh_carving(coral_one, monkeypatch,
-                                                                                    moved_error, fresh_error):
-    """At the answer the kept model refined there competes, by E_I, with the views carved and
-    refined there (greedy, as in the loop): the lower one is the result, ``recarved`` says which,
-    and the comparison is left on it."""
+@pytest.mark.parametrize("errors, overlap", [({"moved": 0.7, "held": 0.75, "fresh": 0.8}, 5),
+                                             ({"moved": 0.7, "held": 0.65, "fresh": 0.8}, 5),
+                                             ({"moved": 0.9, "held": 0.7, "fresh": 0.6}, 5),
+                                             ({"moved": 0.7, "held": 0.5, "fresh": 0.8}, 0)])
+def test_the_answer_model_is_the_lowest_image_error_of_the_kept_held_and_fresh_models(coral_one, monkeypatch,
+                                                                                      errors, overlap):
+    """At the answer the views are carved; the kept model, the kept model held to that carving
+    (its voxels inside the kept model, meshed) and the carving are each refined there, and the
+    lowest E_I is the result (greedy, as in the loop): ``recarved`` says whether the carving won,
+    and the comparison is left on the result. Where no carved voxel lies inside the kept model
+    (``overlap`` 0) there is no held model."""
     from types import SimpleNamespace
 
     answer, made = (0.4321, math.radians(10.4)), []
-    errors = {"moved": moved_error, "fresh": fresh_error}
+    voxels = SimpleNamespace(name="voxels")
+    refined = {"kept": "moved", "held mesh": "held", "carved": "fresh"}
 
     def refine(model, dataset, depth, tilt, *, settings, comparison):
         made.append(("refined", model, (depth, tilt)))
-        return SimpleNamespace(mesh="fresh" if model == "carved" else "moved")
+        return SimpleNamespace(mesh=refined[model])
 
     def carve(dataset, depth, tilt, *, resolution, settings, backend):
         made.append(("carved", None, (depth, tilt)))
-        return SimpleNamespace(mesh="carved")
+        return SimpleNamespace(mesh="carved", voxels=voxels)
+
+    def within(carving, model):
+        made.append(("within", model, carving.name))
+        return SimpleNamespace(kept=overlap, name="held")
+
+    def voxel_mesh(held):
+        made.append(("meshed", held.name, None))
+        return "held mesh"
 
     def record(iteration, model, dataset, depth, tilt, settings, comparison, first):
         comparison.on = model
@@ -640,13 +661,16 @@ def test_the_answer_model_is_the_lower_image_error_of_the_kept_and_a_fresh_carvi
         def use(self, model, depth, tilt):
             self.on = model
 
-    monkeypatch.setattr(reconstruct_module, "refine_shape", refine)
-    monkeypatch.setattr(reconstruct_module, "carve", carve)
-    monkeypatch.setattr(reconstruct_module, "_record", record)
+    for name, stand_in in (("refine_shape", refine), ("carve", carve), ("within", within),
+                           ("voxel_mesh", voxel_mesh), ("_record", record)):
+        monkeypatch.setattr(reconstruct_module, name, stand_in)
     comparison = Comparison()
     model, entry = reconstruct_module._answer_model("kept", coral_one, answer, 7, FAST, comparison, comparison, {},
                                                     lambda line: None)
-    winner = "fresh" if fresh_error < moved_error else "moved"
-    assert made == [("refined", "kept", answer), ("carved", None, answer), ("refined", "carved", answer)]
+    candidates = ["moved", "held", "fresh"] if overlap else ["moved", "fresh"]
+    winner = min(candidates, key=errors.get)
+    held = [("meshed", "held", None)] if overlap else []
+    assert made == ([("carved", None, answer), ("within", "kept", "voxels")] + held + [("refined", "kept", answer)]
+                    + ([("refined", "held mesh", answer)] if overlap else []) + [("refined", "carved", answer)])
     assert model == winner and comparison.on == winner
-    assert entry == {"iteration": 7, "E_I": min(errors.values()), "recarved": winner == "fresh"}
+    assert entry == {"iteration": 7, "E_I": errors[winner], "recarved": winner == "fresh"}
