@@ -388,8 +388,8 @@ def valley_posterior(conditional: Posterior, lever: float, *, carving_error: np.
         the reference sonar to the model, in m/rad
     carving_error : (2, 2) covariance of the pose step's error with a model made at the truth
         (``CARVING_ERROR``); its variance along a = (1, −L) widens the height's
-    unsettled : a further variance of the height (m²): how far it still moved when the model
-        was made again (``fsswarp.reconstruction``)
+    unsettled : a further variance of the height (m²): the spread of the heights of the models
+        made for the answer (``fsswarp.reconstruction``)
     With a = (1, −L): the height's likelihood is the conditional's marginal of aᵀθ with the
     prior's divided out, N(g, v) with 1/v = 1/(aᵀΣ_c a) − 1/(aᵀΣ0 a), g = v (aᵀf/(aᵀΣ_c a) −
     aᵀμ0/(aᵀΣ0 a)), plus aᵀ carving_error a; the posterior is N(μ0, Σ0) × N(aᵀθ; g, v):
