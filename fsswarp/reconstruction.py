@@ -18,12 +18,11 @@ tilt, so the images keep only the surface's height above the object, D − L·β
 the lowest E_I's (D, β), carve and refine once (:func:`sighting`), take the pose step's height
 and its error, the sensors' priors the rest (``fsswarp.pose.valley_posterior``), made again at
 that estimate while it moves (``FIXED_POINT_STEPS``), its tilt checked by carvings
-(:func:`carving_descent`); of the lowest-E_I model, that model held to the views carved at the
-answer and that carving, each refined there, the lowest E_I is the result (``converged``:
-stopped, both identified). Without iterations the sensors' pose stays. Image metrics over the
-optimized views: Ω_m, the synthetic object above 1% of its peak where ghost and mirrors stay
-below 10% of it; IE on Ω_m, totals divided by their means there; CE from the comparison's
-contours; E_I = (AIE/AIE⁰ + ACE/ACE⁰)/2.
+(:func:`carving_descent`); the result is the lowest E_I of three models refined there
+(:func:`_answer_model`; ``converged``: stopped, both identified). Without iterations the
+sensors' pose stays. Image metrics over the optimized views: Ω_m, the synthetic object above
+1% of its peak where ghost and mirrors stay below 10% of it; IE on Ω_m, totals divided by
+their means there; CE from the comparison's contours; E_I = (AIE/AIE⁰ + ACE/ACE⁰)/2.
 """
 
 from __future__ import annotations
