@@ -26,7 +26,6 @@ import importlib.util
 import json
 import math
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -137,19 +136,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default=None, help="JSON record to write")
     args = parser.parse_args(argv)
     from fsswarp.atomic import json_number, write_text
-    from fsswarp.backends import get_backend
-    from fsswarp.errors import InputError, check_integer
-    from fsswarp.simulation import simulate
+    from fsswarp.errors import check_integer
 
-    try:
-        backend = get_backend(args.backend or "auto", args.device)
-        check_integer("--calls", args.calls, 1)
-        check_integer("--seed", args.seed, 0)
-    except InputError as err:
-        print(f"exact_profile: error: {err}", file=sys.stderr)
+    backend = profiling.scene_backend(args, "exact_profile", lambda: check_integer("--calls", args.calls, 1))
+    if backend is None:
         return 2
-    with tempfile.TemporaryDirectory() as folder:
-        dataset = simulate(args.scene, Path(folder) / args.scene, seed=args.seed, backend=backend)
+    with profiling.simulated(args, backend) as dataset:
         rows, results, poses = profile(dataset, backend, args.calls, replay=args.replay)
     med = profiling.medians(rows)
     print(f"{args.scene} exact on {backend.name} {backend.device} ({profiling.cpu_model()}), median of {args.calls} calls"

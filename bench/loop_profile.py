@@ -19,7 +19,6 @@ import collections
 import functools
 import importlib.util
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -102,20 +101,13 @@ def main(argv: list[str] | None = None) -> int:
     profiling.add_scene_options(parser)
     parser.add_argument("--iterations", type=int, default=10)
     args = parser.parse_args(argv)
-    from fsswarp.backends import get_backend
-    from fsswarp.errors import InputError, check_integer
+    from fsswarp.errors import check_integer
     from fsswarp.reconstruction import ReconstructSettings, reconstruct
-    from fsswarp.simulation import simulate
 
-    try:
-        backend = get_backend(args.backend or "auto", args.device)
-        check_integer("--iterations", args.iterations, 0)
-        check_integer("--seed", args.seed, 0)
-    except InputError as err:
-        print(f"loop_profile: error: {err}", file=sys.stderr)
+    backend = profiling.scene_backend(args, "loop_profile", lambda: check_integer("--iterations", args.iterations, 0))
+    if backend is None:
         return 2
-    with tempfile.TemporaryDirectory() as folder:
-        dataset = simulate(args.scene, Path(folder) / args.scene, seed=args.seed, backend=backend)
+    with profiling.simulated(args, backend) as dataset:
         reconstruct(dataset, settings=ReconstructSettings(iterations=min(1, args.iterations)), backend=backend)
         times = CallTimes()
         instrument(times, backend)

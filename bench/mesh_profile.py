@@ -19,7 +19,6 @@ import importlib.util
 import json
 import statistics
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -67,25 +66,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=None, help="also write the record as JSON here")
     args = parser.parse_args(argv)
     from fsswarp.atomic import write_text
-    from fsswarp.backends import get_backend
     from fsswarp.carving import carve
     from fsswarp.errors import InputError, check_integer
     from fsswarp.reconstruction import ReconstructSettings
-    from fsswarp.simulation import simulate
 
     resolution = ReconstructSettings().resolution if args.resolution is None else args.resolution
-    try:
-        check_integer("--seed", args.seed, 0)
+
+    def check() -> None:
         check_integer("--repeats", args.repeats, 5)
         check_integer("--resolution", resolution, 8)
         if args.out is not None and args.out.is_dir():
             raise InputError("is a folder; name a file", file=args.out)
-        backend = get_backend(args.backend or "auto", args.device)
-    except InputError as err:
-        print(f"mesh_profile: error: {err}", file=sys.stderr)
+
+    backend = profiling.scene_backend(args, "mesh_profile", check)
+    if backend is None:
         return 2
-    with tempfile.TemporaryDirectory() as folder:
-        dataset = simulate(args.scene, Path(folder) / args.scene, seed=args.seed, backend=backend)
+    with profiling.simulated(args, backend) as dataset:
         carved = carve(dataset, resolution=resolution, backend=backend)
     voxels = carved.voxels
     runs, mesh = profile(voxels, args.repeats)

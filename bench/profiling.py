@@ -1,14 +1,20 @@
 """Pieces shared by the profile scripts of bench/ (exact_profile, refine_profile, mesh_profile,
-loop_profile): their scene options, functions replaced until restored (timed stages), the
+loop_profile): their scene options, checked, with the backend they name and the scene simulated
+into a temporary folder, functions replaced until restored (timed stages), the
 CPU's name for a record, and per-stage medians and their Markdown table."""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import hashlib
 import statistics
+import sys
+import tempfile
 import time
+from pathlib import Path
+from typing import Callable
 
 
 def add_scene_options(parser: argparse.ArgumentParser) -> None:
@@ -17,6 +23,32 @@ def add_scene_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--backend", default=None, help="warp or opencl (default: fsswarp's choice)")
     parser.add_argument("--device", default=None, help="backend device, e.g. cuda:0, cpu, pocl, nvidia")
     parser.add_argument("--seed", type=int, default=0, help="noise seed of the simulation")
+
+
+def scene_backend(args: argparse.Namespace, script: str, check: Callable[[], None] = lambda: None):
+    """The backend that the scene options (:func:`add_scene_options`) name, after ``check()``
+    (the script's own option checks) and the seed's; on an InputError None, with the error
+    printed as ``SCRIPT: error: ...`` (the script exits 2)."""
+    from fsswarp.backends import get_backend
+    from fsswarp.errors import InputError, check_integer
+
+    try:
+        check()
+        check_integer("--seed", args.seed, 0)
+        return get_backend(args.backend or "auto", args.device)
+    except InputError as err:
+        print(f"{script}: error: {err}", file=sys.stderr)
+        return None
+
+
+@contextlib.contextmanager
+def simulated(args: argparse.Namespace, backend):
+    """The dataset of the scene options' scene and seed, simulated on ``backend`` into a
+    temporary folder that lives while the block runs."""
+    from fsswarp.simulation import simulate
+
+    with tempfile.TemporaryDirectory() as folder:
+        yield simulate(args.scene, Path(folder) / args.scene, seed=args.seed, backend=backend)
 
 
 def mesh_digest(mesh) -> str:

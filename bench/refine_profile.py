@@ -24,7 +24,6 @@ import argparse
 import importlib.util
 import json
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -111,20 +110,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default=None, help="JSON record to write")
     args = parser.parse_args(argv)
     from fsswarp.atomic import json_number, write_text
-    from fsswarp.backends import get_backend
-    from fsswarp.errors import InputError, check_integer
-    from fsswarp.simulation import simulate
+    from fsswarp.errors import check_integer
 
-    try:
+    def check() -> None:
         check_integer("--calls", args.calls, 1)
         check_integer("--iterations", args.iterations, 1)
-        check_integer("--seed", args.seed, 0)
-        backend = get_backend(args.backend or "auto", args.device)
-    except InputError as err:
-        print(f"refine_profile: error: {err}", file=sys.stderr)
+
+    backend = profiling.scene_backend(args, "refine_profile", check)
+    if backend is None:
         return 2
-    with tempfile.TemporaryDirectory() as folder:
-        dataset = simulate(args.scene, Path(folder) / args.scene, seed=args.seed, backend=backend)
+    with profiling.simulated(args, backend) as dataset:
         rows, result, carved = profile(dataset, backend, args.calls, args.iterations)
     med = profiling.medians(rows)
     print(f"{args.scene} refine_shape (iterations={args.iterations}, {len(carved.vertices)} vertices) on "
