@@ -379,7 +379,7 @@ def fit_posterior(comparison: ViewComparison, prior: Prior, depth: float, tilt: 
 
 
 def valley_posterior(conditional: Posterior, lever: float, *, carving_error: np.ndarray = CARVING_ERROR,
-                     unsettled: float = 0.0, evidence: bool = True) -> Posterior:
+                     unsettled: float = 0.0) -> Posterior:
     """The posterior of (D, β) when the shape is free: the data keep only the surface's height
     above the object, h = D − L·β (DESIGN §7), and the sensors tell the rest.
 
@@ -390,7 +390,6 @@ def valley_posterior(conditional: Posterior, lever: float, *, carving_error: np.
         (``CARVING_ERROR``); its variance along a = (1, −L) widens the height's
     unsettled : a further variance of the height (m²): the spread of the heights of the models
         made for the answer (``fsswarp.reconstruction``)
-    evidence : False where the conditional's model is refused as evidence: the prior back
     With a = (1, −L): the height's likelihood is the conditional's marginal of aᵀθ with the
     prior's divided out, N(g, v) with 1/v = 1/(aᵀΣ_c a) − 1/(aᵀΣ0 a), g = v (aᵀf/(aᵀΣ_c a) −
     aᵀμ0/(aᵀΣ0 a)), plus aᵀ carving_error a; the posterior is N(μ0, Σ0) × N(aᵀθ; g, v):
@@ -408,7 +407,7 @@ def valley_posterior(conditional: Posterior, lever: float, *, carving_error: np.
     gained = 1.0 / v_c - 1.0 / v_0
     precision = prior.curvature()
     pulled = precision @ mu0
-    if gained > 0 and evidence:
+    if gained > 0:
         variance = 1.0 / gained + float(a @ np.asarray(carving_error, np.float64) @ a) + float(unsettled)
         height = (a @ f / v_c - a @ mu0 / v_0) / gained
         precision = precision + np.outer(a, a) / variance
@@ -423,19 +422,12 @@ def valley_posterior(conditional: Posterior, lever: float, *, carving_error: np.
 
 
 def model_lever(model, rig, depth: float, tilt: float, *, step: float = 1e-4) -> float:
-    """L (m/rad): how fast the surface's height above ``model``'s centroid falls as the tilt
-    grows, −∂ :func:`centroid_height` /∂β at (depth m, tilt rad); for the usual reference the
-    horizontal distance from the reference sonar to the centroid."""
-    heights = [centroid_height(model, rig, depth, tilt + s) for s in (step, -step)]
-    return float((heights[1] - heights[0]) / (2 * step))
-
-
-def centroid_height(model, rig, depth: float, tilt: float) -> float:
-    """The sea surface's height (m) above ``model``'s centroid (reference frame) at (depth m,
-    tilt rad), d − n·c: at or below 0 the object would be half out of the water."""
+    """L (m/rad): how fast the surface's height above ``model``'s centroid (reference frame)
+    falls as the tilt grows, −∂(D − n(β)·c)/∂β at (depth m, tilt rad); for the usual reference
+    the horizontal distance from the reference sonar to the centroid."""
     centroid = np.asarray(model.vertices, np.float64).mean(axis=0)
-    normal, offset = surface_in_reference(rig, depth, tilt)
-    return float(offset - normal @ centroid)
+    normals = [surface_in_reference(rig, depth, tilt + s)[0] for s in (step, -step)]
+    return float((normals[0] - normals[1]) @ centroid / (2 * step))
 
 
 def _principal_axes(covariance: np.ndarray, sigmas: float) -> np.ndarray:

@@ -40,17 +40,13 @@ from .carving import CarveSettings, carve, voxel_mesh, within
 from .errors import InputError, check_depth_tilt, check_integer
 from .compare import PoseSettings, PoseWarning, ViewComparison
 from .metrics import average_contour_error, average_intensity_error, combine, image_error
-from .pose import (BOUNDS_FACTOR, Prior, centroid_height, check_start, check_uncertainties, estimate_pose,
-                   fit_posterior, model_lever, valley_posterior)
+from .pose import (BOUNDS_FACTOR, Prior, check_start, check_uncertainties, estimate_pose, fit_posterior, model_lever,
+                   valley_posterior)
 from .refine import RefineSettings, refine_shape
 from .rendering import RenderSettings, render, with_total
 
 #: Most times the answer's model is made again at its own estimate.
 FIXED_POINT_STEPS = 4
-#: The most the answer's tilt may follow the tilt its model was made at (deg/deg) for the
-#: secant step toward the self-consistent answer (above it the plain step), and the most that
-#: widens its stopping distance (1 / (1 − 0.8) = 5 moves).
-MOST_FOLLOWING = 0.8
 #: The answer's check of its tilt by carvings at its depth: steps (rad) and most steps.
 DESCENT_STEP, DESCENT_STEPS = math.radians(0.5), 8
 
@@ -327,17 +323,12 @@ def _valley_answer(dataset, comparison: ViewComparison, shaping: ViewComparison,
     surface's height above the object, the sensors the rest): from ``pose`` (m, rad) take the
     :func:`sighting` model there, its pose step's posterior about its proposal (the least
     posterior cost, kept even where greedy acceptance refuses it) and the valley posterior; while
-    the self-consistent answer lies more than half a posterior σ from where the model was made
-    (:func:`_settled`), make it again: at the mean's depth and, from the second model on, the
-    tilt where the secant through the last two models says answer = made (:func:`_following`;
-    the plain mean where it follows by more than ``MOST_FOLLOWING``); ``FIXED_POINT_STEPS`` at
-    most. A model whose centroid that mean would put above the surface is no evidence (the prior
-    stands for it). ``heights`` (m), the heights above the models made for this answer so far,
-    gains each accepted model's; their sample variance counts as a further error of the height
-    (``unsettled``): a shape that follows its making leaves the height uncertain by as much (the
-    table's drifted 78 → 93 mm over five models, docs/experiments.md)."""
+    its mean lies more than half a posterior σ from where the model was made, make it there
+    again (``FIXED_POINT_STEPS`` at most). ``heights`` (m), the heights above the models made
+    for this answer so far, gains each model's; their sample variance counts as a further error
+    of the height (``unsettled``): a shape that follows its making leaves the height uncertain
+    by as much (the table's drifted 78 → 93 mm over five models, docs/experiments.md)."""
     at = np.array(pose, np.float64)
-    made, answered = [], []  # tilts (rad) the accepted models were made at, and their answers
     for _ in range(FIXED_POINT_STEPS + 1):
         model = sighting(dataset, float(at[0]), float(at[1]), settings, shaping)
         step = estimate_pose(model, dataset, depth0=float(at[0]), tilt0=float(at[1]), comparison=comparison,
@@ -345,51 +336,17 @@ def _valley_answer(dataset, comparison: ViewComparison, shaping: ViewComparison,
         conditional = dataclasses.replace(step.posterior, depth=step.candidate[0], tilt=step.candidate[1])
         lever = model_lever(model, dataset.rig, *at)
         posterior = valley_posterior(conditional, lever)
+        heights.append(posterior.valley_depth - lever * posterior.tilt)
         mean = np.array([posterior.depth, posterior.tilt])
-        height = posterior.valley_depth - lever * posterior.tilt
-        evidence = centroid_height(model, dataset.rig, *mean) > 0
-        if evidence:
-            heights.append(height)
-            made.append(float(at[1]))
-            answered.append(float(mean[1]))
-        else:
-            posterior = valley_posterior(conditional, lever, evidence=False)
-            mean = np.array([posterior.depth, posterior.tilt])
         say(f"the answer: made at D {at[0]:.4f} m, tilt {math.degrees(at[1]):.3f} deg, the surface's height fixed at "
-            f"{height:.4f} m + {lever * math.pi / 180 * 100:.2f} cm/deg: " + (
-                f"D {mean[0]:.4f} m, tilt {math.degrees(mean[1]):.3f} deg" if evidence else
-                "its centroid above the surface there, so it is no evidence; the sensors' pose stands"))
-        following = _following(made, answered) if evidence else None
-        if _settled(mean - at, following, posterior):
+            f"{heights[-1]:.4f} m + {lever * math.pi / 180 * 100:.2f} cm/deg: D {mean[0]:.4f} m, tilt "
+            f"{math.degrees(mean[1]):.3f} deg")
+        if np.all(np.abs(mean - at) <= 0.5 * np.sqrt(np.diag(posterior.covariance))):
             break
-        tilt = mean[1]
-        if following is not None and following < MOST_FOLLOWING:  # the secant's root of answer − made
-            box = BOUNDS_FACTOR * prior.tilt_sigma
-            tilt = float(np.clip(made[-1] + (answered[-1] - made[-1]) / (1.0 - following), prior.tilt - box,
-                                 prior.tilt + box))
-        at = np.array([mean[0], tilt])
-    if not evidence or len(heights) < 2:
+        at = mean
+    if len(heights) < 2:
         return posterior
     return valley_posterior(conditional, lever, unsettled=float(np.var(heights, ddof=1)))
-
-
-def _following(made: list, answered: list) -> float | None:
-    """How far (deg/deg) the answer's tilt follows the tilt its model was made at, by the secant
-    through the last two models (tilts, rad), or None with fewer or with two made alike."""
-    if len(made) < 2 or made[-1] == made[-2]:
-        return None
-    return (answered[-1] - answered[-2]) / (made[-1] - made[-2])
-
-
-def _settled(move: np.ndarray, following: float | None, posterior) -> bool:
-    """Whether the answer stops being made again: its mean moved ``move`` (m, rad) from where its
-    model was made, and the self-consistent answer, that move over 1 − ``following`` (clipped
-    to [0, MOST_FOLLOWING]; 0 where unknown) away in tilt, lie within half a posterior σ. A shape
-    follows its making, so moves shrink slowly: coral-one 10.64 → 10.55 → 10.48°, each move a
-    quarter shorter, would have stopped 0.2° short of where the moves lead."""
-    following = 0.0 if following is None else min(max(following, 0.0), MOST_FOLLOWING)
-    remaining = np.abs(move) / np.array([1.0, 1.0 - following])
-    return bool(np.all(remaining <= 0.5 * np.sqrt(np.diag(posterior.covariance))))
 
 
 def _carving_posterior(comparison: ViewComparison, carved, pose: tuple[float, float], prior: Prior):

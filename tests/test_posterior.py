@@ -8,8 +8,8 @@ import pytest
 
 from fsswarp.compare import PoseSettings
 from fsswarp.errors import InputError
-from fsswarp.pose import (CARVING_ERROR, Posterior, Prior, Z95, centroid_height, check_start, fit_posterior,
-                          model_lever, noise_level, surface_range, valley_posterior)
+from fsswarp.pose import (CARVING_ERROR, Posterior, Prior, Z95, check_start, fit_posterior, model_lever, noise_level,
+                          surface_range, valley_posterior)
 
 
 #: Each view's deviation pattern (sum 0, sum of squares V − 1), scaled by SIGMA.
@@ -232,6 +232,3 @@ def test_the_lever_is_the_horizontal_distance_to_the_model(coral_one):
     lever = model_lever(box, coral_one.rig, 0.43, tilt)
     assert lever == pytest.approx(ahead[1] * math.cos(tilt) - ahead[2] * math.sin(tilt), rel=1e-6)
     assert lever == pytest.approx(2.0, rel=1e-6)
-    above = 0.43 - (ahead[1] * math.sin(tilt) + ahead[2] * math.cos(tilt))  # d − n·c
-    assert centroid_height(box, coral_one.rig, 0.43, tilt) == pytest.approx(above, abs=1e-12)
-    assert above == pytest.approx(0.13, abs=1e-12)

@@ -523,18 +523,22 @@ def test_the_image_errors_read_the_located_comparison_s_layers(coral_one, monkey
     assert rendered[1:] == [names, names]
 
 
-def _scripted_answer(coral_one, monkeypatch, follows, above=lambda made: False):
-    """A scripted pose step for ``_valley_answer``: a model made at c fixes the height
-    h = D − L·β at g(c) = g + k (aᵀc − g), a = (1, −L), k = ``follows`` (a shape partly follows
-    its making), with variance v; the pose step's posterior is the prior × N(aᵀθ; g(c), v),
-    centred at the start (greedy acceptance refused it). ``above(c)``: whether that model's
-    centroid lies above the surface. Returns (made, namespace of the script's pieces)."""
+@pytest.mark.parametrize("earlier", [[], [0.004]])
+def test_the_answer_keeps_the_height_and_is_made_again_where_it_moves(coral_one, monkeypatch, earlier):
+    """The answer's orchestration with a scripted pose step: a model made at c fixes the height
+    h = D − L·β at g(c) = g + k (aᵀc − g), a = (1, −L) (a shape partly follows its making),
+    with variance v, and the pose step's posterior is the prior × N(aᵀθ; g(c), v). The answer
+    is made again at its own mean while that moves (at most FIXED_POINT_STEPS times), from the
+    pose step's proposal even where greedy acceptance refused it; its posterior is the prior ×
+    N(aᵀθ; g(c), v + aᵀ CARVING_ERROR a + s²), s² the sample variance of the heights of every
+    model made for the answer (``earlier``: offsets from g of heights made before this call),
+    written out here."""
     from types import SimpleNamespace
 
     from fsswarp.pose import CARVING_ERROR, Posterior, Prior
 
     prior = Prior.of(coral_one)
-    lever, v = 2.0, 0.001 ** 2
+    lever, follows, v = 2.0, 0.3, 0.001 ** 2
     a = np.array([1.0, -lever])
     g = coral_one.manifest.truth.depth - lever * coral_one.manifest.truth.tilt
     precision0 = np.diag([prior.depth_sigma ** -2, prior.tilt_sigma ** -2])
@@ -551,72 +555,29 @@ def _scripted_answer(coral_one, monkeypatch, follows, above=lambda made: False):
 
     def pose_step(model, dataset, *, depth0, tilt0, comparison, prior):
         mean, covariance = posterior_of(g + follows * (a @ model - g), v)
+        # greedy acceptance refused the proposal: the posterior is centred at the start
         return SimpleNamespace(candidate=tuple(mean),
                                posterior=Posterior(depth0, tilt0, covariance, prior, math.nan, math.nan, 1e-3))
 
     monkeypatch.setattr(reconstruct_module, "sighting", sighting)
     monkeypatch.setattr(reconstruct_module, "estimate_pose", pose_step)
     monkeypatch.setattr(reconstruct_module, "model_lever", lambda model, rig, depth, tilt: lever)
-    monkeypatch.setattr(reconstruct_module, "centroid_height", lambda model, rig, depth, tilt: -1.0 if above(model)
-                        else 1.0)
-    script = SimpleNamespace(prior=prior, a=a, g=g, posterior_of=posterior_of, widened=v + a @ CARVING_ERROR @ a,
-                             height=lambda c: g + follows * (a @ c - g),
-                             start=(prior.depth + 0.002, prior.tilt + math.radians(1.5)))
-    return made, script
-
-
-@pytest.mark.parametrize("earlier", [[], [0.004]])
-@pytest.mark.parametrize("follows", [0.3, 0.7])
-def test_the_answer_keeps_the_height_and_is_made_again_where_it_moves(coral_one, monkeypatch, earlier, follows):
-    """The answer's orchestration with the scripted pose step (``_scripted_answer``): made again
-    while its mean moves (at most FIXED_POINT_STEPS times), the second model at the first's mean,
-    later ones at its mean's depth and the tilt where the secant through the last two models
-    says answer = made; it ends within half a σ of the self-consistent pose, found here by
-    plain iteration to convergence. Its posterior is the prior × N(aᵀθ; g(c), v + aᵀ
-    CARVING_ERROR a + s²), s² the sample variance of the heights of every model made for the
-    answer (``earlier``: offsets from g of heights made before this call), written out here."""
-    made, script = _scripted_answer(coral_one, monkeypatch, follows)
-    a, g, widened = script.a, script.g, script.widened
+    start = (prior.depth + 0.002, prior.tilt + math.radians(1.5))
     heights_seen = [g + h for h in earlier]
-    posterior = reconstruct_module._valley_answer(coral_one, None, None, script.start, script.prior, FAST,
-                                                  lambda line: None, heights_seen)
-    assert 2 <= len(made) <= reconstruct_module.FIXED_POINT_STEPS + 1 and np.allclose(made[0], script.start)
-    means = [script.posterior_of(script.height(c), widened)[0] for c in made]
-    assert np.allclose(made[1], means[0], atol=1e-12)  # the plain step
-    for k in range(2, len(made)):  # the secant's root of (answer − made) in tilt, at the last mean's depth
-        gaps = [means[j][1] - made[j][1] for j in (k - 2, k - 1)]
-        slope = (gaps[1] - gaps[0]) / (made[k - 1][1] - made[k - 2][1])
-        assert np.allclose(made[k], [means[k - 1][0], made[k - 1][1] - gaps[1] / slope], atol=1e-12)
-    fixed = np.array(script.start)
-    for _ in range(500):
-        fixed = script.posterior_of(script.height(fixed), widened)[0]
-    sigma = np.sqrt(np.diag(posterior.covariance))
-    assert np.all(np.abs(made[-1] - fixed) <= 0.5 * sigma)
-    heights = [g + h for h in earlier] + [script.height(c) for c in made]
+    posterior = reconstruct_module._valley_answer(coral_one, None, None, start, prior, FAST, lambda line: None,
+                                                  heights_seen)
+    assert 2 <= len(made) <= reconstruct_module.FIXED_POINT_STEPS + 1 and np.allclose(made[0], start)
+    widened = v + a @ CARVING_ERROR @ a
+    for before, after in zip(made, made[1:]):  # each model made at the previous answer's mean
+        assert np.allclose(after, posterior_of(g + follows * (a @ before - g), widened)[0], atol=1e-12)
+    heights = [g + h for h in earlier] + [g + follows * (a @ c - g) for c in made]
     assert np.allclose(heights_seen, heights, atol=1e-15)
     mean = np.mean(heights)
     spread = sum((h - mean) ** 2 for h in heights) / (len(heights) - 1)
-    mean, covariance = script.posterior_of(heights[-1], widened + spread)
+    mean, covariance = posterior_of(heights[-1], widened + spread)
     assert np.allclose([posterior.depth, posterior.tilt], mean, atol=1e-12)
     assert np.allclose(posterior.covariance, covariance, rtol=1e-8)
-    assert posterior.valley_slope == 2.0
-
-
-def test_a_model_whose_centroid_the_answer_puts_above_the_surface_is_no_evidence(coral_one, monkeypatch):
-    """Where the answer a model fixes would put its centroid above the sea surface (coral-one
-    seed 7 from a tilt sensor 2° off: the surface 26 mm below the centroid), the model's height
-    is dropped and the prior stands: the sensors' mean and covariance, not identified; the next
-    model is made there (the start lies 1.5° off), and refused too."""
-    made, script = _scripted_answer(coral_one, monkeypatch, 0.3, above=lambda model: True)
-    lines, heights = [], []
-    posterior = reconstruct_module._valley_answer(coral_one, None, None, script.start, script.prior, FAST,
-                                                  lines.append, heights)
-    prior = script.prior
-    assert heights == [] and len(made) == 2 and np.allclose(made[1], [prior.depth, prior.tilt], atol=1e-15)
-    assert (posterior.depth, posterior.tilt) == (prior.depth, prior.tilt)
-    assert np.allclose(posterior.covariance, np.diag([prior.depth_sigma ** 2, prior.tilt_sigma ** 2]), rtol=1e-12)
-    assert posterior.identified() == {"depth": False, "tilt": False}
-    assert "no evidence" in lines[-1]
+    assert posterior.valley_slope == lever
 
 
 @pytest.mark.parametrize("vertex_steps, wall, expected_steps",
