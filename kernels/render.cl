@@ -18,13 +18,16 @@
  *   first_rows    (N,) int        first image row of each view's band (0 for full layers)
  *   rows          R, rows per band (bins for full layers); 0 <= first_rows[v],
  *                 first_rows[v] + R <= bins (the host validates)
+ *   spans         (N, 2) int       view v casts beams spans[v][0] <= b < spans[v][1] only
+ *                 (fsswarp.backends.base.beam_spans: the others reach nothing)
  *   acc           (N, 4, R, beams) int  fixed-point accumulator (2^24 = 1), zeroed by the host:
  *                 a return of view v at image row B lands in acc[v][layer][B − first_rows[v]]
  *                 when that lies in [0, R) (and its beam in the image), else it is dropped.
  *                 Integer atomics: a pixel's value does not depend on which pixels are kept.
  *
- * Work size: 3-D global (k_theta k_phi rounded up, beams, N); work-item (s, b, v), sub-ray
- * s = i k_phi + j. Items with s >= k_theta k_phi return at once.
+ * Work size: 3-D global (k_theta k_phi rounded up, the widest span, N); work-item (s, o, v):
+ * sub-ray s = i k_phi + j of beam b = spans[v][0] + o. Items with s >= k_theta k_phi or
+ * b >= spans[v][1] return at once.
  */
 #include "sonar.h"
 #include "bvh.h"
@@ -91,12 +94,13 @@ __kernel void render_views(__global const float4 *nodes,
                            const float max_distance,
                            __global const int *first_rows,
                            const int rows,
+                           __global const int *spans,
                            __global int *acc)
 {
     const int s = (int)get_global_id(0);
-    const int b = (int)get_global_id(1);
     const int v = (int)get_global_id(2);
-    if (s >= k_theta * k_phi)
+    const int b = spans[2 * v] + (int)get_global_id(1);
+    if (s >= k_theta * k_phi || b >= spans[2 * v + 1])
         return;
     const int i = s / k_phi;
     const int j = s - i * k_phi;

@@ -28,6 +28,9 @@ from ..errors import is_integer, is_number, real_array
 from ..sonar import SonarSpec
 from .constants import MAX_DISTANCE
 
+#: Margin (rad) of ``beam_spans`` around the azimuths a mesh covers; the kernels' float32
+#: sub-ray azimuths round by about 1e-7 rad.
+SPAN_MARGIN = 1e-4
 
 
 #: ``SonarConstants``' scalars as one kernel argument: the layout of ``fss_sonar`` (kernels/sonar.h)
@@ -228,14 +231,17 @@ class Backend(abc.ABC):
         """Upload a triangle mesh once for many launches; returns an opaque handle.
 
         vertices : (Nv, 3) float, faces : (Nf, 3) int, indices into vertices (Nf >= 1)
-        The handle keeps the device copy (Warp: ``wp.Mesh``; OpenCL: a flattened BVH)."""
+        The handle keeps the device copy (Warp: ``wp.Mesh``; OpenCL: a flattened BVH) and the
+        vertices' box, ``bounds`` (2, 3) float64 (lower, upper)."""
         verts = real_array("vertices", vertices, ("Nv", 3))
         tris = np.asarray(faces)
         if tris.ndim != 2 or tris.shape[1] != 3 or tris.shape[0] == 0 or tris.dtype.kind not in "iu":
             raise ValueError(f"faces must be a non-empty (Nf, 3) integer array, got {tris.shape} {tris.dtype}")
         if tris.min() < 0 or tris.max() >= verts.shape[0]:
             raise ValueError(f"faces index vertices 0..{verts.shape[0] - 1}, got {tris.min()}..{tris.max()}")
-        return self._load_mesh(verts, np.ascontiguousarray(tris, dtype=np.int32))
+        handle = self._load_mesh(verts, np.ascontiguousarray(tris, dtype=np.int32))
+        handle.bounds = np.stack([verts.min(axis=0), verts.max(axis=0)]).astype(np.float64)  # for beam_spans
+        return handle
 
     def cast_rays(self, mesh, origins, directions, max_distance: float = MAX_DISTANCE):
         """First hit of every ray: ``(distance, face)``, (R,) float32 and (R,) int32.
@@ -358,7 +364,8 @@ class Backend(abc.ABC):
                               None if rows is None else first)
         layers = self._render(mesh, SonarConstants.of(sonar), sonar.beam_widths, rot, trans, normals,
                               offsets, k_theta, k_phi, float(gamma),
-                              float(surface_reflection), first, count)
+                              float(surface_reflection), first, count,
+                              beam_spans(mesh.bounds, sonar, rot, trans, normals, offsets))
         layers.first_rows = None if rows is None else first.copy()
         return layers
 
@@ -390,15 +397,17 @@ class Backend(abc.ABC):
         if rot.shape[0] == 0:
             return (batch for batch in ())
         return self._render_batches(mesh, SonarConstants.of(sonar), sonar.beam_widths, rot, trans, normals,
-                                    offsets, k_theta, k_phi, float(gamma), float(surface_reflection), int(batch))
+                                    offsets, k_theta, k_phi, float(gamma), float(surface_reflection), int(batch),
+                                    beam_spans(mesh.bounds, sonar, rot, trans, normals, offsets))
 
     @abc.abstractmethod
     def _render_batches(self, mesh, sonar: SonarConstants, beam_widths: np.ndarray, rotations: np.ndarray,
                         translations: np.ndarray, plane_normals: np.ndarray, plane_offsets: np.ndarray,
                         k_theta: int, k_phi: int, gamma: float, surface_reflection: float,
-                        batch: int) -> Iterator[tuple[int, np.ndarray]]:
-        """Generator of ``render_batches``: clean float32 arrays of N >= 1 views, batch >= 1; yields
-        (start, (n, 4, bins, beams) float32 host layers) per batch, valid until the next."""
+                        batch: int, spans: np.ndarray) -> Iterator[tuple[int, np.ndarray]]:
+        """Generator of ``render_batches``: clean float32 arrays of N >= 1 views, batch >= 1, spans
+        as ``_render``'s; yields (start, (n, 4, bins, beams) float32 host layers) per batch, valid
+        until the next."""
 
     @abc.abstractmethod
     def _load_mesh(self, vertices: np.ndarray, faces: np.ndarray) -> Any:
@@ -422,12 +431,13 @@ class Backend(abc.ABC):
     def _render(self, mesh, sonar: SonarConstants, beam_widths: np.ndarray, rotations: np.ndarray,
                 translations: np.ndarray, plane_normals: np.ndarray, plane_offsets: np.ndarray,
                 k_theta: int, k_phi: int, gamma: float, surface_reflection: float,
-                first_rows: np.ndarray, rows: int) -> "DeviceLayers":
+                first_rows: np.ndarray, rows: int, spans: np.ndarray) -> "DeviceLayers":
         """Kernel launch of ``render_device`` (the algorithm: fsswarp/rendering.py's docstring);
         beam_widths: (beams,) float32 Δθ_b; first_rows (N,) int32 and rows R: view n keeps
         the bins first_rows[n] <= B < first_rows[n] + R (zeros and bins for full layers),
-        valid. Returns the (N, 4, R, beams) float32 layers, complete, on the device (the
-        caller sets ``first_rows``)."""
+        valid; spans (N, 2) int32 (:func:`beam_spans`): view n casts the sub-rays of beams
+        spans[n, 0] <= b < spans[n, 1] only (the others reach nothing). Returns the (N, 4, R,
+        beams) float32 layers, complete, on the device (the caller sets ``first_rows``)."""
 
     # --- frontal contours and their distance to the data's (the (D, β) grid search) ----------
     def contour_cost(self, layers, view_index, thresholds, windows, masks, distances, shifts,
@@ -729,6 +739,32 @@ def rows_read(windows, range_taps: int, bins: int) -> tuple[np.ndarray, np.ndarr
     windows = np.asarray(windows, np.int64)
     radius = (range_taps - 1) // 2
     return np.maximum(windows[:, 0] - radius, 0), np.minimum(windows[:, 1] + radius, bins)
+
+
+def beam_spans(bounds: np.ndarray, sonar: SonarSpec, rotations: np.ndarray, translations: np.ndarray,
+               plane_normals: np.ndarray, plane_offsets: np.ndarray) -> np.ndarray:
+    """(N, 2) int32 [first, end) of the beams whose sub-rays can reach a mesh inside the box
+    ``bounds`` (2, 3) (reference frame) in each of N views (``render``'s poses and planes),
+    directly or by the surface first (toward the box's mirror image in the surface): a sub-ray's
+    azimuth is its beam's centre ± half its width whatever its elevation, and the azimuths of a
+    convex set in front of the sonar (y > 0) lie between those of its corners; ± SPAN_MARGIN.
+    All beams where a corner lies elsewhere; [0, 0) where none is reached."""
+    corners = np.array(np.meshgrid(*np.asarray(bounds, np.float64).T, indexing="ij")).reshape(3, -1).T  # (8, 3)
+    rot, trans = np.asarray(rotations, np.float64), np.asarray(translations, np.float64)
+    normal, offset = np.asarray(plane_normals, np.float64), np.asarray(plane_offsets, np.float64)
+    direct = np.einsum("nji,nkj->nki", rot, corners[None] - trans[:, None])  # (N, 8, 3) view frame
+    height = np.einsum("nki,ni->nk", direct, normal) - offset[:, None]
+    points = np.concatenate([direct, direct - 2.0 * height[..., None] * normal[:, None]], axis=1)  # (N, 16, 3)
+    azimuths = np.arctan2(points[..., 0], points[..., 1])
+    centres = np.asarray(sonar.beam_centres, np.float64)
+    half = 0.5 * np.asarray(sonar.beam_widths, np.float64)
+    reached = ((centres + half >= azimuths.min(axis=1, keepdims=True) - SPAN_MARGIN)
+               & (centres - half <= azimuths.max(axis=1, keepdims=True) + SPAN_MARGIN))
+    reached[~np.all(points[..., 1] > 0.0, axis=1)] = True
+    first = np.argmax(reached, axis=1)
+    end = reached.shape[1] - np.argmax(reached[:, ::-1], axis=1)
+    none = ~reached.any(axis=1)
+    return np.stack([np.where(none, 0, first), np.where(none, 0, end)], axis=1).astype(np.int32)
 
 
 def _row_bands(rows, n_views: int, bins: int) -> tuple[np.ndarray, int]:

@@ -164,7 +164,7 @@ class OpenCLBackend(Backend):
         return rng, face
 
     def _render(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations,
-                plane_normals, plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, rows):
+                plane_normals, plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, rows, spans):
         _check_mesh(mesh)
         shape = (rotations.shape[0], 4, rows, sonar.beams)
         size = int(np.prod(shape))
@@ -172,17 +172,19 @@ class OpenCLBackend(Backend):
         layers_buf = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=4 * size)
         with self._lock:
             self._enqueue_render(mesh, sonar, beam_widths, rotations, translations, plane_normals, plane_offsets,
-                                 k_theta, k_phi, gamma, surface_reflection, first_rows, shape, acc_buf, layers_buf)
+                                 k_theta, k_phi, gamma, surface_reflection, first_rows, spans, shape, acc_buf,
+                                 layers_buf)
             self.queue.finish()
         acc_buf.release()
         return OpenCLLayers(self.queue, layers_buf, shape)
 
     def _enqueue_render(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations, plane_normals,
-                        plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, shape, acc_buf,
+                        plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, spans, shape, acc_buf,
                         layers_buf, wait_for=None) -> cl.Event:
         """Enqueue the zeroing of acc_buf, the render and fixed-point kernels of the views given
-        (clean float32 (n, ...) arrays) into layers_buf, of ``shape`` (n, 4, R, beams), after the
-        events ``wait_for``; returns the last kernel's event. Call holding ``_lock``."""
+        (clean float32 (n, ...) arrays, their (n, 2) beam spans) into layers_buf, of ``shape``
+        (n, 4, R, beams), after the events ``wait_for``; returns the last kernel's event. Call
+        holding ``_lock``."""
         if sonar.use_table:
             centres = np.ascontiguousarray(sonar.beam_table[0], np.float32)
         else:
@@ -191,22 +193,24 @@ class OpenCLBackend(Backend):
         sub = k_theta * k_phi
         size = int(np.prod(shape))
         group = min(GROUP, 1 << (max(sub, 1) - 1).bit_length())
-        global_size = (-(-sub // group) * group, sonar.beams, shape[0])
         zeroed = cl.enqueue_fill_buffer(self.queue, acc_buf, np.int32(0), 0, 4 * size, wait_for=wait_for)
-        self._render_kernel(
-            self.queue, global_size, (group, 1, 1),
-            mesh.nodes, mesh.children, mesh.triangles,
-            self._input(rotations), self._input(translations), self._input(plane_normals),
-            self._input(plane_offsets), self._input(centres),
-            self._input(np.ascontiguousarray(beam_widths, np.float32)),
-            self._input(sonar.beam_table), sonar.record(), np.int32(k_theta), np.int32(k_phi),
-            np.float32(1.0 / sub), np.float32(gamma), np.float32(surface_reflection), np.float32(RAY_EPSILON),
-            np.float32(MAX_DISTANCE), self._input(first_rows), np.int32(shape[2]), acc_buf, wait_for=[zeroed])
+        widest = int(np.max(spans[:, 1] - spans[:, 0]))
+        if widest:  # else no view reaches the mesh: the layers stay zeros
+            self._render_kernel(
+                self.queue, (-(-sub // group) * group, widest, shape[0]), (group, 1, 1),
+                mesh.nodes, mesh.children, mesh.triangles,
+                self._input(rotations), self._input(translations), self._input(plane_normals),
+                self._input(plane_offsets), self._input(centres),
+                self._input(np.ascontiguousarray(beam_widths, np.float32)),
+                self._input(sonar.beam_table), sonar.record(), np.int32(k_theta), np.int32(k_phi),
+                np.float32(1.0 / sub), np.float32(gamma), np.float32(surface_reflection), np.float32(RAY_EPSILON),
+                np.float32(MAX_DISTANCE), self._input(first_rows), np.int32(shape[2]),
+                self._input(np.ascontiguousarray(spans, np.int32)), acc_buf, wait_for=[zeroed])
         return self._fixed_kernel(self.queue, (-(-size // GROUP) * GROUP,), None, acc_buf, layers_buf,
                                   np.int32(size))
 
     def _render_batches(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations, plane_normals,
-                        plane_offsets, k_theta, k_phi, gamma, surface_reflection, batch):
+                        plane_offsets, k_theta, k_phi, gamma, surface_reflection, batch, spans):
         """Two slots alternate: batch k renders on the backend's queue into slot k % 2 while a
         second queue reads batch k − 1 into the slot's host-allocated (``ALLOC_HOST_PTR``:
         page-locked on NVIDIA) buffer, mapped once; events order the two queues."""
@@ -232,7 +236,7 @@ class OpenCLBackend(Backend):
                     rendered = self._enqueue_render(
                         mesh, sonar, beam_widths, rotations[start:stop], translations[start:stop],
                         plane_normals[start:stop], plane_offsets[start:stop], k_theta, k_phi, gamma,
-                        surface_reflection, first[:n], (n, *shape[1:]), accs[slot], layers[slot],
+                        surface_reflection, first[:n], spans[start:stop], (n, *shape[1:]), accs[slot], layers[slot],
                         wait_for=None if copied[slot] is None else [copied[slot]])
                     self.queue.flush()
                 copied[slot] = cl.enqueue_copy(copier, host[slot][:n], layers[slot], is_blocking=False,

@@ -166,7 +166,7 @@ class WarpBackend(Backend):
             return rng.numpy(), face.numpy()
 
     def _render(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations,
-                plane_normals, plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, rows):
+                plane_normals, plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, rows, spans):
         mesh = self._check_mesh(mesh)
         shape = (rotations.shape[0], 4, rows, sonar.beams)
         with wp.ScopedDevice(self._device):
@@ -174,7 +174,7 @@ class WarpBackend(Backend):
             acc = wp.zeros(shape, dtype=wp.int32)
             layers = wp.empty(shape, dtype=float)
             self._render_into(mesh, sonar, beam_widths, poses, k_theta, k_phi, gamma, surface_reflection,
-                              self._constant(first_rows, wp.int32), acc, layers)
+                              self._constant(first_rows, wp.int32), spans, acc, layers)
             wp.synchronize_device(self._device)
             return WarpLayers(layers)
 
@@ -184,27 +184,30 @@ class WarpBackend(Backend):
                 self._array(plane_normals, wp.vec3), self._array(plane_offsets, float))
 
     def _render_into(self, mesh, sonar: SonarConstants, beam_widths, poses, k_theta, k_phi, gamma,
-                     surface_reflection, first_rows, acc, layers) -> None:
+                     surface_reflection, first_rows, spans, acc, layers) -> None:
         """Launch the render and fixed-point kernels of the views ``poses`` ((n,) device arrays of
         ``_poses``) on the device's current stream: acc (n, 4, R, beams) int32, zeroed, receives
         the deposits and layers (n, 4, R, beams) float32 the result; first_rows (n,) int32 on the
-        device. Returns without waiting."""
+        device; spans (n, 2) int32 on the host (``Backend._render``). Returns without waiting."""
         if sonar.use_table:
             centres = np.ascontiguousarray(sonar.beam_table[0], np.float32)
         else:  # the centres of SonarSpec.beam_centres
             half = float(sonar.half_azimuth)
             centres = (-half + np.arange(sonar.beams) * (2.0 * half / max(sonar.beams - 1, 1))).astype(np.float32)
         weight = float(np.float32(1.0 / (k_theta * k_phi)))
-        wp.launch(render_kernel, dim=(acc.shape[0], sonar.beams, k_theta * k_phi),
-                  inputs=[mesh.id, mesh.points, mesh.indices, *poses, self._constant(centres, float),
-                          self._constant(np.asarray(beam_widths, np.float32), float),
-                          self._constant(sonar.beam_table, float), kernel_sonar(sonar), int(k_theta), int(k_phi),
-                          weight, float(gamma), float(surface_reflection), first_rows],
-                  outputs=[acc])
+        widest = int(np.max(spans[:, 1] - spans[:, 0]))
+        if widest:  # else no view reaches the mesh: the layers stay zeros
+            wp.launch(render_kernel, dim=(acc.shape[0], widest, k_theta * k_phi),
+                      inputs=[mesh.id, mesh.points, mesh.indices, *poses, self._constant(centres, float),
+                              self._constant(np.asarray(beam_widths, np.float32), float),
+                              self._constant(sonar.beam_table, float), kernel_sonar(sonar), int(k_theta),
+                              int(k_phi), weight, float(gamma), float(surface_reflection), first_rows,
+                              self._constant(np.ascontiguousarray(spans, np.int32), wp.int32)],
+                      outputs=[acc])
         wp.launch(fixed_to_float, dim=acc.size, inputs=[acc.flatten()], outputs=[layers.flatten()])
 
     def _render_batches(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations, plane_normals,
-                        plane_offsets, k_theta, k_phi, gamma, surface_reflection, batch):
+                        plane_offsets, k_theta, k_phi, gamma, surface_reflection, batch, spans):
         """On CUDA two slots alternate: batch k renders on the device's stream into slot k % 2
         while a copy stream takes batch k − 1 to its page-locked host buffer (events order
         them); on the CPU the layers are host memory already and come as they are."""
@@ -231,7 +234,7 @@ class WarpBackend(Backend):
                     acc, out = accs[slot][:n], layers[slot][:n]
                     acc.zero_()
                     self._render_into(mesh, sonar, beam_widths, tuple(p[start:stop] for p in poses), k_theta,
-                                      k_phi, gamma, surface_reflection, first[:n], acc, out)
+                                      k_phi, gamma, surface_reflection, first[:n], spans[start:stop], acc, out)
                     if self.is_gpu:
                         copier.wait_event(wp.get_stream(self._device).record_event())
                         wp.copy(host[slot][:n], out, stream=copier)

@@ -105,11 +105,16 @@ def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
                   plane_offsets: wp.array(dtype=float), beam_centres: wp.array(dtype=float),
                   beam_widths: wp.array(dtype=float), beam_table: wp.array2d(dtype=float),
                   sonar: KernelSonar, k_theta: int, k_phi: int, weight: float, gamma: float, surface_reflection: float,
-                  first_rows: wp.array(dtype=wp.int32), acc: wp.array4d(dtype=wp.int32)):
-    """Thread (v, b, k): sub-ray (i, j) = divmod(k, K_φ) of beam b in view v; deposits its
-    object, ghost, mirror and mirror2 returns into acc (N, 4, R, beams), view v's image row B
-    at row B − first_rows[v] when that lies in [0, R), else nowhere (kernels/render.cl)."""
-    v, b, k = wp.tid()
+                  first_rows: wp.array(dtype=wp.int32), spans: wp.array2d(dtype=wp.int32),
+                  acc: wp.array4d(dtype=wp.int32)):
+    """Thread (v, o, k): sub-ray (i, j) = divmod(k, K_φ) of beam b = spans[v, 0] + o in view v
+    (none where b >= spans[v, 1]); deposits its object, ghost, mirror and mirror2 returns into
+    acc (N, 4, R, beams), view v's image row B at row B − first_rows[v] when that lies in
+    [0, R), else nowhere (kernels/render.cl)."""
+    v, o, k = wp.tid()
+    b = spans[v, 0] + o
+    if b >= spans[v, 1]:
+        return
     i = k // k_phi
     j = k - i * k_phi
     rot = rotations[v]
