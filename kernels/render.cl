@@ -18,16 +18,17 @@
  *   first_rows    (N,) int        first image row of each view's band (0 for full layers)
  *   rows          R, rows per band (bins for full layers); 0 <= first_rows[v],
  *                 first_rows[v] + R <= bins (the host validates)
- *   spans         (N, 2) int       view v casts beams spans[v][0] <= b < spans[v][1] only
- *                 (fsswarp.backends.base.beam_spans: the others reach nothing)
+ *   spans         (N, 4) int       view v casts only beams spans[v][0] <= b < spans[v][1] and
+ *                 elevation samples spans[v][2] <= j < spans[v][3]
+ *                 (fsswarp.backends.base.ray_spans: the others reach nothing)
  *   acc           (N, 4, R, beams) int  fixed-point accumulator (2^24 = 1), zeroed by the host:
  *                 a return of view v at image row B lands in acc[v][layer][B − first_rows[v]]
  *                 when that lies in [0, R) (and its beam in the image), else it is dropped.
  *                 Integer atomics: a pixel's value does not depend on which pixels are kept.
  *
- * Work size: 3-D global (k_theta k_phi rounded up, the widest span, N); work-item (s, o, v):
- * sub-ray s = i k_phi + j of beam b = spans[v][0] + o. Items with s >= k_theta k_phi or
- * b >= spans[v][1] return at once.
+ * Work size: 3-D global (k_theta × the most samples J_v = spans[v][3] − spans[v][2], rounded up;
+ * the widest beam span; N); work-item (s, o, v): sub-ray i = s / J_v, j = spans[v][2] + s % J_v
+ * of beam b = spans[v][0] + o. Items with s >= k_theta J_v or b >= spans[v][1] return at once.
  */
 #include "sonar.h"
 #include "bvh.h"
@@ -99,11 +100,12 @@ __kernel void render_views(__global const float4 *nodes,
 {
     const int s = (int)get_global_id(0);
     const int v = (int)get_global_id(2);
-    const int b = spans[2 * v] + (int)get_global_id(1);
-    if (s >= k_theta * k_phi || b >= spans[2 * v + 1])
+    const int b = spans[4 * v] + (int)get_global_id(1);
+    const int samples = spans[4 * v + 3] - spans[4 * v + 2];
+    if (s >= k_theta * samples || b >= spans[4 * v + 1])
         return;
-    const int i = s / k_phi;
-    const int j = s - i * k_phi;
+    const int i = s / samples;
+    const int j = spans[4 * v + 2] + s - i * samples;
     __global const float *rot = rotations + 9 * v;
     const float3 t = vload3(v, translations);
     const float3 n = vload3(v, plane_normals);

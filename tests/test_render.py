@@ -532,46 +532,51 @@ def test_check_mesh_judges_each_topology_once():
     assert _Counted.judged <= 2
 
 
-# --- the beams a render casts ------------------------------------------------------------------
-def test_culled_beams_change_no_pixel(backend):
-    """Each view casts only the beams of ``beam_spans`` (the mesh's box, directly or by its
-    mirror image): the layers equal, bit for bit, those of every beam cast (integer deposits),
-    on views whose spans leave beams out, rolled views (the mirror in other beams) included;
-    every object, ghost and mirror2 return lies in its view's span."""
-    from fsswarp.backends.base import SonarConstants, beam_spans
+# --- the sub-rays a render casts ---------------------------------------------------------------
+def test_culled_sub_rays_change_no_pixel(backend):
+    """Each view casts only the sub-rays of ``ray_spans`` (beams and elevation samples that can
+    reach the mesh's box, directly or by its mirror image): the layers equal, bit for bit, those
+    of every sub-ray cast (integer deposits), on views whose spans leave sub-rays out, rolled
+    views (the mirror in other beams) included; every object, ghost and mirror2 return lies in
+    its view's beams."""
+    from fsswarp.backends.base import SonarConstants, ray_spans
 
     sonar, mesh, rot, trans, normals, offsets = coral_inputs()
     handle = backend.load_mesh(mesh.vertices, mesh.faces)
-    spans = beam_spans(handle.bounds, sonar, rot, trans, normals, offsets)
+    spans = ray_spans(handle.bounds, sonar, rot, trans, normals, offsets, SAMPLES[1])
     assert np.all(spans[:, 1] - spans[:, 0] < sonar.beams) and np.all(spans[:, 1] > spans[:, 0])
+    assert np.any(spans[:, 3] - spans[:, 2] < SAMPLES[1]) and np.all(spans[:, 3] > spans[:, 2])
     culled = backend.render(handle, sonar, rot, trans, normals, offsets, SAMPLES, gamma=GAMMA, surface_reflection=RS)
     clean = [np.ascontiguousarray(a, np.float32) for a in (rot, trans, normals, offsets)]
-    every = np.tile(np.array([[0, sonar.beams]], np.int32), (len(rot), 1))
+    every = np.tile(np.array([[0, sonar.beams, 0, SAMPLES[1]]], np.int32), (len(rot), 1))
     full = backend._render(handle, SonarConstants.of(sonar), sonar.beam_widths, *clean, *SAMPLES, GAMMA, RS,
                            np.zeros(len(rot), np.int32), sonar.bins, every).numpy()
     np.testing.assert_array_equal(culled, full)
-    for v, (first, end) in enumerate(spans):
+    for v, (first, end, _, _) in enumerate(spans):
         beams = np.flatnonzero(full[v, [0, 1, 3]].any(axis=(0, 1)))
         assert beams.size and first <= beams.min() and beams.max() < end, (CORAL_VIEWS[v], first, end)
 
 
-def test_beam_spans_follow_the_box_azimuths():
-    """Closed forms, a level view with the surface far above: a box straight ahead spans the
-    beams whose [centre ± width/2] meet its corners' azimuths (± SPAN_MARGIN); a box beside
-    the fan, none; a box around the sonar, or behind it, every beam."""
-    from fsswarp.backends.base import SPAN_MARGIN, beam_spans
+def test_ray_spans_follow_the_box_angles():
+    """Closed forms, a level view with the surface far above (the mirror image out of sight): a
+    box straight ahead spans the beams whose [centre ± width/2] meet its corners' azimuths and
+    the elevation samples within atan(±0.1 / 2.0) (the nearest y), ± SPAN_MARGIN; a box beside
+    the fan, none; a box around the sonar, or behind it, every sub-ray."""
+    from fsswarp.backends.base import SPAN_MARGIN, ray_spans
 
-    sonar = SonarSpec()
+    sonar, k_phi = SonarSpec(), 64
     pose = (np.eye(3)[None], np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), np.array([50.0]))
     centres, half = np.asarray(sonar.beam_centres), 0.5 * np.asarray(sonar.beam_widths)
 
     def spans(lo, hi):
-        return tuple(beam_spans(np.array([lo, hi], np.float64), sonar, *pose)[0])
+        return tuple(ray_spans(np.array([lo, hi], np.float64), sonar, *pose, k_phi)[0])
 
-    reach = math.atan2(0.1, 2.0) + SPAN_MARGIN  # a box x in ±0.1 m at y = 2..2.2 m
+    reach = math.atan2(0.1, 2.0) + SPAN_MARGIN  # a box x, z in ±0.1 m at y = 2..2.2 m
     inside = np.flatnonzero((centres + half >= -reach) & (centres - half <= reach))
-    assert spans([-0.1, 2.0, -0.1], [0.1, 2.2, 0.1]) == (inside[0], inside[-1] + 1)
-    assert 0 < inside[0] and inside[-1] + 1 < sonar.beams
-    assert spans([1.9, 0.9, -0.1], [2.1, 1.1, 0.1]) == (0, 0)  # at about 63° azimuth, beside the fan
-    assert spans([-0.1, -0.1, -0.1], [0.1, 0.1, 0.1]) == (0, sonar.beams)
-    assert spans([-0.1, -2.2, -0.1], [0.1, -2.0, 0.1]) == (0, sonar.beams)
+    phi = -sonar.half_elevation + (np.arange(k_phi) + 0.5) * 2.0 * sonar.half_elevation / k_phi
+    rows = np.flatnonzero(np.abs(phi) <= reach)
+    assert spans([-0.1, 2.0, -0.1], [0.1, 2.2, 0.1]) == (inside[0], inside[-1] + 1, rows[0], rows[-1] + 1)
+    assert 0 < inside[0] and inside[-1] + 1 < sonar.beams and 0 < rows[0] and rows[-1] + 1 < k_phi
+    assert spans([1.9, 0.9, -0.1], [2.1, 1.1, 0.1]) == (0, 0, 0, 0)  # at about 63° azimuth, beside the fan
+    assert spans([-0.1, -0.1, -0.1], [0.1, 0.1, 0.1]) == (0, sonar.beams, 0, k_phi)
+    assert spans([-0.1, -2.2, -0.1], [0.1, -2.0, 0.1]) == (0, sonar.beams, 0, k_phi)

@@ -28,8 +28,8 @@ from ..errors import is_integer, is_number, real_array
 from ..sonar import SonarSpec
 from .constants import MAX_DISTANCE
 
-#: Margin (rad) of ``beam_spans`` around the azimuths a mesh covers; the kernels' float32
-#: sub-ray azimuths round by about 1e-7 rad.
+#: Margin (rad) of ``ray_spans`` around the azimuths and elevations a mesh covers; the kernels'
+#: float32 sub-ray angles round by about 1e-7 rad.
 SPAN_MARGIN = 1e-4
 
 
@@ -240,7 +240,7 @@ class Backend(abc.ABC):
         if tris.min() < 0 or tris.max() >= verts.shape[0]:
             raise ValueError(f"faces index vertices 0..{verts.shape[0] - 1}, got {tris.min()}..{tris.max()}")
         handle = self._load_mesh(verts, np.ascontiguousarray(tris, dtype=np.int32))
-        handle.bounds = np.stack([verts.min(axis=0), verts.max(axis=0)]).astype(np.float64)  # for beam_spans
+        handle.bounds = np.stack([verts.min(axis=0), verts.max(axis=0)]).astype(np.float64)  # for ray_spans
         return handle
 
     def cast_rays(self, mesh, origins, directions, max_distance: float = MAX_DISTANCE):
@@ -365,7 +365,7 @@ class Backend(abc.ABC):
         layers = self._render(mesh, SonarConstants.of(sonar), sonar.beam_widths, rot, trans, normals,
                               offsets, k_theta, k_phi, float(gamma),
                               float(surface_reflection), first, count,
-                              beam_spans(mesh.bounds, sonar, rot, trans, normals, offsets))
+                              ray_spans(mesh.bounds, sonar, rot, trans, normals, offsets, k_phi))
         layers.first_rows = None if rows is None else first.copy()
         return layers
 
@@ -398,7 +398,7 @@ class Backend(abc.ABC):
             return (batch for batch in ())
         return self._render_batches(mesh, SonarConstants.of(sonar), sonar.beam_widths, rot, trans, normals,
                                     offsets, k_theta, k_phi, float(gamma), float(surface_reflection), int(batch),
-                                    beam_spans(mesh.bounds, sonar, rot, trans, normals, offsets))
+                                    ray_spans(mesh.bounds, sonar, rot, trans, normals, offsets, k_phi))
 
     @abc.abstractmethod
     def _render_batches(self, mesh, sonar: SonarConstants, beam_widths: np.ndarray, rotations: np.ndarray,
@@ -435,9 +435,10 @@ class Backend(abc.ABC):
         """Kernel launch of ``render_device`` (the algorithm: fsswarp/rendering.py's docstring);
         beam_widths: (beams,) float32 Δθ_b; first_rows (N,) int32 and rows R: view n keeps
         the bins first_rows[n] <= B < first_rows[n] + R (zeros and bins for full layers),
-        valid; spans (N, 2) int32 (:func:`beam_spans`): view n casts the sub-rays of beams
-        spans[n, 0] <= b < spans[n, 1] only (the others reach nothing). Returns the (N, 4, R,
-        beams) float32 layers, complete, on the device (the caller sets ``first_rows``)."""
+        valid; spans (N, 4) int32 (:func:`ray_spans`): view n casts only the sub-rays (i, j) of
+        beams spans[n, 0] <= b < spans[n, 1] with spans[n, 2] <= j < spans[n, 3] (the others
+        reach nothing). Returns the (N, 4, R, beams) float32 layers, complete, on the device
+        (the caller sets ``first_rows``)."""
 
     # --- frontal contours and their distance to the data's (the (D, β) grid search) ----------
     def contour_cost(self, layers, view_index, thresholds, windows, masks, distances, shifts,
@@ -741,33 +742,48 @@ def rows_read(windows, range_taps: int, bins: int) -> tuple[np.ndarray, np.ndarr
     return np.maximum(windows[:, 0] - radius, 0), np.minimum(windows[:, 1] + radius, bins)
 
 
-def beam_spans(bounds: np.ndarray, sonar: SonarSpec, rotations: np.ndarray, translations: np.ndarray,
-               plane_normals: np.ndarray, plane_offsets: np.ndarray) -> np.ndarray:
-    """(N, 2) int32 [first, end) of the beams whose sub-rays can reach a mesh inside the box
-    ``bounds`` (2, 3) (reference frame) in each of N views (``render``'s poses and planes),
-    directly or by the surface first (toward the box's mirror image in the surface): a sub-ray's
-    azimuth is its beam's centre ± half its width whatever its elevation, and the azimuths of a
-    convex set in front of the sonar (y > 0) lie between those of its corners; ± SPAN_MARGIN.
-    All beams where a corner lies elsewhere; [0, 0) where none is reached. About 0.6 µs a view."""
+def ray_spans(bounds: np.ndarray, sonar: SonarSpec, rotations: np.ndarray, translations: np.ndarray,
+              plane_normals: np.ndarray, plane_offsets: np.ndarray, k_phi: int) -> np.ndarray:
+    """(N, 4) int32 spans of the sub-rays that can reach a mesh inside the box ``bounds`` (2, 3)
+    (reference frame) in each of N views (``render``'s poses and planes), directly or by the
+    surface first (toward the box's mirror image in the surface): beams [first, end) and
+    elevation samples j [first, end) of ``k_phi``, the hull of the box's and the image's. A
+    sub-ray's azimuth is its beam's centre ± half its width whatever its elevation, and the
+    azimuths of a convex set ahead of the sonar (y > 0) lie between its corners'; its elevation
+    atan(z/ρ) lies between the corners' least and most z over the least ρ (>= the least y) or
+    the most; ± SPAN_MARGIN. Every sub-ray of a box not wholly ahead; zeros where none is
+    reached. About 1 µs a view."""
     corners = np.array(np.meshgrid(*np.asarray(bounds, np.float64).T, indexing="ij")).reshape(3, -1).T  # (8, 3)
     rot = np.asarray(rotations, np.float64)
     normal, offset = np.asarray(plane_normals, np.float64), np.asarray(plane_offsets, np.float64)
     origin = (rot * np.asarray(translations, np.float64)[:, :, None]).sum(axis=1)  # Rᵀ t
     direct = np.tensordot(corners, rot, axes=([1], [1])).transpose(1, 0, 2) - origin[:, None]  # (N, 8, 3) view frame
     height = (direct * normal[:, None]).sum(axis=2) - offset[:, None]
-    points = np.concatenate([direct, direct - 2.0 * height[..., None] * normal[:, None]], axis=1)  # (N, 16, 3)
-    ahead = np.all(points[..., 1] > 0.0, axis=1)
-    slopes = points[..., 0] / np.where(ahead[:, None], points[..., 1], 1.0)  # tan(azimuth), where ahead
-    lo = np.where(ahead, np.arctan(slopes.min(axis=1)) - SPAN_MARGIN, -np.inf)
-    hi = np.where(ahead, np.arctan(slopes.max(axis=1)) + SPAN_MARGIN, np.inf)
+    boxes = np.stack([direct, direct - 2.0 * height[..., None] * normal[:, None]], axis=1)  # (N, 2, 8, 3)
+    x, y, z = boxes[..., 0], boxes[..., 1], boxes[..., 2]
+    ahead = np.all(y > 0.0, axis=2)  # (N, 2): the box ahead of the sonar
+    y = np.where(ahead[..., None], y, 1.0)
+    slopes = x / y  # tan(azimuth)
+    lo = np.where(ahead, np.arctan(slopes.min(axis=2)) - SPAN_MARGIN, -np.inf)
+    hi = np.where(ahead, np.arctan(slopes.max(axis=2)) + SPAN_MARGIN, np.inf)
     centres = np.asarray(sonar.beam_centres, np.float64)
     half = 0.5 * np.asarray(sonar.beam_widths, np.float64)
     uppers = np.maximum.accumulate(centres + half)  # nondecreasing: the first beam reaching lo
     lowers = np.minimum.accumulate((centres - half)[::-1])[::-1]  # the last beam starting below hi
-    first = np.searchsorted(uppers, lo, side="left")
-    end = np.searchsorted(lowers, hi, side="right")
-    none = first >= end
-    return np.stack([np.where(none, 0, first), np.where(none, 0, end)], axis=1).astype(np.int32)
+    first, end = np.searchsorted(uppers, lo, side="left"), np.searchsorted(lowers, hi, side="right")
+    near, far = y.min(axis=2), np.sqrt(x * x + y * y).max(axis=2)  # bounds of ρ per box
+    low, high = z.min(axis=2), z.max(axis=2)
+    down = np.arctan(low / np.where(low < 0.0, near, far)) - SPAN_MARGIN
+    up = np.arctan(high / np.where(high > 0.0, near, far)) + SPAN_MARGIN
+    step = 2.0 * sonar.half_elevation / k_phi  # sample j at −half_elevation + (j + 0.5) step
+    j_first = np.where(ahead, np.ceil((down + sonar.half_elevation) / step - 0.5), 0).clip(0, k_phi)
+    j_end = np.where(ahead, np.floor((up + sonar.half_elevation) / step - 0.5) + 1, k_phi).clip(0, k_phi)
+    reached = (first < end) & (j_first < j_end)  # (N, 2) the box, the mirror image
+    most = np.iinfo(np.int64).max
+    spans = np.stack([np.where(reached, first, most).min(axis=1), np.where(reached, end, 0).max(axis=1),
+                      np.where(reached, j_first, most).min(axis=1), np.where(reached, j_end, 0).max(axis=1)], axis=1)
+    spans[~reached.any(axis=1)] = 0
+    return spans.astype(np.int32)
 
 
 def _row_bands(rows, n_views: int, bins: int) -> tuple[np.ndarray, int]:

@@ -182,7 +182,7 @@ class OpenCLBackend(Backend):
                         plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, spans, shape, acc_buf,
                         layers_buf, wait_for=None) -> cl.Event:
         """Enqueue the zeroing of acc_buf, the render and fixed-point kernels of the views given
-        (clean float32 (n, ...) arrays, their (n, 2) beam spans) into layers_buf, of ``shape``
+        (clean float32 (n, ...) arrays, their (n, 4) ray spans) into layers_buf, of ``shape``
         (n, 4, R, beams), after the events ``wait_for``; returns the last kernel's event. Call
         holding ``_lock``."""
         if sonar.use_table:
@@ -190,12 +190,12 @@ class OpenCLBackend(Backend):
         else:
             centres = (-np.float64(sonar.half_azimuth)
                        + np.arange(sonar.beams) / np.float64(sonar.beam_scale)).astype(np.float32)
-        sub = k_theta * k_phi
         size = int(np.prod(shape))
-        group = min(GROUP, 1 << (max(sub, 1) - 1).bit_length())
         zeroed = cl.enqueue_fill_buffer(self.queue, acc_buf, np.int32(0), 0, 4 * size, wait_for=wait_for)
         widest = int(np.max(spans[:, 1] - spans[:, 0]))
+        sub = k_theta * int(np.max(spans[:, 3] - spans[:, 2]))
         if widest:  # else no view reaches the mesh: the layers stay zeros
+            group = min(GROUP, 1 << (sub - 1).bit_length())
             self._render_kernel(
                 self.queue, (-(-sub // group) * group, widest, shape[0]), (group, 1, 1),
                 mesh.nodes, mesh.children, mesh.triangles,
@@ -203,7 +203,8 @@ class OpenCLBackend(Backend):
                 self._input(plane_offsets), self._input(centres),
                 self._input(np.ascontiguousarray(beam_widths, np.float32)),
                 self._input(sonar.beam_table), sonar.record(), np.int32(k_theta), np.int32(k_phi),
-                np.float32(1.0 / sub), np.float32(gamma), np.float32(surface_reflection), np.float32(RAY_EPSILON),
+                np.float32(1.0 / (k_theta * k_phi)), np.float32(gamma), np.float32(surface_reflection),
+                np.float32(RAY_EPSILON),
                 np.float32(MAX_DISTANCE), self._input(first_rows), np.int32(shape[2]),
                 self._input(np.ascontiguousarray(spans, np.int32)), acc_buf, wait_for=[zeroed])
         return self._fixed_kernel(self.queue, (-(-size // GROUP) * GROUP,), None, acc_buf, layers_buf,

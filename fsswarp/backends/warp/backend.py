@@ -188,7 +188,7 @@ class WarpBackend(Backend):
         """Launch the render and fixed-point kernels of the views ``poses`` ((n,) device arrays of
         ``_poses``) on the device's current stream: acc (n, 4, R, beams) int32, zeroed, receives
         the deposits and layers (n, 4, R, beams) float32 the result; first_rows (n,) int32 on the
-        device; spans (n, 2) int32 on the host (``Backend._render``). Returns without waiting."""
+        device; spans (n, 4) int32 on the host (``Backend._render``). Returns without waiting."""
         if sonar.use_table:
             centres = np.ascontiguousarray(sonar.beam_table[0], np.float32)
         else:  # the centres of SonarSpec.beam_centres
@@ -197,7 +197,7 @@ class WarpBackend(Backend):
         weight = float(np.float32(1.0 / (k_theta * k_phi)))
         widest = int(np.max(spans[:, 1] - spans[:, 0]))
         if widest:  # else no view reaches the mesh: the layers stay zeros
-            wp.launch(render_kernel, dim=(acc.shape[0], widest, k_theta * k_phi),
+            wp.launch(render_kernel, dim=(acc.shape[0], widest, k_theta * int(np.max(spans[:, 3] - spans[:, 2]))),
                       inputs=[mesh.id, mesh.points, mesh.indices, *poses, self._constant(centres, float),
                               self._constant(np.asarray(beam_widths, np.float32), float),
                               self._constant(sonar.beam_table, float), kernel_sonar(sonar), int(k_theta),

@@ -107,16 +107,18 @@ def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
                   sonar: KernelSonar, k_theta: int, k_phi: int, weight: float, gamma: float, surface_reflection: float,
                   first_rows: wp.array(dtype=wp.int32), spans: wp.array2d(dtype=wp.int32),
                   acc: wp.array4d(dtype=wp.int32)):
-    """Thread (v, o, k): sub-ray (i, j) = divmod(k, K_φ) of beam b = spans[v, 0] + o in view v
-    (none where b >= spans[v, 1]); deposits its object, ghost, mirror and mirror2 returns into
-    acc (N, 4, R, beams), view v's image row B at row B − first_rows[v] when that lies in
-    [0, R), else nowhere (kernels/render.cl)."""
+    """Thread (v, o, k): sub-ray (i, spans[v, 2] + q), (i, q) = divmod(k, J_v), of beam
+    b = spans[v, 0] + o in view v, J_v = spans[v, 3] − spans[v, 2] (none where b >= spans[v, 1]
+    or k >= K_θ J_v); deposits its object, ghost, mirror and mirror2 returns into acc (N, 4, R,
+    beams), view v's image row B at row B − first_rows[v] when that lies in [0, R), else
+    nowhere (kernels/render.cl)."""
     v, o, k = wp.tid()
     b = spans[v, 0] + o
-    if b >= spans[v, 1]:
+    samples = spans[v, 3] - spans[v, 2]
+    if b >= spans[v, 1] or k >= k_theta * samples:
         return
-    i = k // k_phi
-    j = k - i * k_phi
+    i = k // samples
+    j = spans[v, 2] + k - i * samples
     rot = rotations[v]
     org = translations[v]
     n = plane_normals[v]
