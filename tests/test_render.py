@@ -534,11 +534,11 @@ def test_check_mesh_judges_each_topology_once():
 
 # --- the sub-rays a render casts ---------------------------------------------------------------
 def test_culled_sub_rays_change_no_pixel(backend):
-    """Each view casts only the sub-rays of ``ray_spans`` (beams and elevation samples that can
+    """The kernels cast only the sub-rays of ``ray_spans`` (beams and elevation samples that can
     reach the mesh's box, directly or by its mirror image): the layers equal, bit for bit, those
     of every sub-ray cast (integer deposits), on views whose spans leave sub-rays out, rolled
-    views (the mirror in other beams) included; every object, ghost and mirror2 return lies in
-    its view's beams."""
+    views (the mirror in other beams) included, and ``render``'s; every object, ghost and
+    mirror2 return lies in its view's beams."""
     from fsswarp.backends.base import SonarConstants, ray_spans
 
     sonar, mesh, rot, trans, normals, offsets = coral_inputs()
@@ -546,12 +546,14 @@ def test_culled_sub_rays_change_no_pixel(backend):
     spans = ray_spans(handle.bounds, sonar, rot, trans, normals, offsets, SAMPLES[1])
     assert np.all(spans[:, 1] - spans[:, 0] < sonar.beams) and np.all(spans[:, 1] > spans[:, 0])
     assert np.any(spans[:, 3] - spans[:, 2] < SAMPLES[1]) and np.all(spans[:, 3] > spans[:, 2])
-    culled = backend.render(handle, sonar, rot, trans, normals, offsets, SAMPLES, gamma=GAMMA, surface_reflection=RS)
     clean = [np.ascontiguousarray(a, np.float32) for a in (rot, trans, normals, offsets)]
     every = np.tile(np.array([[0, sonar.beams, 0, SAMPLES[1]]], np.int32), (len(rot), 1))
-    full = backend._render(handle, SonarConstants.of(sonar), sonar.beam_widths, *clean, *SAMPLES, GAMMA, RS,
-                           np.zeros(len(rot), np.int32), sonar.bins, every).numpy()
+    full, culled = (backend._render(handle, SonarConstants.of(sonar), sonar.beam_widths, *clean, *SAMPLES, GAMMA,
+                                    RS, np.zeros(len(rot), np.int32), sonar.bins, cast).numpy()
+                    for cast in (every, spans))
     np.testing.assert_array_equal(culled, full)
+    rendered = backend.render(handle, sonar, rot, trans, normals, offsets, SAMPLES, gamma=GAMMA, surface_reflection=RS)
+    np.testing.assert_array_equal(rendered, full)  # culled on a CPU device, every sub-ray on a GPU
     for v, (first, end, _, _) in enumerate(spans):
         beams = np.flatnonzero(full[v, [0, 1, 3]].any(axis=(0, 1)))
         assert beams.size and first <= beams.min() and beams.max() < end, (CORAL_VIEWS[v], first, end)

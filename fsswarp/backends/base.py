@@ -365,7 +365,7 @@ class Backend(abc.ABC):
         layers = self._render(mesh, SonarConstants.of(sonar), sonar.beam_widths, rot, trans, normals,
                               offsets, k_theta, k_phi, float(gamma),
                               float(surface_reflection), first, count,
-                              ray_spans(mesh.bounds, sonar, rot, trans, normals, offsets, k_phi))
+                              self._spans(mesh, sonar, rot, trans, normals, offsets, k_phi))
         layers.first_rows = None if rows is None else first.copy()
         return layers
 
@@ -398,7 +398,16 @@ class Backend(abc.ABC):
             return (batch for batch in ())
         return self._render_batches(mesh, SonarConstants.of(sonar), sonar.beam_widths, rot, trans, normals,
                                     offsets, k_theta, k_phi, float(gamma), float(surface_reflection), int(batch),
-                                    ray_spans(mesh.bounds, sonar, rot, trans, normals, offsets, k_phi))
+                                    self._spans(mesh, sonar, rot, trans, normals, offsets, k_phi))
+
+    def _spans(self, mesh, sonar: SonarSpec, rotations, translations, plane_normals, plane_offsets,
+               k_phi: int) -> np.ndarray:
+        """The (N, 4) sub-rays each view casts: :func:`ray_spans` on a CPU device; every sub-ray on
+        a GPU, where one that misses costs little and the spans' host work outweighs what they
+        save (measured on an H100, docs/decisions.md)."""
+        if self.is_gpu:
+            return np.tile(np.array([[0, sonar.beams, 0, k_phi]], np.int32), (rotations.shape[0], 1))
+        return ray_spans(mesh.bounds, sonar, rotations, translations, plane_normals, plane_offsets, k_phi)
 
     @abc.abstractmethod
     def _render_batches(self, mesh, sonar: SonarConstants, beam_widths: np.ndarray, rotations: np.ndarray,
@@ -753,14 +762,14 @@ def ray_spans(bounds: np.ndarray, sonar: SonarSpec, rotations: np.ndarray, trans
     atan(z/ρ) lies between the corners' least and most z over the least ρ (>= the least y) or
     the most; ± SPAN_MARGIN. Every sub-ray of a box not wholly ahead; zeros where none is
     reached. About 1 µs a view."""
-    corners = np.array(np.meshgrid(*np.asarray(bounds, np.float64).T, indexing="ij")).reshape(3, -1).T  # (8, 3)
-    rot = np.asarray(rotations, np.float64)
-    normal, offset = np.asarray(plane_normals, np.float64), np.asarray(plane_offsets, np.float64)
-    origin = (rot * np.asarray(translations, np.float64)[:, :, None]).sum(axis=1)  # Rᵀ t
-    direct = np.tensordot(corners, rot, axes=([1], [1])).transpose(1, 0, 2) - origin[:, None]  # (N, 8, 3) view frame
-    height = (direct * normal[:, None]).sum(axis=2) - offset[:, None]
-    boxes = np.stack([direct, direct - 2.0 * height[..., None] * normal[:, None]], axis=1)  # (N, 2, 8, 3)
-    x, y, z = boxes[..., 0], boxes[..., 1], boxes[..., 2]
+    corners = np.array(np.meshgrid(*np.asarray(bounds, np.float32).T, indexing="ij")).reshape(3, -1).T  # (8, 3)
+    rot = np.asarray(rotations, np.float32)  # float32 as the kernels: far inside SPAN_MARGIN
+    normal, offset = np.asarray(plane_normals, np.float32), np.asarray(plane_offsets, np.float32)
+    origin = np.einsum("nji,nj->ni", rot, np.asarray(translations, np.float32))  # Rᵀ t
+    direct = np.tensordot(rot, corners, axes=([1], [1])) - origin[:, :, None]  # (N, 3, 8) view frame
+    height = np.einsum("nik,ni->nk", direct, normal) - offset[:, None]
+    mirror = direct - 2.0 * normal[:, :, None] * height[:, None]
+    x, y, z = (np.stack([direct[:, k], mirror[:, k]], axis=1) for k in range(3))  # (N, 2, 8): the box, its image
     ahead = np.all(y > 0.0, axis=2)  # (N, 2): the box ahead of the sonar
     y = np.where(ahead[..., None], y, 1.0)
     slopes = x / y  # tan(azimuth)
