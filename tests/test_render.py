@@ -582,3 +582,25 @@ def test_ray_spans_follow_the_box_angles():
     assert spans([1.9, 0.9, -0.1], [2.1, 1.1, 0.1]) == (0, 0, 0, 0)  # at about 63° azimuth, beside the fan
     assert spans([-0.1, -0.1, -0.1], [0.1, 0.1, 0.1]) == (0, sonar.beams, 0, k_phi)
     assert spans([-0.1, -2.2, -0.1], [0.1, -2.0, 0.1]) == (0, sonar.beams, 0, k_phi)
+
+
+def test_layers_held_are_never_rendered_over(backend):
+    """A CPU device reuses the buffers of layers that are gone (``_layers_buffer``): layers still
+    held keep their pixels while later renders come and go, and a reused buffer holds only the
+    new render's pixels."""
+    sonar, mesh, rot, trans, normals, offsets = coral_inputs()
+    handle = backend.load_mesh(mesh.vertices, mesh.faces)
+
+    def render(views):
+        return backend.render_device(handle, sonar, rot[views], trans[views], normals[views], offsets[views], SAMPLES,
+                                     gamma=GAMMA, surface_reflection=RS)
+
+    first, second, third = render([0, 1]), render([2, 3]), render([1, 2])
+    want = [layers.numpy() for layers in (first, second, third)]
+    assert not np.array_equal(want[0], want[1]) and not np.array_equal(want[1], want[2])
+    del first
+    for views in ([3, 0], [0, 1]):
+        again = render(views).numpy()
+        np.testing.assert_array_equal(second.numpy(), want[1])
+        np.testing.assert_array_equal(third.numpy(), want[2])
+    np.testing.assert_array_equal(again, want[0])

@@ -8,6 +8,7 @@ host-built BVH, ``fsswarp/backends/bvh.py``, and its buffers).
 from __future__ import annotations
 
 import threading
+import weakref
 
 import numpy as np
 import pyopencl as cl
@@ -18,8 +19,10 @@ from ..constants import FRONTAL_VISIBLE, MAX_DISTANCE, RAY_EPSILON
 from ..runtimes import OpenCLDevice
 from .programs import GROUP, program
 
-#: Largest render accumulator (bytes) a CPU device keeps between renders (``_accumulator``).
+#: Largest render accumulator or layers buffer (bytes) a CPU device keeps between renders.
 SCRATCH_BYTES = 1 << 30
+#: Most layers buffers a CPU device keeps between renders (``_layers_buffer``).
+KEPT_LAYERS = 2
 
 
 class OpenCLBackend(Backend):
@@ -50,6 +53,7 @@ class OpenCLBackend(Backend):
         self._icp_kernel = cl.Kernel(program(self.context, "icp.cl"), "icp_runs") if self.has_float64 else None
         self._lock = threading.Lock()
         self._scratch = None  # the accumulator kept between renders on a CPU device (_accumulator)
+        self._kept_layers = []  # (layers buffer, weak reference to its holder) kept on a CPU device (_layers_buffer)
 
     def _input(self, array: np.ndarray) -> cl.Buffer:
         flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
@@ -172,16 +176,18 @@ class OpenCLBackend(Backend):
         _check_mesh(mesh)
         shape = (rotations.shape[0], 4, rows, sonar.beams)
         size = int(np.prod(shape))
-        layers_buf = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=4 * size)
         with self._lock:
-            acc_buf = self._accumulator(4 * size)
+            acc_buf, layers_buf = self._accumulator(4 * size), self._layers_buffer(4 * size)
             self._enqueue_render(mesh, sonar, beam_widths, rotations, translations, plane_normals, plane_offsets,
                                  k_theta, k_phi, gamma, surface_reflection, first_rows, spans, shape, acc_buf,
                                  layers_buf)
             self.queue.finish()
             if acc_buf is not self._scratch:
                 acc_buf.release()
-        return OpenCLLayers(self.queue, layers_buf, shape)
+            layers = OpenCLLayers(self.queue, layers_buf, shape)
+            self._kept_layers = [(kept, weakref.ref(layers) if kept is layers_buf else holder)
+                                 for kept, holder in self._kept_layers]
+        return layers
 
     def _accumulator(self, nbytes: int) -> cl.Buffer:
         """A render's fixed-point accumulator: on a CPU device one buffer kept for renders up to
@@ -195,6 +201,24 @@ class OpenCLBackend(Backend):
                 self._scratch.release()
             self._scratch = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=nbytes)
         return self._scratch
+
+    def _layers_buffer(self, nbytes: int) -> cl.Buffer:
+        """The float layers' buffer of a render: on a CPU device one of ``KEPT_LAYERS`` buffers
+        kept from earlier renders whose layers are gone (the pose grid renders, reads and drops
+        them level after level, beside the comparison's located layers), grown as needed, up to
+        ``SCRATCH_BYTES``; else a new one. Call holding ``_lock``; ``_render`` records the holder."""
+        if not self.is_gpu and nbytes <= SCRATCH_BYTES:
+            for k, (kept, holder) in enumerate(self._kept_layers):
+                if holder is None or holder() is None:
+                    if kept.size < nbytes:
+                        kept.release()
+                        kept = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=nbytes)
+                    self._kept_layers[k] = (kept, None)
+                    return kept
+            if len(self._kept_layers) < KEPT_LAYERS:
+                self._kept_layers.append((cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=nbytes), None))
+                return self._kept_layers[-1][0]
+        return cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=nbytes)
 
     def _enqueue_render(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations, plane_normals,
                         plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, spans, shape, acc_buf,
