@@ -795,6 +795,12 @@ def ray_spans(bounds: np.ndarray, sonar: SonarSpec, rotations: np.ndarray, trans
     return spans.astype(np.int32)
 
 
+def span_extent(spans: np.ndarray) -> tuple[int, int]:
+    """A render launch's extent over (N, 4) :func:`ray_spans`: the widest beam span and the
+    most elevation samples of any view (0 beams: no view reaches the mesh, nothing to cast)."""
+    return int(np.max(spans[:, 1] - spans[:, 0])), int(np.max(spans[:, 3] - spans[:, 2]))
+
+
 def _row_bands(rows, n_views: int, bins: int) -> tuple[np.ndarray, int]:
     """(first (N,) int32, count) of ``render_device``'s ``rows`` (None: zeros and bins), or raise."""
     if rows is None:

@@ -13,7 +13,7 @@ import weakref
 import numpy as np
 import pyopencl as cl
 
-from ..base import Backend, DeviceLayers, PreparedLaunch, SonarConstants
+from ..base import Backend, DeviceLayers, PreparedLaunch, SonarConstants, span_extent
 from ..bvh import FlatBVH, build_bvh
 from ..constants import FRONTAL_VISIBLE, MAX_DISTANCE, RAY_EPSILON
 from ..runtimes import OpenCLDevice
@@ -234,9 +234,9 @@ class OpenCLBackend(Backend):
                        + np.arange(sonar.beams) / np.float64(sonar.beam_scale)).astype(np.float32)
         size = int(np.prod(shape))
         zeroed = cl.enqueue_fill_buffer(self.queue, acc_buf, np.int32(0), 0, 4 * size, wait_for=wait_for)
-        widest = int(np.max(spans[:, 1] - spans[:, 0]))
-        sub = k_theta * int(np.max(spans[:, 3] - spans[:, 2]))
+        widest, samples = span_extent(spans)
         if widest:  # else no view reaches the mesh: the layers stay zeros
+            sub = k_theta * samples
             group = min(GROUP, 1 << (sub - 1).bit_length())
             self._render_kernel(
                 self.queue, (-(-sub // group) * group, widest, shape[0]), (group, 1, 1),
@@ -246,8 +246,7 @@ class OpenCLBackend(Backend):
                 self._input(np.ascontiguousarray(beam_widths, np.float32)),
                 self._input(sonar.beam_table), sonar.record(), np.int32(k_theta), np.int32(k_phi),
                 np.float32(1.0 / (k_theta * k_phi)), np.float32(gamma), np.float32(surface_reflection),
-                np.float32(RAY_EPSILON),
-                np.float32(MAX_DISTANCE), self._input(first_rows), np.int32(shape[2]),
+                np.float32(RAY_EPSILON), np.float32(MAX_DISTANCE), self._input(first_rows), np.int32(shape[2]),
                 self._input(np.ascontiguousarray(spans, np.int32)), acc_buf, wait_for=[zeroed])
         return self._fixed_kernel(self.queue, (-(-size // GROUP) * GROUP,), None, acc_buf, layers_buf,
                                   np.int32(size))

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from ..base import Backend, DeviceLayers, PreparedLaunch, SonarConstants
+from ..base import Backend, DeviceLayers, PreparedLaunch, SonarConstants, span_extent
 from ..bvh import triangle_bounds
 from ..constants import FRONTAL_VISIBLE, MAX_DISTANCE, RAY_EPSILON, WARP_FAR
 from ..runtimes import import_warp
@@ -195,9 +195,9 @@ class WarpBackend(Backend):
             half = float(sonar.half_azimuth)
             centres = (-half + np.arange(sonar.beams) * (2.0 * half / max(sonar.beams - 1, 1))).astype(np.float32)
         weight = float(np.float32(1.0 / (k_theta * k_phi)))
-        widest = int(np.max(spans[:, 1] - spans[:, 0]))
+        widest, samples = span_extent(spans)
         if widest:  # else no view reaches the mesh: the layers stay zeros
-            wp.launch(render_kernel, dim=(acc.shape[0], widest, k_theta * int(np.max(spans[:, 3] - spans[:, 2]))),
+            wp.launch(render_kernel, dim=(acc.shape[0], widest, k_theta * samples),
                       inputs=[mesh.id, mesh.points, mesh.indices, *poses, self._constant(centres, float),
                               self._constant(np.asarray(beam_widths, np.float32), float),
                               self._constant(sonar.beam_table, float), kernel_sonar(sonar), int(k_theta),
