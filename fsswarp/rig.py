@@ -133,7 +133,8 @@ class Rig:
     def relative_poses(self, depth, tilt):
         """Every view's pose in the reference frame: ``P_ref = R @ P_view + t``.
 
-        ``R_m = (R_ref^W)ᵀ R_m^W`` and ``t_m = (R_ref^W)ᵀ (s_m - s_ref)``; both depend on β.
+        ``R_m = (R_ref^W)ᵀ R_m^W`` and ``t_m = (R_ref^W)ᵀ (s_m - s_ref)``; both depend on β, except
+        ``R_m = Ry(ω_m)`` (taken exactly) for views with the reference's heading and tilt offset.
         Returns ``(R, t)``: (*G, V, 3, 3) and (*G, V, 3); read-only for one candidate (``_one``)."""
         return self._one("_relative_poses", depth, tilt)
 
@@ -158,7 +159,14 @@ class Rig:
         rot_w, s_w = self.world_poses(depth, tilt)
         rot_ref, s_ref = self.reference_pose(depth, tilt)
         rt = np.swapaxes(rot_ref, -1, -2)[..., None, :, :]
-        return rt @ rot_w, (rt @ (s_w - s_ref[..., None, :])[..., None])[..., 0]
+        rot = rt @ rot_w
+        # a view with the reference's heading and tilt offset turns by its roll alone, Ry(ω), at
+        # every (D, β): exact, so that renders on a (D, β) grid find its pose the same bit for bit
+        _, heading, roll, _, tilt_offset = self._arrays()
+        ref = self.views[self.reference]
+        level = (heading == ref.heading) & (tilt_offset == ref.tilt_offset)
+        rot[..., level, :, :] = rotation_y(roll[level])
+        return rot, (rt @ (s_w - s_ref[..., None, :])[..., None])[..., 0]
 
 
 def with_rolls(rig: Rig, rolls, *, at: str | None = None) -> tuple[Rig, list[str]]:

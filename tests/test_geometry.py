@@ -152,11 +152,16 @@ def paper_rig(n_rolls=8, standoff=2.0):
 
 
 def test_relative_pose_of_reference_is_its_roll():
-    rig = paper_rig()
-    rot, t = rig.relative_poses(0.43, 0.18)
+    """Views at the reference's position, heading and tilt offset: R = Ry(ω), t = 0, exactly at
+    every (D, β) (a render on a (D, β) grid shares their poses bit for bit); a view with its own
+    tilt offset δβ turns by Rx(δβ) Ry(ω)."""
+    rig = Rig(paper_rig().views + (View("off", (0.0, 0.0), 0.0, 0.3, tilt_offset=0.05),))
+    rot, t = rig.relative_poses(np.array([0.40, 0.43, 0.50]), np.array([0.0, 0.18, 0.31]))
     for k in range(8):
-        np.testing.assert_allclose(rot[k], rotation_y(rig.views[k].roll), atol=1e-12)
-        np.testing.assert_allclose(t[k], 0.0, atol=1e-12)
+        for g in range(3):
+            np.testing.assert_array_equal(rot[g, k], rotation_y(rig.views[k].roll))
+            np.testing.assert_array_equal(t[g, k], 0.0)
+    np.testing.assert_allclose(rot[:, 16], np.broadcast_to(rotation_x(0.05) @ rotation_y(0.3), (3, 3, 3)), atol=1e-12)
 
 
 def test_tilt_moves_the_opposite_view():
