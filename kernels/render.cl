@@ -21,6 +21,10 @@
  *   spans         (N, 4) int       view v casts only beams spans[v][0] <= b < spans[v][1] and
  *                 elevation samples spans[v][2] <= j < spans[v][3]
  *                 (fsswarp.backends.base.ray_spans: the others reach nothing)
+ *   poses         (N,) int         -1: view v casts its direct leg; p >= 0: it reads it from
+ *                 hit_range and hit_tri of pose p (direct_hits, the same float operations)
+ *   hit_range, hit_tri  (P, beams, k_theta, k_phi) float and int of direct_hits (unused
+ *                 where every poses[v] is -1)
  *   acc           (N, 4, R, beams) int  fixed-point accumulator (2^24 = 1), zeroed by the host:
  *                 a return of view v at image row B lands in acc[v][layer][B − first_rows[v]]
  *                 when that lies in [0, R) (and its beam in the image), else it is dropped.
@@ -75,6 +79,57 @@ inline float fss_dot(float3 a, float3 b)
     return a.x * b.x + a.y * b.y + a.z * b.z;
 }
 
+/* Step 1: the view-frame direction of sub-ray (i, j) of beam b. */
+float3 fss_sub_ray(__global const float *beam_centres, __global const float *beam_widths, fss_sonar sonar,
+                   int b, int i, int j, int k_theta, int k_phi)
+{
+    const float theta = beam_centres[b] + (((float)i + 0.5f) / (float)k_theta - 0.5f) * beam_widths[b];
+    const float phi = -sonar.half_elevation + ((float)j + 0.5f) / (float)k_phi * (2.0f * sonar.half_elevation);
+    const float cp = cos(phi);
+    return (float3)(cp * sin(theta), cp * cos(theta), sin(phi));
+}
+
+/* direct_hits -- the direct leg of every sub-ray of P distinct poses, for the views of a render
+ * that share a pose (render_views' poses): a (D, β) grid changes only the surface in views whose
+ * pose does not depend on β, and the depth never moves a pose.
+ *
+ * Arguments: nodes, children, tris, beam_centres, beam_widths, sonar, k_theta, k_phi,
+ * max_distance as render_views; rotations (P, 3, 3), translations (P, 3) the poses; spans (P, 4)
+ * the sub-rays to cast (the hull of the spans of the views with that pose); hit_range and
+ * hit_tri (P, beams, k_theta, k_phi): the first hit's distance (INFINITY: none) and reordered
+ * triangle (-1: none). Work size as render_views, over the P poses. */
+__kernel void direct_hits(__global const float4 *nodes,
+                          __global const int *children,
+                          __global const float *tris,
+                          __global const float *rotations,
+                          __global const float *translations,
+                          __global const float *beam_centres,
+                          __global const float *beam_widths,
+                          const fss_sonar sonar,
+                          const int k_theta,
+                          const int k_phi,
+                          const float max_distance,
+                          __global const int *spans,
+                          __global float *hit_range,
+                          __global int *hit_tri)
+{
+    const int s = (int)get_global_id(0);
+    const int p = (int)get_global_id(2);
+    const int b = spans[4 * p] + (int)get_global_id(1);
+    const int samples = spans[4 * p + 3] - spans[4 * p + 2];
+    if (s >= k_theta * samples || b >= spans[4 * p + 1])
+        return;
+    const int i = s / samples;
+    const int j = spans[4 * p + 2] + s - i * samples;
+    const float3 u = fss_sub_ray(beam_centres, beam_widths, sonar, b, i, j, k_theta, k_phi);
+    int tri;
+    const float r = fss_bvh_intersect(nodes, children, tris, vload3(p, translations),
+                                      fss_rotate(rotations + 9 * p, u), 0.0f, max_distance, &tri);
+    const int k = ((p * sonar.beams + b) * k_theta + i) * k_phi + j;
+    hit_range[k] = r;
+    hit_tri[k] = tri;
+}
+
 __kernel void render_views(__global const float4 *nodes,
                            __global const int *children,
                            __global const float *tris,
@@ -96,6 +151,9 @@ __kernel void render_views(__global const float4 *nodes,
                            __global const int *first_rows,
                            const int rows,
                            __global const int *spans,
+                           __global const int *poses,
+                           __global const float *hit_range,
+                           __global const int *hit_tri,
                            __global int *acc)
 {
     const int s = (int)get_global_id(0);
@@ -113,15 +171,20 @@ __kernel void render_views(__global const float4 *nodes,
     const int first = first_rows[v];
 
     /* 1. sub-ray */
-    const float theta = beam_centres[b] + (((float)i + 0.5f) / (float)k_theta - 0.5f) * beam_widths[b];
-    const float phi = -sonar.half_elevation + ((float)j + 0.5f) / (float)k_phi * (2.0f * sonar.half_elevation);
-    const float cp = cos(phi);
-    const float3 u = (float3)(cp * sin(theta), cp * cos(theta), sin(phi));
+    const float3 u = fss_sub_ray(beam_centres, beam_widths, sonar, b, i, j, k_theta, k_phi);
     const float3 u_ref = fss_rotate(rot, u);
 
     /* 2. direct leg */
     int tri;
-    const float r = fss_bvh_intersect(nodes, children, tris, t, u_ref, 0.0f, max_distance, &tri);
+    float r;
+    const int pose = poses[v];
+    if (pose >= 0) {
+        const int k = ((pose * sonar.beams + b) * k_theta + i) * k_phi + j;
+        r = hit_range[k];
+        tri = hit_tri[k];
+    } else {
+        r = fss_bvh_intersect(nodes, children, tris, t, u_ref, 0.0f, max_distance, &tri);
+    }
     const float nu = fss_dot(n, u);
     const float s_surf = nu > 0.0f ? d / nu : INFINITY;
 

@@ -549,7 +549,7 @@ def test_culled_sub_rays_change_no_pixel(backend):
     clean = [np.ascontiguousarray(a, np.float32) for a in (rot, trans, normals, offsets)]
     every = np.tile(np.array([[0, sonar.beams, 0, SAMPLES[1]]], np.int32), (len(rot), 1))
     full, culled = (backend._render(handle, SonarConstants.of(sonar), sonar.beam_widths, *clean, *SAMPLES, GAMMA,
-                                    RS, np.zeros(len(rot), np.int32), sonar.bins, cast).numpy()
+                                    RS, np.zeros(len(rot), np.int32), sonar.bins, cast, None).numpy()
                     for cast in (every, spans))
     np.testing.assert_array_equal(culled, full)
     rendered = backend.render(handle, sonar, rot, trans, normals, offsets, SAMPLES, gamma=GAMMA, surface_reflection=RS)
@@ -557,6 +557,44 @@ def test_culled_sub_rays_change_no_pixel(backend):
     for v, (first, end, _, _) in enumerate(spans):
         beams = np.flatnonzero(full[v, [0, 1, 3]].any(axis=(0, 1)))
         assert beams.size and first <= beams.min() and beams.max() < end, (CORAL_VIEWS[v], first, end)
+
+
+def test_shared_direct_legs_change_no_pixel(backend):
+    """On a (D, β) grid the depth never moves a view's pose and the reference's position keeps
+    its pose at every tilt: ``shared_poses`` finds one pose per S view and one per N view and
+    tilt, and a render that casts each pose's direct legs once gives, bit for bit, the layers of
+    every view casting its own (rows banded as the pose grid renders them)."""
+    from fsswarp.backends.base import SonarConstants, ray_spans, shared_poses
+
+    manifest = builtin_scene("coral-one")
+    rig, depth, tilt = manifest.rig, manifest.truth.depth, manifest.truth.tilt
+    names = ("S0", "Sp67p5", "N0", "Nm22p5")
+    idx = [rig.index(name) for name in names]
+    depths = depth + np.array([-0.02, 0.0, 0.03, -0.02, 0.0, 0.03])
+    tilts = tilt + np.radians([-0.5, -0.5, -0.5, 0.8, 0.8, 0.8])
+    rot, trans = (a[:, idx] for a in rig.relative_poses(depths, tilts))
+    normals, offsets = (a[:, idx] for a in surface_in_views(rig, depths, tilts))
+    clean = [np.ascontiguousarray(a.reshape(-1, *a.shape[2:]), np.float32) for a in (rot, trans, normals, offsets)]
+    world = target_world_mesh(manifest.target)
+    handle = backend.load_mesh(world_to_reference(world.vertices, rig, depth, tilt), np.asarray(world.faces))
+    spans = ray_spans(handle.bounds, manifest.sonar, *clean, SAMPLES[1])
+    shared = shared_poses(clean[0], clean[1], spans, manifest.sonar.beams * SAMPLES[0] * SAMPLES[1])
+    assert shared is not None and shared.first.size == 2 + 2 * 2  # S views: 1 pose each; N views: 1 per tilt
+    np.testing.assert_array_equal(clean[0][shared.first[shared.index]], clean[0])
+    assert np.all(spans[:, 1] > spans[:, 0])
+    for p in range(shared.first.size):  # the hull of the spans of the pose's views
+        mine = spans[shared.index == p]
+        assert tuple(shared.spans[p]) == (mine[:, 0].min(), mine[:, 1].max(), mine[:, 2].min(), mine[:, 3].max())
+    first = np.full(len(spans), 150, np.int32)
+    own, once = (backend._render(handle, SonarConstants.of(manifest.sonar), manifest.sonar.beam_widths, *clean,
+                                 *SAMPLES, GAMMA, RS, first, 200, spans, poses).numpy() for poses in (None, shared))
+    assert own[:, 0].sum() > 0 and own[:, 1].sum() > 0 and own[:, 3].sum() > 0
+    np.testing.assert_array_equal(once, own)
+    rendered = backend.render_device(handle, manifest.sonar, *clean, SAMPLES, gamma=GAMMA, surface_reflection=RS,
+                                     rows=(first, 200)).numpy()
+    np.testing.assert_array_equal(rendered, own)
+    assert shared_poses(clean[0][:4], clean[1][:4], spans[:4], 1) is None  # four distinct poses
+    assert shared_poses(clean[0], clean[1], spans, 2**40) is None  # too many hits to keep
 
 
 def test_ray_spans_follow_the_box_angles():

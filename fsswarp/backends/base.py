@@ -362,10 +362,10 @@ class Backend(abc.ABC):
         if n_views == 0:
             return HostLayers(np.zeros((0, 4, count, sonar.beams), np.float32),
                               None if rows is None else first)
+        spans = self._spans(mesh, sonar, rot, trans, normals, offsets, k_phi)
         layers = self._render(mesh, SonarConstants.of(sonar), sonar.beam_widths, rot, trans, normals,
-                              offsets, k_theta, k_phi, float(gamma),
-                              float(surface_reflection), first, count,
-                              self._spans(mesh, sonar, rot, trans, normals, offsets, k_phi))
+                              offsets, k_theta, k_phi, float(gamma), float(surface_reflection), first, count,
+                              spans, shared_poses(rot, trans, spans, sonar.beams * k_theta * k_phi))
         layers.first_rows = None if rows is None else first.copy()
         return layers
 
@@ -440,14 +440,17 @@ class Backend(abc.ABC):
     def _render(self, mesh, sonar: SonarConstants, beam_widths: np.ndarray, rotations: np.ndarray,
                 translations: np.ndarray, plane_normals: np.ndarray, plane_offsets: np.ndarray,
                 k_theta: int, k_phi: int, gamma: float, surface_reflection: float,
-                first_rows: np.ndarray, rows: int, spans: np.ndarray) -> "DeviceLayers":
+                first_rows: np.ndarray, rows: int, spans: np.ndarray,
+                shared: "SharedPoses | None") -> "DeviceLayers":
         """Kernel launch of ``render_device`` (the algorithm: fsswarp/rendering.py's docstring);
         beam_widths: (beams,) float32 Δθ_b; first_rows (N,) int32 and rows R: view n keeps
         the bins first_rows[n] <= B < first_rows[n] + R (zeros and bins for full layers),
         valid; spans (N, 4) int32 (:func:`ray_spans`): view n casts only the sub-rays (i, j) of
         beams spans[n, 0] <= b < spans[n, 1] with spans[n, 2] <= j < spans[n, 3] (the others
-        reach nothing). Returns the (N, 4, R, beams) float32 layers, complete, on the device
-        (the caller sets ``first_rows``)."""
+        reach nothing); shared (:func:`shared_poses`): views whose direct legs are cast once per
+        distinct pose (the same float operations, so the same pixels), or None. Returns the
+        (N, 4, R, beams) float32 layers, complete, on the device (the caller sets
+        ``first_rows``)."""
 
     # --- frontal contours and their distance to the data's (the (D, β) grid search) ----------
     def contour_cost(self, layers, view_index, thresholds, windows, masks, distances, shifts,
@@ -793,6 +796,49 @@ def ray_spans(bounds: np.ndarray, sonar: SonarSpec, rotations: np.ndarray, trans
                       np.where(reached, j_first, most).min(axis=1), np.where(reached, j_end, 0).max(axis=1)], axis=1)
     spans[~reached.any(axis=1)] = 0
     return spans.astype(np.int32)
+
+
+@dataclass(frozen=True)
+class SharedPoses:
+    """The distinct poses of a render's N views: view n has pose ``index[n]`` (N,) int32, which
+    view ``first[p]`` (P,) has first; ``spans`` (P, 4) int32, the hull of the ray spans of its
+    views (zeros where none reaches the mesh)."""
+
+    index: np.ndarray
+    first: np.ndarray
+    spans: np.ndarray
+
+
+#: Most direct-leg hits (float and int each) that a render keeps for its shared poses.
+SHARED_HITS = 2**27
+
+
+def shared_poses(rotations: np.ndarray, translations: np.ndarray, spans: np.ndarray,
+                 sub_rays: int) -> SharedPoses | None:
+    """The views among (N, 3, 3) rotations and (N, 3) translations (float32) that share a pose
+    bit for bit, whose direct legs (the first hit along each sub-ray, which the surface does not
+    change) a render casts once per pose: on a (D, β) grid the depth never moves a pose, and
+    views at the reference's position keep theirs at every tilt. None where every pose differs,
+    or where the P poses' ``sub_rays`` hits each would pass ``SHARED_HITS``. Poses are told
+    apart by a 64-bit hash of their bits, checked exactly (a collision: None)."""
+    n = rotations.shape[0]
+    rows = np.ascontiguousarray(np.concatenate([rotations.reshape(n, 9), translations], axis=1), np.float32)
+    keys = (rows.view(np.uint32).astype(np.uint64) * _POSE_HASH).sum(axis=1)
+    _, first, index = np.unique(keys, return_index=True, return_inverse=True)
+    if first.size == n or first.size * sub_rays > SHARED_HITS or not np.array_equal(rows[first][index], rows):
+        return None
+    reached = spans[:, 1] > spans[:, 0]
+    hull = np.zeros((first.size, 4), np.int64)
+    most = np.iinfo(np.int64).max
+    hull[:, 0] = hull[:, 2] = most
+    for k, combine in enumerate((np.minimum, np.maximum, np.minimum, np.maximum)):
+        combine.at(hull[:, k], index[reached], spans[reached, k])
+    hull[~np.isin(np.arange(first.size), index[reached])] = 0
+    return SharedPoses(index.astype(np.int32).reshape(n), first, hull.astype(np.int32))
+
+
+#: Odd multipliers of the pose hash, one per float of a pose (fixed: the same poses, the same keys).
+_POSE_HASH = np.random.default_rng(20261126).integers(1, 2**63, size=12, dtype=np.uint64) | np.uint64(1)
 
 
 def span_extent(spans: np.ndarray) -> tuple[int, int]:

@@ -44,6 +44,7 @@ class OpenCLBackend(Backend):
         self._carve_points_kernel = cl.Kernel(program(self.context, "carve.cl"), "carve_points")
         self._cast_kernel = cl.Kernel(program(self.context, "raycast.cl"), "cast_rays")
         self._render_kernel = cl.Kernel(program(self.context, "render.cl"), "render_views")
+        self._direct_hits_kernel = cl.Kernel(program(self.context, "render.cl"), "direct_hits")
         self._fixed_kernel = cl.Kernel(program(self.context, "render.cl"), "fixed_to_float")
         self._frontal_rays_kernel = cl.Kernel(program(self.context, "render.cl"), "frontal_rays")
         self._frontal_kernel = cl.Kernel(program(self.context, "pose.cl"), "frontal_contour")
@@ -172,7 +173,8 @@ class OpenCLBackend(Backend):
         return rng, face
 
     def _render(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations,
-                plane_normals, plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, rows, spans):
+                plane_normals, plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, rows, spans,
+                shared):
         _check_mesh(mesh)
         shape = (rotations.shape[0], 4, rows, sonar.beams)
         size = int(np.prod(shape))
@@ -180,7 +182,7 @@ class OpenCLBackend(Backend):
             acc_buf, layers_buf = self._accumulator(4 * size), self._layers_buffer(4 * size)
             self._enqueue_render(mesh, sonar, beam_widths, rotations, translations, plane_normals, plane_offsets,
                                  k_theta, k_phi, gamma, surface_reflection, first_rows, spans, shape, acc_buf,
-                                 layers_buf)
+                                 layers_buf, shared=shared)
             self.queue.finish()
             if acc_buf is not self._scratch:
                 acc_buf.release()
@@ -222,9 +224,10 @@ class OpenCLBackend(Backend):
 
     def _enqueue_render(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations, plane_normals,
                         plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, spans, shape, acc_buf,
-                        layers_buf, wait_for=None) -> cl.Event:
+                        layers_buf, wait_for=None, shared=None) -> cl.Event:
         """Enqueue the zeroing of acc_buf, the render and fixed-point kernels of the views given
-        (clean float32 (n, ...) arrays, their (n, 4) ray spans) into layers_buf, of ``shape``
+        (clean float32 (n, ...) arrays, their (n, 4) ray spans; ``shared``, their SharedPoses or
+        None, first casts the direct legs of the distinct poses) into layers_buf, of ``shape``
         (n, 4, R, beams), after the events ``wait_for``; returns the last kernel's event. Call
         holding ``_lock``."""
         if sonar.use_table:
@@ -238,6 +241,8 @@ class OpenCLBackend(Backend):
         if widest:  # else no view reaches the mesh: the layers stay zeros
             sub = k_theta * samples
             group = min(GROUP, 1 << (sub - 1).bit_length())
+            poses, hit_range, hit_tri = self._direct_hits(mesh, sonar, centres, beam_widths, rotations, translations,
+                                                          k_theta, k_phi, shared)
             self._render_kernel(
                 self.queue, (-(-sub // group) * group, widest, shape[0]), (group, 1, 1),
                 mesh.nodes, mesh.children, mesh.triangles,
@@ -247,9 +252,34 @@ class OpenCLBackend(Backend):
                 self._input(sonar.beam_table), sonar.record(), np.int32(k_theta), np.int32(k_phi),
                 np.float32(1.0 / (k_theta * k_phi)), np.float32(gamma), np.float32(surface_reflection),
                 np.float32(RAY_EPSILON), np.float32(MAX_DISTANCE), self._input(first_rows), np.int32(shape[2]),
-                self._input(np.ascontiguousarray(spans, np.int32)), acc_buf, wait_for=[zeroed])
+                self._input(np.ascontiguousarray(spans, np.int32)), poses, hit_range, hit_tri, acc_buf,
+                wait_for=[zeroed])
         return self._fixed_kernel(self.queue, (-(-size // GROUP) * GROUP,), None, acc_buf, layers_buf,
                                   np.int32(size))
+
+    def _direct_hits(self, mesh, sonar: SonarConstants, centres, beam_widths, rotations, translations, k_theta,
+                     k_phi, shared) -> tuple[cl.Buffer, cl.Buffer, cl.Buffer]:
+        """render_views' poses, hit_range and hit_tri: with ``shared`` (SharedPoses) the direct
+        legs of its distinct poses, enqueued; without, poses of -1 (every view casts its own)."""
+        n_views = rotations.shape[0]
+        if shared is None:
+            unused = cl.Buffer(self.context, cl.mem_flags.READ_ONLY, size=4)
+            return self._input(np.full(n_views, -1, np.int32)), unused, unused
+        widest, samples = span_extent(shared.spans)
+        count = shared.first.size * sonar.beams * k_theta * k_phi
+        hit_range = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=4 * count)
+        hit_tri = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=4 * count)
+        if widest:
+            sub = k_theta * samples
+            group = min(GROUP, 1 << (sub - 1).bit_length())
+            self._direct_hits_kernel(
+                self.queue, (-(-sub // group) * group, widest, shared.first.size), (group, 1, 1),
+                mesh.nodes, mesh.children, mesh.triangles,
+                self._input(np.ascontiguousarray(rotations[shared.first])),
+                self._input(np.ascontiguousarray(translations[shared.first])), self._input(centres),
+                self._input(np.ascontiguousarray(beam_widths, np.float32)), sonar.record(), np.int32(k_theta),
+                np.int32(k_phi), np.float32(MAX_DISTANCE), self._input(shared.spans), hit_range, hit_tri)
+        return self._input(shared.index), hit_range, hit_tri
 
     def _render_batches(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations, plane_normals,
                         plane_offsets, k_theta, k_phi, gamma, surface_reflection, batch, spans):

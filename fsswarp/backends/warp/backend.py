@@ -19,7 +19,7 @@ from .icp import icp_runs_kernel
 from .pose import contour_cost_kernel, frontal_contour, view_cost_kernel
 from .project import project_points
 from .raycast import cast_rays_kernel
-from .render import fixed_to_float, frontal_rays_kernel, render_kernel
+from .render import direct_hits_kernel, fixed_to_float, frontal_rays_kernel, render_kernel
 from .sonar import kernel_sonar
 
 #: ``WarpBackend._constant``: inputs up to this size are kept on the device for reuse ...
@@ -166,7 +166,8 @@ class WarpBackend(Backend):
             return rng.numpy(), face.numpy()
 
     def _render(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations,
-                plane_normals, plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, rows, spans):
+                plane_normals, plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, rows, spans,
+                shared):
         mesh = self._check_mesh(mesh)
         shape = (rotations.shape[0], 4, rows, sonar.beams)
         with wp.ScopedDevice(self._device):
@@ -174,7 +175,9 @@ class WarpBackend(Backend):
             acc = wp.zeros(shape, dtype=wp.int32)
             layers = wp.empty(shape, dtype=float)
             self._render_into(mesh, sonar, beam_widths, poses, k_theta, k_phi, gamma, surface_reflection,
-                              self._constant(first_rows, wp.int32), spans, acc, layers)
+                              self._constant(first_rows, wp.int32), spans, acc, layers, shared=shared,
+                              shared_poses=None if shared is None else (rotations[shared.first],
+                                                                        translations[shared.first]))
             wp.synchronize_device(self._device)
             return WarpLayers(layers)
 
@@ -184,11 +187,13 @@ class WarpBackend(Backend):
                 self._array(plane_normals, wp.vec3), self._array(plane_offsets, float))
 
     def _render_into(self, mesh, sonar: SonarConstants, beam_widths, poses, k_theta, k_phi, gamma,
-                     surface_reflection, first_rows, spans, acc, layers) -> None:
+                     surface_reflection, first_rows, spans, acc, layers, shared=None, shared_poses=None) -> None:
         """Launch the render and fixed-point kernels of the views ``poses`` ((n,) device arrays of
         ``_poses``) on the device's current stream: acc (n, 4, R, beams) int32, zeroed, receives
         the deposits and layers (n, 4, R, beams) float32 the result; first_rows (n,) int32 on the
-        device; spans (n, 4) int32 on the host (``Backend._render``). Returns without waiting."""
+        device; spans (n, 4) int32 on the host (``Backend._render``); shared, the views' SharedPoses
+        (or None) and shared_poses its distinct (P, 3, 3) rotations and (P, 3) translations on the
+        host, whose direct legs are cast first. Returns without waiting."""
         if sonar.use_table:
             centres = np.ascontiguousarray(sonar.beam_table[0], np.float32)
         else:  # the centres of SonarSpec.beam_centres
@@ -197,14 +202,34 @@ class WarpBackend(Backend):
         weight = float(np.float32(1.0 / (k_theta * k_phi)))
         widest, samples = span_extent(spans)
         if widest:  # else no view reaches the mesh: the layers stay zeros
+            hits = self._direct_hits(mesh, sonar, centres, beam_widths, k_theta, k_phi, acc.shape[0], shared,
+                                     shared_poses)
             wp.launch(render_kernel, dim=(acc.shape[0], widest, k_theta * samples),
                       inputs=[mesh.id, mesh.points, mesh.indices, *poses, self._constant(centres, float),
                               self._constant(np.asarray(beam_widths, np.float32), float),
                               self._constant(sonar.beam_table, float), kernel_sonar(sonar), int(k_theta),
                               int(k_phi), weight, float(gamma), float(surface_reflection), first_rows,
-                              self._constant(np.ascontiguousarray(spans, np.int32), wp.int32)],
+                              self._constant(np.ascontiguousarray(spans, np.int32), wp.int32), *hits],
                       outputs=[acc])
         wp.launch(fixed_to_float, dim=acc.size, inputs=[acc.flatten()], outputs=[layers.flatten()])
+
+    def _direct_hits(self, mesh, sonar: SonarConstants, centres, beam_widths, k_theta, k_phi, n_views, shared,
+                     shared_poses) -> tuple[wp.array, wp.array, wp.array]:
+        """render_kernel's poses, hit_range and hit_face: with ``shared`` (SharedPoses) the direct
+        legs of its distinct poses, launched; without, poses of -1 (every view casts its own)."""
+        if shared is None:
+            return (self._constant(np.full(n_views, -1, np.int32), wp.int32),
+                    wp.empty((1, 1, 1, 1), dtype=float), wp.empty((1, 1, 1, 1), dtype=wp.int32))
+        shape = (shared.first.size, sonar.beams, k_theta, k_phi)
+        hit_range, hit_face = wp.empty(shape, dtype=float), wp.empty(shape, dtype=wp.int32)
+        widest, samples = span_extent(shared.spans)
+        wp.launch(direct_hits_kernel, dim=(shape[0], widest, k_theta * samples),
+                  inputs=[mesh.id, mesh.points, mesh.indices, self._array(shared_poses[0], wp.mat33),
+                          self._array(shared_poses[1], wp.vec3), self._constant(centres, float),
+                          self._constant(np.asarray(beam_widths, np.float32), float), kernel_sonar(sonar),
+                          int(k_theta), int(k_phi), self._array(shared.spans, wp.int32)],
+                  outputs=[hit_range, hit_face])
+        return self._array(shared.index, wp.int32), hit_range, hit_face
 
     def _render_batches(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations, plane_normals,
                         plane_offsets, k_theta, k_phi, gamma, surface_reflection, batch, spans):

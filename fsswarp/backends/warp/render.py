@@ -98,6 +98,38 @@ def frontal_rays_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indice
     face_out[i, j] = face
 
 
+@wp.func
+def sub_ray(beam_centres: wp.array(dtype=float), beam_widths: wp.array(dtype=float), sonar: KernelSonar,
+            b: int, i: int, j: int, k_theta: int, k_phi: int):
+    """Step 1: the view-frame direction of sub-ray (i, j) of beam b."""
+    theta = beam_centres[b] + ((float(i) + 0.5) / float(k_theta) - 0.5) * beam_widths[b]
+    phi = -sonar.half_elevation + (float(j) + 0.5) / float(k_phi) * (2.0 * sonar.half_elevation)
+    cphi = wp.cos(phi)
+    return wp.vec3(cphi * wp.sin(theta), cphi * wp.cos(theta), wp.sin(phi))
+
+
+@wp.kernel
+def direct_hits_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
+                       rotations: wp.array(dtype=wp.mat33), translations: wp.array(dtype=wp.vec3),
+                       beam_centres: wp.array(dtype=float), beam_widths: wp.array(dtype=float), sonar: KernelSonar,
+                       k_theta: int, k_phi: int, spans: wp.array2d(dtype=wp.int32),
+                       hit_range: wp.array4d(dtype=float), hit_face: wp.array4d(dtype=wp.int32)):
+    """Thread (p, o, k): the direct leg of sub-ray (i, j) of beam b of distinct pose p (as
+    render_kernel's threads), its first hit's distance (inf: none) and face (-1) into
+    hit_range and hit_face (P, beams, K_θ, K_φ) (kernels/render.cl, direct_hits)."""
+    p, o, k = wp.tid()
+    b = spans[p, 0] + o
+    samples = spans[p, 3] - spans[p, 2]
+    if b >= spans[p, 1] or k >= k_theta * samples:
+        return
+    i = k // samples
+    j = spans[p, 2] + k - i * samples
+    u = sub_ray(beam_centres, beam_widths, sonar, b, i, j, k_theta, k_phi)
+    hit = nearest_hit(mesh, points, indices, translations[p], rotations[p] * u, _FAR)
+    hit_range[p, b, i, j] = hit.t
+    hit_face[p, b, i, j] = hit.face
+
+
 @wp.kernel
 def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
                   indices: wp.array(dtype=wp.int32), rotations: wp.array(dtype=wp.mat33),
@@ -106,12 +138,14 @@ def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
                   beam_widths: wp.array(dtype=float), beam_table: wp.array2d(dtype=float),
                   sonar: KernelSonar, k_theta: int, k_phi: int, weight: float, gamma: float, surface_reflection: float,
                   first_rows: wp.array(dtype=wp.int32), spans: wp.array2d(dtype=wp.int32),
-                  acc: wp.array4d(dtype=wp.int32)):
+                  poses: wp.array(dtype=wp.int32), hit_range: wp.array4d(dtype=float),
+                  hit_face: wp.array4d(dtype=wp.int32), acc: wp.array4d(dtype=wp.int32)):
     """Thread (v, o, k): sub-ray (i, spans[v, 2] + q), (i, q) = divmod(k, J_v), of beam
     b = spans[v, 0] + o in view v, J_v = spans[v, 3] − spans[v, 2] (none where b >= spans[v, 1]
     or k >= K_θ J_v); deposits its object, ghost, mirror and mirror2 returns into acc (N, 4, R,
     beams), view v's image row B at row B − first_rows[v] when that lies in [0, R), else
-    nowhere (kernels/render.cl)."""
+    nowhere (kernels/render.cl). Where poses[v] = p >= 0 the direct leg is hit_range and
+    hit_face[p, b, i, j] (direct_hits_kernel), else cast here."""
     v, o, k = wp.tid()
     b = spans[v, 0] + o
     samples = spans[v, 3] - spans[v, 2]
@@ -126,10 +160,7 @@ def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
     first = first_rows[v]
 
     # 1. sub-ray direction (view frame)
-    theta = beam_centres[b] + ((float(i) + 0.5) / float(k_theta) - 0.5) * beam_widths[b]
-    phi = -sonar.half_elevation + (float(j) + 0.5) / float(k_phi) * (2.0 * sonar.half_elevation)
-    cphi = wp.cos(phi)
-    u = wp.vec3(cphi * wp.sin(theta), cphi * wp.cos(theta), wp.sin(phi))
+    u = sub_ray(beam_centres, beam_widths, sonar, b, i, j, k_theta, k_phi)
 
     # 2. direct leg: surface at s, first mesh hit before it
     nu = wp.dot(n, u)
@@ -138,11 +169,19 @@ def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
     if nu > 0.0:
         s = d / nu
         has_surface = True
-    hit = nearest_hit(mesh, points, indices, org, rot * u, wp.min(s, _FAR))
-    if hit.face >= 0:
-        # 3. hit before the surface
+    r = float(wp.inf)
+    face = int(-1)
+    pose = poses[v]
+    if pose >= 0:
+        r = hit_range[pose, b, i, j]
+        face = hit_face[pose, b, i, j]
+    else:
+        hit = nearest_hit(mesh, points, indices, org, rot * u, _FAR)
         r = hit.t
-        nrm = facing_normal(points, indices, hit.face, rot, u)
+        face = hit.face
+    if face >= 0 and r < s:
+        # 3. hit before the surface
+        nrm = facing_normal(points, indices, face, rot, u)
         c = -wp.dot(u, nrm)
         deposit(acc, v, 0, nearest_index(bin_coordinate(r, sonar)), b,
                 wp.pow(c, gamma), weight, sonar.beams, first)
