@@ -9,8 +9,7 @@
  *   translations  (N, 3) float     t_v
  *   plane_normals (N, 3) float     n_v, unit, into the air (view frame)
  *   plane_offsets (N,) float       d_v > 0: the surface n·P = d (view frame)
- *   beam_centres  (beams,) float   θ_b (rad)
- *   beam_widths   (beams,) float   Δθ_b (rad)
+ *   directions    (beams, k_theta, k_phi, 3) float  the sub-rays' view-frame directions (sub_rays)
  *   beam_table, sonar: the beam coordinate and the image (fss_sonar, sonar.h)
  *   k_theta, k_phi   sub-rays per beam; weight = 1 / (k_theta k_phi) (float32)
  *   gamma, surface_reflection   γ and r_s
@@ -79,22 +78,35 @@ inline float fss_dot(float3 a, float3 b)
     return a.x * b.x + a.y * b.y + a.z * b.z;
 }
 
-/* Step 1: the view-frame direction of sub-ray (i, j) of beam b. */
-float3 fss_sub_ray(__global const float *beam_centres, __global const float *beam_widths, fss_sonar sonar,
-                   int b, int i, int j, int k_theta, int k_phi)
+/* sub_rays -- step 1 once per render: the view-frame direction of every sub-ray (i, j) of every
+ * beam b, into directions (beams, k_theta, k_phi, 3) float (render_views and direct_hits read
+ * them). beam_centres, beam_widths (beams,) float: θ_b and Δθ_b (rad). Work size: 1-D,
+ * beams * k_theta * k_phi rounded up; item ((b * k_theta) + i) * k_phi + j. */
+__kernel void sub_rays(__global const float *beam_centres,
+                       __global const float *beam_widths,
+                       const fss_sonar sonar,
+                       const int k_theta,
+                       const int k_phi,
+                       __global float *directions)
 {
+    const int k = (int)get_global_id(0);
+    if (k >= sonar.beams * k_theta * k_phi)
+        return;
+    const int j = k % k_phi;
+    const int i = (k / k_phi) % k_theta;
+    const int b = k / (k_phi * k_theta);
     const float theta = beam_centres[b] + (((float)i + 0.5f) / (float)k_theta - 0.5f) * beam_widths[b];
     const float phi = -sonar.half_elevation + ((float)j + 0.5f) / (float)k_phi * (2.0f * sonar.half_elevation);
     const float cp = cos(phi);
-    return (float3)(cp * sin(theta), cp * cos(theta), sin(phi));
+    vstore3((float3)(cp * sin(theta), cp * cos(theta), sin(phi)), k, directions);
 }
 
 /* direct_hits -- the direct leg of every sub-ray of P distinct poses, for the views of a render
  * that share a pose (render_views' poses): a (D, β) grid changes only the surface in views whose
  * pose does not depend on β, and the depth never moves a pose.
  *
- * Arguments: nodes, children, tris, beam_centres, beam_widths, sonar, k_theta, k_phi,
- * max_distance as render_views; rotations (P, 3, 3), translations (P, 3) the poses; spans (P, 4)
+ * Arguments: nodes, children, tris, directions, sonar, k_theta, k_phi, max_distance as
+ * render_views; rotations (P, 3, 3), translations (P, 3) the poses; spans (P, 4)
  * the sub-rays to cast (the hull of the spans of the views with that pose); hit_range and
  * hit_tri (P, beams, k_theta, k_phi): the first hit's distance (INFINITY: none) and reordered
  * triangle (-1: none). Work size as render_views, over the P poses. */
@@ -103,8 +115,7 @@ __kernel void direct_hits(__global const float4 *nodes,
                           __global const float *tris,
                           __global const float *rotations,
                           __global const float *translations,
-                          __global const float *beam_centres,
-                          __global const float *beam_widths,
+                          __global const float *directions,
                           const fss_sonar sonar,
                           const int k_theta,
                           const int k_phi,
@@ -121,7 +132,7 @@ __kernel void direct_hits(__global const float4 *nodes,
         return;
     const int i = s / samples;
     const int j = spans[4 * p + 2] + s - i * samples;
-    const float3 u = fss_sub_ray(beam_centres, beam_widths, sonar, b, i, j, k_theta, k_phi);
+    const float3 u = vload3((b * k_theta + i) * k_phi + j, directions);
     int tri;
     const float r = fss_bvh_intersect(nodes, children, tris, vload3(p, translations),
                                       fss_rotate(rotations + 9 * p, u), 0.0f, max_distance, &tri);
@@ -137,8 +148,7 @@ __kernel void render_views(__global const float4 *nodes,
                            __global const float *translations,
                            __global const float *plane_normals,
                            __global const float *plane_offsets,
-                           __global const float *beam_centres,
-                           __global const float *beam_widths,
+                           __global const float *directions,
                            __global const float *beam_table,
                            const fss_sonar sonar,
                            const int k_theta,
@@ -171,7 +181,7 @@ __kernel void render_views(__global const float4 *nodes,
     const int first = first_rows[v];
 
     /* 1. sub-ray */
-    const float3 u = fss_sub_ray(beam_centres, beam_widths, sonar, b, i, j, k_theta, k_phi);
+    const float3 u = vload3((b * k_theta + i) * k_phi + j, directions);
     const float3 u_ref = fss_rotate(rot, u);
 
     /* 2. direct leg */

@@ -45,6 +45,7 @@ class OpenCLBackend(Backend):
         self._cast_kernel = cl.Kernel(program(self.context, "raycast.cl"), "cast_rays")
         self._render_kernel = cl.Kernel(program(self.context, "render.cl"), "render_views")
         self._direct_hits_kernel = cl.Kernel(program(self.context, "render.cl"), "direct_hits")
+        self._sub_rays_kernel = cl.Kernel(program(self.context, "render.cl"), "sub_rays")
         self._fixed_kernel = cl.Kernel(program(self.context, "render.cl"), "fixed_to_float")
         self._frontal_rays_kernel = cl.Kernel(program(self.context, "render.cl"), "frontal_rays")
         self._frontal_kernel = cl.Kernel(program(self.context, "pose.cl"), "frontal_contour")
@@ -241,15 +242,18 @@ class OpenCLBackend(Backend):
         if widest:  # else no view reaches the mesh: the layers stay zeros
             sub = k_theta * samples
             group = min(GROUP, 1 << (sub - 1).bit_length())
-            poses, hit_range, hit_tri = self._direct_hits(mesh, sonar, centres, beam_widths, rotations, translations,
-                                                          k_theta, k_phi, shared)
+            count = sonar.beams * k_theta * k_phi
+            directions = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=12 * count)
+            self._sub_rays_kernel(self.queue, (-(-count // GROUP) * GROUP,), None, self._input(centres),
+                                  self._input(np.ascontiguousarray(beam_widths, np.float32)), sonar.record(),
+                                  np.int32(k_theta), np.int32(k_phi), directions)
+            poses, hit_range, hit_tri = self._direct_hits(mesh, sonar, directions, rotations, translations, k_theta,
+                                                          k_phi, shared)
             self._render_kernel(
                 self.queue, (-(-sub // group) * group, widest, shape[0]), (group, 1, 1),
                 mesh.nodes, mesh.children, mesh.triangles,
                 self._input(rotations), self._input(translations), self._input(plane_normals),
-                self._input(plane_offsets), self._input(centres),
-                self._input(np.ascontiguousarray(beam_widths, np.float32)),
-                self._input(sonar.beam_table), sonar.record(), np.int32(k_theta), np.int32(k_phi),
+                self._input(plane_offsets), directions, self._input(sonar.beam_table), sonar.record(), np.int32(k_theta), np.int32(k_phi),
                 np.float32(1.0 / (k_theta * k_phi)), np.float32(gamma), np.float32(surface_reflection),
                 np.float32(RAY_EPSILON), np.float32(MAX_DISTANCE), self._input(first_rows), np.int32(shape[2]),
                 self._input(np.ascontiguousarray(spans, np.int32)), poses, hit_range, hit_tri, acc_buf,
@@ -257,8 +261,8 @@ class OpenCLBackend(Backend):
         return self._fixed_kernel(self.queue, (-(-size // GROUP) * GROUP,), None, acc_buf, layers_buf,
                                   np.int32(size))
 
-    def _direct_hits(self, mesh, sonar: SonarConstants, centres, beam_widths, rotations, translations, k_theta,
-                     k_phi, shared) -> tuple[cl.Buffer, cl.Buffer, cl.Buffer]:
+    def _direct_hits(self, mesh, sonar: SonarConstants, directions, rotations, translations, k_theta, k_phi,
+                     shared) -> tuple[cl.Buffer, cl.Buffer, cl.Buffer]:
         """render_views' poses, hit_range and hit_tri: with ``shared`` (SharedPoses) the direct
         legs of its distinct poses, enqueued; without, poses of -1 (every view casts its own)."""
         n_views = rotations.shape[0]
@@ -276,8 +280,8 @@ class OpenCLBackend(Backend):
                 self.queue, (-(-sub // group) * group, widest, shared.first.size), (group, 1, 1),
                 mesh.nodes, mesh.children, mesh.triangles,
                 self._input(np.ascontiguousarray(rotations[shared.first])),
-                self._input(np.ascontiguousarray(translations[shared.first])), self._input(centres),
-                self._input(np.ascontiguousarray(beam_widths, np.float32)), sonar.record(), np.int32(k_theta),
+                self._input(np.ascontiguousarray(translations[shared.first])), directions, sonar.record(),
+                np.int32(k_theta),
                 np.int32(k_phi), np.float32(MAX_DISTANCE), self._input(shared.spans), hit_range, hit_tri)
         return self._input(shared.index), hit_range, hit_tri
 

@@ -19,7 +19,7 @@ from .icp import icp_runs_kernel
 from .pose import contour_cost_kernel, frontal_contour, view_cost_kernel
 from .project import project_points
 from .raycast import cast_rays_kernel
-from .render import direct_hits_kernel, fixed_to_float, frontal_rays_kernel, render_kernel
+from .render import direct_hits_kernel, fixed_to_float, frontal_rays_kernel, render_kernel, sub_rays_kernel
 from .sonar import kernel_sonar
 
 #: ``WarpBackend._constant``: inputs up to this size are kept on the device for reuse ...
@@ -202,32 +202,33 @@ class WarpBackend(Backend):
         weight = float(np.float32(1.0 / (k_theta * k_phi)))
         widest, samples = span_extent(spans)
         if widest:  # else no view reaches the mesh: the layers stay zeros
-            hits = self._direct_hits(mesh, sonar, centres, beam_widths, k_theta, k_phi, acc.shape[0], shared,
-                                     shared_poses)
+            directions = wp.empty((sonar.beams, k_theta, k_phi), dtype=wp.vec3)
+            wp.launch(sub_rays_kernel, dim=directions.shape,
+                      inputs=[self._constant(centres, float), self._constant(np.asarray(beam_widths, np.float32), float),
+                              kernel_sonar(sonar)], outputs=[directions])
+            hits = self._direct_hits(mesh, directions, acc.shape[0], shared, shared_poses)
             wp.launch(render_kernel, dim=(acc.shape[0], widest, k_theta * samples),
-                      inputs=[mesh.id, mesh.points, mesh.indices, *poses, self._constant(centres, float),
-                              self._constant(np.asarray(beam_widths, np.float32), float),
+                      inputs=[mesh.id, mesh.points, mesh.indices, *poses, directions,
                               self._constant(sonar.beam_table, float), kernel_sonar(sonar), int(k_theta),
-                              int(k_phi), weight, float(gamma), float(surface_reflection), first_rows,
+                              weight, float(gamma), float(surface_reflection), first_rows,
                               self._constant(np.ascontiguousarray(spans, np.int32), wp.int32), *hits],
                       outputs=[acc])
         wp.launch(fixed_to_float, dim=acc.size, inputs=[acc.flatten()], outputs=[layers.flatten()])
 
-    def _direct_hits(self, mesh, sonar: SonarConstants, centres, beam_widths, k_theta, k_phi, n_views, shared,
-                     shared_poses) -> tuple[wp.array, wp.array, wp.array]:
+    def _direct_hits(self, mesh, directions, n_views, shared, shared_poses) -> tuple[wp.array, wp.array, wp.array]:
         """render_kernel's poses, hit_range and hit_face: with ``shared`` (SharedPoses) the direct
-        legs of its distinct poses, launched; without, poses of -1 (every view casts its own)."""
+        legs of its distinct poses along the (beams, K_θ, K_φ) sub-ray ``directions``, launched;
+        without, poses of -1 (every view casts its own)."""
         if shared is None:
             return (self._constant(np.full(n_views, -1, np.int32), wp.int32),
                     wp.empty((1, 1, 1, 1), dtype=float), wp.empty((1, 1, 1, 1), dtype=wp.int32))
-        shape = (shared.first.size, sonar.beams, k_theta, k_phi)
+        shape = (shared.first.size, *directions.shape)
         hit_range, hit_face = wp.empty(shape, dtype=float), wp.empty(shape, dtype=wp.int32)
         widest, samples = span_extent(shared.spans)
-        wp.launch(direct_hits_kernel, dim=(shape[0], widest, k_theta * samples),
+        wp.launch(direct_hits_kernel, dim=(shape[0], widest, shape[2] * samples),
                   inputs=[mesh.id, mesh.points, mesh.indices, self._array(shared_poses[0], wp.mat33),
-                          self._array(shared_poses[1], wp.vec3), self._constant(centres, float),
-                          self._constant(np.asarray(beam_widths, np.float32), float), kernel_sonar(sonar),
-                          int(k_theta), int(k_phi), self._array(shared.spans, wp.int32)],
+                          self._array(shared_poses[1], wp.vec3), directions, shape[2],
+                          self._array(shared.spans, wp.int32)],
                   outputs=[hit_range, hit_face])
         return self._array(shared.index, wp.int32), hit_range, hit_face
 

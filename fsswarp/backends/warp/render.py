@@ -98,21 +98,22 @@ def frontal_rays_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indice
     face_out[i, j] = face
 
 
-@wp.func
-def sub_ray(beam_centres: wp.array(dtype=float), beam_widths: wp.array(dtype=float), sonar: KernelSonar,
-            b: int, i: int, j: int, k_theta: int, k_phi: int):
-    """Step 1: the view-frame direction of sub-ray (i, j) of beam b."""
-    theta = beam_centres[b] + ((float(i) + 0.5) / float(k_theta) - 0.5) * beam_widths[b]
-    phi = -sonar.half_elevation + (float(j) + 0.5) / float(k_phi) * (2.0 * sonar.half_elevation)
+@wp.kernel
+def sub_rays_kernel(beam_centres: wp.array(dtype=float), beam_widths: wp.array(dtype=float), sonar: KernelSonar,
+                    directions: wp.array3d(dtype=wp.vec3)):
+    """Thread (b, i, j): step 1 once per render, the view-frame direction of sub-ray (i, j) of
+    beam b into directions (beams, K_θ, K_φ) (kernels/render.cl, sub_rays)."""
+    b, i, j = wp.tid()
+    theta = beam_centres[b] + ((float(i) + 0.5) / float(directions.shape[1]) - 0.5) * beam_widths[b]
+    phi = -sonar.half_elevation + (float(j) + 0.5) / float(directions.shape[2]) * (2.0 * sonar.half_elevation)
     cphi = wp.cos(phi)
-    return wp.vec3(cphi * wp.sin(theta), cphi * wp.cos(theta), wp.sin(phi))
+    directions[b, i, j] = wp.vec3(cphi * wp.sin(theta), cphi * wp.cos(theta), wp.sin(phi))
 
 
 @wp.kernel
 def direct_hits_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
                        rotations: wp.array(dtype=wp.mat33), translations: wp.array(dtype=wp.vec3),
-                       beam_centres: wp.array(dtype=float), beam_widths: wp.array(dtype=float), sonar: KernelSonar,
-                       k_theta: int, k_phi: int, spans: wp.array2d(dtype=wp.int32),
+                       directions: wp.array3d(dtype=wp.vec3), k_theta: int, spans: wp.array2d(dtype=wp.int32),
                        hit_range: wp.array4d(dtype=float), hit_face: wp.array4d(dtype=wp.int32)):
     """Thread (p, o, k): the direct leg of sub-ray (i, j) of beam b of distinct pose p (as
     render_kernel's threads), its first hit's distance (inf: none) and face (-1) into
@@ -124,7 +125,7 @@ def direct_hits_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices
         return
     i = k // samples
     j = spans[p, 2] + k - i * samples
-    u = sub_ray(beam_centres, beam_widths, sonar, b, i, j, k_theta, k_phi)
+    u = directions[b, i, j]
     hit = nearest_hit(mesh, points, indices, translations[p], rotations[p] * u, _FAR)
     hit_range[p, b, i, j] = hit.t
     hit_face[p, b, i, j] = hit.face
@@ -134,9 +135,9 @@ def direct_hits_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices
 def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
                   indices: wp.array(dtype=wp.int32), rotations: wp.array(dtype=wp.mat33),
                   translations: wp.array(dtype=wp.vec3), plane_normals: wp.array(dtype=wp.vec3),
-                  plane_offsets: wp.array(dtype=float), beam_centres: wp.array(dtype=float),
-                  beam_widths: wp.array(dtype=float), beam_table: wp.array2d(dtype=float),
-                  sonar: KernelSonar, k_theta: int, k_phi: int, weight: float, gamma: float, surface_reflection: float,
+                  plane_offsets: wp.array(dtype=float), directions: wp.array3d(dtype=wp.vec3),
+                  beam_table: wp.array2d(dtype=float), sonar: KernelSonar, k_theta: int, weight: float, gamma: float,
+                  surface_reflection: float,
                   first_rows: wp.array(dtype=wp.int32), spans: wp.array2d(dtype=wp.int32),
                   poses: wp.array(dtype=wp.int32), hit_range: wp.array4d(dtype=float),
                   hit_face: wp.array4d(dtype=wp.int32), acc: wp.array4d(dtype=wp.int32)):
@@ -160,7 +161,7 @@ def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
     first = first_rows[v]
 
     # 1. sub-ray direction (view frame)
-    u = sub_ray(beam_centres, beam_widths, sonar, b, i, j, k_theta, k_phi)
+    u = directions[b, i, j]
 
     # 2. direct leg: surface at s, first mesh hit before it
     nu = wp.dot(n, u)
