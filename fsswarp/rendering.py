@@ -16,9 +16,9 @@ and as mirror at (beam(θ(P')), bin((r + q)/2)), P' the mirror image of the hit 
 a sub-ray that meets the surface first deposits r_s² · c2^γ as mirror2 after its reflected leg.
 Defaults γ = 1, r_s = 0.9. Deposits are summed in fixed point (2^24 per unit) with integer
 atomics: layers depend neither on the threads' order nor on the sub-rays a CPU device leaves
-out, which reach neither the mesh's box nor its mirror (``ray_spans``). docs/method.md gives
-every step. :func:`stream_views` renders views in batches and hands each view to a consumer on
-a worker thread (noise and writing overlap the rendering of the next batches).
+out, which reach neither the mesh's box nor its mirror (``ray_spans``); views that share a pose
+cast their direct legs once (``shared_poses``). docs/method.md gives every step.
+:func:`stream_views` renders views in batches, handing each to a consumer on a worker thread.
 
 :func:`add_noise` draws the simulator's noise (Gamma speckle of ``looks``, an exponential
 floor at ``background`` of the 99th-percentile echo); :func:`log_compress` maps an image to dB
