@@ -811,6 +811,8 @@ class SharedPoses:
 
 #: Most direct-leg hits (float and int each) that a render keeps for its shared poses.
 SHARED_HITS = 2**27
+#: Odd multipliers of the pose hash, one per float of a pose (fixed: the same poses, the same keys).
+_POSE_HASH = np.random.default_rng(20261126).integers(1, 2**63, size=12, dtype=np.uint64) | np.uint64(1)
 
 
 def shared_poses(rotations: np.ndarray, translations: np.ndarray, spans: np.ndarray,
@@ -833,12 +835,8 @@ def shared_poses(rotations: np.ndarray, translations: np.ndarray, spans: np.ndar
     hull[:, 0] = hull[:, 2] = most
     for k, combine in enumerate((np.minimum, np.maximum, np.minimum, np.maximum)):
         combine.at(hull[:, k], index[reached], spans[reached, k])
-    hull[~np.isin(np.arange(first.size), index[reached])] = 0
+    hull[np.bincount(index[reached], minlength=first.size) == 0] = 0  # poses none of whose views reach the mesh
     return SharedPoses(index.astype(np.int32).reshape(n), first, hull.astype(np.int32))
-
-
-#: Odd multipliers of the pose hash, one per float of a pose (fixed: the same poses, the same keys).
-_POSE_HASH = np.random.default_rng(20261126).integers(1, 2**63, size=12, dtype=np.uint64) | np.uint64(1)
 
 
 def span_extent(spans: np.ndarray) -> tuple[int, int]:

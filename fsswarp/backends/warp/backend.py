@@ -204,8 +204,9 @@ class WarpBackend(Backend):
         if widest:  # else no view reaches the mesh: the layers stay zeros
             directions = wp.empty((sonar.beams, k_theta, k_phi), dtype=wp.vec3)
             wp.launch(sub_rays_kernel, dim=directions.shape,
-                      inputs=[self._constant(centres, float), self._constant(np.asarray(beam_widths, np.float32), float),
-                              kernel_sonar(sonar)], outputs=[directions])
+                      inputs=[self._constant(centres, float),
+                              self._constant(np.asarray(beam_widths, np.float32), float), kernel_sonar(sonar)],
+                      outputs=[directions])
             hits = self._direct_hits(mesh, directions, acc.shape[0], shared, shared_poses)
             wp.launch(render_kernel, dim=(acc.shape[0], widest, k_theta * samples),
                       inputs=[mesh.id, mesh.points, mesh.indices, *poses, directions,
