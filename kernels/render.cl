@@ -78,6 +78,20 @@ inline float fss_dot(float3 a, float3 b)
     return a.x * b.x + a.y * b.y + a.z * b.z;
 }
 
+/* The sub-ray of work-item (s, o) of a launch over the spans (N, 4) (render_views' work size),
+ * for its view or pose `row`: 1 with its beam *b, sub-ray *i and elevation sample *j; 0 where
+ * the item has none. */
+int fss_span_item(__global const int *spans, int row, int s, int o, int k_theta, int *b, int *i, int *j)
+{
+    *b = spans[4 * row] + o;
+    const int samples = spans[4 * row + 3] - spans[4 * row + 2];
+    if (s >= k_theta * samples || *b >= spans[4 * row + 1])
+        return 0;
+    *i = s / samples;
+    *j = spans[4 * row + 2] + s - *i * samples;
+    return 1;
+}
+
 /* sub_rays -- step 1 once per render: the view-frame direction of every sub-ray (i, j) of every
  * beam b, into directions (beams, k_theta, k_phi, 3) float (render_views and direct_hits read
  * them). beam_centres, beam_widths (beams,) float: θ_b and Δθ_b (rad). Work size: 1-D,
@@ -124,14 +138,10 @@ __kernel void direct_hits(__global const float4 *nodes,
                           __global float *hit_range,
                           __global int *hit_tri)
 {
-    const int s = (int)get_global_id(0);
     const int p = (int)get_global_id(2);
-    const int b = spans[4 * p] + (int)get_global_id(1);
-    const int samples = spans[4 * p + 3] - spans[4 * p + 2];
-    if (s >= k_theta * samples || b >= spans[4 * p + 1])
+    int b, i, j;
+    if (!fss_span_item(spans, p, (int)get_global_id(0), (int)get_global_id(1), k_theta, &b, &i, &j))
         return;
-    const int i = s / samples;
-    const int j = spans[4 * p + 2] + s - i * samples;
     const float3 u = vload3((b * k_theta + i) * k_phi + j, directions);
     int tri;
     const float r = fss_bvh_intersect(nodes, children, tris, vload3(p, translations),
@@ -166,14 +176,10 @@ __kernel void render_views(__global const float4 *nodes,
                            __global const int *hit_tri,
                            __global int *acc)
 {
-    const int s = (int)get_global_id(0);
     const int v = (int)get_global_id(2);
-    const int b = spans[4 * v] + (int)get_global_id(1);
-    const int samples = spans[4 * v + 3] - spans[4 * v + 2];
-    if (s >= k_theta * samples || b >= spans[4 * v + 1])
+    int b, i, j;
+    if (!fss_span_item(spans, v, (int)get_global_id(0), (int)get_global_id(1), k_theta, &b, &i, &j))
         return;
-    const int i = s / samples;
-    const int j = spans[4 * v + 2] + s - i * samples;
     __global const float *rot = rotations + 9 * v;
     const float3 t = vload3(v, translations);
     const float3 n = vload3(v, plane_normals);

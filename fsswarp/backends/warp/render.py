@@ -110,6 +110,18 @@ def sub_rays_kernel(beam_centres: wp.array(dtype=float), beam_widths: wp.array(d
     directions[b, i, j] = wp.vec3(cphi * wp.sin(theta), cphi * wp.cos(theta), wp.sin(phi))
 
 
+@wp.func
+def span_item(spans: wp.array2d(dtype=wp.int32), row: int, o: int, k: int, k_theta: int):
+    """(b, i, j) of thread (row, o, k) of a launch over the spans (N, 4) (render_kernel's
+    threads): beam b, sub-ray i, elevation sample j; b = -1 where the thread has none."""
+    b = spans[row, 0] + o
+    samples = spans[row, 3] - spans[row, 2]
+    if b >= spans[row, 1] or k >= k_theta * samples:
+        return wp.vec3i(-1, 0, 0)
+    i = k // samples
+    return wp.vec3i(b, i, spans[row, 2] + k - i * samples)
+
+
 @wp.kernel
 def direct_hits_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
                        rotations: wp.array(dtype=wp.mat33), translations: wp.array(dtype=wp.vec3),
@@ -119,12 +131,12 @@ def direct_hits_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices
     render_kernel's threads), its first hit's distance (inf: none) and face (-1) into
     hit_range and hit_face (P, beams, K_θ, K_φ) (kernels/render.cl, direct_hits)."""
     p, o, k = wp.tid()
-    b = spans[p, 0] + o
-    samples = spans[p, 3] - spans[p, 2]
-    if b >= spans[p, 1] or k >= k_theta * samples:
+    item = span_item(spans, p, o, k, k_theta)
+    b = item[0]
+    if b < 0:
         return
-    i = k // samples
-    j = spans[p, 2] + k - i * samples
+    i = item[1]
+    j = item[2]
     u = directions[b, i, j]
     hit = nearest_hit(mesh, points, indices, translations[p], rotations[p] * u, _FAR)
     hit_range[p, b, i, j] = hit.t
@@ -148,12 +160,12 @@ def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
     nowhere (kernels/render.cl). Where poses[v] = p >= 0 the direct leg is hit_range and
     hit_face[p, b, i, j] (direct_hits_kernel), else cast here."""
     v, o, k = wp.tid()
-    b = spans[v, 0] + o
-    samples = spans[v, 3] - spans[v, 2]
-    if b >= spans[v, 1] or k >= k_theta * samples:
+    item = span_item(spans, v, o, k, k_theta)
+    b = item[0]
+    if b < 0:
         return
-    i = k // samples
-    j = spans[v, 2] + k - i * samples
+    i = item[1]
+    j = item[2]
     rot = rotations[v]
     org = translations[v]
     n = plane_normals[v]
