@@ -597,6 +597,18 @@ def test_shared_direct_legs_change_no_pixel(backend):
     assert shared_poses(clean[0], clean[1], spans, 2**40) is None  # too many hits to keep
 
 
+def test_shared_poses_check_their_hash(monkeypatch):
+    """Poses whose hashes collide are told apart by the exact check: no sharing then."""
+    from fsswarp.backends import base
+
+    rot = np.stack([np.eye(3, dtype=np.float32)] * 2 + [np.diag([1.0, -1.0, -1.0]).astype(np.float32)])
+    trans, spans = np.zeros((3, 3), np.float32), np.array([[0, 4, 0, 8]] * 3, np.int32)
+    shared = base.shared_poses(rot, trans, spans, 32)
+    assert shared.first.size == 2 and shared.index[0] == shared.index[1] != shared.index[2]
+    monkeypatch.setattr(base, "_POSE_HASH", np.zeros(12, np.uint64))  # every pose the same key
+    assert base.shared_poses(rot, trans, spans, 32) is None
+
+
 def test_ray_spans_follow_the_box_angles():
     """Closed forms, a level view with the surface far above (the mirror image out of sight): a
     box straight ahead spans the beams whose [centre ± width/2] meet its corners' azimuths and
