@@ -579,10 +579,11 @@ def test_shared_direct_legs_change_no_pixel(backend):
     handle = backend.load_mesh(world_to_reference(world.vertices, rig, depth, tilt), np.asarray(world.faces))
     spans = ray_spans(handle.bounds, manifest.sonar, *clean, SAMPLES[1])
     shared = shared_poses(clean[0], clean[1], spans, manifest.sonar.beams * SAMPLES[0] * SAMPLES[1])
-    assert shared is not None and shared.first.size == 2 + 2 * 2  # S views: 1 pose each; N views: 1 per tilt
-    np.testing.assert_array_equal(clean[0][shared.first[shared.index]], clean[0])
+    assert shared is not None and shared.count == 2 + 2 * 2  # S views: 1 pose each; N views: 1 per tilt
+    np.testing.assert_array_equal(shared.rotations[shared.index], clean[0])
+    np.testing.assert_array_equal(shared.translations[shared.index], clean[1])
     assert np.all(spans[:, 1] > spans[:, 0])
-    for p in range(shared.first.size):  # the hull of the spans of the pose's views
+    for p in range(shared.count):  # the hull of the spans of the pose's views
         mine = spans[shared.index == p]
         assert tuple(shared.spans[p]) == (mine[:, 0].min(), mine[:, 1].max(), mine[:, 2].min(), mine[:, 3].max())
     first = np.full(len(spans), 150, np.int32)
@@ -604,7 +605,7 @@ def test_shared_poses_check_their_hash(monkeypatch):
     rot = np.stack([np.eye(3, dtype=np.float32)] * 2 + [np.diag([1.0, -1.0, -1.0]).astype(np.float32)])
     trans, spans = np.zeros((3, 3), np.float32), np.array([[0, 4, 0, 8]] * 3, np.int32)
     shared = base.shared_poses(rot, trans, spans, 32)
-    assert shared.first.size == 2 and shared.index[0] == shared.index[1] != shared.index[2]
+    assert shared.count == 2 and shared.index[0] == shared.index[1] != shared.index[2]
     monkeypatch.setattr(base, "_POSE_HASH", np.zeros(12, np.uint64))  # every pose the same key
     assert base.shared_poses(rot, trans, spans, 32) is None
 

@@ -800,13 +800,20 @@ def ray_spans(bounds: np.ndarray, sonar: SonarSpec, rotations: np.ndarray, trans
 
 @dataclass(frozen=True)
 class SharedPoses:
-    """The distinct poses of a render's N views: view n has pose ``index[n]`` (N,) int32, which
-    view ``first[p]`` (P,) has first; ``spans`` (P, 4) int32, the hull of the ray spans of its
-    views (zeros where none reaches the mesh)."""
+    """The P distinct poses of a render's N views: view n has pose ``index[n]`` (N,) int32, the
+    pose p ``rotations[p]`` (P, 3, 3) and ``translations[p]`` (P, 3) float32, contiguous, and
+    ``spans[p]`` (P, 4) int32, the hull of the ray spans of its views (zeros where none reaches
+    the mesh)."""
 
     index: np.ndarray
-    first: np.ndarray
+    rotations: np.ndarray
+    translations: np.ndarray
     spans: np.ndarray
+
+    @property
+    def count(self) -> int:
+        """P, the distinct poses."""
+        return int(self.rotations.shape[0])
 
 
 #: Most direct-leg hits (float and int each) that a render keeps for its shared poses.
@@ -836,7 +843,8 @@ def shared_poses(rotations: np.ndarray, translations: np.ndarray, spans: np.ndar
     for k, combine in enumerate((np.minimum, np.maximum, np.minimum, np.maximum)):
         combine.at(hull[:, k], index[reached], spans[reached, k])
     hull[np.bincount(index[reached], minlength=first.size) == 0] = 0  # poses none of whose views reach the mesh
-    return SharedPoses(index.astype(np.int32).reshape(n), first, hull.astype(np.int32))
+    return SharedPoses(index.astype(np.int32).reshape(n), np.ascontiguousarray(rows[first, :9].reshape(-1, 3, 3)),
+                       np.ascontiguousarray(rows[first, 9:]), hull.astype(np.int32))
 
 
 def span_extent(spans: np.ndarray) -> tuple[int, int]:

@@ -247,8 +247,7 @@ class OpenCLBackend(Backend):
             self._sub_rays_kernel(self.queue, (-(-count // GROUP) * GROUP,), None, self._input(centres),
                                   self._input(np.ascontiguousarray(beam_widths, np.float32)), sonar.record(),
                                   np.int32(k_theta), np.int32(k_phi), directions)
-            poses, hit_range, hit_tri = self._direct_hits(mesh, sonar, directions, rotations, translations, k_theta,
-                                                          k_phi, shared)
+            poses, hit_range, hit_tri = self._direct_hits(mesh, sonar, directions, shape[0], k_theta, k_phi, shared)
             self._render_kernel(
                 self.queue, (-(-sub // group) * group, widest, shape[0]), (group, 1, 1),
                 mesh.nodes, mesh.children, mesh.triangles,
@@ -262,28 +261,26 @@ class OpenCLBackend(Backend):
         return self._fixed_kernel(self.queue, (-(-size // GROUP) * GROUP,), None, acc_buf, layers_buf,
                                   np.int32(size))
 
-    def _direct_hits(self, mesh, sonar: SonarConstants, directions, rotations, translations, k_theta, k_phi,
+    def _direct_hits(self, mesh, sonar: SonarConstants, directions, n_views, k_theta, k_phi,
                      shared) -> tuple[cl.Buffer, cl.Buffer, cl.Buffer]:
         """render_views' poses, hit_range and hit_tri: with ``shared`` (SharedPoses) the direct
-        legs of its distinct poses, enqueued; without, poses of -1 (every view casts its own)."""
-        n_views = rotations.shape[0]
+        legs of its distinct poses, enqueued; without, poses of -1 for the ``n_views`` views (every
+        view casts its own)."""
         if shared is None:
             unused = cl.Buffer(self.context, cl.mem_flags.READ_ONLY, size=4)
             return self._input(np.full(n_views, -1, np.int32)), unused, unused
         widest, samples = span_extent(shared.spans)
-        count = shared.first.size * sonar.beams * k_theta * k_phi
+        count = shared.count * sonar.beams * k_theta * k_phi
         hit_range = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=4 * count)
         hit_tri = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=4 * count)
         if widest:
             sub = k_theta * samples
             group = min(GROUP, 1 << (sub - 1).bit_length())
             self._direct_hits_kernel(
-                self.queue, (-(-sub // group) * group, widest, shared.first.size), (group, 1, 1),
-                mesh.nodes, mesh.children, mesh.triangles,
-                self._input(np.ascontiguousarray(rotations[shared.first])),
-                self._input(np.ascontiguousarray(translations[shared.first])), directions, sonar.record(),
-                np.int32(k_theta),
-                np.int32(k_phi), np.float32(MAX_DISTANCE), self._input(shared.spans), hit_range, hit_tri)
+                self.queue, (-(-sub // group) * group, widest, shared.count), (group, 1, 1),
+                mesh.nodes, mesh.children, mesh.triangles, self._input(shared.rotations),
+                self._input(shared.translations), directions, sonar.record(), np.int32(k_theta), np.int32(k_phi),
+                np.float32(MAX_DISTANCE), self._input(shared.spans), hit_range, hit_tri)
         return self._input(shared.index), hit_range, hit_tri
 
     def _render_batches(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations, plane_normals,

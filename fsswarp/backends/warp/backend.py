@@ -175,9 +175,7 @@ class WarpBackend(Backend):
             acc = wp.zeros(shape, dtype=wp.int32)
             layers = wp.empty(shape, dtype=float)
             self._render_into(mesh, sonar, beam_widths, poses, k_theta, k_phi, gamma, surface_reflection,
-                              self._constant(first_rows, wp.int32), spans, acc, layers, shared=shared,
-                              shared_poses=None if shared is None else (rotations[shared.first],
-                                                                        translations[shared.first]))
+                              self._constant(first_rows, wp.int32), spans, acc, layers, shared=shared)
             wp.synchronize_device(self._device)
             return WarpLayers(layers)
 
@@ -187,13 +185,12 @@ class WarpBackend(Backend):
                 self._array(plane_normals, wp.vec3), self._array(plane_offsets, float))
 
     def _render_into(self, mesh, sonar: SonarConstants, beam_widths, poses, k_theta, k_phi, gamma,
-                     surface_reflection, first_rows, spans, acc, layers, shared=None, shared_poses=None) -> None:
+                     surface_reflection, first_rows, spans, acc, layers, shared=None) -> None:
         """Launch the render and fixed-point kernels of the views ``poses`` ((n,) device arrays of
         ``_poses``) on the device's current stream: acc (n, 4, R, beams) int32, zeroed, receives
         the deposits and layers (n, 4, R, beams) float32 the result; first_rows (n,) int32 on the
         device; spans (n, 4) int32 on the host (``Backend._render``); shared, the views' SharedPoses
-        (or None) and shared_poses its distinct (P, 3, 3) rotations and (P, 3) translations on the
-        host, whose direct legs are cast first. Returns without waiting."""
+        (or None), whose distinct poses' direct legs are cast first. Returns without waiting."""
         if sonar.use_table:
             centres = np.ascontiguousarray(sonar.beam_table[0], np.float32)
         else:  # the centres of SonarSpec.beam_centres
@@ -207,7 +204,7 @@ class WarpBackend(Backend):
                       inputs=[self._constant(centres, float),
                               self._constant(np.asarray(beam_widths, np.float32), float), kernel_sonar(sonar)],
                       outputs=[directions])
-            hits = self._direct_hits(mesh, directions, acc.shape[0], shared, shared_poses)
+            hits = self._direct_hits(mesh, directions, acc.shape[0], shared)
             wp.launch(render_kernel, dim=(acc.shape[0], widest, k_theta * samples),
                       inputs=[mesh.id, mesh.points, mesh.indices, *poses, directions,
                               self._constant(sonar.beam_table, float), kernel_sonar(sonar), int(k_theta),
@@ -216,19 +213,19 @@ class WarpBackend(Backend):
                       outputs=[acc])
         wp.launch(fixed_to_float, dim=acc.size, inputs=[acc.flatten()], outputs=[layers.flatten()])
 
-    def _direct_hits(self, mesh, directions, n_views, shared, shared_poses) -> tuple[wp.array, wp.array, wp.array]:
+    def _direct_hits(self, mesh, directions, n_views, shared) -> tuple[wp.array, wp.array, wp.array]:
         """render_kernel's poses, hit_range and hit_face: with ``shared`` (SharedPoses) the direct
         legs of its distinct poses along the (beams, K_θ, K_φ) sub-ray ``directions``, launched;
         without, poses of -1 (every view casts its own)."""
         if shared is None:
             return (self._constant(np.full(n_views, -1, np.int32), wp.int32),
                     wp.empty((1, 1, 1, 1), dtype=float), wp.empty((1, 1, 1, 1), dtype=wp.int32))
-        shape = (shared.first.size, *directions.shape)
+        shape = (shared.count, *directions.shape)
         hit_range, hit_face = wp.empty(shape, dtype=float), wp.empty(shape, dtype=wp.int32)
         widest, samples = span_extent(shared.spans)
         wp.launch(direct_hits_kernel, dim=(shape[0], widest, shape[2] * samples),
-                  inputs=[mesh.id, mesh.points, mesh.indices, self._array(shared_poses[0], wp.mat33),
-                          self._array(shared_poses[1], wp.vec3), directions, shape[2],
+                  inputs=[mesh.id, mesh.points, mesh.indices, self._array(shared.rotations, wp.mat33),
+                          self._array(shared.translations, wp.vec3), directions, shape[2],
                           self._array(shared.spans, wp.int32)],
                   outputs=[hit_range, hit_face])
         return self._array(shared.index, wp.int32), hit_range, hit_face
