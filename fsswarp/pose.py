@@ -336,8 +336,10 @@ def fit_posterior(comparison: ViewComparison, prior: Prior, depth: float, tilt: 
     J = (E − min E)/s + P, weights exp(−J), their covariance (the intervals: the estimate ±
     1.96 σ). The grid is fitted at the coarse samples, refitted to ± 4 posterior σ along its
     axes while it reaches less than 3.5 σ or more than 6 σ along one, then evaluated at the
-    finest (``launches`` at most in all). The valley: the least-curved axis of a quadratic
-    fitted to (E − min E)/s (in prior-σ units), through its minimum.
+    finest (``launches`` at most in all). Every grid is sheared to rows of one tilt
+    (``_tilt_rows``), so that a row's cells share their views' poses. The valley: the
+    least-curved axis of a quadratic fitted to (E − min E)/s (in prior-σ units), through its
+    minimum.
     axes : (2, 2) columns in (m, rad), the first grid's half-spans."""
     settings = comparison.settings
     u = np.linspace(-1.0, 1.0, cells)
@@ -354,6 +356,7 @@ def fit_posterior(comparison: ViewComparison, prior: Prior, depth: float, tilt: 
         data = (costs - np.nanmin(costs)) / noise
         return grid, data, noise, _weighted_covariance(grid, data + prior.penalty(dd, tt))
 
+    axes = _tilt_rows(axes)
     for launch in range(launches):
         last = launch == launches - 1
         grid, data, noise, covariance = evaluate(axes, settings.samples if last else settings.coarse_samples)
@@ -365,7 +368,7 @@ def fit_posterior(comparison: ViewComparison, prior: Prior, depth: float, tilt: 
         if np.all((extent >= 3.5 * sigmas) & (extent <= 6.0 * sigmas)):
             grid, data, noise, covariance = evaluate(axes, settings.samples)  # the fitted grid, finely
             break
-        axes = _principal_axes(covariance, 4.0)
+        axes = _tilt_rows(_principal_axes(covariance, 4.0))
     finite = np.isfinite(data)
     offsets = (grid[finite] - centre) / scale
     c = _quadratic_fit(offsets[:, 0], offsets[:, 1], data[finite])
@@ -433,6 +436,19 @@ def model_lever(model, rig, depth: float, tilt: float, *, step: float = 1e-4) ->
 def _principal_axes(covariance: np.ndarray, sigmas: float) -> np.ndarray:
     values, vectors = np.linalg.eigh(covariance)
     return vectors * (sigmas * np.sqrt(np.maximum(values, 0.0)))
+
+
+def _tilt_rows(axes: np.ndarray) -> np.ndarray:
+    """(2, 2) axes T with T Tᵀ = axes axesᵀ and T[1, 0] = 0: the grid x + T u, u in [-1, 1]²,
+    holds the same ellipse as x + axes u (the unit disc's image), and its tilt depends on u[1]
+    alone. Its cells then share a tilt along each row, and the renderer casts the direct legs of
+    a row's poses once (``fsswarp.backends.base.shared_poses``). Axes without tilt are kept."""
+    shape = axes @ axes.T
+    if not shape[1, 1] > 0:
+        return axes
+    tilt = math.sqrt(shape[1, 1])
+    along = shape[0, 1] / tilt
+    return np.array([[math.sqrt(max(shape[0, 0] - along * along, 0.0)), along], [0.0, tilt]])
 
 
 def _weighted_covariance(grid: np.ndarray, cost: np.ndarray) -> np.ndarray:

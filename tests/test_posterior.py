@@ -8,8 +8,8 @@ import pytest
 
 from fsswarp.compare import PoseSettings
 from fsswarp.errors import InputError
-from fsswarp.pose import (CARVING_ERROR, Posterior, Prior, Z95, check_start, fit_posterior, model_lever, noise_level,
-                          surface_range, valley_posterior)
+from fsswarp.pose import (CARVING_ERROR, POSTERIOR_CELLS, Posterior, Prior, Z95, check_start, fit_posterior,
+                          model_lever, noise_level, surface_range, valley_posterior)
 
 
 #: Each view's deviation pattern (sum 0, sum of squares V − 1), scaled by SIGMA.
@@ -77,6 +77,30 @@ def test_a_quadratic_valley_gives_the_analytic_interval(slope_m_per_deg):
     summary = post.summary()
     assert summary["valley"]["slope_m_per_deg"] == pytest.approx(slope_m_per_deg, abs=0.002)
     assert comparison.counters["grid_cells"] in (121, 242, 363)  # refitted to ± 4 sigma at most twice
+
+
+def test_every_posterior_grid_has_rows_of_one_tilt():
+    # a valley along D − L·β: the grids that fit it are tilted; each is sheared so that a row's
+    # cells share one tilt bit for bit (the renderer then shares their poses), holding the same
+    # ellipse as the tilted grid would
+    slope = 0.034 * 180.0 / math.pi
+    across = np.array([1.0, -slope]) / math.hypot(1.0, slope)
+    comparison = ValleyComparison((0.431, math.radians(10.35)), 40.0 * np.outer(across, across) + 1e-3 * np.eye(2))
+    asked = []
+    surrogate = comparison.surrogate_views
+    comparison.surrogate_views = lambda d, t, **k: asked.append((d, t)) or surrogate(d, t, **k)
+    prior = Prior(0.432, math.radians(11.1), 0.003, math.radians(0.6))
+    angle = 0.7
+    axes = np.array([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]]) @ np.diag([0.004, 0.01])
+    fit_posterior(comparison, prior, 0.431, math.radians(10.35), axes)
+    assert len(asked) >= 2
+    for depths, tilts in asked:
+        assert np.all(tilts == tilts[:1]) and len(np.unique(tilts)) == POSTERIOR_CELLS
+        assert len(np.unique(depths)) == depths.size  # sheared: no column of one depth
+    depths, tilts = asked[0]
+    first = np.stack([depths[[0, -1, 0], [0, 0, -1]], tilts[[0, -1, 0], [0, 0, -1]]])
+    sheared = (first[:, 1:] - first[:, :1]) / 2  # the grid's axes, from its corners
+    np.testing.assert_allclose(sheared @ sheared.T, axes @ axes.T, rtol=1e-9)
 
 
 def test_identified_means_half_the_prior_interval():
