@@ -238,7 +238,8 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
                   bounds: tuple[float, float] | None = None, levels: int = 3,
                   settings: PoseSettings | None = None, backend=None,
                   progress: Callable[[str], None] | None = None,
-                  comparison: ViewComparison | None = None, prior: Prior | None = None) -> PoseResult:
+                  comparison: ViewComparison | None = None, prior: Prior | None = None,
+                  posterior_axes=None) -> PoseResult:
     """Estimate the sonar depth D and tilt β (paper §2.4, eq. 7) for ``model`` (reference frame)
     by the posterior cost of the module docstring.
 
@@ -253,6 +254,10 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
         (depth0, tilt0) (``ViewComparison.use``), its counters restart, and it is left located
         at the finest level's best cell
     prior : default ``Prior.of(dataset)``, the manifest's sensors
+    posterior_axes : (2, 2) columns (m, rad) spanning an area, the first posterior grid's
+        half-axes (:func:`fit_posterior`), e.g. an earlier step's ``posterior.axes()`` with the
+        same data, evaluated at once at the finest samples (``fine_first``); default the
+        finest level's valley frame. Either way a grid that does not fit is refitted.
     Returns a PoseResult; the estimate moves from (depth0, tilt0) only where J falls.
     """
     start = time.perf_counter()
@@ -268,6 +273,12 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
         raise InputError("must be (e_D, e_beta) with 0 < e_D < depth0 m and 0 < e_beta < 45 deg",
                          field="bounds", value=bounds)
     check_integer("levels", levels, 1)
+    if posterior_axes is not None:
+        posterior_axes = np.asarray(posterior_axes, np.float64)
+        if posterior_axes.shape != (2, 2) or not np.all(np.isfinite(posterior_axes)) \
+                or not abs(np.linalg.det(posterior_axes)) > 0:
+            raise InputError("must be (2, 2) finite axes spanning an area", field="posterior_axes",
+                             value=posterior_axes.tolist())
     say = progress or (lambda line: None)
     if comparison is None:
         comparison = ViewComparison(dataset, settings=settings or PoseSettings(), backend=backend)
@@ -318,7 +329,9 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
     say(f"E_mu {before * 1000:.3f} mm and J {cost_before * 1000:.3f} mm at the start, E_mu "
         f"{polish_error * 1000:.3f} mm and J {after * 1000:.3f} mm at the candidate: "
         f"{'accepted' if accepted else 'rejected (J did not fall)'}")
-    posterior = fit_posterior(comparison, prior, float(depth), float(tilt), _valley(found[-1], step)[1])
+    first_axes = _valley(found[-1], step)[1] if posterior_axes is None else posterior_axes
+    posterior = fit_posterior(comparison, prior, float(depth), float(tilt), first_axes,
+                              fine_first=posterior_axes is not None)
     return PoseResult(depth=float(depth), tilt=float(tilt), depth0=depth0, tilt0=tilt0,
                       candidate=(float(candidate[0]), float(candidate[1])), accepted=accepted,
                       error_before=float(before), error_after=float(polish_error if accepted else before),
@@ -330,7 +343,7 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
 
 
 def fit_posterior(comparison: ViewComparison, prior: Prior, depth: float, tilt: float, axes: np.ndarray, *,
-              cells: int = POSTERIOR_CELLS, launches: int = 3) -> Posterior:
+              cells: int = POSTERIOR_CELLS, launches: int = 3, fine_first: bool = False) -> Posterior:
     """The Posterior around the estimate (depth m, tilt rad) from ``comparison``'s surrogate at
     ``min_cap`` on a ``cells`` × ``cells`` grid x + axes @ u, u in [-1, 1]², one launch each:
     J = (E − min E)/s + P, weights exp(−J), their covariance (the intervals: the estimate ±
@@ -340,7 +353,9 @@ def fit_posterior(comparison: ViewComparison, prior: Prior, depth: float, tilt: 
     (``_tilt_rows``), so that a row's cells share their views' poses. The valley: the
     least-curved axis of a quadratic fitted to (E − min E)/s (in prior-σ units), through its
     minimum.
-    axes : (2, 2) columns in (m, rad), the first grid's half-spans."""
+    axes : (2, 2) columns in (m, rad), the first grid's half-spans
+    fine_first : evaluate the first grid at the finest samples, and keep it where it fits (for
+        axes from an earlier posterior of the same data, which mostly fit: one launch)"""
     settings = comparison.settings
     u = np.linspace(-1.0, 1.0, cells)
     centre = np.array([depth, tilt], np.float64)
@@ -359,14 +374,16 @@ def fit_posterior(comparison: ViewComparison, prior: Prior, depth: float, tilt: 
     axes = _tilt_rows(axes)
     for launch in range(launches):
         last = launch == launches - 1
-        grid, data, noise, covariance = evaluate(axes, settings.samples if last else settings.coarse_samples)
+        fine = last or (fine_first and launch == 0)
+        grid, data, noise, covariance = evaluate(axes, settings.samples if fine else settings.coarse_samples)
         sigmas, directions = np.linalg.eigh(covariance / np.outer(scale, scale))  # in prior-σ units
         sigmas = np.sqrt(np.maximum(sigmas, 0.0))
         extent = np.abs(directions.T @ (axes / scale[:, None])).sum(axis=1)  # the grid's reach along each
         if last or not np.all(sigmas > 0):
             break
         if np.all((extent >= 3.5 * sigmas) & (extent <= 6.0 * sigmas)):
-            grid, data, noise, covariance = evaluate(axes, settings.samples)  # the fitted grid, finely
+            if not fine:
+                grid, data, noise, covariance = evaluate(axes, settings.samples)  # the fitted grid, finely
             break
         axes = _tilt_rows(_principal_axes(covariance, 4.0))
     finite = np.isfinite(data)

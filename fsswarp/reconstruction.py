@@ -168,7 +168,8 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
         best, best_pose, misses, stopped = first, (depth, tilt), 0, False
         pose_steps = []
         for iteration in range(1, settings.iterations + 1):
-            pose = estimate_pose(sighting, dataset, depth0=depth, tilt0=tilt, comparison=comparison, prior=prior)
+            pose = estimate_pose(sighting, dataset, depth0=depth, tilt0=tilt, comparison=comparison, prior=prior,
+                                 posterior_axes=_posterior_axes(pose_steps))
             pose_steps.append(pose)
             say(f"iteration {iteration}: pose step {_intervals(pose.depth, pose.tilt, pose.posterior)}")
             if pose.accepted:
@@ -361,6 +362,16 @@ def _carving_posterior(comparison: ViewComparison, carved, pose: tuple[float, fl
 def _carving(dataset, depth: float, tilt: float, settings: ReconstructSettings, backend):
     """The mesh of the views carved at (depth m, tilt rad) at ``settings``' resolution."""
     return carve(dataset, depth, tilt, resolution=settings.resolution, settings=settings.carve, backend=backend).mesh
+
+
+def _posterior_axes(steps: list):
+    """The last pose step's posterior axes (``Posterior.axes``), the loop's next step's first
+    posterior grid: the posterior moves little from one step to the next, so that grid mostly
+    fits at once; None without steps or where those axes span no area."""
+    if not steps:
+        return None
+    axes = steps[-1].posterior.axes()
+    return axes if np.all(np.isfinite(axes)) and abs(np.linalg.det(axes)) > 0 else None
 
 
 def _outside(pose: tuple[float, float], posterior) -> bool:

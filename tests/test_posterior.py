@@ -103,6 +103,41 @@ def test_every_posterior_grid_has_rows_of_one_tilt():
     np.testing.assert_allclose(sheared @ sheared.T, axes @ axes.T, rtol=1e-9)
 
 
+@pytest.mark.parametrize("fine_first, launches", [(False, 2), (True, 1)])
+def test_a_first_grid_that_fits_saves_the_refit(fine_first, launches):
+    # the loop starts each pose step's posterior grid from the last step's axes, evaluated
+    # finely at once: when they fit, that one launch (else a coarse and a fine one) gives the
+    # same posterior as a far first grid refitted
+    slope = 0.034 * 180.0 / math.pi
+    across = np.array([1.0, -slope]) / math.hypot(1.0, slope)
+    hessian = 40.0 * np.outer(across, across) + 1e-3 * np.eye(2)
+    prior = Prior(0.432, math.radians(11.1), 0.003, math.radians(0.6))
+    far = ValleyComparison((0.431, math.radians(10.35)), hessian)
+    post = fit_posterior(far, prior, 0.431, math.radians(10.35), np.diag([0.01, math.radians(1.0)]))
+    assert far.counters["grid_cells"] == 3 * POSTERIOR_CELLS ** 2
+    near = ValleyComparison((0.431, math.radians(10.35)), hessian)
+    again = fit_posterior(near, prior, 0.431, math.radians(10.35), post.axes(), fine_first=fine_first)
+    assert near.counters["grid_cells"] == launches * POSTERIOR_CELLS ** 2
+    np.testing.assert_allclose(again.covariance, post.covariance, rtol=0.03, atol=1e-3 * np.abs(post.covariance).max())
+    wrong = ValleyComparison((0.431, math.radians(10.35)), hessian)  # far axes, finely first: refitted
+    refitted = fit_posterior(wrong, prior, 0.431, math.radians(10.35), np.diag([0.01, math.radians(1.0)]),
+                             fine_first=fine_first)
+    assert wrong.counters["grid_cells"] == 3 * POSTERIOR_CELLS ** 2
+    np.testing.assert_allclose(refitted.covariance, post.covariance, rtol=0.03,
+                               atol=1e-3 * np.abs(post.covariance).max())
+
+
+@pytest.mark.parametrize("axes", [np.zeros((2, 2)), np.eye(3), np.array([[1.0, math.nan], [0.0, 1.0]]),
+                                  np.array([[0.01, 0.02], [0.001, 0.002]])])
+def test_estimate_pose_refuses_axes_that_span_no_area(coral_one, axes):
+    from fsswarp.pose import estimate_pose
+
+    with pytest.raises(InputError, match="posterior_axes = .*: must be \\(2, 2\\) finite axes spanning an area") \
+            as info:
+        estimate_pose(coral_one.truth_mesh(), coral_one, posterior_axes=axes)
+    assert "\n" not in str(info.value)
+
+
 def test_identified_means_half_the_prior_interval():
     comparison = ValleyComparison((0.43, 0.18), np.diag([1e-9, 1e-9]))  # flat: no data
     prior = Prior(0.43, 0.18, 0.003, 0.01)

@@ -213,22 +213,24 @@ def test_the_contour_error_follows_refinement(coral_one):
     assert contour_error[1] < 0.9 * contour_error[0]
 
 
-def _script_the_loop(monkeypatch, pose_step, errors, completed=None):
+def _script_the_loop(monkeypatch, pose_step, errors, completed=None, axes=None):
     """Replace the loop's pose step with ``pose_step``, its shape step with a copy of the model,
     and its record with the next of ``errors`` as E_I; the E_I of every entry completed for the
-    history (E_mu, truth metrics) goes to ``completed``. Returns the shape steps' (depth, tilt,
-    mesh), in order."""
+    history (E_mu, truth metrics) goes to ``completed``, the first posterior grid's axes that
+    each pose step is given to ``axes``. Returns the shape steps' (depth, tilt, mesh), in order."""
     from types import SimpleNamespace
 
     from fsswarp.pose import Posterior
 
     errors, refined = iter(errors), []
     completed = [] if completed is None else completed
+    axes = [] if axes is None else axes
 
     def wide(depth, tilt, prior):  # a posterior that identifies nothing and holds every pose tried
         return Posterior(depth, tilt, np.diag([1.0, 1.0]), prior, 0.0, depth, 1e-3)
 
-    def posed(model, dataset, *, depth0, tilt0, comparison, prior):
+    def posed(model, dataset, *, depth0, tilt0, comparison, prior, posterior_axes):
+        axes.append(posterior_axes)
         step = pose_step(model, dataset, depth0=depth0, tilt0=tilt0, comparison=comparison)
         return SimpleNamespace(**vars(step), posterior=wide(step.depth, step.tilt, prior))
 
@@ -267,10 +269,13 @@ def test_a_refused_pose_step_keeps_the_estimate_and_the_shape_step_runs(coral_on
         calls.append((depth0, tilt0))
         return SimpleNamespace(accepted=False, depth=depth0 + 0.01, tilt=tilt0 + 0.01)
 
-    refined = _script_the_loop(monkeypatch, refused, [1.0, 0.9, 0.8, 0.85, 0.82])
+    axes = []
+    refined = _script_the_loop(monkeypatch, refused, [1.0, 0.9, 0.8, 0.85, 0.82], axes=axes)
     result = reconstruct(coral_one, settings=dataclasses.replace(FAST, iterations=6))
     start = coral_one.manifest.surface.depth, coral_one.manifest.surface.tilt
     assert calls == [start] * 4 and [r[:2] for r in refined] == [start] * 5  # 1 before the loop, 4 in it
+    # the first posterior grid: the level's frame first, then the last step's posterior axes
+    assert axes[0] is None and all(np.array_equal(np.abs(a), 4.0 * np.eye(2)) for a in axes[1:]) and len(axes) == 4
     assert [h["E_I"] for h in result.history] == [1.0, 0.9, 0.8, 0.85, 0.82] and result.stopped
     assert not result.converged  # nothing identified
     assert (result.depth, result.tilt) == start and result.best_iteration == 2
