@@ -275,8 +275,7 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
     check_integer("levels", levels, 1)
     if posterior_axes is not None:
         posterior_axes = np.asarray(posterior_axes, np.float64)
-        if posterior_axes.shape != (2, 2) or not np.all(np.isfinite(posterior_axes)) \
-                or not abs(np.linalg.det(posterior_axes)) > 0:
+        if posterior_axes.shape != (2, 2) or not spans_an_area(posterior_axes):
             raise InputError("must be (2, 2) finite axes spanning an area", field="posterior_axes",
                              value=posterior_axes.tolist())
     say = progress or (lambda line: None)
@@ -319,8 +318,8 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
         comparison.locate(*best)  # the data contours and the detection shift, seen from the new estimate
 
     noise = found[-1].noise
-    candidate, polish_error, after = _polish(comparison, *_valley(found[-1], step), lo, hi, settings.polish, prior,
-                                             noise)
+    centre, frame = _valley(found[-1], step)
+    candidate, polish_error, after = _polish(comparison, centre, frame, lo, hi, settings.polish, prior, noise)
     say(f"polish: D {candidate[0]:.4f} m, beta {math.degrees(candidate[1]):.3f} deg, E_mu {polish_error * 1000:.3f} mm")
     before = comparison.exact(depth0, tilt0).value
     cost_before = before + noise * float(prior.penalty(depth0, tilt0))
@@ -329,8 +328,8 @@ def estimate_pose(model, dataset, *, depth0: float | None = None, tilt0: float |
     say(f"E_mu {before * 1000:.3f} mm and J {cost_before * 1000:.3f} mm at the start, E_mu "
         f"{polish_error * 1000:.3f} mm and J {after * 1000:.3f} mm at the candidate: "
         f"{'accepted' if accepted else 'rejected (J did not fall)'}")
-    first_axes = _valley(found[-1], step)[1] if posterior_axes is None else posterior_axes
-    posterior = fit_posterior(comparison, prior, float(depth), float(tilt), first_axes,
+    first_grid = frame if posterior_axes is None else posterior_axes
+    posterior = fit_posterior(comparison, prior, float(depth), float(tilt), first_grid,
                               fine_first=posterior_axes is not None)
     return PoseResult(depth=float(depth), tilt=float(tilt), depth0=depth0, tilt0=tilt0,
                       candidate=(float(candidate[0]), float(candidate[1])), accepted=accepted,
@@ -453,6 +452,12 @@ def model_lever(model, rig, depth: float, tilt: float, *, step: float = 1e-4) ->
 def _principal_axes(covariance: np.ndarray, sigmas: float) -> np.ndarray:
     values, vectors = np.linalg.eigh(covariance)
     return vectors * (sigmas * np.sqrt(np.maximum(values, 0.0)))
+
+
+def spans_an_area(axes: np.ndarray) -> bool:
+    """Whether (2, 2) grid axes (columns) are finite and span an area: a grid x + axes @ u whose
+    cells do not collapse onto a line (``estimate_pose``'s ``posterior_axes``)."""
+    return bool(np.all(np.isfinite(axes)) and abs(np.linalg.det(axes)) > 0)
 
 
 def _tilt_rows(axes: np.ndarray) -> np.ndarray:

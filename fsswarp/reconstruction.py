@@ -41,7 +41,7 @@ from .errors import InputError, check_depth_tilt, check_integer
 from .compare import PoseSettings, PoseWarning, ViewComparison
 from .metrics import average_contour_error, average_intensity_error, combine, image_error
 from .pose import (BOUNDS_FACTOR, Prior, check_start, check_uncertainties, estimate_pose, fit_posterior, model_lever,
-                   valley_posterior)
+                   spans_an_area, valley_posterior)
 from .refine import RefineSettings, refine_shape
 from .rendering import RenderSettings, render, with_total
 
@@ -371,7 +371,7 @@ def _posterior_axes(steps: list):
     if not steps:
         return None
     axes = steps[-1].posterior.axes()
-    return axes if np.all(np.isfinite(axes)) and abs(np.linalg.det(axes)) > 0 else None
+    return axes if spans_an_area(axes) else None
 
 
 def _outside(pose: tuple[float, float], posterior) -> bool:
