@@ -32,7 +32,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .backends import rows_read
+from .backends import beams_read, rows_read
 from .errors import InputError, check_depth_tilt, check_integer, is_finite_number, is_integer, is_number
 from .icp import CONTOUR_TOL, icp_many
 from .metrics import view_errors
@@ -359,7 +359,7 @@ class ViewComparison:
     def view_poses(self, views, depths: np.ndarray, tilts: np.ndarray):
         """(G, V) poses and planes of cells (G,) in the dataset views ``views``."""
         rot, t = self.rig.relative_poses(depths, tilts)
-        n, d = surface_in_views(self.rig, depths, tilts)
+        n, d = surface_in_views(self.rig, depths, tilts, poses=(rot, t))
         v = list(views)
         return rot[:, v], t[:, v], n[:, v], d[:, v]
 
@@ -369,16 +369,17 @@ class ViewComparison:
         surface reflection."""
         return replace(ECHO, samples=tuple(self.settings.exact_samples))
 
-    def render_pairs(self, views, depths: np.ndarray, tilts: np.ndarray, samples, rows=None):
+    def render_pairs(self, views, depths: np.ndarray, tilts: np.ndarray, samples, rows=None, beams=None):
         """DeviceLayers (G·V, 4, bins, beams) of cells (G,) in the dataset views ``views``, or
-        bands of rows: ``rows`` as ``Backend.render_device`` takes them."""
+        bands of rows and the beams read: ``rows`` and ``beams`` as ``Backend.render_device``
+        takes them."""
         rot, t, n, d = self.view_poses(views, depths, tilts)
         if np.any(d <= 0):
             raise InputError("the sonar must lie below the surface in every view", field="depth",
                              value=float(np.min(depths)))
         return self.backend.render_device(self.mesh, self.sonar, rot.reshape(-1, 3, 3), t.reshape(-1, 3),
                                           n.reshape(-1, 3), d.reshape(-1), samples, gamma=ECHO.gamma,
-                                          surface_reflection=ECHO.surface_reflection, rows=rows)
+                                          surface_reflection=ECHO.surface_reflection, rows=rows, beams=beams)
 
     def view_costs(self, depths: np.ndarray, tilts: np.ndarray, samples, cap: float, *, contours: bool = True):
         """(G, V, S) surrogate view costs of cells (G,) at the detection shift (S = 1) or, without
@@ -390,7 +391,8 @@ class ViewComparison:
         Each pair renders only the band of rows its view's window reads (``render_device``'s
         ``rows``): the window [lo, hi) ± the range smoothing's radius rB, clipped to the image,
         R rows for every pair (the widest view's), started lower where it would pass the last
-        row; the contours and costs are those of full layers, bit for bit. One cell at the
+        row, and only the beams its masks read (``render_device``'s ``beams``: the masks ± the
+        beam smoothing's radius); the contours and costs are those of full layers, bit for bit. One cell at the
         located estimate with the exact samples reads the layers rendered there, on the device
         (``_located_index``; no render: the same pixels)."""
         data, sonar = self.data, self.sonar
@@ -398,6 +400,7 @@ class ViewComparison:
         need_lo, need_hi = rows_read(data.windows, len(self.smoothing[0]), sonar.bins)
         rows = int(np.max(need_hi - need_lo))
         first = np.minimum(need_lo, sonar.bins - rows)
+        read = beams_read(data.masks, len(self.smoothing[1]))
         per = max(1, self.settings.launch_bytes // (32 * rows * sonar.beams * n_views))
         shifts = self.shifts if self.shift is None else [self.shift]
         costs, found = [], []
@@ -409,7 +412,7 @@ class ViewComparison:
                 layers, index, keep = self._layers, self._located_index(), self._keep
             else:
                 layers = self.render_pairs(data.views, cell_d, cell_t, samples,
-                                           rows=(np.tile(first, len(cell_d)), rows))
+                                           rows=(np.tile(first, len(cell_d)), rows), beams=np.tile(read, (g, 1, 1)))
                 index, keep = np.tile(np.arange(n_views), g), slice(None)
             arguments = (layers, index, data.threshold, data.windows, data.masks, self._distances, shifts,
                          self.smoothing)

@@ -25,12 +25,13 @@ def surface_in_reference(rig: Rig, depth, tilt):
     return rot_ref[..., 2, :], -s_ref[..., 2]
 
 
-def surface_in_views(rig: Rig, depth, tilt):
-    """The surface in every view frame: ``n_m = R_mᵀ n``, ``d_m = d - n·t_m``.
+def surface_in_views(rig: Rig, depth, tilt, *, poses=None):
+    """The surface in every view frame: ``n_m = R_mᵀ n``, ``d_m = d - n·t_m``; ``poses``: the
+    views' ``rig.relative_poses(depth, tilt)``, where the caller has them.
 
     Returns ``(n, d)`` of shapes (*G, V, 3) and (*G, V)."""
     n, d = surface_in_reference(rig, depth, tilt)
-    rot, t = rig.relative_poses(depth, tilt)
+    rot, t = rig.relative_poses(depth, tilt) if poses is None else poses
     n_views = np.einsum("...vij,...i->...vj", rot, n)
     d_views = d[..., None] - np.einsum("...vi,...i->...v", t, n)
     return n_views, d_views

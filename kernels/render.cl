@@ -24,6 +24,10 @@
  *                 hit_range and hit_tri of pose p (direct_hits, the same float operations)
  *   hit_range, hit_tri  (P, beams, k_theta, k_phi) float and int of direct_hits (unused
  *                 where every poses[v] is -1)
+ *   masked, needed  masked 0: every pixel; 1: needed (N, 2, beams) uchar, the beams read of
+ *                 each component (0: object + ghost, layers 0-1; 1: mirror + mirror2, layers
+ *                 2-3): a return is deposited only where its component's beam is needed (the
+ *                 other pixels stay zero), and a leg whose returns land nowhere needed is not cast
  *   acc           (N, 4, R, beams) int  fixed-point accumulator (2^24 = 1), zeroed by the host:
  *                 a return of view v at image row B lands in acc[v][layer][B − first_rows[v]]
  *                 when that lies in [0, R) (and its beam in the image), else it is dropped.
@@ -51,6 +55,12 @@ void fss_deposit(__global int *acc, int v, int layer, int beam, float range, flo
     const int value = (int)(amplitude * weight * FSS_FIXED + 0.5f);
     if (value != 0)
         atomic_add(acc + ((v * 4 + layer) * rows + bin) * sonar.beams + beam, value);
+}
+
+/* Whether view v's component c is read at `beam` (render_views' masked and needed). */
+inline int fss_needed(__global const uchar *needed, int masked, int v, int c, int beam, int beams)
+{
+    return !masked || (beam >= 0 && beam < beams && needed[(v * 2 + c) * beams + beam] != 0);
 }
 
 /* R q (view-frame direction to reference frame). */
@@ -174,6 +184,8 @@ __kernel void render_views(__global const float4 *nodes,
                            __global const int *poses,
                            __global const float *hit_range,
                            __global const int *hit_tri,
+                           const int masked,
+                           __global const uchar *needed,
                            __global int *acc)
 {
     const int v = (int)get_global_id(2);
@@ -213,7 +225,9 @@ __kernel void render_views(__global const float4 *nodes,
             un = -un;
         }
         const float c = -un;
-        fss_deposit(acc, v, 0, b, r, pow(c, gamma), weight, sonar, first, rows);
+        const int want_object = fss_needed(needed, masked, v, 0, b, sonar.beams);
+        if (want_object)
+            fss_deposit(acc, v, 0, b, r, pow(c, gamma), weight, sonar, first, rows);
 
         const float3 P = r * u;
         const float3 O2 = (2.0f * d) * n;
@@ -228,6 +242,11 @@ __kernel void render_views(__global const float4 *nodes,
         if (!(bq >= -0.5f && bq < (float)sonar.beams - 0.5f))
             return;
         if (!(fabs(fss_elevation(Q)) <= sonar.half_elevation))
+            return;
+        const float3 Pm = P - (2.0f * (nP - d)) * n;
+        const int bm = fss_nearest_index(fss_beam_coordinate(fss_azimuth(Pm), sonar, beam_table));
+        const int want_mirror = fss_needed(needed, masked, v, 1, bm, sonar.beams);
+        if (!want_object && !want_mirror)
             return;
         /* leg O -> Q clear */
         const float qlen = fss_range(Q);
@@ -250,12 +269,14 @@ __kernel void render_views(__global const float4 *nodes,
             return;
         const float a_s = surface_reflection * pow(c * c_in, 0.5f * gamma);
         const float R_s = (r + q) * 0.5f;
-        fss_deposit(acc, v, 1, b, R_s, a_s, weight, sonar, first, rows);
-        const float3 Pm = P - (2.0f * (nP - d)) * n;
-        const int bm = fss_nearest_index(fss_beam_coordinate(fss_azimuth(Pm), sonar, beam_table));
-        fss_deposit(acc, v, 2, bm, R_s, a_s, weight, sonar, first, rows);
+        if (want_object)
+            fss_deposit(acc, v, 1, b, R_s, a_s, weight, sonar, first, rows);
+        if (want_mirror)
+            fss_deposit(acc, v, 2, bm, R_s, a_s, weight, sonar, first, rows);
     } else if (s_surf < r && s_surf < INFINITY) {
         /* 4. surface first: mirror2 */
+        if (!fss_needed(needed, masked, v, 1, b, sonar.beams))
+            return;
         const float3 Q = s_surf * u;
         const float3 u2 = u - (2.0f * nu) * n;
         const float3 u2_ref = fss_rotate(rot, u2);

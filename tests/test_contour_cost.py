@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from fsswarp.backends import HostLayers
+from fsswarp.backends import HostLayers, beams_read
 from fsswarp.compare import _gaussian
 from fsswarp.rig import Rig, View
 from fsswarp.sonar import SonarSpec
@@ -189,6 +189,61 @@ def test_warp_and_opencl_agree_on_rendered_views(backend_for_label):
         np.testing.assert_array_equal(out["warp", "view costs", full], out["warp", "view costs", not full])
         np.testing.assert_allclose(out["warp", "view costs", full], out["opencl", "view costs", full],
                                    rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("taps", [1, 3, 5, 9])
+def test_beams_read_are_the_beams_the_smoothing_reaches(taps):
+    """beams_read: every beam that the contour of a masked beam reads, clamp(b + k, 0, beams − 1)
+    for |k| <= radius (frontal_contour's rule, brute force), and no other."""
+    masks = np.random.default_rng(taps).random((6, 2, 40)) < 0.15
+    masks[0] = False
+    masks[1, :, 0] = masks[1, :, -1] = True  # at both borders
+    radius = (taps - 1) // 2
+    want = np.zeros_like(masks)
+    for n, c, b in zip(*np.nonzero(masks)):
+        for k in range(-radius, radius + 1):
+            want[n, c, min(max(b + k, 0), 39)] = True
+    np.testing.assert_array_equal(beams_read(masks, taps), want)
+
+
+def test_layers_of_the_beams_read_give_the_full_layers_results(backend):
+    """Pairs rendered with only the beams their masks read (``beams_read``, as
+    ViewComparison.view_costs renders them), full or in bands: contours, sums, counts and view
+    costs bit for bit those of every beam rendered, with masks that leave out a side, a component
+    and a view's mirror."""
+    sonar = SonarSpec(beams=64, bins=160, range_min=1.5, range_max=2.5)
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
+    mesh.vertices += (0.0, 2.0, -0.12)  # 2 cm below the surface
+    rig = Rig(tuple(View(f"r{k}", roll=np.radians(r)) for k, r in enumerate((-90, -45, 0, 45, 90))))
+    depths, tilts = np.array([0.28, 0.3, 0.32]), np.radians([9.0, 10.0, 11.0])
+    rot, t = rig.relative_poses(depths, tilts)
+    n, d = surface_in_views(rig, depths, tilts)
+    thresholds = np.full((5, sonar.bins), 2e-3, np.float32)
+    windows = np.array([[20, 150], [0, 140], [30, 160], [20, 150], [10, 155]])
+    masks = np.zeros((5, 2, sonar.beams), bool)
+    masks[:, 0, 16:36] = True  # the object's contour lies at beams 19-44, the mirror's at 23-40
+    masks[:, 1, 28:50] = True
+    masks[1, 1] = False  # no mirror contour in view 1
+    masks[3, 1, 28:50], masks[3, 1, 10:28] = False, True  # the mirror on the other side
+    distances = np.random.default_rng(0).uniform(0, 0.05, (5, 2, sonar.bins, sonar.beams))
+    view_index = np.tile(np.arange(5), 3)
+    smoothing = (_gaussian(1.0), _gaussian(2.0))
+    read = beams_read(masks, len(smoothing[1]))[view_index]
+    handle = backend.load_mesh(mesh.vertices, mesh.faces)
+    for rows in (None, tight_bands(view_index, windows, (len(smoothing[0]) - 1) // 2, sonar.bins)):
+        results = []
+        for beams in (None, read):
+            layers = backend.render_device(handle, sonar, rot.reshape(-1, 3, 3), t.reshape(-1, 3),
+                                           n.reshape(-1, 3), d.reshape(-1), (1, 32), gamma=1.0,
+                                           surface_reflection=0.9, rows=rows, beams=beams)
+            args = (layers, view_index, thresholds, windows, masks, distances, [0.0, 0.5], smoothing)
+            results.append((*backend.contour_cost(*args), backend.view_costs(*args, np.full((5, 2), 20), 0.04)))
+            if beams is not None:
+                assert 0 < layers.numpy().sum() < full_sum
+            full_sum = layers.numpy().sum()
+        assert (results[0][0][:, 0] >= 0).sum() >= 40 and (results[0][0][:, 1] >= 0).sum() >= 20
+        for every, only_read in zip(*results):
+            np.testing.assert_array_equal(only_read, every)
 
 
 def tight_bands(view_index, windows, radius, bins):

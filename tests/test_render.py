@@ -378,8 +378,53 @@ def test_render_device_rejects_bad_rows(backend, rows):
                               surface_reflection=RS, rows=rows)
 
 
-def test_backends_agree_on_bands(backend_for_label):
-    """Warp and OpenCL agree on banded layers as on full ones (test_backends_agree_on_coral)."""
+def beam_masks(n_views: int, beams: int) -> np.ndarray:
+    """Seeded (N, 2, beams) beams read: random beams of each component, with one view that reads
+    no mirror beam and one that reads every object beam but no mirror beam left of the middle."""
+    masks = np.random.default_rng(11).random((n_views, 2, beams)) < 0.5
+    masks[0, 1] = False
+    masks[1, 0] = True
+    masks[1, 1, :beams // 2] = False
+    return masks
+
+
+@pytest.mark.parametrize("rows", [None, (np.array([200, 230, 0, 252]), 260)])
+def test_render_device_beams_read_keep_the_full_pixels(backend, rows):
+    """render_device(beams=...): a component's pixels at the beams read equal the full layers'
+    bit for bit (the mirror's land sideways of their sub-ray's beam), the others are zero; the
+    layers are not all zero, nor all of the full ones."""
+    sonar, mesh, rot, trans, normals, offsets = coral_inputs()
+    handle = backend.load_mesh(mesh.vertices, mesh.faces)
+    args = (handle, sonar, rot, trans, normals, offsets, SAMPLES)
+    masks = beam_masks(4, sonar.beams)
+    full = backend.render_device(*args, gamma=GAMMA, surface_reflection=RS, rows=rows).numpy()
+    read = backend.render_device(*args, gamma=GAMMA, surface_reflection=RS, rows=rows, beams=masks).numpy()
+    want = full * np.repeat(masks, 2, axis=1)[:, :, None, :]
+    np.testing.assert_array_equal(read, want)
+    for layer in range(4):
+        assert 0 < read[:, layer].sum() < full[:, layer].sum()
+    assert read[0, 2:].sum() == 0 and full[0, 2:].sum() > 0  # no mirror beam read: none rendered
+
+
+@pytest.mark.parametrize("beams", [
+    np.ones((2, 2, 96), np.uint8),  # not bools
+    np.ones((2, 2, 95), bool),
+    np.ones((2, 4, 96), bool),
+    np.ones((1, 2, 96), bool),
+    [[True]],
+])
+def test_render_device_rejects_bad_beams(backend, beams):
+    sonar, mesh, rot, trans, normals, offsets = coral_inputs()
+    handle = backend.load_mesh(mesh.vertices, mesh.faces)
+    with pytest.raises(ValueError, match="beams"):
+        backend.render_device(handle, sonar, rot[:2], trans[:2], normals[:2], offsets[:2], SAMPLES, gamma=GAMMA,
+                              surface_reflection=RS, beams=beams)
+
+
+@pytest.mark.parametrize("masked", [False, True], ids=["every beam", "beams read"])
+def test_backends_agree_on_bands(backend_for_label, masked):
+    """Warp and OpenCL agree on banded layers as on full ones (test_backends_agree_on_coral), with
+    every beam and with some beams read."""
     first, count = np.array([200, 230, 0, 252]), 260
     layers = []
     for label in ("warp-cpu", "opencl-cpu"):
@@ -387,9 +432,13 @@ def test_backends_agree_on_bands(backend_for_label):
         sonar, mesh, rot, trans, normals, offsets = coral_inputs()
         handle = backend.load_mesh(mesh.vertices, mesh.faces)
         layers.append(backend.render_device(handle, sonar, rot, trans, normals, offsets, SAMPLES, gamma=GAMMA,
-                                            surface_reflection=RS, rows=(first, count)).numpy())
+                                            surface_reflection=RS, rows=(first, count),
+                                            beams=beam_masks(4, sonar.beams) if masked else None).numpy())
     for v in range(4):
         for layer, name in enumerate(COMPONENTS):
+            if masked and layers[1][v, layer].sum() == 0:  # e.g. view 0, which reads no mirror beam
+                assert layers[0][v, layer].sum() == 0
+                continue
             assert layers[1][v, layer].sum() > 0
             l1 = relative_l1(layers[0][v, layer], layers[1][v, layer])
             assert l1 < 0.005, f"{CORAL_VIEWS[v]} {name}: relative L1 {l1:.5f}"
@@ -596,6 +645,22 @@ def test_shared_direct_legs_change_no_pixel(backend):
     np.testing.assert_array_equal(rendered, own)
     assert shared_poses(clean[0][:4], clean[1][:4], spans[:4], 1) is None  # four distinct poses
     assert shared_poses(clean[0], clean[1], spans, 2**40) is None  # too many hits to keep
+
+
+def test_shared_poses_span_the_hull_of_their_views_that_reach():
+    """A pose's spans: the hull of the spans of its views that reach the mesh (a view that
+    reaches nothing widens nothing), zeros where none of them does; views of one pose need not
+    be neighbours."""
+    from fsswarp.backends.base import shared_poses
+
+    a, b, c = np.eye(3), np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0])
+    rot = np.stack([a, b, a, c, b, c]).astype(np.float32)
+    trans = np.zeros((6, 3), np.float32)
+    spans = np.array([[2, 5, 1, 3], [1, 2, 0, 1], [0, 4, 2, 6], [0, 0, 0, 0], [3, 3, 0, 9], [0, 0, 0, 0]], np.int32)
+    shared = shared_poses(rot, trans, spans, 8)
+    hull = {tuple(map(tuple, shared.rotations[p].astype(int))): tuple(shared.spans[p]) for p in range(shared.count)}
+    assert hull == {tuple(map(tuple, a.astype(int))): (0, 5, 1, 6), tuple(map(tuple, b.astype(int))): (1, 2, 0, 1),
+                    tuple(map(tuple, c.astype(int))): (0, 0, 0, 0)}
 
 
 def test_shared_poses_check_their_hash(monkeypatch):

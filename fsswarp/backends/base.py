@@ -333,7 +333,7 @@ class Backend(abc.ABC):
 
     def render_device(self, mesh, sonar: SonarSpec, rotations, translations, plane_normals,
                       plane_offsets, samples: tuple[int, int], *, gamma: float,
-                      surface_reflection: float, rows=None) -> "DeviceLayers":
+                      surface_reflection: float, rows=None, beams=None) -> "DeviceLayers":
         """``render`` with the layers left on the device (for kernels that consume them there,
         and for timing the synthesis without the read-back). Returns once the layers are
         complete; ``.numpy()`` copies them to the host.
@@ -349,6 +349,12 @@ class Backend(abc.ABC):
             ``contour_cost`` consumes banded layers. The result's ``first_rows`` is the (N,)
             int array first (None for full layers); ``.numpy()`` copies the band as it is,
             (N, 4, R, beams).
+        beams : None (default), every beam; or (N, 2, beams) bools, the beams that will be read
+            of each view's two components (0: the object and ghost layers, 1: the mirror and
+            mirror2 layers). A component's pixels at a beam not read stay zero, and the legs
+            whose returns land only there are not cast (the pose step's grid reads its views'
+            masked beams alone: about half the mirror2 legs of coral-one); every other pixel
+            equals, bit for bit, the same pixel of the full layers.
         """
         rot, trans, normals, offsets = _view_planes(rotations, translations, plane_normals, plane_offsets)
         k_theta, k_phi = (int(k) for k in samples)
@@ -362,10 +368,11 @@ class Backend(abc.ABC):
         if n_views == 0:
             return HostLayers(np.zeros((0, 4, count, sonar.beams), np.float32),
                               None if rows is None else first)
+        needed = _read_beams(beams, n_views, sonar.beams)
         spans = self._spans(mesh, sonar, rot, trans, normals, offsets, k_phi)
         layers = self._render(mesh, SonarConstants.of(sonar), sonar.beam_widths, rot, trans, normals,
                               offsets, k_theta, k_phi, float(gamma), float(surface_reflection), first, count,
-                              spans, shared_poses(rot, trans, spans, sonar.beams * k_theta * k_phi))
+                              spans, shared_poses(rot, trans, spans, sonar.beams * k_theta * k_phi), needed)
         layers.first_rows = None if rows is None else first.copy()
         return layers
 
@@ -441,14 +448,15 @@ class Backend(abc.ABC):
                 translations: np.ndarray, plane_normals: np.ndarray, plane_offsets: np.ndarray,
                 k_theta: int, k_phi: int, gamma: float, surface_reflection: float,
                 first_rows: np.ndarray, rows: int, spans: np.ndarray,
-                shared: "SharedPoses | None") -> "DeviceLayers":
+                shared: "SharedPoses | None", needed: np.ndarray | None = None) -> "DeviceLayers":
         """Kernel launch of ``render_device`` (the algorithm: fsswarp/rendering.py's docstring);
         beam_widths: (beams,) float32 Δθ_b; first_rows (N,) int32 and rows R: view n keeps
         the bins first_rows[n] <= B < first_rows[n] + R (zeros and bins for full layers),
         valid; spans (N, 4) int32 (:func:`ray_spans`): view n casts only the sub-rays (i, j) of
         beams spans[n, 0] <= b < spans[n, 1] with spans[n, 2] <= j < spans[n, 3] (the others
         reach nothing); shared (:func:`shared_poses`): views whose direct legs are cast once per
-        distinct pose (the same float operations, so the same pixels), or None. Returns the
+        distinct pose (the same float operations, so the same pixels), or None; needed: None or
+        (N, 2, beams) uint8, ``render_device``'s ``beams`` (0/1, C order). Returns the
         (N, 4, R, beams) float32 layers, complete, on the device (the caller sets
         ``first_rows``)."""
 
@@ -754,6 +762,20 @@ def rows_read(windows, range_taps: int, bins: int) -> tuple[np.ndarray, np.ndarr
     return np.maximum(windows[:, 0] - radius, 0), np.minimum(windows[:, 1] + radius, bins)
 
 
+def beams_read(masks, beam_taps: int) -> np.ndarray:
+    """The beams that ``contour_cost`` reads for (N, 2, beams) bool ``masks`` with a beam smoothing
+    of ``beam_taps`` (odd) taps: each component's mask widened by the smoothing's radius,
+    clipped to the image. Returns (N, 2, beams) bool; layers rendered with these ``beams``
+    (``render_device``) give the full layers' results."""
+    masks = np.asarray(masks, bool)
+    radius = (beam_taps - 1) // 2
+    read = masks.copy()
+    for shift in range(1, min(radius, masks.shape[-1] - 1) + 1):
+        read[..., shift:] |= masks[..., :-shift]
+        read[..., :-shift] |= masks[..., shift:]
+    return read
+
+
 def ray_spans(bounds: np.ndarray, sonar: SonarSpec, rotations: np.ndarray, translations: np.ndarray,
               plane_normals: np.ndarray, plane_offsets: np.ndarray, k_phi: int) -> np.ndarray:
     """(N, 4) int32 spans of the sub-rays that can reach a mesh inside the box ``bounds`` (2, 3)
@@ -836,13 +858,14 @@ def shared_poses(rotations: np.ndarray, translations: np.ndarray, spans: np.ndar
     _, first, index = np.unique(keys, return_index=True, return_inverse=True)
     if first.size == n or first.size * sub_rays > SHARED_HITS or not np.array_equal(rows[first][index], rows):
         return None
-    reached = spans[:, 1] > spans[:, 0]
-    hull = np.zeros((first.size, 4), np.int64)
-    most = np.iinfo(np.int64).max
-    hull[:, 0] = hull[:, 2] = most
+    reached = np.flatnonzero(spans[:, 1] > spans[:, 0])
+    reached = reached[np.argsort(index[reached], kind="stable")]  # grouped by pose
+    pose = index[reached]
+    starts = np.flatnonzero(np.r_[True, pose[1:] != pose[:-1]]) if pose.size else pose
+    hull = np.zeros((first.size, 4), np.int64)  # poses none of whose views reach the mesh: zeros
     for k, combine in enumerate((np.minimum, np.maximum, np.minimum, np.maximum)):
-        combine.at(hull[:, k], index[reached], spans[reached, k])
-    hull[np.bincount(index[reached], minlength=first.size) == 0] = 0  # poses none of whose views reach the mesh
+        if pose.size:
+            hull[pose[starts], k] = combine.reduceat(spans[reached, k], starts)
     return SharedPoses(index.astype(np.int32).reshape(n), np.ascontiguousarray(rows[first, :9].reshape(-1, 3, 3)),
                        np.ascontiguousarray(rows[first, 9:]), hull.astype(np.int32))
 
@@ -851,6 +874,17 @@ def span_extent(spans: np.ndarray) -> tuple[int, int]:
     """A render launch's extent over (N, 4) :func:`ray_spans`: the widest beam span and the
     most elevation samples of any view (0 beams: no view reaches the mesh, nothing to cast)."""
     return int(np.max(spans[:, 1] - spans[:, 0])), int(np.max(spans[:, 3] - spans[:, 2]))
+
+
+def _read_beams(beams, n_views: int, n_beams: int) -> np.ndarray | None:
+    """``render_device``'s ``beams`` as (N, 2, beams) uint8 0/1 (C order), None for every beam, or raise."""
+    if beams is None:
+        return None
+    beams = np.asarray(beams)
+    if beams.dtype != bool or beams.shape != (n_views, 2, n_beams):
+        raise ValueError(f"beams must be None or a ({n_views}, 2, {n_beams}) bool array, got {beams.dtype} "
+                         f"{beams.shape}")
+    return np.ascontiguousarray(beams, np.uint8)
 
 
 def _row_bands(rows, n_views: int, bins: int) -> tuple[np.ndarray, int]:

@@ -536,7 +536,7 @@ def pose_grid(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3,
 
     import trimesh
 
-    from ..backends import rows_read
+    from ..backends import beams_read, rows_read
     from ..dataset import Dataset
     from ..compare import PoseSettings, ViewComparison
     from ..rig import Rig
@@ -546,7 +546,8 @@ def pose_grid(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3,
     profile = profiles[profile_key(backend)]
     link = profile.get("link_up_Bps") is not None
     bases = {"end to end": record_base("pose", "surrogate (render + contour cost)", "end to end", backend, "cells"),
-             "render alone": record_base("pose", "render_pairs (window bands)", "render alone", backend, "cells"),
+             "render alone": record_base("pose", "render_pairs (window bands, beams read)", "render alone", backend,
+                                         "cells"),
              "resident": record_base("pose", "view_costs", "resident", backend, "cells")}
     with tempfile.TemporaryDirectory() as folder:
         dataset = simulate("coral-one", f"{folder}/coral-one", seed=1, backend=backend)
@@ -568,13 +569,14 @@ def pose_grid(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3,
     need_lo, need_hi = rows_read(data.windows, len(problem.smoothing[0]), sonar.bins)
     rows = int(np.max(need_hi - need_lo))  # the bands of ViewComparison.view_costs, in its launches
     first = np.minimum(need_lo, sonar.bins - rows)
+    read = beams_read(data.masks, len(problem.smoothing[1]))
     per = max(1, launch_bytes // (32 * rows * sonar.beams * views))
 
     def render_alone(depths, tilts):
         for start in range(0, len(depths), per):
             cell_d, cell_t = depths[start:start + per], tilts[start:start + per]
             problem.render_pairs(data.views, cell_d, cell_t, settings.samples,
-                                 rows=(np.tile(first, len(cell_d)), rows))
+                                 rows=(np.tile(first, len(cell_d)), rows), beams=np.tile(read, (len(cell_d), 1, 1)))
 
     def cells(side):
         return np.meshgrid(truth.depth + np.linspace(-0.05, 0.05, side),

@@ -175,7 +175,7 @@ class OpenCLBackend(Backend):
 
     def _render(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations,
                 plane_normals, plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, rows, spans,
-                shared):
+                shared, needed=None):
         _check_mesh(mesh)
         shape = (rotations.shape[0], 4, rows, sonar.beams)
         size = int(np.prod(shape))
@@ -183,7 +183,7 @@ class OpenCLBackend(Backend):
             acc_buf, layers_buf = self._accumulator(4 * size), self._layers_buffer(4 * size)
             self._enqueue_render(mesh, sonar, beam_widths, rotations, translations, plane_normals, plane_offsets,
                                  k_theta, k_phi, gamma, surface_reflection, first_rows, spans, shape, acc_buf,
-                                 layers_buf, shared=shared)
+                                 layers_buf, shared=shared, needed=needed)
             self.queue.finish()
             if acc_buf is not self._scratch:
                 acc_buf.release()
@@ -225,10 +225,11 @@ class OpenCLBackend(Backend):
 
     def _enqueue_render(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations, plane_normals,
                         plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, spans, shape, acc_buf,
-                        layers_buf, wait_for=None, shared=None) -> cl.Event:
+                        layers_buf, wait_for=None, shared=None, needed=None) -> cl.Event:
         """Enqueue the zeroing of acc_buf, the render and fixed-point kernels of the views given
         (clean float32 (n, ...) arrays, their (n, 4) ray spans; ``shared``, their SharedPoses or
-        None, first casts the direct legs of the distinct poses) into layers_buf, of ``shape``
+        None, first casts the direct legs of the distinct poses; ``needed``, None or the (n, 2,
+        beams) uint8 beams read, ``Backend._render``) into layers_buf, of ``shape``
         (n, 4, R, beams), after the events ``wait_for``; returns the last kernel's event. Call
         holding ``_lock``."""
         if sonar.use_table:
@@ -256,8 +257,9 @@ class OpenCLBackend(Backend):
                 np.int32(k_theta), np.int32(k_phi),
                 np.float32(1.0 / (k_theta * k_phi)), np.float32(gamma), np.float32(surface_reflection),
                 np.float32(RAY_EPSILON), np.float32(MAX_DISTANCE), self._input(first_rows), np.int32(shape[2]),
-                self._input(np.ascontiguousarray(spans, np.int32)), poses, hit_range, hit_tri, acc_buf,
-                wait_for=[zeroed])
+                self._input(np.ascontiguousarray(spans, np.int32)), poses, hit_range, hit_tri,
+                np.int32(needed is not None), self._input(np.ones(1, np.uint8) if needed is None else needed),
+                acc_buf, wait_for=[zeroed])
         return self._fixed_kernel(self.queue, (-(-size // GROUP) * GROUP,), None, acc_buf, layers_buf,
                                   np.int32(size))
 

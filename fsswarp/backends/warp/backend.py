@@ -167,7 +167,7 @@ class WarpBackend(Backend):
 
     def _render(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations,
                 plane_normals, plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, rows, spans,
-                shared):
+                shared, needed=None):
         mesh = self._check_mesh(mesh)
         shape = (rotations.shape[0], 4, rows, sonar.beams)
         with wp.ScopedDevice(self._device):
@@ -175,7 +175,8 @@ class WarpBackend(Backend):
             acc = wp.zeros(shape, dtype=wp.int32)
             layers = wp.empty(shape, dtype=float)
             self._render_into(mesh, sonar, beam_widths, poses, k_theta, k_phi, gamma, surface_reflection,
-                              self._constant(first_rows, wp.int32), spans, acc, layers, shared=shared)
+                              self._constant(first_rows, wp.int32), spans, acc, layers, shared=shared,
+                              needed=needed)
             wp.synchronize_device(self._device)
             return WarpLayers(layers)
 
@@ -185,12 +186,13 @@ class WarpBackend(Backend):
                 self._array(plane_normals, wp.vec3), self._array(plane_offsets, float))
 
     def _render_into(self, mesh, sonar: SonarConstants, beam_widths, poses, k_theta, k_phi, gamma,
-                     surface_reflection, first_rows, spans, acc, layers, shared=None) -> None:
+                     surface_reflection, first_rows, spans, acc, layers, shared=None, needed=None) -> None:
         """Launch the render and fixed-point kernels of the views ``poses`` ((n,) device arrays of
         ``_poses``) on the device's current stream: acc (n, 4, R, beams) int32, zeroed, receives
         the deposits and layers (n, 4, R, beams) float32 the result; first_rows (n,) int32 on the
         device; spans (n, 4) int32 on the host (``Backend._render``); shared, the views' SharedPoses
-        (or None), whose distinct poses' direct legs are cast first. Returns without waiting."""
+        (or None), whose distinct poses' direct legs are cast first; needed, None or the (n, 2,
+        beams) uint8 beams read (``Backend._render``). Returns without waiting."""
         if sonar.use_table:
             centres = np.ascontiguousarray(sonar.beam_table[0], np.float32)
         else:  # the centres of SonarSpec.beam_centres
@@ -209,7 +211,9 @@ class WarpBackend(Backend):
                       inputs=[mesh.id, mesh.points, mesh.indices, *poses, directions,
                               self._constant(sonar.beam_table, float), kernel_sonar(sonar), int(k_theta),
                               weight, float(gamma), float(surface_reflection), first_rows,
-                              self._constant(np.ascontiguousarray(spans, np.int32), wp.int32), *hits],
+                              self._constant(np.ascontiguousarray(spans, np.int32), wp.int32), *hits,
+                              int(needed is not None),
+                              self._constant(np.ones((1, 1, 1), np.uint8) if needed is None else needed, wp.uint8)],
                       outputs=[acc])
         wp.launch(fixed_to_float, dim=acc.size, inputs=[acc.flatten()], outputs=[layers.flatten()])
 

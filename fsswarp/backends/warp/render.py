@@ -49,6 +49,16 @@ def deposit(acc: wp.array4d(dtype=wp.int32), v: int, layer: int, bin_index: int,
         wp.atomic_add(acc, v, layer, row, beam, int(amplitude * weight * _FIXED + 0.5))
 
 
+@wp.func
+def needed_at(needed: wp.array3d(dtype=wp.uint8), masked: int, v: int, c: int, beam: int):
+    """Whether view v's component c is read at ``beam`` (render_kernel's masked and needed)."""
+    if masked == 0:
+        return True
+    if beam < 0 or beam >= needed.shape[2]:
+        return False
+    return needed[v, c, beam] != wp.uint8(0)
+
+
 @wp.kernel
 def frontal_rays_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
                         rotations: wp.array(dtype=wp.mat33), translations: wp.array(dtype=wp.vec3),
@@ -152,13 +162,16 @@ def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
                   surface_reflection: float,
                   first_rows: wp.array(dtype=wp.int32), spans: wp.array2d(dtype=wp.int32),
                   poses: wp.array(dtype=wp.int32), hit_range: wp.array4d(dtype=float),
-                  hit_face: wp.array4d(dtype=wp.int32), acc: wp.array4d(dtype=wp.int32)):
+                  hit_face: wp.array4d(dtype=wp.int32), masked: int, needed: wp.array3d(dtype=wp.uint8),
+                  acc: wp.array4d(dtype=wp.int32)):
     """Thread (v, o, k): sub-ray (i, spans[v, 2] + q), (i, q) = divmod(k, J_v), of beam
     b = spans[v, 0] + o in view v, J_v = spans[v, 3] − spans[v, 2] (none where b >= spans[v, 1]
     or k >= K_θ J_v); deposits its object, ghost, mirror and mirror2 returns into acc (N, 4, R,
     beams), view v's image row B at row B − first_rows[v] when that lies in [0, R), else
     nowhere (kernels/render.cl). Where poses[v] = p >= 0 the direct leg is hit_range and
-    hit_face[p, b, i, j] (direct_hits_kernel), else cast here."""
+    hit_face[p, b, i, j] (direct_hits_kernel), else cast here. With masked 1 a return lands only
+    where its component's beam is needed[v, c, beam] (N, 2, beams) (c 0: object and ghost, 1:
+    mirror and mirror2), and a leg whose returns land nowhere needed is not cast."""
     v, o, k = wp.tid()
     item = span_item(spans, v, o, k, k_theta)
     b = item[0]
@@ -196,8 +209,10 @@ def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
         # 3. hit before the surface
         nrm = facing_normal(points, indices, face, rot, u)
         c = -wp.dot(u, nrm)
-        deposit(acc, v, 0, nearest_index(bin_coordinate(r, sonar)), b,
-                wp.pow(c, gamma), weight, sonar.beams, first)
+        want_object = needed_at(needed, masked, v, 0, b)
+        if want_object:
+            deposit(acc, v, 0, nearest_index(bin_coordinate(r, sonar)), b,
+                    wp.pow(c, gamma), weight, sonar.beams, first)
         p = r * u
         o_m = (2.0 * d) * n
         q = wp.length(p - o_m)
@@ -211,7 +226,10 @@ def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
                 l_pq = wp.length(pq)
                 w = pq / l_pq
                 c_in = -wp.dot(w, nrm)
-                if c_in > 0.0:
+                pm = p - (2.0 * (n_p - d)) * n
+                mb = nearest_index(beam_coordinate(azimuth(pm), sonar, beam_table))
+                want_mirror = needed_at(needed, masked, v, 1, mb)
+                if c_in > 0.0 and (want_object or want_mirror):
                     l_q = wp.length(qq)
                     leg1 = nearest_hit(mesh, points, indices, org, rot * (qq / l_q), l_q - _EPS)
                     if leg1.face < 0:
@@ -219,11 +237,11 @@ def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
                         if leg2.face < 0:
                             a_s = surface_reflection * wp.pow(c * c_in, 0.5 * gamma)
                             rb = nearest_index(bin_coordinate(0.5 * (r + q), sonar))
-                            deposit(acc, v, 1, rb, b, a_s, weight, sonar.beams, first)
-                            pm = p - (2.0 * (n_p - d)) * n
-                            mb = nearest_index(beam_coordinate(azimuth(pm), sonar, beam_table))
-                            deposit(acc, v, 2, rb, mb, a_s, weight, sonar.beams, first)
-    elif has_surface:
+                            if want_object:
+                                deposit(acc, v, 1, rb, b, a_s, weight, sonar.beams, first)
+                            if want_mirror:
+                                deposit(acc, v, 2, rb, mb, a_s, weight, sonar.beams, first)
+    elif has_surface and needed_at(needed, masked, v, 1, b):
         # 4. surface first: mirror2 along the reflected ray
         qs = s * u
         u2 = u - (2.0 * nu) * n
