@@ -108,13 +108,19 @@ class Rig:
         Returns ``(R, s)``: (*G, V, 3, 3) rotations view → world and (*G, V, 3) positions.
         """
         depth, tilt = np.broadcast_arrays(np.asarray(depth, np.float64), np.asarray(tilt, np.float64))
-        pos, heading, roll, d_off, t_off = self._arrays()
-        beta = tilt[..., None] + t_off
-        rot = rotation_z(np.broadcast_to(heading, beta.shape)) @ rotation_x(beta) @ \
-            rotation_y(np.broadcast_to(roll, beta.shape))
+        pos, _, _, d_off, _ = self._arrays()
+        tilts, inverse = np.unique(tilt, return_inverse=True)  # a (D, β) grid repeats each tilt
+        rot = self._world_rotations(tilts)[inverse.reshape(-1)].reshape(tilt.shape + (len(self.views), 3, 3))
         z = -(depth[..., None] + d_off)
         s = np.concatenate([np.broadcast_to(pos, z.shape + (2,)), z[..., None]], axis=-1)
         return rot, s
+
+    def _world_rotations(self, tilts: np.ndarray) -> np.ndarray:
+        """(T, V, 3, 3) rotations view → world of every view at each of the (T,) tilts."""
+        _, heading, roll, _, t_off = self._arrays()
+        beta = tilts[:, None] + t_off
+        return rotation_z(np.broadcast_to(heading, beta.shape)) @ rotation_x(beta) @ \
+            rotation_y(np.broadcast_to(roll, beta.shape))
 
     def reference_pose(self, depth, tilt):
         """World pose of the reference frame: the reference view with zero roll.
@@ -156,16 +162,23 @@ class Rig:
         return result
 
     def _relative_poses(self, depth, tilt):
-        rot_w, s_w = self.world_poses(depth, tilt)
-        rot_ref, s_ref = self.reference_pose(depth, tilt)
+        _, s_w = self.world_poses(depth, tilt)
+        _, s_ref = self.reference_pose(depth, tilt)
+        # the rotations depend on β alone: found once per distinct tilt (the same operations per
+        # tilt, so the same bits as one candidate's), then spread over the candidates
+        tilts, inverse = np.unique(tilt, return_inverse=True)
+        rot_ref, _ = self._reference_pose(np.zeros_like(tilts), tilts)
         rt = np.swapaxes(rot_ref, -1, -2)[..., None, :, :]
-        rot = rt @ rot_w
+        rot = rt @ self._world_rotations(tilts)
         # a view with the reference's heading and tilt offset turns by its roll alone, Ry(ω), at
         # every (D, β): exact, so that renders on a (D, β) grid find its pose the same bit for bit
         _, heading, roll, _, tilt_offset = self._arrays()
         ref = self.views[self.reference]
         level = (heading == ref.heading) & (tilt_offset == ref.tilt_offset)
         rot[..., level, :, :] = rotation_y(roll[level])
+        inverse = inverse.reshape(-1)
+        rot = rot[inverse].reshape(tilt.shape + rot.shape[1:])
+        rt = rt[inverse].reshape(tilt.shape + rt.shape[1:])
         return rot, (rt @ (s_w - s_ref[..., None, :])[..., None])[..., 0]
 
 

@@ -229,6 +229,25 @@ def test_one_candidate_is_remembered_read_only_and_equals_the_grid():
     assert grid.flags.writeable and grid is not grid_rot  # grids are computed each time
 
 
+def test_a_grid_that_repeats_its_tilts_equals_each_candidate():
+    """A (D, β) grid repeats each tilt along D (its rotations are found once per tilt): every
+    cell's world and relative poses and surface equal, bit for bit, those of that candidate
+    alone, in grids of several shapes; ``surface_in_views(..., poses=...)`` gives what it finds
+    itself."""
+    rig = Rig(paper_rig().views + (View("off", (0.3, 0.1), 0.2, 0.3, depth_offset=0.02, tilt_offset=0.05),))
+    depths, tilts = np.meshgrid(np.linspace(0.38, 0.52, 5), np.radians([8.0, 9.5, 11.0, 9.5]), indexing="ij")
+    for d, t in ((depths, tilts), (depths.ravel(), tilts.ravel()), (depths[:, :1], tilts)):
+        d, t = np.broadcast_arrays(d, t)
+        grid = (*rig.relative_poses(d, t), *rig.world_poses(d, t), *surface_in_views(rig, d, t))
+        np.testing.assert_array_equal(surface_in_views(rig, d, t, poses=grid[:2])[0], grid[4])
+        for cell in np.ndindex(d.shape):
+            alone = (*rig.relative_poses(float(d[cell]), float(t[cell])),
+                     *rig.world_poses(float(d[cell]), float(t[cell])),
+                     *surface_in_views(rig, float(d[cell]), float(t[cell])))
+            for mine, whole in zip(alone, grid):
+                np.testing.assert_array_equal(mine, whole[cell])
+
+
 def test_new_rolls_lie_in_a_turn_and_each_name_is_one_roll():
     """``with_rolls`` (render --roll): a roll given twice makes one view; rolls beyond ±180°
     (a manifest's range) and two rolls that share a 6-digit name are refused, naming --roll
