@@ -151,17 +151,25 @@ def test_crossing_rules(backend):
     np.testing.assert_array_equal(counts, [[1, 0], [1, 0], [0, 0]])
 
 
-def test_warp_and_opencl_agree_on_rendered_views(backend_for_label):
-    warp, opencl = backend_for_label("warp-cpu"), backend_for_label("opencl-cpu")
+def sphere_views():
+    """A sphere 2 cm below the surface seen by 5 rolled views at 3 (D, β): (sonar, mesh, the 15
+    pairs' rotations, translations, plane normals and offsets, flat), detection thresholds and
+    windows (at the image's borders too) of the 5 views."""
     sonar = SonarSpec(beams=64, bins=160, range_min=1.5, range_max=2.5)
     mesh = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
-    mesh.vertices += (0.0, 2.0, -0.12)  # 2 cm below the surface
+    mesh.vertices += (0.0, 2.0, -0.12)
     rig = Rig(tuple(View(f"r{k}", roll=np.radians(r)) for k, r in enumerate((-90, -45, 0, 45, 90))))
     depths, tilts = np.array([0.28, 0.3, 0.32]), np.radians([9.0, 10.0, 11.0])
     rot, t = rig.relative_poses(depths, tilts)
     n, d = surface_in_views(rig, depths, tilts)
-    thresholds = np.full((5, sonar.bins), 2e-3, np.float32)
-    windows = np.array([[20, 150], [0, 140], [30, 160], [20, 150], [10, 155]])  # at the borders too
+    poses = (rot.reshape(-1, 3, 3), t.reshape(-1, 3), n.reshape(-1, 3), d.reshape(-1))
+    windows = np.array([[20, 150], [0, 140], [30, 160], [20, 150], [10, 155]])
+    return sonar, mesh, poses, np.full((5, sonar.bins), 2e-3, np.float32), windows
+
+
+def test_warp_and_opencl_agree_on_rendered_views(backend_for_label):
+    warp, opencl = backend_for_label("warp-cpu"), backend_for_label("opencl-cpu")
+    sonar, mesh, poses, thresholds, windows = sphere_views()
     masks = np.ones((5, 2, sonar.beams), bool)
     distances = np.random.default_rng(0).uniform(0, 0.05, (5, 2, sonar.bins, sonar.beams))
     view_index = np.tile(np.arange(5), 3)
@@ -171,8 +179,7 @@ def test_warp_and_opencl_agree_on_rendered_views(backend_for_label):
     for b in (warp, opencl):
         handle = b.load_mesh(mesh.vertices, mesh.faces)
         for rows in (None, (first, count)):
-            layers = b.render_device(handle, sonar, rot.reshape(-1, 3, 3), t.reshape(-1, 3), n.reshape(-1, 3),
-                                     d.reshape(-1), (1, 32), gamma=1.0, surface_reflection=0.9, rows=rows)
+            layers = b.render_device(handle, sonar, *poses, (1, 32), gamma=1.0, surface_reflection=0.9, rows=rows)
             args = (layers, view_index, thresholds, windows, masks, distances, [0.0, 0.5],
                     (_gaussian(1.0), _gaussian(0.7)))
             out[b.name, rows is None] = b.contour_cost(*args)
@@ -211,15 +218,7 @@ def test_layers_of_the_beams_read_give_the_full_layers_results(backend):
     ViewComparison.view_costs renders them), full or in bands: contours, sums, counts and view
     costs bit for bit those of every beam rendered, with masks that leave out a side, a component
     and a view's mirror."""
-    sonar = SonarSpec(beams=64, bins=160, range_min=1.5, range_max=2.5)
-    mesh = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
-    mesh.vertices += (0.0, 2.0, -0.12)  # 2 cm below the surface
-    rig = Rig(tuple(View(f"r{k}", roll=np.radians(r)) for k, r in enumerate((-90, -45, 0, 45, 90))))
-    depths, tilts = np.array([0.28, 0.3, 0.32]), np.radians([9.0, 10.0, 11.0])
-    rot, t = rig.relative_poses(depths, tilts)
-    n, d = surface_in_views(rig, depths, tilts)
-    thresholds = np.full((5, sonar.bins), 2e-3, np.float32)
-    windows = np.array([[20, 150], [0, 140], [30, 160], [20, 150], [10, 155]])
+    sonar, mesh, poses, thresholds, windows = sphere_views()
     masks = np.zeros((5, 2, sonar.beams), bool)
     masks[:, 0, 16:36] = True  # the object's contour lies at beams 19-44, the mirror's at 23-40
     masks[:, 1, 28:50] = True
@@ -233,9 +232,8 @@ def test_layers_of_the_beams_read_give_the_full_layers_results(backend):
     for rows in (None, tight_bands(view_index, windows, (len(smoothing[0]) - 1) // 2, sonar.bins)):
         results = []
         for beams in (None, read):
-            layers = backend.render_device(handle, sonar, rot.reshape(-1, 3, 3), t.reshape(-1, 3),
-                                           n.reshape(-1, 3), d.reshape(-1), (1, 32), gamma=1.0,
-                                           surface_reflection=0.9, rows=rows, beams=beams)
+            layers = backend.render_device(handle, sonar, *poses, (1, 32), gamma=1.0, surface_reflection=0.9,
+                                           rows=rows, beams=beams)
             args = (layers, view_index, thresholds, windows, masks, distances, [0.0, 0.5], smoothing)
             results.append((*backend.contour_cost(*args), backend.view_costs(*args, np.full((5, 2), 20), 0.04)))
             if beams is not None:

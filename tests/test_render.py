@@ -360,22 +360,27 @@ def test_render_device_bands_equal_full_rows(backend, count, first):
     assert backend.render_device(*args, gamma=GAMMA, surface_reflection=RS).first_rows is None
 
 
-@pytest.mark.parametrize("rows", [
-    (np.array([0, 0]), 0),  # no rows
-    (np.array([0, 1]), 512),  # past the last row
-    (np.array([-1, 0]), 10),
-    (np.array([0, 503]), 10),
-    (np.array([0]), 10),  # one first row for two views
-    (np.array([0.0, 1.0]), 10),
-    (np.array([0, 1]), 2.5),
-    (np.array([0, 1]),),
+@pytest.mark.parametrize("name, value", [
+    ("rows", (np.array([0, 0]), 0)),  # no rows
+    ("rows", (np.array([0, 1]), 512)),  # past the last row
+    ("rows", (np.array([-1, 0]), 10)),
+    ("rows", (np.array([0, 503]), 10)),
+    ("rows", (np.array([0]), 10)),  # one first row for two views
+    ("rows", (np.array([0.0, 1.0]), 10)),
+    ("rows", (np.array([0, 1]), 2.5)),
+    ("rows", (np.array([0, 1]),)),
+    ("beams", np.ones((2, 2, 96), np.uint8)),  # not bools
+    ("beams", np.ones((2, 2, 95), bool)),
+    ("beams", np.ones((2, 4, 96), bool)),
+    ("beams", np.ones((1, 2, 96), bool)),
+    ("beams", [[True]]),
 ])
-def test_render_device_rejects_bad_rows(backend, rows):
+def test_render_device_rejects_bad_rows_and_beams(backend, name, value):
     sonar, mesh, rot, trans, normals, offsets = coral_inputs()
     handle = backend.load_mesh(mesh.vertices, mesh.faces)
-    with pytest.raises(ValueError, match="rows"):
+    with pytest.raises(ValueError, match=name):
         backend.render_device(handle, sonar, rot[:2], trans[:2], normals[:2], offsets[:2], SAMPLES, gamma=GAMMA,
-                              surface_reflection=RS, rows=rows)
+                              surface_reflection=RS, **{name: value})
 
 
 def beam_masks(n_views: int, beams: int) -> np.ndarray:
@@ -404,21 +409,6 @@ def test_render_device_beams_read_keep_the_full_pixels(backend, rows):
     for layer in range(4):
         assert 0 < read[:, layer].sum() < full[:, layer].sum()
     assert read[0, 2:].sum() == 0 and full[0, 2:].sum() > 0  # no mirror beam read: none rendered
-
-
-@pytest.mark.parametrize("beams", [
-    np.ones((2, 2, 96), np.uint8),  # not bools
-    np.ones((2, 2, 95), bool),
-    np.ones((2, 4, 96), bool),
-    np.ones((1, 2, 96), bool),
-    [[True]],
-])
-def test_render_device_rejects_bad_beams(backend, beams):
-    sonar, mesh, rot, trans, normals, offsets = coral_inputs()
-    handle = backend.load_mesh(mesh.vertices, mesh.faces)
-    with pytest.raises(ValueError, match="beams"):
-        backend.render_device(handle, sonar, rot[:2], trans[:2], normals[:2], offsets[:2], SAMPLES, gamma=GAMMA,
-                              surface_reflection=RS, beams=beams)
 
 
 @pytest.mark.parametrize("masked", [False, True], ids=["every beam", "beams read"])

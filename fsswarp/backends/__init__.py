@@ -15,5 +15,5 @@ from .constants import FRONTAL_VISIBLE, MAX_DISTANCE, RAY_EPSILON
 from .select import BACKEND_NAMES, INSTALL_OPENCL, INSTALL_WARP, describe_backends, get_backend
 
 __all__ = ["Backend", "DeviceLayers", "HostLayers", "DeviceDistances", "ICPRuns", "PreparedLaunch", "SonarConstants",
-           "get_backend", "describe_backends", "beams_read", "rows_read", "BACKEND_NAMES", "INSTALL_WARP", "INSTALL_OPENCL",
-           "RAY_EPSILON", "FRONTAL_VISIBLE", "MAX_DISTANCE"]
+           "get_backend", "describe_backends", "beams_read", "rows_read", "BACKEND_NAMES", "INSTALL_WARP",
+           "INSTALL_OPENCL", "RAY_EPSILON", "FRONTAL_VISIBLE", "MAX_DISTANCE"]

@@ -352,9 +352,9 @@ class Backend(abc.ABC):
         beams : None (default), every beam; or (N, 2, beams) bools, the beams that will be read
             of each view's two components (0: the object and ghost layers, 1: the mirror and
             mirror2 layers). A component's pixels at a beam not read stay zero, and the legs
-            whose returns land only there are not cast (the pose step's grid reads its views'
-            masked beams alone: about half the mirror2 legs of coral-one); every other pixel
-            equals, bit for bit, the same pixel of the full layers.
+            whose returns land only there are not cast (the pose grid passes its views' masks,
+            :func:`beams_read`); every other pixel equals, bit for bit, the same pixel of the
+            full layers.
         """
         rot, trans, normals, offsets = _view_planes(rotations, translations, plane_normals, plane_offsets)
         k_theta, k_phi = (int(k) for k in samples)
@@ -362,13 +362,13 @@ class Backend(abc.ABC):
             raise ValueError(f"samples must be two positive counts, got {tuple(samples)}")
         n_views = rot.shape[0]
         first, count = _row_bands(rows, n_views, sonar.bins)
+        needed = _read_beams(beams, n_views, sonar.beams)
         if n_views * 4 * count * sonar.beams >= 2**31:
             raise ValueError(f"{n_views} views of {count} x {sonar.beams} exceed one launch's "
                              f"2^31 pixels; split the batch")
         if n_views == 0:
             return HostLayers(np.zeros((0, 4, count, sonar.beams), np.float32),
                               None if rows is None else first)
-        needed = _read_beams(beams, n_views, sonar.beams)
         spans = self._spans(mesh, sonar, rot, trans, normals, offsets, k_phi)
         layers = self._render(mesh, SonarConstants.of(sonar), sonar.beam_widths, rot, trans, normals,
                               offsets, k_theta, k_phi, float(gamma), float(surface_reflection), first, count,
