@@ -381,6 +381,18 @@ class ViewComparison:
                                           n.reshape(-1, 3), d.reshape(-1), samples, gamma=ECHO.gamma,
                                           surface_reflection=ECHO.surface_reflection, rows=rows, beams=beams)
 
+    def grid_launches(self) -> tuple[np.ndarray, int, np.ndarray, int]:
+        """How :meth:`view_costs` renders the data views: (first (V,), R, read (V, 2, beams), cells per
+        launch): the band of R rows from ``first`` that holds what each view's window reads
+        (``rows_read``, the widest view's R, started lower where it would pass the last row), the
+        beams its masks read (``beams_read``), and the most cells whose layers (2 × 16 B per pixel
+        of the bands) fit ``settings.launch_bytes``."""
+        data, sonar = self.data, self.sonar
+        need_lo, need_hi = rows_read(data.windows, len(self.smoothing[0]), sonar.bins)
+        rows = int(np.max(need_hi - need_lo))
+        per = max(1, self.settings.launch_bytes // (32 * rows * sonar.beams * len(data.views)))
+        return np.minimum(need_lo, sonar.bins - rows), rows, beams_read(data.masks, len(self.smoothing[1])), per
+
     def view_costs(self, depths: np.ndarray, tilts: np.ndarray, samples, cap: float, *, contours: bool = True):
         """(G, V, S) surrogate view costs of cells (G,) at the detection shift (S = 1) or, without
         one, at every candidate shift; and (G, V, 2, beams) synthetic contours, or None with
@@ -388,20 +400,14 @@ class ViewComparison:
         and only they are read back). One launch unless the layers would exceed
         ``settings.launch_bytes``.
 
-        Each pair renders only the band of rows its view's window reads (``render_device``'s
-        ``rows``): the window [lo, hi) ± the range smoothing's radius rB, clipped to the image,
-        R rows for every pair (the widest view's), started lower where it would pass the last
-        row, and only the beams its masks read (``render_device``'s ``beams``: the masks ± the
-        beam smoothing's radius); the contours and costs are those of full layers, bit for bit. One cell at the
-        located estimate with the exact samples reads the layers rendered there, on the device
-        (``_located_index``; no render: the same pixels)."""
-        data, sonar = self.data, self.sonar
+        Each pair renders only the band of rows its view's window reads and the beams its masks
+        read (:meth:`grid_launches`; ``render_device``'s ``rows`` and ``beams``): the contours
+        and costs are those of full layers, bit for bit. One cell at the located estimate with
+        the exact samples reads the layers rendered there, on the device (``_located_index``; no
+        render: the same pixels)."""
+        data = self.data
         n_views = len(data.views)
-        need_lo, need_hi = rows_read(data.windows, len(self.smoothing[0]), sonar.bins)
-        rows = int(np.max(need_hi - need_lo))
-        first = np.minimum(need_lo, sonar.bins - rows)
-        read = beams_read(data.masks, len(self.smoothing[1]))
-        per = max(1, self.settings.launch_bytes // (32 * rows * sonar.beams * n_views))
+        first, rows, read, per = self.grid_launches()
         shifts = self.shifts if self.shift is None else [self.shift]
         costs, found = [], []
         for start in range(0, len(depths), per):

@@ -108,12 +108,15 @@ class Rig:
         Returns ``(R, s)``: (*G, V, 3, 3) rotations view → world and (*G, V, 3) positions.
         """
         depth, tilt = np.broadcast_arrays(np.asarray(depth, np.float64), np.asarray(tilt, np.float64))
-        pos, _, _, d_off, _ = self._arrays()
         tilts, inverse = np.unique(tilt, return_inverse=True)  # a (D, β) grid repeats each tilt
         rot = self._world_rotations(tilts)[inverse.reshape(-1)].reshape(tilt.shape + (len(self.views), 3, 3))
+        return rot, self._world_positions(depth)
+
+    def _world_positions(self, depth: np.ndarray) -> np.ndarray:
+        """(*G, V, 3) positions of every view at the (*G,) depths."""
+        pos, _, _, d_off, _ = self._arrays()
         z = -(depth[..., None] + d_off)
-        s = np.concatenate([np.broadcast_to(pos, z.shape + (2,)), z[..., None]], axis=-1)
-        return rot, s
+        return np.concatenate([np.broadcast_to(pos, z.shape + (2,)), z[..., None]], axis=-1)
 
     def _world_rotations(self, tilts: np.ndarray) -> np.ndarray:
         """(T, V, 3, 3) rotations view → world of every view at each of the (T,) tilts."""
@@ -130,11 +133,18 @@ class Rig:
         return self._one("_reference_pose", depth, tilt)
 
     def _reference_pose(self, depth, tilt):
+        return self._reference_rotations(tilt), self._reference_positions(depth)
+
+    def _reference_rotations(self, tilt: np.ndarray) -> np.ndarray:
+        """(*G, 3, 3) rotations of the reference frame at the (*G,) tilts."""
         ref = self.views[self.reference]
-        rot = rotation_z(np.full(tilt.shape, ref.heading)) @ rotation_x(tilt + ref.tilt_offset)
-        s = np.stack([np.full(depth.shape, ref.position[0]), np.full(depth.shape, ref.position[1]),
-                      -(depth + ref.depth_offset)], axis=-1)
-        return rot, s
+        return rotation_z(np.full(tilt.shape, ref.heading)) @ rotation_x(tilt + ref.tilt_offset)
+
+    def _reference_positions(self, depth: np.ndarray) -> np.ndarray:
+        """(*G, 3) positions of the reference frame at the (*G,) depths."""
+        ref = self.views[self.reference]
+        return np.stack([np.full(depth.shape, ref.position[0]), np.full(depth.shape, ref.position[1]),
+                         -(depth + ref.depth_offset)], axis=-1)
 
     def relative_poses(self, depth, tilt):
         """Every view's pose in the reference frame: ``P_ref = R @ P_view + t``.
@@ -162,13 +172,11 @@ class Rig:
         return result
 
     def _relative_poses(self, depth, tilt):
-        _, s_w = self.world_poses(depth, tilt)
-        _, s_ref = self.reference_pose(depth, tilt)
+        s_w, s_ref = self._world_positions(depth), self._reference_positions(depth)
         # the rotations depend on β alone: found once per distinct tilt (the same operations per
         # tilt, so the same bits as one candidate's), then spread over the candidates
         tilts, inverse = np.unique(tilt, return_inverse=True)
-        rot_ref, _ = self._reference_pose(np.zeros_like(tilts), tilts)
-        rt = np.swapaxes(rot_ref, -1, -2)[..., None, :, :]
+        rt = np.swapaxes(self._reference_rotations(tilts), -1, -2)[..., None, :, :]
         rot = rt @ self._world_rotations(tilts)
         # a view with the reference's heading and tilt offset turns by its roll alone, Ry(ω), at
         # every (D, β): exact, so that renders on a (D, β) grid find its pose the same bit for bit

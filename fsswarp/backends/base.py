@@ -362,7 +362,7 @@ class Backend(abc.ABC):
             raise ValueError(f"samples must be two positive counts, got {tuple(samples)}")
         n_views = rot.shape[0]
         first, count = _row_bands(rows, n_views, sonar.bins)
-        needed = _read_beams(beams, n_views, sonar.beams)
+        needed = _needed_beams(beams, n_views, sonar.beams)
         if n_views * 4 * count * sonar.beams >= 2**31:
             raise ValueError(f"{n_views} views of {count} x {sonar.beams} exceed one launch's "
                              f"2^31 pixels; split the batch")
@@ -876,7 +876,7 @@ def span_extent(spans: np.ndarray) -> tuple[int, int]:
     return int(np.max(spans[:, 1] - spans[:, 0])), int(np.max(spans[:, 3] - spans[:, 2]))
 
 
-def _read_beams(beams, n_views: int, n_beams: int) -> np.ndarray | None:
+def _needed_beams(beams, n_views: int, n_beams: int) -> np.ndarray | None:
     """``render_device``'s ``beams`` as (N, 2, beams) uint8 0/1 (C order), None for every beam, or raise."""
     if beams is None:
         return None

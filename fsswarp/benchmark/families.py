@@ -536,7 +536,6 @@ def pose_grid(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3,
 
     import trimesh
 
-    from ..backends import beams_read, rows_read
     from ..dataset import Dataset
     from ..compare import PoseSettings, ViewComparison
     from ..rig import Rig
@@ -566,11 +565,7 @@ def pose_grid(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3,
     pixels = 4 * sonar.bins * sonar.beams
     distance_bytes = data.distances.nbytes
     mesh_bytes = len(model.faces) * TRIANGLE_BYTES
-    need_lo, need_hi = rows_read(data.windows, len(problem.smoothing[0]), sonar.bins)
-    rows = int(np.max(need_hi - need_lo))  # the bands of ViewComparison.view_costs, in its launches
-    first = np.minimum(need_lo, sonar.bins - rows)
-    read = beams_read(data.masks, len(problem.smoothing[1]))
-    per = max(1, launch_bytes // (32 * rows * sonar.beams * views))
+    first, rows, read, per = problem.grid_launches()  # the bands and beams of view_costs, in its launches
 
     def render_alone(depths, tilts):
         for start in range(0, len(depths), per):
