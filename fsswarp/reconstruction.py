@@ -2,9 +2,9 @@
 (D0, β0) and refine, then per iteration (lengths m, angles rad, meshes in the reference frame):
 
 1. pose step (``fsswarp.pose.estimate_pose``) on the model carved last, unrefined (a shape
-   refined at one (D, β) absorbs the tilt signal): a (D, β) proposed only where the posterior
-   cost falls, with its 95% intervals; where they leave the last carving's pose outside, the
-   views are carved again at the proposal, for the next pose steps and as a shape candidate;
+   refined at one (D, β) absorbs the tilt signal; the same model from the same start repeats the
+   last step, not run again): a (D, β) proposed only where the posterior cost falls, with 95%
+   intervals; if they exclude the last carving's pose, the views are carved again at the proposal;
 2. shape step (``fsswarp.refine.refine_shape``) at the proposal, then, if E_I did not fall
    below its lowest, again at the previous (D, β); of the refined and the fresh carving the
    lower E_I goes on (``recarved``);
@@ -155,7 +155,8 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
     with _TruthMetrics(dataset.truth_mesh(), say) as truth:
         given = "given" if depth0 is not None or tilt0 is not None else "measured"
         say(f"iteration 0: carving at the {given} D0 = {depth:.4f} m, tilt0 = {math.degrees(tilt):.3f} deg")
-        carved = _carving(dataset, depth, tilt, settings, backend)
+        carvings = {}  # each pose is carved once (_carving)
+        carved = _carving(dataset, depth, tilt, settings, backend, carvings)
         kept = carved  # the model of the best iteration
         first = _complete(_record(0, kept, dataset, depth, tilt, settings, comparison, None), comparison, kept, depth,
                           tilt, truth)
@@ -166,10 +167,16 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
         history = [first]
         say(_line(first))
         best, best_pose, misses, stopped = first, (depth, tilt), 0, False
-        pose_steps = []
+        pose_steps, asked = [], (None,)  # asked: the last pose step's model and start
         for iteration in range(1, settings.iterations + 1):
-            pose = estimate_pose(sighting, dataset, depth0=depth, tilt0=tilt, comparison=comparison, prior=prior,
-                                 posterior_axes=_posterior_axes(pose_steps))
+            if asked[0] is sighting and asked[1:] == (depth, tilt):
+                pose = pose_steps[-1]  # the same model from the same start: the step would repeat itself
+                say(f"iteration {iteration}: the pose step's model and start are iteration {iteration - 1}'s; its "
+                    "step stands")
+            else:
+                pose = estimate_pose(sighting, dataset, depth0=depth, tilt0=tilt, comparison=comparison, prior=prior,
+                                     posterior_axes=_posterior_axes(pose_steps))
+                asked = (sighting, depth, tilt)
             pose_steps.append(pose)
             say(f"iteration {iteration}: pose step {_intervals(pose.depth, pose.tilt, pose.posterior)}")
             if pose.accepted:
@@ -185,7 +192,7 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
                 entry["recarved"] = False
                 if (depth_tried, tilt_tried) != (depth, tilt) and _outside(carved_at, pose.posterior):
                     carved_at = (depth_tried, tilt_tried)  # again only once the pose moves far from here
-                    sighting = _carving(dataset, *carved_at, settings, backend)
+                    sighting = _carving(dataset, *carved_at, settings, backend, carvings)
                     trial, entry = _recarved(sighting, trial, entry, iteration, dataset, depth_tried, tilt_tried,
                                              settings, comparison, shaping, first, say,
                                              f"iteration {iteration}: the model was carved outside the new 95% "
@@ -216,18 +223,20 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
                 break
         if settings.iterations:
             heights = []  # the surface's height above every model made for the answer
-            posterior = _valley_answer(dataset, comparison, shaping, best_pose, prior, settings, say, heights)
-            tilt = carving_descent(dataset, comparison, posterior.depth, posterior.tilt, settings, say)
+            posterior = _valley_answer(dataset, comparison, shaping, best_pose, prior, settings, say, heights,
+                                       carvings)
+            tilt = carving_descent(dataset, comparison, posterior.depth, posterior.tilt, settings, say, carvings)
             if tilt != posterior.tilt:  # a carving there agrees better with the views: start again from it
                 posterior = _valley_answer(dataset, comparison, shaping, (posterior.depth, tilt), prior, settings, say,
-                                           heights)
+                                           heights, carvings)
         else:
             posterior = _carving_posterior(comparison, carved, best_pose, prior)
         answer = (posterior.depth, posterior.tilt)
         say(f"the answer: {_intervals(*answer, posterior)}")
         ran = len(history) - 1
         if answer != best_pose:  # the kept shape, refined at the answer
-            kept, entry = _answer_model(kept, dataset, answer, len(history), settings, comparison, shaping, first, say)
+            kept, entry = _answer_model(kept, dataset, answer, len(history), settings, comparison, shaping, first, say,
+                                        carvings)
             history.append(_complete(dict(entry, answer=True, **_interval_fields(posterior)), comparison, kept,
                                      *answer, truth))
             best = history[-1]
@@ -242,15 +251,14 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
 
 
 def _answer_model(kept, dataset, answer: tuple[float, float], iteration: int, settings: ReconstructSettings,
-                  comparison: ViewComparison, shaping: ViewComparison, first: dict, say):
+                  comparison: ViewComparison, shaping: ViewComparison, first: dict, say, carvings: dict | None = None):
     """(model, its history entry) at the ``answer`` (depth m, tilt rad), the lowest E_I of three
     models refined there: ``kept``; ``kept`` held to the views carved there (the voxels of that
     carving inside it: what the views see empty at the answer is empty); and that carving
     (:func:`_recarved`, as in the loop; ``recarved`` tells whether it won). Measured
     (docs/experiments.md): a shape carved at a wrong tilt does not become right by refining
     (coral-two carved 2° off: E_V 0.57 refined, 0.25 held to the carving at the answer)."""
-    carving = carve(dataset, *answer, resolution=settings.resolution, settings=settings.carve,
-                    backend=shaping.backend)
+    carving = _carve(dataset, *answer, settings, shaping.backend, carvings)
     held = within(carving.voxels, kept)
     starts = {"the kept model": kept}
     if held.kept:  # else no carved voxel lies inside the kept model
@@ -276,18 +284,19 @@ def _out_of_patience(misses: int, settings: ReconstructSettings, best: dict, ite
     return True
 
 
-def sighting(dataset, depth: float, tilt: float, settings: ReconstructSettings, shaping: ViewComparison):
+def sighting(dataset, depth: float, tilt: float, settings: ReconstructSettings, shaping: ViewComparison,
+             carvings: dict | None = None):
     """The model the answer's pose steps see at (depth m, tilt rad): the views carved there and
     refined there by one shape step (``settings.refine``). Measured (docs/experiments.md): with
     the carving alone the pose step lay +0.14…+0.24° off on the corals when carved at the
     truth; refined, within 0.12°, and it followed a carving 0.6° off less (0.22–0.26 against
-    0.11–0.48 deg/deg)."""
-    return refine_shape(_carving(dataset, depth, tilt, settings, shaping.backend), dataset, depth, tilt,
+    0.11–0.48 deg/deg). ``carvings``: as :func:`_carve`'s."""
+    return refine_shape(_carving(dataset, depth, tilt, settings, shaping.backend, carvings), dataset, depth, tilt,
                         settings=settings.refine, comparison=shaping).mesh
 
 
 def carving_descent(dataset, comparison: ViewComparison, depth: float, tilt: float, settings: ReconstructSettings,
-                    say) -> float:
+                    say, carvings: dict | None = None) -> float:
     """The tilt (rad), from ``tilt`` in steps of ``DESCENT_STEP`` (``DESCENT_STEPS`` at most),
     while the views carved at (``depth`` m, that tilt) agree better with themselves: E_mu of the
     carving at its own pose falls (a carving at a wrong tilt is inconsistent with the views
@@ -296,7 +305,7 @@ def carving_descent(dataset, comparison: ViewComparison, depth: float, tilt: flo
     13–20 mm at ±0.5°), not over degrees (docs/experiments.md), hence a local descent."""
     def error(at: float) -> float:
         try:
-            carved = _carving(dataset, depth, at, settings, comparison.backend)
+            carved = _carving(dataset, depth, at, settings, comparison.backend, carvings)
         except InputError:  # every voxel carved away: the views disagree there
             return math.inf
         with warnings.catch_warnings():
@@ -319,7 +328,7 @@ def carving_descent(dataset, comparison: ViewComparison, depth: float, tilt: flo
 
 
 def _valley_answer(dataset, comparison: ViewComparison, shaping: ViewComparison, pose: tuple[float, float],
-                   prior: Prior, settings: ReconstructSettings, say, heights: list):
+                   prior: Prior, settings: ReconstructSettings, say, heights: list, carvings: dict | None = None):
     """The answer's Posterior (``fsswarp.pose.valley_posterior``: the data keep only the
     surface's height above the object, the sensors the rest): from ``pose`` (m, rad) take the
     :func:`sighting` model there, its pose step's posterior about its proposal (the least
@@ -331,7 +340,7 @@ def _valley_answer(dataset, comparison: ViewComparison, shaping: ViewComparison,
     by as much (the table's drifted 78 → 93 mm over five models, docs/experiments.md)."""
     at = np.array(pose, np.float64)
     for _ in range(FIXED_POINT_STEPS + 1):
-        model = sighting(dataset, float(at[0]), float(at[1]), settings, shaping)
+        model = sighting(dataset, float(at[0]), float(at[1]), settings, shaping, carvings)
         step = estimate_pose(model, dataset, depth0=float(at[0]), tilt0=float(at[1]), comparison=comparison,
                              prior=prior)
         conditional = dataclasses.replace(step.posterior, depth=step.candidate[0], tilt=step.candidate[1])
@@ -359,9 +368,22 @@ def _carving_posterior(comparison: ViewComparison, carved, pose: tuple[float, fl
                                                             BOUNDS_FACTOR * prior.tilt_sigma]))
 
 
-def _carving(dataset, depth: float, tilt: float, settings: ReconstructSettings, backend):
-    """The mesh of the views carved at (depth m, tilt rad) at ``settings``' resolution."""
-    return carve(dataset, depth, tilt, resolution=settings.resolution, settings=settings.carve, backend=backend).mesh
+def _carving(dataset, depth: float, tilt: float, settings: ReconstructSettings, backend, carvings: dict | None = None):
+    """The mesh of :func:`_carve`."""
+    return _carve(dataset, depth, tilt, settings, backend, carvings).mesh
+
+
+def _carve(dataset, depth: float, tilt: float, settings: ReconstructSettings, backend, carvings: dict | None = None):
+    """The CarveResult of the views carved at (depth m, tilt rad) at ``settings``' resolution.
+    ``carvings``, a reconstruction's (depth, tilt) -> CarveResult: a pose carved already is not
+    carved again (a carving depends on nothing else; the answer carves some poses twice)."""
+    key = (float(depth), float(tilt))
+    if carvings is not None and key in carvings:
+        return carvings[key]
+    result = carve(dataset, depth, tilt, resolution=settings.resolution, settings=settings.carve, backend=backend)
+    if carvings is not None:
+        carvings[key] = result
+    return result
 
 
 def _posterior_axes(steps: list):
