@@ -51,7 +51,7 @@ def warp_cache(device: str) -> tuple[str, str]:
         missing = []
         for name in WARP_MODULES:
             module = wp.get_module(importlib.import_module(f"fsswarp.backends.warp.{name}").__name__)
-            block_dim = _resolve_launch_block_dim(target, None)
+            block_dim = _resolve_launch_block_dim(target, module.options.get("block_dim"))  # as its launches
             ident = module.get_module_identifier(block_dim)
             binary = module._get_compile_output_name(target, block_dim=block_dim)
             meta = module._get_meta_name(block_dim)

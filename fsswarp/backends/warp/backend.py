@@ -19,7 +19,7 @@ from .icp import icp_runs_kernel
 from .pose import contour_cost_kernel, frontal_contour, view_cost_kernel
 from .project import project_points
 from .raycast import cast_rays_kernel
-from .render import direct_hits_kernel, fixed_to_float, frontal_rays_kernel, render_kernel, sub_rays_kernel
+from .render import RAY_BLOCK, direct_hits_kernel, fixed_to_float, frontal_rays_kernel, render_kernel, sub_rays_kernel
 from .sonar import kernel_sonar
 
 #: ``WarpBackend._constant``: inputs up to this size are kept on the device for reuse ...
@@ -154,7 +154,7 @@ class WarpBackend(Backend):
         with wp.ScopedDevice(self._device):
             rng = wp.empty(shape, dtype=float)
             face = wp.empty(shape, dtype=wp.int32)
-            wp.launch(frontal_rays_kernel, dim=shape,
+            wp.launch(frontal_rays_kernel, dim=shape, block_dim=RAY_BLOCK,
                       inputs=[mesh.id, mesh.points, mesh.indices, self._array(rotations, wp.mat33),
                               self._array(translations, wp.vec3), self._array(plane_normals, wp.vec3),
                               self._array(plane_offsets, float), self._constant(views, wp.int32),
@@ -202,12 +202,12 @@ class WarpBackend(Backend):
         widest, samples = span_extent(spans)
         if widest:  # else no view reaches the mesh: the layers stay zeros
             directions = wp.empty((sonar.beams, k_theta, k_phi), dtype=wp.vec3)
-            wp.launch(sub_rays_kernel, dim=directions.shape,
+            wp.launch(sub_rays_kernel, dim=directions.shape, block_dim=RAY_BLOCK,
                       inputs=[self._constant(centres, float),
                               self._constant(np.asarray(beam_widths, np.float32), float), kernel_sonar(sonar)],
                       outputs=[directions])
             hits = self._direct_hits(mesh, directions, acc.shape[0], shared)
-            wp.launch(render_kernel, dim=(acc.shape[0], widest, k_theta * samples),
+            wp.launch(render_kernel, dim=(acc.shape[0], widest, k_theta * samples), block_dim=RAY_BLOCK,
                       inputs=[mesh.id, mesh.points, mesh.indices, *poses, directions,
                               self._constant(sonar.beam_table, float), kernel_sonar(sonar), int(k_theta),
                               weight, float(gamma), float(surface_reflection), first_rows,
@@ -215,7 +215,7 @@ class WarpBackend(Backend):
                               int(needed is not None),
                               self._constant(np.ones((1, 1, 1), np.uint8) if needed is None else needed, wp.uint8)],
                       outputs=[acc])
-        wp.launch(fixed_to_float, dim=acc.size, inputs=[acc.flatten()], outputs=[layers.flatten()])
+        wp.launch(fixed_to_float, dim=acc.size, inputs=[acc.flatten()], outputs=[layers.flatten()], block_dim=RAY_BLOCK)
 
     def _direct_hits(self, mesh, directions, n_views, shared) -> tuple[wp.array, wp.array, wp.array]:
         """render_kernel's poses, hit_range and hit_face: with ``shared`` (SharedPoses) the direct
@@ -227,7 +227,7 @@ class WarpBackend(Backend):
         shape = (shared.count, *directions.shape)
         hit_range, hit_face = wp.empty(shape, dtype=float), wp.empty(shape, dtype=wp.int32)
         widest, samples = span_extent(shared.spans)
-        wp.launch(direct_hits_kernel, dim=(shape[0], widest, shape[2] * samples),
+        wp.launch(direct_hits_kernel, dim=(shape[0], widest, shape[2] * samples), block_dim=RAY_BLOCK,
                   inputs=[mesh.id, mesh.points, mesh.indices, self._array(shared.rotations, wp.mat33),
                           self._array(shared.translations, wp.vec3), directions, shape[2],
                           self._array(shared.spans, wp.int32)],
