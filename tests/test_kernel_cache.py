@@ -47,19 +47,20 @@ def caches(tmp_path) -> dict:
     return dict(os.environ, **cache_environment(tmp_path))
 
 
-def test_warp_cpu_cache_cold_then_render_compiled(caches, tmp_path):
-    backend_for("warp-cpu")
-    line = cache_line(child(caches, "-m", "fsswarp", "info"), "warp", "cpu")
-    assert line.startswith("cold (no module compiled for cpu in "), line
-    assert not any((tmp_path / "warp").rglob("*.o")), "info compiled a Warp module"
-    child(caches, "-c", SYNTHESIS, "warp", "cpu")
-    line = cache_line(child(caches, "-m", "fsswarp", "info"), "warp", "cpu")
+def test_warp_cache_cold_then_render_compiled(caches, tmp_path, wp_device):
+    """On the CPU and on CUDA, where the render module's launches ask 128 threads per block
+    (``RAY_BLOCK``, not Warp's default): the check looks for the variant that was built."""
+    line = cache_line(child(caches, "-m", "fsswarp", "info"), "warp", wp_device)
+    assert line.startswith(f"cold (no module compiled for {wp_device} in "), line
+    assert not any((tmp_path / "warp").rglob("*.meta")), "info compiled a Warp module"
+    child(caches, "-c", SYNTHESIS, "warp", wp_device)
+    line = cache_line(child(caches, "-m", "fsswarp", "info"), "warp", wp_device)
     assert line.startswith("partly warm (render compiled, project, carve, raycast, pose, icp not"), line
     # the check names the module folder Warp wrote: remove it and the module reads cold again
-    built = [p.parent for p in (tmp_path / "warp").rglob("*.o")]
+    built = [p.parent for p in (tmp_path / "warp").rglob("*.meta")]
     assert [p.name.rsplit("_", 1)[0] for p in built] == ["wp_fsswarp.backends.warp.render"]
     shutil.rmtree(built[0])
-    assert cache_line(child(caches, "-m", "fsswarp", "info"), "warp", "cpu").startswith("cold"), line
+    assert cache_line(child(caches, "-m", "fsswarp", "info"), "warp", wp_device).startswith("cold"), line
 
 
 def test_pocl_cache_cold_then_warm_then_cold_without_the_driver_cache(caches, tmp_path):
