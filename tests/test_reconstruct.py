@@ -681,3 +681,41 @@ def test_the_answer_model_is_the_lowest_image_error_of_the_kept_held_and_fresh_m
                     + ([("refined", "held mesh", answer)] if overlap else []) + [("refined", "carved", answer)])
     assert model == winner and comparison.on == winner
     assert entry == {"iteration": 7, "E_I": errors[winner], "recarved": winner == "fresh"}
+
+
+def test_a_reconstruction_carves_each_pose_once(coral_one, monkeypatch):
+    """With a reconstruction's ``carvings`` a pose carved already comes back as it was (the same
+    object, no second carving); another pose is carved; without ``carvings`` every call carves.
+    The answer's tilt check and its model pass one memo, so the answer's pose is carved once."""
+    from types import SimpleNamespace
+
+    carved = []
+
+    def carve(dataset, depth, tilt, *, resolution, settings, backend):
+        carved.append((depth, tilt, resolution))
+        return SimpleNamespace(mesh=f"mesh {len(carved)}", voxels=None)
+
+    monkeypatch.setattr(reconstruct_module, "carve", carve)
+    memo = {}
+    first = reconstruct_module._carve(coral_one, 0.43, 0.18, FAST, None, memo)
+    assert reconstruct_module._carving(coral_one, 0.43, np.float64(0.18), FAST, None, memo) is first.mesh
+    assert reconstruct_module._carve(coral_one, 0.43, 0.19, FAST, None, memo) is not first
+    assert carved == [(0.43, 0.18, FAST.resolution), (0.43, 0.19, FAST.resolution)]
+    reconstruct_module._carve(coral_one, 0.43, 0.18, FAST, None)
+    reconstruct_module._carve(coral_one, 0.43, 0.18, FAST, None)
+    assert len(carved) == 4
+
+    class Comparison:
+        backend = None
+
+        def use(self, model, depth, tilt):
+            self.model = model
+
+        def exact(self, depth, tilt):
+            return SimpleNamespace(value=0.01)
+
+    carved.clear()
+    found = reconstruct_module.carving_descent(coral_one, Comparison(), 0.43, 0.18, FAST, lambda line: None, memo)
+    assert found == 0.18  # no neighbour agrees better
+    assert [t for _, t, _ in carved] == pytest.approx([0.18 - reconstruct_module.DESCENT_STEP,
+                                                       0.18 + reconstruct_module.DESCENT_STEP])
