@@ -19,7 +19,7 @@ from .icp import icp_runs_kernel
 from .pose import contour_cost_kernel, frontal_contour, view_cost_kernel
 from .project import project_points
 from .raycast import cast_rays_kernel
-from .render import RAY_BLOCK, direct_hits_kernel, fixed_to_float, frontal_rays_kernel, render_kernel, sub_rays_kernel
+from .render import direct_hits_kernel, fixed_to_float, frontal_rays_kernel, render_kernel, sub_rays_kernel
 from .sonar import kernel_sonar
 
 #: ``WarpBackend._constant``: inputs up to this size are kept on the device for reuse ...
@@ -60,6 +60,13 @@ class WarpMesh:
     def __repr__(self) -> str:
         return (f"<warp mesh: {self.points.shape[0]} vertices, {self.indices.shape[0] // 3} faces "
                 f"on {self.device}>")
+
+
+def _launch(kernel, dim, **kwargs) -> None:
+    """``wp.launch`` at the threads per block that the kernel's module names in its options
+    (``render.RAY_BLOCK`` for the ray-casting module, Warp's 256 for the others): the variant
+    each module is compiled for, and the one ``fsswarp info``'s cache check looks for."""
+    wp.launch(kernel, dim=dim, block_dim=kernel.module.options["block_dim"], **kwargs)
 
 
 class WarpBackend(Backend):
@@ -104,11 +111,11 @@ class WarpBackend(Backend):
             beam = wp.empty((n_views, n_points), dtype=wp.int32)
             bin_ = wp.empty((n_views, n_points), dtype=wp.int32)
             inside = wp.empty((n_views, n_points), dtype=wp.uint8)
-            wp.launch(project_points, dim=(n_views, n_points),
-                      inputs=[self._array(points, wp.vec3), self._array(rotations, wp.mat33),
-                              self._array(translations, wp.vec3), self._constant(sonar.beam_table, float),
-                              kernel_sonar(sonar)],
-                      outputs=[beam, bin_, inside])
+            _launch(project_points, dim=(n_views, n_points),
+                    inputs=[self._array(points, wp.vec3), self._array(rotations, wp.mat33),
+                            self._array(translations, wp.vec3), self._constant(sonar.beam_table, float),
+                            kernel_sonar(sonar)],
+                    outputs=[beam, bin_, inside])
             wp.synchronize_device(self._device)
             return beam.numpy(), bin_.numpy(), inside.numpy()
 
@@ -143,7 +150,7 @@ class WarpBackend(Backend):
             face = wp.empty(n_rays, dtype=wp.int32)
 
         def launch():
-            wp.launch(cast_rays_kernel, dim=n_rays, inputs=inputs, outputs=[distance, face], device=self._device)
+            _launch(cast_rays_kernel, dim=n_rays, inputs=inputs, outputs=[distance, face], device=self._device)
             wp.synchronize_device(self._device)
         return PreparedLaunch(launch, lambda: (distance.numpy(), face.numpy()))
 
@@ -154,14 +161,14 @@ class WarpBackend(Backend):
         with wp.ScopedDevice(self._device):
             rng = wp.empty(shape, dtype=float)
             face = wp.empty(shape, dtype=wp.int32)
-            wp.launch(frontal_rays_kernel, dim=shape, block_dim=RAY_BLOCK,
-                      inputs=[mesh.id, mesh.points, mesh.indices, self._array(rotations, wp.mat33),
-                              self._array(translations, wp.vec3), self._array(plane_normals, wp.vec3),
-                              self._array(plane_offsets, float), self._constant(views, wp.int32),
-                              self._array(azimuths, float), int(mirror), kernel_sonar(sonar),
-                              float(np.float32(RAY_EPSILON)),
-                              float(np.float32(FRONTAL_VISIBLE)), float(np.float32(MAX_DISTANCE))],
-                      outputs=[rng, face])
+            _launch(frontal_rays_kernel, dim=shape,
+                    inputs=[mesh.id, mesh.points, mesh.indices, self._array(rotations, wp.mat33),
+                            self._array(translations, wp.vec3), self._array(plane_normals, wp.vec3),
+                            self._array(plane_offsets, float), self._constant(views, wp.int32),
+                            self._array(azimuths, float), int(mirror), kernel_sonar(sonar),
+                            float(np.float32(RAY_EPSILON)),
+                            float(np.float32(FRONTAL_VISIBLE)), float(np.float32(MAX_DISTANCE))],
+                    outputs=[rng, face])
             wp.synchronize_device(self._device)
             return rng.numpy(), face.numpy()
 
@@ -202,20 +209,20 @@ class WarpBackend(Backend):
         widest, samples = span_extent(spans)
         if widest:  # else no view reaches the mesh: the layers stay zeros
             directions = wp.empty((sonar.beams, k_theta, k_phi), dtype=wp.vec3)
-            wp.launch(sub_rays_kernel, dim=directions.shape, block_dim=RAY_BLOCK,
-                      inputs=[self._constant(centres, float),
-                              self._constant(np.asarray(beam_widths, np.float32), float), kernel_sonar(sonar)],
-                      outputs=[directions])
+            _launch(sub_rays_kernel, dim=directions.shape,
+                    inputs=[self._constant(centres, float),
+                            self._constant(np.asarray(beam_widths, np.float32), float), kernel_sonar(sonar)],
+                    outputs=[directions])
             hits = self._direct_hits(mesh, directions, acc.shape[0], shared)
-            wp.launch(render_kernel, dim=(acc.shape[0], widest, k_theta * samples), block_dim=RAY_BLOCK,
-                      inputs=[mesh.id, mesh.points, mesh.indices, *poses, directions,
-                              self._constant(sonar.beam_table, float), kernel_sonar(sonar), int(k_theta),
-                              weight, float(gamma), float(surface_reflection), first_rows,
-                              self._constant(np.ascontiguousarray(spans, np.int32), wp.int32), *hits,
-                              int(needed is not None),
-                              self._constant(np.ones((1, 1, 1), np.uint8) if needed is None else needed, wp.uint8)],
-                      outputs=[acc])
-        wp.launch(fixed_to_float, dim=acc.size, inputs=[acc.flatten()], outputs=[layers.flatten()], block_dim=RAY_BLOCK)
+            _launch(render_kernel, dim=(acc.shape[0], widest, k_theta * samples),
+                    inputs=[mesh.id, mesh.points, mesh.indices, *poses, directions,
+                            self._constant(sonar.beam_table, float), kernel_sonar(sonar), int(k_theta),
+                            weight, float(gamma), float(surface_reflection), first_rows,
+                            self._constant(np.ascontiguousarray(spans, np.int32), wp.int32), *hits,
+                            int(needed is not None),
+                            self._constant(np.ones((1, 1, 1), np.uint8) if needed is None else needed, wp.uint8)],
+                    outputs=[acc])
+        _launch(fixed_to_float, dim=acc.size, inputs=[acc.flatten()], outputs=[layers.flatten()])
 
     def _direct_hits(self, mesh, directions, n_views, shared) -> tuple[wp.array, wp.array, wp.array]:
         """render_kernel's poses, hit_range and hit_face: with ``shared`` (SharedPoses) the direct
@@ -227,11 +234,11 @@ class WarpBackend(Backend):
         shape = (shared.count, *directions.shape)
         hit_range, hit_face = wp.empty(shape, dtype=float), wp.empty(shape, dtype=wp.int32)
         widest, samples = span_extent(shared.spans)
-        wp.launch(direct_hits_kernel, dim=(shape[0], widest, shape[2] * samples), block_dim=RAY_BLOCK,
-                  inputs=[mesh.id, mesh.points, mesh.indices, self._array(shared.rotations, wp.mat33),
-                          self._array(shared.translations, wp.vec3), directions, shape[2],
-                          self._array(shared.spans, wp.int32)],
-                  outputs=[hit_range, hit_face])
+        _launch(direct_hits_kernel, dim=(shape[0], widest, shape[2] * samples),
+                inputs=[mesh.id, mesh.points, mesh.indices, self._array(shared.rotations, wp.mat33),
+                        self._array(shared.translations, wp.vec3), directions, shape[2],
+                        self._array(shared.spans, wp.int32)],
+                outputs=[hit_range, hit_face])
         return self._array(shared.index, wp.int32), hit_range, hit_face
 
     def _render_batches(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations, plane_normals,
@@ -301,7 +308,7 @@ class WarpBackend(Backend):
                 inputs = [wp.vec3(*(float(x) for x in origin)), voxel_size, shape[1], shape[2], *common]
 
         def launch():
-            wp.launch(kernel, dim=n_voxels, inputs=inputs, outputs=[seen, rejected], device=self._device)
+            _launch(kernel, dim=n_voxels, inputs=inputs, outputs=[seen, rejected], device=self._device)
             wp.synchronize_device(self._device)
         return PreparedLaunch(launch, lambda: (seen.numpy(), rejected.numpy()))
 
@@ -344,10 +351,10 @@ class WarpBackend(Backend):
             _, sums, counts = self._contour_launch(layers, first_rows, view_index, thresholds, windows, masks,
                                                    range_weights, beam_weights, distances, cap, shifts)
             costs = wp.empty((view_index.shape[0], shifts.shape[0]), dtype=float)
-            wp.launch(view_cost_kernel, dim=costs.shape,
-                      inputs=[sums, counts, self._constant(view_index, wp.int32), self._constant(data_counts, wp.int32),
-                              float(np.float32(cap))],
-                      outputs=[costs])
+            _launch(view_cost_kernel, dim=costs.shape,
+                    inputs=[sums, counts, self._constant(view_index, wp.int32), self._constant(data_counts, wp.int32),
+                            float(np.float32(cap))],
+                    outputs=[costs])
             return costs.numpy()  # waits for the launches
 
     def _contour_launch(self, layers, first_rows, view_index, thresholds, windows, masks, range_weights,
@@ -361,18 +368,18 @@ class WarpBackend(Backend):
             stack = self._array(np.ascontiguousarray(layers.numpy(), np.float32), float)
         index = self._constant(view_index, wp.int32)
         contour = wp.empty((n_pairs, 2, beams), dtype=float)
-        wp.launch(frontal_contour, dim=(n_pairs, 2, beams),
-                  inputs=[stack, self._constant(first_rows, wp.int32), index, self._constant(thresholds, float),
-                          self._constant(windows, wp.int32),
-                          self._constant(masks, wp.uint8), self._constant(range_weights, float),
-                          (range_weights.shape[0] - 1) // 2, self._constant(beam_weights, float),
-                          (beam_weights.shape[0] - 1) // 2],
-                  outputs=[contour])
+        _launch(frontal_contour, dim=(n_pairs, 2, beams),
+                inputs=[stack, self._constant(first_rows, wp.int32), index, self._constant(thresholds, float),
+                        self._constant(windows, wp.int32),
+                        self._constant(masks, wp.uint8), self._constant(range_weights, float),
+                        (range_weights.shape[0] - 1) // 2, self._constant(beam_weights, float),
+                        (beam_weights.shape[0] - 1) // 2],
+                outputs=[contour])
         sums = wp.empty((n_pairs, 2, shifts.shape[0]), dtype=float)
         counts = wp.empty((n_pairs, 2), dtype=wp.int32)
-        wp.launch(contour_cost_kernel, dim=(n_pairs, 2, shifts.shape[0]),
-                  inputs=[contour, index, distances.data, float(np.float32(cap)), self._constant(shifts, float)],
-                  outputs=[sums, counts])
+        _launch(contour_cost_kernel, dim=(n_pairs, 2, shifts.shape[0]),
+                inputs=[contour, index, distances.data, float(np.float32(cap)), self._constant(shifts, float)],
+                outputs=[sums, counts])
         return contour, sums, counts
 
     # --- IRLS-ICP runs (kernels after the class) ------------------------------------------------
@@ -388,11 +395,11 @@ class WarpBackend(Backend):
             moved_x, moved_y, dist, anchor_x, anchor_y, room2, scratch = (
                 wp.empty(n_points, dtype=wp.float64) for _ in range(7))
             nearest = wp.empty(n_points, dtype=wp.int32)
-            wp.launch(icp_runs_kernel, dim=n_runs,
-                      inputs=[*f64, self._array(runs, wp.int32), self._array(floors, wp.float64),
-                              self._array(step_tols, wp.float64), max_iterations, wp.float64(max_distance),
-                              wp.float64(tuning)],
-                      outputs=[angle, trans, iterations, converged, moved_x, moved_y, nearest, dist, anchor_x,
-                               anchor_y, room2, scratch])
+            _launch(icp_runs_kernel, dim=n_runs,
+                    inputs=[*f64, self._array(runs, wp.int32), self._array(floors, wp.float64),
+                            self._array(step_tols, wp.float64), max_iterations, wp.float64(max_distance),
+                            wp.float64(tuning)],
+                    outputs=[angle, trans, iterations, converged, moved_x, moved_y, nearest, dist, anchor_x,
+                             anchor_y, room2, scratch])
             wp.synchronize_device(self._device)
             return tuple(a.numpy() for a in (angle, trans, iterations, converged, moved_x, moved_y, nearest, dist))
