@@ -134,3 +134,14 @@ def output_folder(path: str | os.PathLike, *, marker: str) -> Iterator[Path]:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def on_success(stack: contextlib.ExitStack, action) -> None:
+    """Call ``action()`` when ``stack`` closes without an error, after the contexts entered on
+    it later have closed (e.g. a figure batch waited for its figures): an output finished once
+    its parts are done, and never while the stack unwinds from an error."""
+    def finish(exc_type, exc, traceback) -> bool:
+        if exc_type is None:
+            action()
+        return False
+    stack.push(finish)

@@ -13,6 +13,7 @@ import json
 import math
 import sys
 import warnings
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -741,15 +742,18 @@ def demo(state: State, scene_name: str, out: Path, seed: int, iterations: int) -
         drawer = state.figure_drawer()
         state.echo(f"simulating {scene_name} ({backend.name} on {backend.device})")
         dataset = run_simulation(scene_name, tmp / "dataset", seed=seed, backend=backend)
-        with drawer.batch() as draw:  # the layers figure is drawn while the reconstruction runs
-            simulation_figure(dataset, tmp / "dataset" / "figures" / "layers.png", draw)
+        # every figure is drawn while the later steps run; the folders are finished at the end
+        with ExitStack() as later:
+            simulation_figure(dataset, tmp / "dataset" / "figures" / "layers.png", later.enter_context(drawer.batch()))
             state.echo(f"  {len(dataset.images)} noisy views in {time.perf_counter() - start:.1f} s")
-            result = run_reconstruction(state, dataset, tmp / "reconstruction",
-                                        ReconstructSettings(iterations=iterations), drawer, shown=out / "reconstruction",
-                                        name=Path(scene_name).stem)
+            settings = ReconstructSettings(iterations=iterations)
+            result = run_reconstruction(state, dataset, tmp / "reconstruction", settings, drawer,
+                                        shown=out / "reconstruction", name=Path(scene_name).stem, later=later)
             run_enhancement(state, dataset, result.model, "the reconstructed model", result.depth, result.tilt,
                             tmp / "enhance", drawer, source="estimated", initial=(result.carved, "the carved model"),
-                            shown=out / "enhance", dataset_label=out / "dataset", name=Path(scene_name).stem)
+                            shown=out / "enhance", dataset_label=out / "dataset", name=Path(scene_name).stem,
+                            later=later)
+            state.echo("finishing the figures and the report")
         (tmp / "demo.json").write_text(json.dumps({"scene": scene_name, "seed": seed,
                                                    "seconds": time.perf_counter() - start}, indent=2))
     state.echo(f"wrote {out}: dataset/, reconstruction/, enhance/ ({time.perf_counter() - start:.1f} s in all)")
@@ -757,12 +761,14 @@ def demo(state: State, scene_name: str, out: Path, seed: int, iterations: int) -
 
 
 def run_reconstruction(state: State, dataset, out: Path, settings, drawer, *, depth0: float | None = None,
-                       tilt0: float | None = None, shown: Path | None = None, name: str | None = None):
+                       tilt0: float | None = None, shown: Path | None = None, name: str | None = None,
+                       later: ExitStack | None = None):
     """Reconstruct ``dataset`` from (depth0 m, tilt0 rad; default the measured values), write
     OUT/model.ply, carved.ply, result.json and figures (drawn by ``drawer``, a
     ``fsswarp.figures.FigureDrawer``; ``shown``: the folder's name in messages, when OUT is a
     temporary folder; ``name``: the scene's in titles, default the dataset folder's) and
-    OUT/report.html (``fsswarp.report``); returns the ReconstructResult."""
+    OUT/report.html (``fsswarp.report``); returns the ReconstructResult. ``later``: an ExitStack
+    whose closing finishes OUT (its figures, the report, the rename; default: before returning)."""
     from .atomic import output_folder
     from .compare import PoseWarning, view_contours
     from .figures import carve_figure, contours_figure, history_figure, pose_figure
@@ -781,7 +787,10 @@ def run_reconstruction(state: State, dataset, out: Path, settings, drawer, *, de
         warnings.simplefilter("ignore", PoseWarning)  # the figure shows the views where the model is seen
         contours = view_contours(result.model, dataset, result.depth, result.tilt, settings=settings.pose,
                                  backend=backend)
-    with output_folder(out, marker=MARKERS["reconstruct"]) as tmp, drawer.batch() as draw:
+    with ExitStack() as own:
+        finish = own if later is None else later
+        tmp = finish.enter_context(output_folder(out, marker=MARKERS["reconstruct"]))
+        draw = finish.enter_context(drawer.batch())
         write_reconstruction(tmp, result)
         draw(carve_figure, result.carved, tmp / "figures" / "carved.png", truth=truth_mesh,
              title=f"{name or dataset.root.name}: carved model (iteration 0)")
@@ -800,7 +809,8 @@ def run_reconstruction(state: State, dataset, out: Path, settings, drawer, *, de
             draw(pose_figure, result.pose_steps[0], tmp / "figures" / "pose.png",
                  truth=None if truth is None else (truth.depth, truth.tilt),
                  title="first pose step: the (D, tilt) grid search around the measured values")
-        write_report(tmp, dataset=dataset, backend=backend, command=command_line(), name=name, drawer=drawer)
+        write_report(tmp, dataset=dataset, backend=backend, command=command_line(), name=name, drawer=drawer,
+                     later=finish)
     best = result.history[result.best_iteration]
     if dataset.manifest.deep_water:  # no pose step: the known depth and tilt, no intervals
         state.echo(f"wrote {shown or out}: E_I {best['E_I']:.3f} (iteration {result.best_iteration} of "
@@ -884,7 +894,7 @@ def enhance(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt
 
 def run_enhancement(state: State, dataset, mesh, model_name: str, depth: float, tilt: float, out: Path, drawer, *,
                     views=None, source: str, initial=None, ghost_sigma=(0.0, 0.0), shown: Path | None = None,
-                    dataset_label: Path | None = None, name: str | None = None) -> None:
+                    dataset_label: Path | None = None, name: str | None = None, later: ExitStack | None = None) -> None:
     """Enhance ``dataset``'s views with ``mesh`` at (depth m, tilt rad) and write OUT/<view>_enhanced.tiff,
     <view>_ghost.tiff, enhance.json, enhance.png and the comparison figures (COMPARISON_FIGURES; a
     group with no view gets none; ``fsswarp.outputs``), the figures drawn by ``drawer`` (a
@@ -892,7 +902,8 @@ def run_enhancement(state: State, dataset, mesh, model_name: str, depth: float, 
     measured depth and tilt for the figures' "initial synthetic" column; ``ghost_sigma``: see
     fsswarp.enhancement.enhance_view. ``shown``, ``dataset_label``:
     the names of OUT and of the dataset's folder in messages and enhance.json, when they are
-    temporary folders; ``name``: the scene's in titles (default the dataset folder's)."""
+    temporary folders; ``name``: the scene's in titles (default the dataset folder's); ``later``:
+    an ExitStack whose closing finishes OUT (its figures, the rename; default: before returning)."""
     import time
 
     import numpy as np
@@ -934,7 +945,10 @@ def run_enhancement(state: State, dataset, mesh, model_name: str, depth: float, 
                                 requested=requested, initial_name=None if initial is None else initial[1],
                                 ghost_sigma=ghost_sigma, scores=scores, figures=figures, backend=backend,
                                 seconds=time.perf_counter() - start, dataset_label=dataset_label)
-    with output_folder(out, marker=MARKERS["enhance"]) as tmp, drawer.batch() as draw:
+    with ExitStack() as own:
+        finish = own if later is None else later
+        tmp = finish.enter_context(output_folder(out, marker=MARKERS["enhance"]))
+        draw = finish.enter_context(drawer.batch())
         write_enhancement(tmp, results, record)
         first = list(results)[:6]
         draw(enhance_figure, {n: dataset.images[n] for n in first}, {n: results[n] for n in first}, dataset.sonar,

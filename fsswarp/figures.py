@@ -553,10 +553,16 @@ def draw_here(function, *args, **kwargs):
     return function(*args, **kwargs)
 
 
+#: Most figure processes by default: the demo's 26 figures are about 23 s of matplotlib work
+#: (coral-one, this project's 2-core CI-class CPU); on a 16-core GPU server eight draw them while
+#: the demo goes on where four left 3.9 s to wait for at its end (bench/notes.md, eleventh session).
+MAX_FIGURE_WORKERS = 8
+
+
 def figure_workers() -> int:
     """Processes that draw a command's figures: the environment variable
     FSSWARP_FIGURE_WORKERS (0: draw in the command's own process), else one per CPU that this
-    process may use, at most 4."""
+    process may use, at most ``MAX_FIGURE_WORKERS``."""
     import os
 
     from .system import usable_cpus
@@ -567,7 +573,7 @@ def figure_workers() -> int:
         if not (value.isdigit() and int(value) <= 64):
             raise InputError("must be an integer from 0 to 64", field="FSSWARP_FIGURE_WORKERS", value=value)
         return int(value)
-    return min(4, usable_cpus())
+    return min(MAX_FIGURE_WORKERS, usable_cpus())
 
 
 class FigureWarning(UserWarning):

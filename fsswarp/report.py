@@ -27,13 +27,13 @@ import platform
 import tempfile
 import time
 import warnings
-from contextlib import nullcontext
+from contextlib import ExitStack, nullcontext
 from importlib import metadata, resources
 from pathlib import Path
 
 import numpy as np
 
-from .atomic import write_text
+from .atomic import on_success, write_text
 from .batch import DONE_MARKER, JOBS_FILE
 from .errors import InputError, is_finite_number
 
@@ -85,13 +85,15 @@ def check_folder(folder, dataset_dir=None) -> Path:
 # --- one reconstruction ----------------------------------------------------------------------
 
 def write_report(folder, *, dataset=None, dataset_dir=None, backend=None, command: str = "", name: str | None = None,
-                 drawer=None) -> Path:
+                 drawer=None, later: ExitStack | None = None) -> Path:
     """Write FOLDER/report.html for the reconstruction in FOLDER (result.json, model.ply,
     carved.ply) of ``dataset`` (a loaded Dataset), or of the dataset folder ``dataset_dir``,
     else the one result.json names, else FOLDER/../dataset of a demo. ``backend`` renders the
     views (default: auto); ``command``: the command line shown; ``name``: the scene's name in
     titles (default: the demo's scene, else the dataset folder's name); ``drawer``: a
-    ``fsswarp.figures.FigureDrawer`` for the figures (None: drawn here). Returns the path."""
+    ``fsswarp.figures.FigureDrawer`` for the figures (None: drawn here). ``later``: an ExitStack
+    whose closing writes the page once its figures are drawn (default: before returning), so
+    that the caller goes on while they are. Returns the page's path."""
     from .backends import get_backend
     from .dataset import read_mesh
 
@@ -111,11 +113,15 @@ def write_report(folder, *, dataset=None, dataset_dir=None, backend=None, comman
     rows, skipped = _view_rows(dataset, result, meshes, backend)
     stages["render the views and remove the ghosts"] = time.perf_counter() - begin
     begin = time.perf_counter()
-    figures = _draw_figures(result, dataset, rows, name, drawer)
-    stages["draw the figures"] = time.perf_counter() - begin
-    page = _page(folder, result, dataset, meshes, figures, skipped, name=name, command=command, backend=backend,
-                 stages=stages)
-    return write_text(folder / REPORT_FILE, page)
+
+    def write_page(figures: dict[str, bytes]) -> None:
+        stages["draw the figures"] = time.perf_counter() - begin
+        write_text(folder / REPORT_FILE, _page(folder, result, dataset, meshes, figures, skipped, name=name,
+                                               command=command, backend=backend, stages=stages))
+
+    with ExitStack() as own:
+        _draw_figures(result, dataset, rows, name, drawer, own if later is None else later, write_page)
+    return folder / REPORT_FILE
 
 
 def read_result(path: Path) -> dict:
@@ -210,26 +216,24 @@ def _view_rows(dataset, result: dict, meshes: dict, backend) -> tuple[dict, dict
     return rows, skipped
 
 
-def _draw_figures(result: dict, dataset, rows: dict, name: str, drawer) -> dict[str, bytes]:
-    """PNG bytes of the history figure ("history") and of each view's row (its name)."""
+def _draw_figures(result: dict, dataset, rows: dict, name: str, drawer, later: ExitStack, then) -> None:
+    """Draw the history figure and each view's row (``drawer``; None: here) into a temporary
+    folder; when ``later`` closes, call ``then`` with their PNG bytes: {"history": ..., view: ...}."""
     from .figures import draw_here, history_figure, views_figure
 
     truth = dataset.manifest.truth
-    with tempfile.TemporaryDirectory(prefix="fsswarp-report-") as tmp:
-        tmp = Path(tmp)
-        with drawer.batch() if drawer is not None else nullcontext(draw_here) as draw:
-            draw(history_figure, result["history"], tmp / "history.png",
-                 truth_depth=None if truth is None else truth.depth,
-                 truth_tilt_deg=None if truth is None or truth.tilt is None else math.degrees(truth.tilt),
-                 best_iteration=result["best_iteration"], depth_interval_m=_interval(result, "depth_interval_m"),
-                 tilt_interval_deg=_interval(result, "tilt_interval_deg"),
-                 title=f"{name}: depth, tilt and errors per iteration")
-            for k, (view, columns) in enumerate(rows.items()):
-                draw(views_figure, {view: columns}, dataset.sonar, tmp / f"view{k}.png")
-        figures = {"history": (tmp / "history.png").read_bytes()}
-        for k, view in enumerate(rows):
-            figures[view] = (tmp / f"view{k}.png").read_bytes()
-    return figures
+    tmp = Path(later.enter_context(tempfile.TemporaryDirectory(prefix="fsswarp-report-")))
+    on_success(later, lambda: then({"history": (tmp / "history.png").read_bytes()}
+                                   | {view: (tmp / f"view{k}.png").read_bytes() for k, view in enumerate(rows)}))
+    draw = later.enter_context(drawer.batch() if drawer is not None else nullcontext(draw_here))
+    draw(history_figure, result["history"], tmp / "history.png",
+         truth_depth=None if truth is None else truth.depth,
+         truth_tilt_deg=None if truth is None or truth.tilt is None else math.degrees(truth.tilt),
+         best_iteration=result["best_iteration"], depth_interval_m=_interval(result, "depth_interval_m"),
+         tilt_interval_deg=_interval(result, "tilt_interval_deg"),
+         title=f"{name}: depth, tilt and errors per iteration")
+    for k, (view, columns) in enumerate(rows.items()):
+        draw(views_figure, {view: columns}, dataset.sonar, tmp / f"view{k}.png")
 
 
 def _interval(record: dict, key: str):

@@ -68,7 +68,7 @@ def test_workers_setting(monkeypatch):
     monkeypatch.setenv("FSSWARP_FIGURE_WORKERS", " 3 ")
     assert figure_workers() == 3
     monkeypatch.delenv("FSSWARP_FIGURE_WORKERS")
-    assert figure_workers() == min(4, len(os.sched_getaffinity(0)))
+    assert figure_workers() == min(8, len(os.sched_getaffinity(0)))
     for bad in ("-1", "two", "1.5", "65"):
         monkeypatch.setenv("FSSWARP_FIGURE_WORKERS", bad)
         with pytest.raises(InputError, match=f"FSSWARP_FIGURE_WORKERS = '{bad}': must be an integer from 0 to 64"):

@@ -497,6 +497,38 @@ def test_demo_simulates_and_reconstructs(tmp_path):
     assert again.returncode == 0 and again.stdout == ""  # replaces its own earlier output, silently
 
 
+def test_the_demo_draws_its_figures_while_it_goes_on_and_finishes_its_folders_at_the_end(tmp_path, monkeypatch):
+    """The reconstruction's figures and report are finished when the demo ends, not before the
+    enhancement starts (their figures are drawn meanwhile); an error after them leaves no
+    output and no temporary folder."""
+    import fsswarp.cli as cli
+
+    monkeypatch.setenv("FSSWARP_FIGURE_WORKERS", "2")
+    enhance = cli.run_enhancement
+    seen = []
+
+    def watched(state, dataset, mesh, model_name, depth, tilt, out, *args, **kwargs):
+        reconstruction = list(out.parent.glob(".reconstruction.*.tmp"))
+        seen.append([(folder / "result.json").is_file() for folder in reconstruction]
+                    + [(folder / "report.html").exists() for folder in reconstruction])
+        enhance(state, dataset, mesh, model_name, depth, tilt, out, *args, **kwargs)
+        if fail:
+            raise InputError("stopped here", field="test")
+
+    monkeypatch.setattr(cli, "run_enhancement", watched)
+    fail = False
+    out = tmp_path / "demo"
+    assert cli.main(["-q", "--backend", "opencl", "demo", "coral-one", "--out", str(out), "--iterations", "0"]) == 0
+    assert seen == [[True, False]]  # written, its page not yet
+    for name in ("reconstruction/report.html", "reconstruction/figures/history.png", "enhance/enhance.png",
+                 "enhance/views_optimized.png", "dataset/figures/layers.png"):
+        assert (out / name).is_file(), name
+    fail = True
+    again = tmp_path / "again"
+    assert cli.main(["-q", "--backend", "opencl", "demo", "coral-one", "--out", str(again), "--iterations", "0"]) == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["demo"]
+
+
 def test_the_image_errors_read_the_located_comparison_s_layers(coral_one, monkeypatch):
     """AIE's synthetic views are the layers that the comparison located at that (D, β)
     rendered, to the bit those of ``render``; only the views it does not hold are rendered, and

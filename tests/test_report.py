@@ -81,6 +81,40 @@ def variants(reconstruction, coral_one, tmp_path_factory):
     return {"written by reconstruct": folder, "with the fusion keys": target, "without them": bare}
 
 
+def test_a_page_finished_later_is_the_page_written_at_once(reconstruction, coral_one, tmp_path):
+    """``write_report(later=stack)`` writes nothing until the stack closes, then the page that
+    ``write_report`` writes at once (all but "how it was made": times and folder); an error
+    before the stack closes writes no page."""
+    from contextlib import ExitStack
+
+    from fsswarp.backends import get_backend
+    from fsswarp.figures import FigureDrawer
+    from fsswarp.report import write_report
+
+    folder, _ = reconstruction
+    backend = get_backend("opencl")
+    now, later_folder, failing = (copy_with(folder, tmp_path / name, lambda result: None)
+                                  for name in ("now", "later", "failing"))
+    write_report(now, dataset=coral_one, backend=backend, name="coral-one")
+    drawer = FigureDrawer(2)
+    try:
+        with ExitStack() as later:
+            page = write_report(later_folder, dataset=coral_one, backend=backend, name="coral-one", drawer=drawer,
+                                later=later)
+            assert page == later_folder / "report.html" and not page.exists()
+        with pytest.raises(RuntimeError, match="stop"), ExitStack() as later:
+            write_report(failing, dataset=coral_one, backend=backend, name="coral-one", drawer=drawer, later=later)
+            raise RuntimeError("stop")
+    finally:
+        drawer.close()
+    assert not (failing / "report.html").exists()
+
+    def without_made(path):
+        return re.sub(r'<h2>How it was made</h2>.*?</dl>', "", path.read_text(), flags=re.S)
+
+    assert "data:image/png;base64," in without_made(page) and without_made(page) == without_made(now / "report.html")
+
+
 # --- the page as a file --------------------------------------------------------------------------
 
 class Elements(HTMLParser):
