@@ -373,13 +373,21 @@ class ViewComparison:
         """DeviceLayers (G·V, 4, bins, beams) of cells (G,) in the dataset views ``views``, or
         bands of rows and the beams read: ``rows`` and ``beams`` as ``Backend.render_device``
         takes them."""
+        return self._render_planned(self.plan_pairs(views, depths, tilts, samples, rows, beams))
+
+    def plan_pairs(self, views, depths: np.ndarray, tilts: np.ndarray, samples, rows=None, beams=None):
+        """The host half of :meth:`render_pairs` (``Backend.plan_render``): a RenderPlan, made
+        without the device (thread-safe)."""
         rot, t, n, d = self.view_poses(views, depths, tilts)
         if np.any(d <= 0):
             raise InputError("the sonar must lie below the surface in every view", field="depth",
                              value=float(np.min(depths)))
-        return self.backend.render_device(self.mesh, self.sonar, rot.reshape(-1, 3, 3), t.reshape(-1, 3),
-                                          n.reshape(-1, 3), d.reshape(-1), samples, gamma=ECHO.gamma,
-                                          surface_reflection=ECHO.surface_reflection, rows=rows, beams=beams)
+        return self.backend.plan_render(self.mesh, self.sonar, rot.reshape(-1, 3, 3), t.reshape(-1, 3),
+                                        n.reshape(-1, 3), d.reshape(-1), samples, rows=rows, beams=beams)
+
+    def _render_planned(self, plan):
+        return self.backend.render_planned(self.mesh, self.sonar, plan, gamma=ECHO.gamma,
+                                           surface_reflection=ECHO.surface_reflection)
 
     def grid_launches(self) -> tuple[np.ndarray, int, np.ndarray, int]:
         """How :meth:`view_costs` renders the data views: (first (V,), R, read (V, 2, beams), cells per
@@ -404,21 +412,30 @@ class ViewComparison:
         read (:meth:`grid_launches`; ``render_device``'s ``rows`` and ``beams``): the contours
         and costs are those of full layers, bit for bit. One cell at the located estimate with
         the exact samples reads the layers rendered there, on the device (``_located_index``; no
-        render: the same pixels)."""
+        render: the same pixels). On a GPU the host work of each launch after the first
+        (:meth:`plan_pairs`) is done in a thread while the launch before it runs."""
         data = self.data
         n_views = len(data.views)
         first, rows, read, per = self.grid_launches()
         shifts = self.shifts if self.shift is None else [self.shift]
-        costs, found = [], []
-        for start in range(0, len(depths), per):
-            cell_d, cell_t = depths[start:start + per], tilts[start:start + per]
-            g = len(cell_d)
-            if g == 1 and (float(cell_d[0]), float(cell_t[0])) == self.estimate \
+        ahead = self.backend.is_gpu
+        launches = _launches(len(depths), per, ahead)
+
+        def plan(launch: slice):
+            cell_d, cell_t = depths[launch], tilts[launch]
+            if len(cell_d) == 1 and (float(cell_d[0]), float(cell_t[0])) == self.estimate \
                     and tuple(samples) == tuple(self.settings.exact_samples):
+                return None  # the located layers
+            return self.plan_pairs(data.views, cell_d, cell_t, samples, rows=(np.tile(first, len(cell_d)), rows),
+                                   beams=np.tile(read, (len(cell_d), 1, 1)))
+
+        costs, found = [], []
+        for launch, planned in zip(launches, _planned(plan, launches, ahead=ahead)):
+            g = launch.stop - launch.start
+            if planned is None:
                 layers, index, keep = self._layers, self._located_index(), self._keep
             else:
-                layers = self.render_pairs(data.views, cell_d, cell_t, samples,
-                                           rows=(np.tile(first, len(cell_d)), rows), beams=np.tile(read, (g, 1, 1)))
+                layers = self._render_planned(planned)
                 index, keep = np.tile(np.arange(n_views), g), slice(None)
             arguments = (layers, index, data.threshold, data.windows, data.masks, self._distances, shifts,
                          self.smoothing)
@@ -676,6 +693,42 @@ def _gaussian(sigma: float) -> np.ndarray:
     x = np.arange(-radius, radius + 1)
     w = np.exp(-0.5 * (x / sigma) ** 2)
     return w / w.sum()
+
+
+#: With launches planned ahead, the first launch holds this share of a full one (at least
+#: ``FIRST_LAUNCH_CELLS`` cells), so that the device starts while the next is planned.
+FIRST_LAUNCH_SHARE = 0.25
+FIRST_LAUNCH_CELLS = 64
+
+
+def _launches(cells: int, per: int, ahead: bool) -> list[slice]:
+    """The cells of each launch of :meth:`ViewComparison.view_costs`: ``per`` at a time; with
+    ``ahead`` (plans made while the device renders), a first launch of ``FIRST_LAUNCH_SHARE``
+    of ``min(per, cells)`` where that is at least ``FIRST_LAUNCH_CELLS`` cells."""
+    if cells == 0:
+        return []
+    first = min(per, cells)
+    if ahead and first * FIRST_LAUNCH_SHARE >= FIRST_LAUNCH_CELLS:
+        first = max(1, int(first * FIRST_LAUNCH_SHARE))
+    return [slice(0, first)] + [slice(start, min(start + per, cells)) for start in range(first, cells, per)]
+
+
+def _planned(plan, items, *, ahead: bool):
+    """``plan(item)`` of each of ``items``, in order; with ``ahead``, the next item's is made in a
+    thread while the caller uses this one (host work beside a GPU's; on a CPU device the kernels
+    use every core, so nothing runs beside them)."""
+    items = list(items)
+    if not ahead or len(items) < 2:
+        yield from (plan(item) for item in items)
+        return
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(1, thread_name_prefix="fsswarp-plan") as pool:
+        coming = pool.submit(plan, items[0])
+        for item in items[1:]:
+            current, coming = coming.result(), pool.submit(plan, item)
+            yield current
+        yield coming.result()
 
 
 def _parabola_minimum(x: np.ndarray, y: np.ndarray) -> float:

@@ -259,6 +259,61 @@ def test_surrogate_views_combine_the_costs_on_the_device_as_the_host_did(coral_o
         assert costs.shape[-1] == (1 if shift is not None else len(comparison.shifts))
 
 
+def test_planning_ahead_keeps_the_order_and_plans_the_next_while_this_one_is_used():
+    """``_planned``: each item's plan in order; with ``ahead`` the next item's plan is made in
+    another thread before this one is handed over, and a failing plan raises at its own item."""
+    import threading
+
+    from fsswarp.compare import _planned
+
+    events, started = [], {item: threading.Event() for item in "abc"}
+
+    def plan(item):
+        if item == "bad":
+            raise InputError("no plan", field="item", value=item)
+        events.append(("planned", item, threading.current_thread() is threading.main_thread()))
+        started[item].set()
+        return item * 2
+
+    for item, made in zip("abc", _planned(plan, "abc", ahead=True)):
+        assert made == item * 2
+        if item != "c":  # the next plan is made while this item is in use
+            assert started[chr(ord(item) + 1)].wait(timeout=10)
+    assert events == [("planned", x, False) for x in "abc"]
+    assert list(_planned(plan, "ab", ahead=False)) == ["aa", "bb"]
+    used = []
+    with pytest.raises(InputError, match="no plan"):
+        for made in _planned(plan, ["a", "bad", "c"], ahead=True):
+            used.append(made)
+    assert used == ["aa"]
+
+
+def test_view_costs_planned_ahead_are_those_planned_in_turn(coral_one, truth_model, opencl, monkeypatch):
+    """Over several launches, the costs and contours with each launch's host work done in a
+    thread while the one before renders, and a short first launch (as on a GPU), are those made
+    one after another, bit for bit."""
+    import fsswarp.compare as compare
+
+    truth = coral_one.manifest.truth
+    comparison = ViewComparison(coral_one, settings=PoseSettings(launch_bytes=1 << 23), backend=opencl).use(
+        truth_model, truth.depth, truth.tilt)
+    depths, tilts = np.meshgrid(truth.depth + np.linspace(-0.02, 0.02, 3), truth.tilt + np.radians([-1.0, 0.0, 1.0]),
+                                indexing="ij")
+    assert comparison.grid_launches()[3] < depths.size / 2  # several launches
+    want = comparison.view_costs(depths.ravel(), tilts.ravel(), (1, 32), 0.03)
+    original = compare._planned
+    ahead = []
+    monkeypatch.setattr(compare, "_planned", lambda plan, items, ahead: original(plan, items, ahead=True))
+    monkeypatch.setattr(compare, "FIRST_LAUNCH_CELLS", 1)  # a first launch of one cell, then two at a time
+    assert compare._launches(9, 4, True) == [slice(0, 1), slice(1, 5), slice(5, 9)]
+    monkeypatch.setattr(comparison, "plan_pairs", lambda *a, **k: ahead.append(1) or ViewComparison.plan_pairs(
+        comparison, *a, **k))
+    got = comparison.view_costs(depths.ravel(), tilts.ravel(), (1, 32), 0.03)
+    assert len(ahead) > 2
+    for g, w in zip(got, want):
+        np.testing.assert_array_equal(g, w)
+
+
 def test_a_gpu_locates_without_the_host_copy(coral_one, truth_model, opencl, monkeypatch):
     """On a GPU, locating scans the predicted views from row 0 and leaves their host copy
     unread until ``predicted`` is read: the same data contours, anchors, shift, layers and
@@ -384,9 +439,9 @@ class _SamplesSpy:
     def __getattr__(self, name):
         return getattr(self.backend, name)
 
-    def render_device(self, mesh, sonar, rotations, *args, **kwargs):
-        self.launches.append((tuple(args[3]), len(rotations)))
-        return self.backend.render_device(mesh, sonar, rotations, *args, **kwargs)
+    def render_planned(self, mesh, sonar, plan, **kwargs):
+        self.launches.append(((plan.k_theta, plan.k_phi), len(plan.rotations)))
+        return self.backend.render_planned(mesh, sonar, plan, **kwargs)
 
 
 def test_grid_levels_before_the_finest_use_the_coarse_samples(coral_one, truth_model, opencl):

@@ -356,6 +356,16 @@ class Backend(abc.ABC):
             :func:`beams_read`); every other pixel equals, bit for bit, the same pixel of the
             full layers.
         """
+        return self.render_planned(mesh, sonar, self.plan_render(mesh, sonar, rotations, translations, plane_normals,
+                                                                 plane_offsets, samples, rows=rows, beams=beams),
+                                   gamma=gamma, surface_reflection=surface_reflection)
+
+    def plan_render(self, mesh, sonar: SonarSpec, rotations, translations, plane_normals, plane_offsets,
+                    samples: tuple[int, int], *, rows=None, beams=None) -> "RenderPlan":
+        """The host half of ``render_device`` (arguments as there): the inputs checked and made
+        clean, the bands, the beams read, the sub-ray spans and the shared poses, without the
+        device. Thread-safe: a caller may plan its next launch while this one renders
+        (``fsswarp.compare.ViewComparison.view_costs``)."""
         rot, trans, normals, offsets = _view_planes(rotations, translations, plane_normals, plane_offsets)
         k_theta, k_phi = (int(k) for k in samples)
         if k_theta < 1 or k_phi < 1:
@@ -366,14 +376,24 @@ class Backend(abc.ABC):
         if n_views * 4 * count * sonar.beams >= 2**31:
             raise ValueError(f"{n_views} views of {count} x {sonar.beams} exceed one launch's "
                              f"2^31 pixels; split the batch")
-        if n_views == 0:
-            return HostLayers(np.zeros((0, 4, count, sonar.beams), np.float32),
-                              None if rows is None else first)
-        spans = self._spans(mesh, sonar, rot, trans, normals, offsets, k_phi)
-        layers = self._render(mesh, SonarConstants.of(sonar), sonar.beam_widths, rot, trans, normals,
-                              offsets, k_theta, k_phi, float(gamma), float(surface_reflection), first, count,
-                              spans, shared_poses(rot, trans, spans, sonar.beams * k_theta * k_phi), needed)
-        layers.first_rows = None if rows is None else first.copy()
+        spans = shared = None
+        if n_views:
+            spans = self._spans(mesh, sonar, rot, trans, normals, offsets, k_phi)
+            shared = shared_poses(rot, trans, spans, sonar.beams * k_theta * k_phi)
+        return RenderPlan(rot, trans, normals, offsets, k_theta, k_phi, first, count, rows is not None, needed, spans,
+                          shared)
+
+    def render_planned(self, mesh, sonar: SonarSpec, plan: "RenderPlan", *, gamma: float,
+                       surface_reflection: float) -> "DeviceLayers":
+        """The device half of ``render_device``: render the views of ``plan`` (``plan_render``
+        of the same mesh and sonar)."""
+        if plan.rotations.shape[0] == 0:
+            return HostLayers(np.zeros((0, 4, plan.count, sonar.beams), np.float32),
+                              plan.first if plan.banded else None)
+        layers = self._render(mesh, SonarConstants.of(sonar), sonar.beam_widths, plan.rotations, plan.translations,
+                              plan.normals, plan.offsets, plan.k_theta, plan.k_phi, float(gamma),
+                              float(surface_reflection), plan.first, plan.count, plan.spans, plan.shared, plan.needed)
+        layers.first_rows = plan.first.copy() if plan.banded else None
         return layers
 
     def render_batches(self, mesh, sonar: SonarSpec, rotations, translations, plane_normals, plane_offsets,
@@ -679,6 +699,27 @@ class Backend(abc.ABC):
         (R,) angles and (R, 2) translations, the (R,) int32 iterations and converged (0/1), and
         per source point (F,) its moved x and y, its nearest target (int32) and its distance
         to it (-1 where not usable)."""
+
+
+class RenderPlan(NamedTuple):
+    """``Backend.plan_render``'s host work for one render: clean float32 ``rotations`` (N, 3, 3),
+    ``translations`` (N, 3), ``normals`` (N, 3), ``offsets`` (N,); the samples ``k_theta``,
+    ``k_phi``; the bands' ``first`` rows (N,) and row ``count`` (``banded``: whether bands
+    were asked for); the beams read, ``needed`` (N, 2, beams) uint8 or None; the ``spans``
+    (N, 4) and the ``shared`` poses (SharedPoses or None; both None for N = 0)."""
+
+    rotations: np.ndarray
+    translations: np.ndarray
+    normals: np.ndarray
+    offsets: np.ndarray
+    k_theta: int
+    k_phi: int
+    first: np.ndarray
+    count: int
+    banded: bool
+    needed: np.ndarray | None
+    spans: np.ndarray | None
+    shared: "SharedPoses | None"
 
 
 class PreparedLaunch:
