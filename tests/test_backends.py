@@ -215,7 +215,14 @@ def test_warp_devices(wp_device):
     assert (backend.name, backend.device, backend.is_gpu) == ("warp", wp_device, wp_device != "cpu")
     assert get_backend("warp", wp_device) is backend
     if wp_device.startswith("cuda"):
+        import warp as wp
+
+        from fsswarp.backends.warp.backend import MEMPOOL_KEEP
+
         assert get_backend("warp", "cuda") is get_backend("warp", "cuda:0")
+        if wp.is_mempool_enabled(wp_device):  # the pool keeps a quarter of the memory between launches
+            kept = wp.get_mempool_release_threshold(wp_device)
+            assert kept == pytest.approx(MEMPOOL_KEEP * wp.get_device(wp_device).total_memory, rel=0.01)
 
 
 def test_warp_reuses_an_input_upload_for_the_same_bytes(backend_for_label):

@@ -22,6 +22,12 @@ from .raycast import cast_rays_kernel
 from .render import direct_hits_kernel, fixed_to_float, frontal_rays_kernel, render_kernel, sub_rays_kernel
 from .sonar import kernel_sonar
 
+#: Share of a CUDA device's memory that Warp's memory pool keeps after a synchronize instead of
+#: handing it back (Warp's default keeps none): the pose grid's launches allocate their layers
+#: (gigabytes) again each time, and mapping them again cost the 64 × 64 grid about 20 of its
+#: 190 ms on an H100 (docs/decisions.md). Between launches the pool then holds at most this
+#: share unused, which other processes on the same GPU cannot have meanwhile.
+MEMPOOL_KEEP = 0.25
 #: ``WarpBackend._constant``: inputs up to this size are kept on the device for reuse ...
 CONSTANT_BYTES = 1 << 18
 #: ... and this many of them (at most 16 MiB).
@@ -79,6 +85,8 @@ class WarpBackend(Backend):
         self._device = wp.get_device(device)
         self.device = str(self._device.alias)
         self.is_gpu = bool(self._device.is_cuda)
+        if self.is_gpu and wp.is_mempool_enabled(self._device):
+            wp.set_mempool_release_threshold(self._device, MEMPOOL_KEEP)
         self.has_float64 = True
         self._constants: dict[tuple, wp.array] = {}  # _constant's uploads, least recently used first
 
