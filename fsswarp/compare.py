@@ -413,7 +413,8 @@ class ViewComparison:
         and costs are those of full layers, bit for bit. One cell at the located estimate with
         the exact samples reads the layers rendered there, on the device (``_located_index``; no
         render: the same pixels). On a GPU the host work of each launch after the first
-        (:meth:`plan_pairs`) is done in a thread while the launch before it runs."""
+        (:meth:`plan_pairs`) is done in a thread while the launch before it runs, and the first
+        launch is short (:func:`_launches`)."""
         data = self.data
         n_views = len(data.views)
         first, rows, read, per = self.grid_launches()
