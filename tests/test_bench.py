@@ -440,7 +440,7 @@ def test_gpu_runner_names_every_run_it_knows_and_refuses_others_with_exit_2(tmp_
     script = (Path(__file__).resolve().parents[1] / "bench" / "device" / "gpu.sh").read_text()
     listed = set(re.findall(r"^#   bash bench/device/gpu\.sh (\w+)", script, re.M))
     handled = set(re.findall(r"^  (\w+)\)$", script, re.M))
-    assert listed == handled == {"tests", "table", "study", "bench", "ab", "profile", "demo", "batch", "ray"}
+    assert listed == handled == {"tests", "table", "study", "bench", "ab", "profile", "grid", "demo", "batch", "ray"}
     for args, message in ((["nowhere"], "unknown run 'nowhere'"), ([], "name a run"),
                           (["table", "h100"], "table needs NAME and at least one SCENE")):
         done = _gpu_runner(tmp_path, *args)
@@ -526,11 +526,24 @@ def test_batch_throughput_bad_options_exit_2(args, capsys):
 
 
 @pytest.mark.parametrize("script, options", [("exact_profile", ["--calls", "0"]), ("refine_profile", ["--seed", "-1"]),
-                                             ("mesh_profile", ["--repeats", "0"])])
+                                             ("mesh_profile", ["--repeats", "0"]), ("grid_profile", ["--repeat", "0"]),
+                                             ("grid_profile", ["--sides", "0"])])
 def test_the_profile_scripts_refuse_bad_options_with_exit_2(script, options, capsys):
     assert _bench_module(script).main(options) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"{script}: error: ")
+
+
+def test_grid_profile_gives_every_launch_size_the_same_costs(capsys):
+    """The grid in launches of one cell and in one launch: one table row each, the same checksum
+    of the costs (a pair's costs do not depend on its launch), no kernel table off CUDA."""
+    assert _bench_module("grid_profile").main(["--backend", "opencl", "--sides", "3", "--launch-mib", "8", "4096",
+                                                "--repeat", "1", "--kernels"]) == 0
+    out = capsys.readouterr().out
+    rows = [line.split(" | ") for line in out.splitlines() if line.startswith("| ") and "MiB" in line]
+    assert [row[0] for row in rows] == ["| 8 MiB", "| 4096 MiB"] and [row[2] for row in rows] == ["1", "900"]
+    assert rows[0][5] == rows[1][5] and float(rows[0][5].rstrip(" |")) > 0
+    assert "need Warp on a CUDA device" in out
 
 
 def test_the_stage_table_lists_the_ordered_stages_present_with_their_share():

@@ -8,6 +8,7 @@
 #   bash bench/device/gpu.sh bench                  fsswarp bench: Warp CUDA, OpenCL on the GPU, PoCL on the host
 #   bash bench/device/gpu.sh ab BEFORE AFTER [ARGS] bench/ab_reconstruct.py on Warp CUDA
 #   bash bench/device/gpu.sh profile [ARGS]         bench/loop_profile.py on Warp CUDA
+#   bash bench/device/gpu.sh grid [ARGS]            bench/grid_profile.py (the pose grid per launch size) on Warp CUDA
 #   bash bench/device/gpu.sh demo [ARGS]            bench/demo_wall.py (the whole demo) on Warp CUDA
 #   bash bench/device/gpu.sh batch [ARGS]           bench/batch_throughput.py (reconstructions at once) on Warp CUDA
 #   bash bench/device/gpu.sh ray [ARGS]             bench/batch_ray.py (fsswarp batch on a local Ray) on Warp CUDA
@@ -24,7 +25,7 @@ export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}
 out=${OUT:?OUT must name the folder that comes back}
 command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,driver_version --format=csv,noheader
 fail() { echo "bench/device/gpu.sh: error: $1" >&2; exit 2; }
-[ $# -gt 0 ] || fail "name a run: tests, table, study, bench, ab, profile, demo, batch or ray"
+[ $# -gt 0 ] || fail "name a run: tests, table, study, bench, ab, profile, grid, demo, batch or ray"
 what=$1
 shift
 case "$what" in
@@ -52,6 +53,8 @@ case "$what" in
     python bench/ab_reconstruct.py "$@" --backend warp --device cuda:0 ;;
   profile)
     python bench/loop_profile.py --backend warp --device cuda:0 "$@" ;;
+  grid)
+    python bench/grid_profile.py --backend warp --device cuda:0 "$@" ;;
   demo)
     python bench/demo_wall.py "$@" -- --backend warp --device cuda:0 ;;
   batch)
@@ -59,5 +62,5 @@ case "$what" in
   ray)
     python bench/batch_ray.py "$@" -- --backend warp --device cuda:0 ;;
   *)
-    fail "unknown run '$what' (tests, table, study, bench, ab, profile, demo, batch or ray)" ;;
+    fail "unknown run '$what' (tests, table, study, bench, ab, profile, grid, demo, batch or ray)" ;;
 esac

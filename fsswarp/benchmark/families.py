@@ -525,6 +525,24 @@ def array_carving(sides: Sequence[int], *, profiles: dict, scene, repeat: int = 
 
 
 # --- pose grid ---------------------------------------------------------------------------------
+def every_view_scene(backend, folder, scene: str = "coral-one", seed: int = 1):
+    """(the built-in ``scene`` simulated on ``backend`` into ``folder`` (noise ``seed``) with every
+    view to optimize, its true model as a trimesh): the pose grid's problem of 16 views."""
+    import dataclasses
+
+    import trimesh
+
+    from ..dataset import Dataset
+    from ..rig import Rig
+    from ..simulation import simulate
+
+    dataset = simulate(scene, f"{folder}/{scene}", seed=seed, backend=backend)
+    rig = dataset.rig
+    every = Rig(tuple(dataclasses.replace(v, optimize=True) for v in rig.views), rig.reference)
+    dataset = Dataset(dataclasses.replace(dataset.manifest, rig=every), dataset.images, dataset.root)
+    return dataset, trimesh.load(dataset.truth_model_path, process=False)
+
+
 def pose_grid(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3, budget: float = 20.0,
               launch_bytes: int | None = None, progress: Progress | None = None) -> list[dict]:
     """The (D, β) grid surrogate over side² cells × 16 views (``sides``): "end to end"
@@ -532,14 +550,7 @@ def pose_grid(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3,
     "render alone" (``render_pairs`` of the same bands of rows in the same launches, layers
     dropped) and "resident" (``Backend.view_costs`` alone on layers already rendered, where
     they fit in one launch of ``launch_bytes``: default 16 GiB on a GPU, 2 GiB on a CPU)."""
-    import dataclasses
-
-    import trimesh
-
-    from ..dataset import Dataset
     from ..compare import PoseSettings, ViewComparison
-    from ..rig import Rig
-    from ..simulation import simulate
 
     launch_bytes = launch_bytes or (16 << 30 if backend.is_gpu else 2 << 30)
     profile = profiles[profile_key(backend)]
@@ -549,11 +560,7 @@ def pose_grid(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3,
                                          "cells"),
              "resident": record_base("pose", "view_costs", "resident", backend, "cells")}
     with tempfile.TemporaryDirectory() as folder:
-        dataset = simulate("coral-one", f"{folder}/coral-one", seed=1, backend=backend)
-        rig = dataset.rig
-        every = Rig(tuple(dataclasses.replace(v, optimize=True) for v in rig.views), rig.reference)
-        dataset = Dataset(dataclasses.replace(dataset.manifest, rig=every), dataset.images, dataset.root)
-        model = trimesh.load(dataset.truth_model_path, process=False)
+        dataset, model = every_view_scene(backend, folder)
         truth = dataset.manifest.truth
         problem = ViewComparison(dataset, settings=PoseSettings(launch_bytes=launch_bytes),
                                  backend=backend).use(model, truth.depth, truth.tilt)

@@ -1,0 +1,111 @@
+"""The pose step's (D, β) grid end to end, per launch size, one command:
+
+    python bench/grid_profile.py [--scene NAME] [--backend B] [--device D] [--seed S]
+                                 [--sides N ...] [--launch-mib M ...] [--repeat R] [--kernels]
+
+Simulates the scene (noisy, ``--seed``) with every view to optimize, locates its true model at
+the true (D, β) (as ``fsswarp bench``'s pose family does), and times ``ViewComparison.surrogate``
+over side × side cells of ± 5 cm × ± 2° for each launch size (``PoseSettings.launch_bytes``,
+default 4096 MiB as the loop and 16384 MiB as ``fsswarp bench``), after one untimed call. Prints
+one Markdown table: cells per launch, the median (min–max) of ``--repeat`` calls, and a checksum
+of the costs (to compare code before and after a change: the same costs, the same checksum; a
+pair's costs do not depend on the launch it shares, so every launch size gives the same one).
+``--kernels`` (Warp on a CUDA device): the GPU time of each kernel and copy over one more call
+(Warp's activity timing); the wall time less the GPU's is host work the GPU waited for.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+_spec = importlib.util.spec_from_file_location("bench_profiling", Path(__file__).resolve().parent / "profiling.py")
+profiling = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(profiling)
+
+
+def cells(truth, side: int):
+    """(side, side) depths (m) and tilts (rad): ± 5 cm and ± 2° around the truth."""
+    import numpy as np
+
+    return np.meshgrid(truth.depth + np.linspace(-0.05, 0.05, side),
+                       truth.tilt + np.radians(np.linspace(-2.0, 2.0, side)), indexing="ij")
+
+
+def kernel_times(problem, depths, tilts) -> list[tuple[str, int, float]]:
+    """(kernel or copy, calls, GPU ms) over one ``surrogate`` call, slowest first (Warp CUDA)."""
+    import warp as wp
+
+    wp.timing_begin(cuda_filter=wp.TIMING_ALL)
+    problem.surrogate(depths, tilts)
+    wp.synchronize()
+    totals: dict[str, list] = {}
+    for record in wp.timing_end():
+        entry = totals.setdefault(record.name.split("(")[0], [0, 0.0])
+        entry[0] += 1
+        entry[1] += record.elapsed
+    return sorted(((name, calls, ms) for name, (calls, ms) in totals.items()), key=lambda row: -row[2])
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    profiling.add_scene_options(parser)
+    parser.add_argument("--sides", type=int, nargs="+", default=[64, 256])
+    parser.add_argument("--launch-mib", type=int, nargs="+", default=[4096, 16384])
+    parser.add_argument("--repeat", type=int, default=5)
+    parser.add_argument("--kernels", action="store_true")
+    args = parser.parse_args(argv)
+    import numpy as np
+
+    from fsswarp.benchmark.families import every_view_scene
+    from fsswarp.compare import PoseSettings, ViewComparison
+    from fsswarp.errors import check_integer
+
+    def check() -> None:
+        check_integer("--repeat", args.repeat, 1)
+        for side in args.sides:
+            check_integer("--sides", side, 1)
+        for size in args.launch_mib:
+            check_integer("--launch-mib", size, 1)
+
+    backend = profiling.scene_backend(args, "grid_profile", check)
+    if backend is None:
+        return 2
+    with tempfile.TemporaryDirectory() as folder:
+        dataset, model = every_view_scene(backend, folder, args.scene, args.seed)
+    truth = dataset.manifest.truth
+    print(f"{args.scene} (seed {args.seed}), {len(dataset.images)} views, on {backend.name} {backend.device}\n")
+    print("| launch | side | cells per launch | median ms | min–max ms | checksum |\n|---|---|---|---|---|---|")
+    kernels = []
+    for size in args.launch_mib:
+        problem = ViewComparison(dataset, settings=PoseSettings(launch_bytes=size << 20), backend=backend).use(
+            model, truth.depth, truth.tilt)
+        for side in args.sides:
+            depths, tilts = cells(truth, side)
+            costs = problem.surrogate(depths, tilts)
+            seconds = []
+            for _ in range(args.repeat):
+                start = time.perf_counter()
+                problem.surrogate(depths, tilts)
+                seconds.append(time.perf_counter() - start)
+            print(f"| {size} MiB | {side} | {problem.grid_launches()[3]} | {1e3 * statistics.median(seconds):.1f} | "
+                  f"{1e3 * min(seconds):.1f}–{1e3 * max(seconds):.1f} | {float(np.nansum(costs)):.9g} |", flush=True)
+            if args.kernels and backend.name == "warp" and backend.is_gpu:
+                kernels.append((size, side, kernel_times(problem, depths, tilts)))
+    if args.kernels and not kernels:
+        print("\n--kernels: the GPU's times need Warp on a CUDA device")
+    for size, side, rows in kernels:
+        print(f"\n{size} MiB, {side} × {side}: GPU {sum(ms for _, _, ms in rows):.1f} ms\n\n"
+              "| kernel or copy | calls | GPU ms |\n|---|---|---|")
+        for name, calls, ms in rows:
+            print(f"| {name} | {calls} | {ms:.2f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
