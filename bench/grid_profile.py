@@ -18,23 +18,13 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
-import statistics
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 _spec = importlib.util.spec_from_file_location("bench_profiling", Path(__file__).resolve().parent / "profiling.py")
 profiling = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(profiling)
-
-
-def cells(truth, side: int):
-    """(side, side) depths (m) and tilts (rad): ± 5 cm and ± 2° around the truth."""
-    import numpy as np
-
-    return np.meshgrid(truth.depth + np.linspace(-0.05, 0.05, side),
-                       truth.tilt + np.radians(np.linspace(-2.0, 2.0, side)), indexing="ij")
 
 
 def kernel_times(problem, depths, tilts) -> list[tuple[str, int, float]]:
@@ -62,7 +52,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     import numpy as np
 
-    from fsswarp.benchmark.families import every_view_scene
+    from fsswarp.benchmark.families import every_view_scene, grid_cells
+    from fsswarp.benchmark.harness import measure
     from fsswarp.compare import PoseSettings, ViewComparison
     from fsswarp.errors import check_integer
 
@@ -86,15 +77,12 @@ def main(argv: list[str] | None = None) -> int:
         problem = ViewComparison(dataset, settings=PoseSettings(launch_bytes=size << 20), backend=backend).use(
             model, truth.depth, truth.tilt)
         for side in args.sides:
-            depths, tilts = cells(truth, side)
-            costs = problem.surrogate(depths, tilts)
-            seconds = []
-            for _ in range(args.repeat):
-                start = time.perf_counter()
-                problem.surrogate(depths, tilts)
-                seconds.append(time.perf_counter() - start)
-            print(f"| {size} MiB | {side} | {problem.grid_launches()[3]} | {1e3 * statistics.median(seconds):.1f} | "
-                  f"{1e3 * min(seconds):.1f}–{1e3 * max(seconds):.1f} | {float(np.nansum(costs)):.9g} |", flush=True)
+            depths, tilts = grid_cells(truth, side)
+            costs = problem.surrogate(depths, tilts)  # also the warm-up
+            timing = measure(lambda: problem.surrogate(depths, tilts), args.repeat, warmup=0)  # noqa: B023
+            print(f"| {size} MiB | {side} | {problem.grid_launches()[3]} | {1e3 * timing['median_s']:.1f} | "
+                  f"{1e3 * timing['min_s']:.1f}–{1e3 * timing['max_s']:.1f} | {float(np.nansum(costs)):.9g} |",
+                  flush=True)
             if args.kernels and backend.name == "warp" and backend.is_gpu:
                 kernels.append((size, side, kernel_times(problem, depths, tilts)))
     if args.kernels and not kernels:

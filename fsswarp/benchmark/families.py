@@ -543,6 +543,13 @@ def every_view_scene(backend, folder, scene: str = "coral-one", seed: int = 1):
     return dataset, trimesh.load(dataset.truth_model_path, process=False)
 
 
+def grid_cells(truth, side: int) -> tuple[np.ndarray, np.ndarray]:
+    """(side, side) depths (m) and tilts (rad) of the pose grid's benchmark: ± 5 cm and ± 2°
+    around ``truth`` (its ``depth`` m and ``tilt`` rad)."""
+    return np.meshgrid(truth.depth + np.linspace(-0.05, 0.05, side),
+                       truth.tilt + np.radians(np.linspace(-2.0, 2.0, side)), indexing="ij")
+
+
 def pose_grid(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3, budget: float = 20.0,
               launch_bytes: int | None = None, progress: Progress | None = None) -> list[dict]:
     """The (D, β) grid surrogate over side² cells × 16 views (``sides``): "end to end"
@@ -580,12 +587,8 @@ def pose_grid(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3,
             problem.render_pairs(data.views, cell_d, cell_t, settings.samples,
                                  rows=(np.tile(first, len(cell_d)), rows), beams=np.tile(read, (len(cell_d), 1, 1)))
 
-    def cells(side):
-        return np.meshgrid(truth.depth + np.linspace(-0.05, 0.05, side),
-                           truth.tilt + np.radians(np.linspace(-2.0, 2.0, side)), indexing="ij")
-
     def run_point(side):
-        depths, tilts = cells(side)
+        depths, tilts = grid_cells(truth, side)
         pairs = side * side * views
         shifts = [problem.shift] if problem.shift is not None else problem.shifts
         cost_bytes = pairs * 2 * len(shifts) * 4
