@@ -508,17 +508,16 @@ class _TruthMetrics:
     each fed by a worker thread that waits on its pipe, while the loop goes on. A worker thread
     alone held the GIL against the loop: coral-one took 34.4 and 35.2 s on an H100 with it,
     24.2 and 24.7 s with the child process and 23.4 and 24.9 s with no truth metrics at all.
-    On this 2-core CPU, where they were computed at once (the kernels use both cores), the
-    child process uses the core that the loop's host work leaves idle: coral-one 84.9 s → 80.6
-    s (side by side, medians of 2, the same iterates). Each compare is two requests, one
-    per direction of the surface distances (``fsswarp.metrics.compare_part``), served by up
-    to ``workers`` worker threads (default :func:`truth_workers`), each with its own child,
-    started by its first request (the pool starts a thread only when none is idle): on an
-    H100 host one child took about 1 s per compare, the loop recorded one model a second, and
-    the run waited 3.8–5.5 s at its end for the backlog; with four children it waited 1.06 s,
-    one compare, which the two halves share out. The values do not depend on where they are computed. ``collect``
-    writes them into the history entries, in order, and reports each with ``say``. A context
-    manager: leaving it stops the workers and their processes."""
+    On this project's 2-core CPU the child uses the core that the loop's host work leaves idle
+    (coral-one 84.9 → 80.6 s). Up to ``workers`` worker threads (default :func:`truth_workers`)
+    each start their own child with their first request. Each compare is split into ``workers``
+    parts (``fsswarp.metrics.compare_part``: equal runs of the sampled points, one request
+    each), so that the last model's, which the run waits for at its end, takes a ``workers``-th
+    of its time; each child's distances run on :func:`truth_threads` threads, so that the
+    children leave CPUs to the loop (bench/notes.md, twelfth session). The values do not depend
+    on where they are computed. ``collect`` writes them into the history entries, in order, and
+    reports each with ``say``. A context manager: leaving it stops the workers and their
+    processes."""
 
     def __init__(self, mesh, say: Callable[[str], None], workers: int | None = None):
         import threading
@@ -530,7 +529,7 @@ class _TruthMetrics:
             if mesh is not None else None
         self.local = threading.local()  # each worker thread's child
         self.children = []  # every compare process started (at most ``workers``)
-        self.pending = []  # (history entry, (future of part 0, future of part 1)), oldest first
+        self.pending = []  # (history entry, the futures of its parts), oldest first
 
     def __enter__(self):
         return self
@@ -546,17 +545,17 @@ class _TruthMetrics:
 
     def submit(self, entry: dict, model) -> None:
         if self.pool is not None:
-            self.pending.append((entry, tuple(self.pool.submit(self._compare_in_child, model, part)
-                                              for part in (0, 1))))
+            self.pending.append((entry, [self.pool.submit(self._compare_in_child, model, part)
+                                         for part in range(self.workers)]))
 
     def _compare_in_child(self, model, part: int) -> tuple:
-        """``compare_part(model, truth, part)`` in this worker thread's child process."""
+        """``compare_part(model, truth, part, workers)`` in this worker thread's child process."""
         import pickle
 
         child = getattr(self.local, "child", None)
         if child is None:
             child = self.local.child = self._start_child()
-        pickle.dump((model, part), child.stdin)
+        pickle.dump((model, part, self.workers), child.stdin)
         child.stdin.flush()
         try:
             reply = pickle.load(child.stdout)
@@ -575,8 +574,9 @@ class _TruthMetrics:
         from pathlib import Path
 
         path = [str(Path(__file__).resolve().parent.parent), os.environ.get("PYTHONPATH", "")]
+        serve = f"from fsswarp.metrics import serve_compare; serve_compare({truth_threads(self.workers)})"
         child = subprocess.Popen(
-            [sys.executable, "-c", "from fsswarp.metrics import serve_compare; serve_compare()"],
+            [sys.executable, "-c", serve],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, start_new_session=True,  # Ctrl-C: the parent's alone
             env=dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in path if p)))
         self.children.append(child)
@@ -587,7 +587,7 @@ class _TruthMetrics:
         """Fill in the finished entries (all of them, waiting, with ``wait``)."""
         while self.pending and (wait or all(future.done() for future in self.pending[0][1])):
             entry, futures = self.pending.pop(0)
-            metrics = combine(self.mesh, *(future.result() for future in futures))
+            metrics = combine(self.mesh, [future.result() for future in futures])
             entry.update(E_V=metrics["E_V"], chamfer_m=metrics["chamfer_m"], fscore=metrics["fscore"])
             self.say(f"iteration {entry['iteration']} against the truth: E_V {entry['E_V']:.3f}, Chamfer "
                      f"{entry['chamfer_m'] * 1e3:.2f} mm, F {entry['fscore']:.3f}")
@@ -600,6 +600,15 @@ def truth_workers() -> int:
     from .system import usable_cpus
 
     return min(4, max(1, usable_cpus() // 4))
+
+
+def truth_threads(workers: int) -> int:
+    """Threads of each of ``workers`` truth-metric processes: the CPUs this process may use
+    shared out among them and the loop, at least 1 (3 on a 16-core host with 4 processes;
+    with a thread per CPU in each, the four children's 64 threads slowed the loop)."""
+    from .system import usable_cpus
+
+    return max(1, usable_cpus() // (workers + 1))
 
 
 def _line(entry: dict) -> str:
