@@ -395,7 +395,10 @@ def enhance_figure(images: dict[str, np.ndarray], results: dict, sonar: SonarSpe
                 ax.set_xlim(max(extent[0], math.degrees(sonar.beam_centres[cols.min()]) - 4.0),
                             min(extent[1], math.degrees(sonar.beam_centres[cols.max()]) + 4.0))
             ax.set_xlabel("azimuth (deg)", fontsize=7)
-            ax.set_ylabel("range (m)", fontsize=7)
+            if ax is axes[row, 0]:  # a row's panels show the same ranges
+                ax.set_ylabel("range (m)", fontsize=7)
+            else:
+                ax.tick_params(labelleft=False)
             ax.tick_params(labelsize=7)
     bar = fig.colorbar(decibels, cax=fig.add_subplot(grid[-1, :2]), orientation="horizontal")
     bar.set_label("dB below the view's data peak", fontsize=8)
@@ -447,7 +450,10 @@ def comparison_figure(images: dict[str, np.ndarray], enhanced: dict[str, np.ndar
                 ax.set_ylim(limits["y"])
             ax.set_title(f"{name}: {label}", fontsize=8)
             ax.set_xlabel("x (m)", fontsize=6)
-            ax.set_ylabel("y (m)", fontsize=6)
+            if col == 0:  # a row's panels show the same place
+                ax.set_ylabel("y (m)", fontsize=6)
+            else:
+                ax.tick_params(labelleft=False)
             ax.tick_params(labelsize=5)
     bar = fig.colorbar(shown, cax=fig.add_subplot(grid[-1, 1:-1] if len(columns) > 2 else grid[-1, :]),
                        orientation="horizontal")
