@@ -393,21 +393,35 @@ class WarpBackend(Backend):
     # --- IRLS-ICP runs (kernels after the class) ------------------------------------------------
     def _icp_runs(self, source_x, source_y, target_x, target_y, runs, angles, translations, floors, step_tols,
                   max_iterations, max_distance, tuning):
+        """Three uploads and two read-backs (Warp's Python costs ~0.1 ms each, and the loop runs
+        ~200 of these): the read-only float64 inputs in one array, the transforms (read and
+        written) with the float64 outputs and scratch in another, the integers in a third; the
+        kernel gets views of them."""
         n_runs, n_points = runs.shape[0], source_x.shape[0]
+        sizes = (n_points, n_points, target_x.shape[0], target_y.shape[0], n_runs, n_runs)
+        read = np.concatenate([source_x, source_y, target_x, target_y, floors, step_tols]).astype(np.float64)
+        written = np.concatenate([angles, np.ravel(translations), np.zeros(7 * n_points)]).astype(np.float64)
         with wp.ScopedDevice(self._device):
-            f64 = [self._array(a, wp.float64) for a in (source_x, source_y, target_x, target_y)]
-            angle = self._array(angles, wp.float64)
-            trans = self._array(translations, wp.float64)
-            iterations = wp.zeros(n_runs, dtype=wp.int32)
-            converged = wp.zeros(n_runs, dtype=wp.int32)
-            moved_x, moved_y, dist, anchor_x, anchor_y, room2, scratch = (
-                wp.empty(n_points, dtype=wp.float64) for _ in range(7))
-            nearest = wp.empty(n_points, dtype=wp.int32)
+            sx, sy, tx, ty, floor, tol = _views(self._array(read, wp.float64), sizes)
+            io = self._array(written, wp.float64)
+            angle, trans, moved_x, moved_y, dist, anchor_x, anchor_y, room2, scratch = _views(
+                io, (n_runs, 2 * n_runs) + (n_points,) * 7)
+            counters = wp.zeros(2 * n_runs + n_points, dtype=wp.int32)
+            iterations, converged, nearest = _views(counters, (n_runs, n_runs, n_points))
             _launch(icp_runs_kernel, dim=n_runs,
-                    inputs=[*f64, self._array(runs, wp.int32), self._array(floors, wp.float64),
-                            self._array(step_tols, wp.float64), max_iterations, wp.float64(max_distance),
-                            wp.float64(tuning)],
-                    outputs=[angle, trans, iterations, converged, moved_x, moved_y, nearest, dist, anchor_x,
-                             anchor_y, room2, scratch])
+                    inputs=[sx, sy, tx, ty, self._array(runs, wp.int32), floor, tol, max_iterations,
+                            wp.float64(max_distance), wp.float64(tuning)],
+                    outputs=[angle, trans.reshape((n_runs, 2)), iterations, converged, moved_x, moved_y, nearest,
+                             dist, anchor_x, anchor_y, room2, scratch])
             wp.synchronize_device(self._device)
-            return tuple(a.numpy() for a in (angle, trans, iterations, converged, moved_x, moved_y, nearest, dist))
+            floats = io[:3 * n_runs + 3 * n_points].numpy()
+            ints = counters.numpy()
+        angle, trans, moved_x, moved_y, dist = np.split(floats, np.cumsum((n_runs, 2 * n_runs, n_points, n_points)))
+        iterations, converged, nearest = np.split(ints, np.cumsum((n_runs, n_runs)))
+        return angle, trans.reshape(n_runs, 2), iterations, converged, moved_x, moved_y, nearest, dist
+
+
+def _views(array: wp.array, sizes) -> list[wp.array]:
+    """Consecutive 1-D views of ``array`` of the given sizes."""
+    ends = np.cumsum(sizes)
+    return [array[int(end - size):int(end)] for end, size in zip(ends, sizes)]
