@@ -441,14 +441,17 @@ def _check_mesh(name: str, mesh) -> None:
 
 def serve_compare(threads: int | None = None) -> None:
     """The loop of a ``compare`` worker process (fsswarp.reconstruction's truth metrics): from
-    stdin, pickled objects, the truth mesh first, then (mesh, part, parts) requests; to stdout,
-    one pickled ``compare_part(mesh, truth, part, parts, threads=threads)`` (or the exception it
+    stdin, pickled objects, the truth mesh first, then (vertices, faces, part, parts) requests;
+    to stdout, one pickled ``compare_part(mesh, truth, part, parts, threads=threads)`` of the
+    mesh (``trimesh.Trimesh(vertices, faces, process=False)``) (or the exception it
     raised) per request, in order. Anything the code prints goes to stderr, so that stdout
     carries the replies alone. At the end of input the process exits at once (status 0),
     without the interpreter's teardown, which the run's end waited 0.1–0.2 s for."""
     import os
     import pickle
     import sys
+
+    import trimesh
 
     replies = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)
@@ -457,13 +460,13 @@ def serve_compare(threads: int | None = None) -> None:
     truth = pickle.load(requests)
     while True:
         try:
-            model, part, parts = pickle.load(requests)
+            vertices, faces, part, parts = pickle.load(requests)
         except EOFError:
             replies.close()
             sys.stderr.flush()
             os._exit(0)
         try:
-            reply = compare_part(model, truth, part, parts, threads=threads)
+            reply = compare_part(trimesh.Trimesh(vertices, faces, process=False), truth, part, parts, threads=threads)
         except Exception as error:  # handed to the parent, which raises it
             reply = error
         pickle.dump(reply, replies)

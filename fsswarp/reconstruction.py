@@ -549,13 +549,15 @@ class _TruthMetrics:
                                          for part in range(self.workers)]))
 
     def _compare_in_child(self, model, part: int) -> tuple:
-        """``compare_part(model, truth, part, workers)`` in this worker thread's child process."""
+        """``compare_part(model, truth, part, workers)`` in this worker thread's child process,
+        which gets the model's vertices and faces (a tenth of the bytes of the trimesh with its
+        caches, and ~0.1 ms of pickling while the loop waits for the GIL, against ~3 ms)."""
         import pickle
 
         child = getattr(self.local, "child", None)
         if child is None:
             child = self.local.child = self._start_child()
-        pickle.dump((model, part, self.workers), child.stdin)
+        pickle.dump((np.asarray(model.vertices), np.asarray(model.faces), part, self.workers), child.stdin)
         child.stdin.flush()
         try:
             reply = pickle.load(child.stdout)
