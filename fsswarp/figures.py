@@ -98,22 +98,44 @@ def _zoom_limits(views: dict[str, np.ndarray], sonar: SonarSpec, peak: float, *,
             "x": (min(x), max(x)), "y": (r_lo * math.cos(max(abs(t_lo), abs(t_hi))), r_hi)}
 
 
-def save_figure(fig, path: str | Path, title: str = "", *, rect=(0, 0, 1, 1)) -> Path:
+def save_figure(fig, path: str | Path, title: str = "", *, rect=(0, 0, 1, 1), laid_out: bool = False) -> Path:
     """Title (``fig.suptitle``), lay out inside ``rect`` below the title, close and write
-    ``fig`` as a PNG, atomically; returns the path."""
+    ``fig`` as a PNG, atomically; returns the path. ``laid_out``: the figure has its title
+    and a fixed layout already (:func:`fixed_grid`), and is written as it is."""
     import matplotlib.pyplot as plt
 
-    top = rect[3]
-    if title:
-        width = max(40, int(fig.get_figwidth() * 15))  # characters of a 9-point line
-        text = "\n".join(textwrap.fill(line, width) for line in title.splitlines())
-        fig.suptitle(text, fontsize=9, y=1 - 0.06 / fig.get_figheight())
-        top = min(top, 1 - (0.17 * (text.count("\n") + 1) + 0.02) / fig.get_figheight())
-    fig.tight_layout(rect=(rect[0], rect[1], rect[2], top))
+    if not laid_out:
+        top = min(rect[3], 1 - title_height(fig, title) / fig.get_figheight())
+        fig.tight_layout(rect=(rect[0], rect[1], rect[2], top))
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=110)
     plt.close(fig)
     return write_bytes(path, buffer.getvalue())
+
+
+def title_height(fig, title: str) -> float:
+    """Set ``title`` (lines wrapped to the figure's width) as ``fig``'s 9-point suptitle; returns
+    the height (inches) it takes at the top, 0 without a title."""
+    if not title:
+        return 0.0
+    width = max(40, int(fig.get_figwidth() * 15))  # characters of a 9-point line
+    text = "\n".join(textwrap.fill(line, width) for line in title.splitlines())
+    fig.suptitle(text, fontsize=9, y=1 - 0.06 / fig.get_figheight())
+    return 0.17 * (text.count("\n") + 1) + 0.02
+
+
+def fixed_grid(fig, rows: int, cols: int, *, top: float, bottom: float, left: float, right: float, wspace: float,
+               hspace: float, height_ratios=None):
+    """A GridSpec of ``fig``: margins and the gaps between axes in inches, for figures of
+    panels alike, whose labels need the same room in every panel. Unlike ``tight_layout``, it
+    needs no drawing to find: that took about 40% of the enhancement figures' time (bench/notes.md,
+    twelfth session)."""
+    width, height = fig.get_size_inches()
+    axis_width = (width - left - right - (cols - 1) * wspace) / cols
+    axis_height = (height - top - bottom - (rows - 1) * hspace) / rows  # the mean, as GridSpec reads hspace
+    return fig.add_gridspec(rows, cols, height_ratios=height_ratios, left=left / width, right=1 - right / width,
+                            bottom=bottom / height, top=1 - top / height, wspace=wspace / axis_width,
+                            hspace=hspace / axis_height)
 
 
 def _bottom_legend(fig, handles: dict, **options) -> None:
@@ -369,7 +391,8 @@ def enhance_figure(images: dict[str, np.ndarray], results: dict, sonar: SonarSpe
     from matplotlib.colors import ListedColormap
 
     fig = plt.figure(figsize=(10.0, 2.8 * len(images) + 1.2))
-    grid = fig.add_gridspec(len(images) + 1, 4, height_ratios=[1.0] * len(images) + [0.05])
+    grid = fixed_grid(fig, len(images) + 1, 4, top=title_height(fig, title) + 0.3, bottom=0.55, left=0.6, right=0.2,
+                      wspace=0.2, hspace=0.7, height_ratios=[1.0] * len(images) + [0.05])
     axes = np.array([[fig.add_subplot(grid[r, c]) for c in range(4)] for r in range(len(images))])
     extent = (math.degrees(sonar.beam_centres[0]), math.degrees(sonar.beam_centres[-1]),
               sonar.range_min, sonar.range_max)
@@ -395,6 +418,7 @@ def enhance_figure(images: dict[str, np.ndarray], results: dict, sonar: SonarSpe
                 ax.set_xlim(max(extent[0], math.degrees(sonar.beam_centres[cols.min()]) - 4.0),
                             min(extent[1], math.degrees(sonar.beam_centres[cols.max()]) + 4.0))
             ax.set_xlabel("azimuth (deg)", fontsize=7)
+            ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(5))
             if ax is axes[row, 0]:  # a row's panels show the same ranges
                 ax.set_ylabel("range (m)", fontsize=7)
             else:
@@ -408,7 +432,7 @@ def enhance_figure(images: dict[str, np.ndarray], results: dict, sonar: SonarSpe
     key.legend([matplotlib.patches.Patch(color=colour) for _, colour in REGIONS.values()],
                [name for name, _ in REGIONS.values()], loc="center", ncol=4, fontsize=7, frameon=False,
                title="regions (the model's, at D and β)", title_fontsize=7)
-    return save_figure(fig, path, title)
+    return save_figure(fig, path, laid_out=True)
 
 
 def comparison_figure(images: dict[str, np.ndarray], enhanced: dict[str, np.ndarray],
@@ -432,7 +456,8 @@ def comparison_figure(images: dict[str, np.ndarray], enhanced: dict[str, np.ndar
         columns.append(("initial synthetic", initial))
     columns.append(("optimized synthetic", synthetic))
     fig = plt.figure(figsize=(2.6 * len(columns) + 0.4, 2.5 * len(images) + 1.1))
-    grid = fig.add_gridspec(len(images) + 1, len(columns), height_ratios=[1.0] * len(images) + [0.04])
+    grid = fixed_grid(fig, len(images) + 1, len(columns), top=title_height(fig, title) + 0.3, bottom=0.45, left=0.45,
+                      right=0.15, wspace=0.12, hspace=0.6, height_ratios=[1.0] * len(images) + [0.04])
     axes = np.array([[fig.add_subplot(grid[r, c]) for c in range(len(columns))] for r in range(len(images))])
     for row, name in enumerate(images):
         peak = float(np.max(images[name])) or 1.0
@@ -459,7 +484,7 @@ def comparison_figure(images: dict[str, np.ndarray], enhanced: dict[str, np.ndar
                        orientation="horizontal")
     bar.set_label("dB below the row's data peak", fontsize=7)
     bar.ax.tick_params(labelsize=6)
-    return save_figure(fig, path, title)
+    return save_figure(fig, path, laid_out=True)
 
 
 def views_figure(rows: dict[str, dict[str, np.ndarray]], sonar: SonarSpec, path: str | Path, *,
