@@ -45,7 +45,8 @@ def layers_figure(views: dict[str, np.ndarray], sonar: SonarSpec, path: str | Pa
         if zoom else None
     rows, cols = len(views), 2 * len(layers)
     fig = plt.figure(figsize=(2.2 * cols, 2.5 * rows + 0.9))
-    grid = fig.add_gridspec(rows + 1, cols, height_ratios=[1.0] * rows + [0.06])
+    grid = fixed_grid(fig, rows + 1, cols, top=title_height(fig, title) + 0.3, bottom=0.5, left=0.6, right=0.2,
+                      wspace=0.6, hspace=0.65, height_ratios=[1.0] * rows + [0.06])
     axes = np.array([[fig.add_subplot(grid[r, c]) for c in range(cols)] for r in range(rows)])
     extent_bb = (math.degrees(sonar.beam_centres[0]), math.degrees(sonar.beam_centres[-1]),
                  sonar.range_min, sonar.range_max)
@@ -75,7 +76,7 @@ def layers_figure(views: dict[str, np.ndarray], sonar: SonarSpec, path: str | Pa
     bar = fig.colorbar(shown, cax=fig.add_subplot(grid[-1, cols // 4: cols - cols // 4]), orientation="horizontal")
     bar.set_label("dB below the brightest pixel of all views", fontsize=8)
     bar.ax.tick_params(labelsize=7)
-    return save_figure(fig, path, title)
+    return save_figure(fig, path, laid_out=True)
 
 
 def _zoom_limits(views: dict[str, np.ndarray], sonar: SonarSpec, peak: float, *, margin_m: float = 0.15):
