@@ -605,12 +605,15 @@ def truth_workers() -> int:
 
 
 def truth_threads(workers: int) -> int:
-    """Threads of each of ``workers`` truth-metric processes: the CPUs this process may use
-    shared out among them and the loop, at least 1 (3 on a 16-core host with 4 processes;
-    with a thread per CPU in each, the four children's 64 threads slowed the loop)."""
+    """Threads of each of ``workers`` truth-metric processes: the CPUs this process may use but
+    a quarter of them (rounded down: none of 2 or 3), which the loop keeps, shared out among
+    them, at least 1: 3 on a 16-core host with 4 processes (a thread per CPU in each made 64 for
+    16 CPUs), 2 on a 2-core CPU, where the run's end waits for the last compare (1.3–1.5 s with
+    2 threads, 1.7–2.2 s with 1, coral-one's carving)."""
     from .system import usable_cpus
 
-    return max(1, usable_cpus() // (workers + 1))
+    cpus = usable_cpus()
+    return max(1, (cpus - cpus // 4) // workers)
 
 
 def _line(entry: dict) -> str:

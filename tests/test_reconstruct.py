@@ -162,7 +162,7 @@ def test_truth_metrics_share_out_among_at_most_their_workers_in_order():
             patch.delattr("os.sched_getaffinity", raising=False)
             patch.setattr("os.cpu_count", lambda: cpus)
             assert reconstruct_module.truth_workers() == want
-    for cpus, workers, want in ((1, 1, 1), (2, 1, 1), (8, 2, 2), (16, 4, 3), (128, 4, 25)):
+    for cpus, workers, want in ((1, 1, 1), (2, 1, 2), (4, 1, 3), (8, 2, 3), (16, 4, 3), (128, 4, 24)):
         with pytest.MonkeyPatch.context() as patch:
             patch.setattr("os.sched_getaffinity", lambda pid: set(range(cpus)), raising=False)
             assert reconstruct_module.truth_threads(workers) == want
