@@ -13,6 +13,7 @@ import json
 import math
 import sys
 import warnings
+from collections.abc import Callable
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
@@ -747,12 +748,15 @@ def demo(state: State, scene_name: str, out: Path, seed: int, iterations: int) -
             simulation_figure(dataset, tmp / "dataset" / "figures" / "layers.png", later.enter_context(drawer.batch()))
             state.echo(f"  {len(dataset.images)} noisy views in {time.perf_counter() - start:.1f} s")
             settings = ReconstructSettings(iterations=iterations)
-            result = run_reconstruction(state, dataset, tmp / "reconstruction", settings, drawer,
-                                        shown=out / "reconstruction", name=Path(scene_name).stem, later=later)
-            run_enhancement(state, dataset, result.model, "the reconstructed model", result.depth, result.tilt,
-                            tmp / "enhance", drawer, source="estimated", initial=(result.carved, "the carved model"),
-                            shown=out / "enhance", dataset_label=out / "dataset", name=Path(scene_name).stem,
-                            later=later)
+
+            def enhancement(result) -> None:  # before the report's views, so its figures are drawn first
+                run_enhancement(state, dataset, result.model, "the reconstructed model", result.depth, result.tilt,
+                                tmp / "enhance", drawer, source="estimated",
+                                initial=(result.carved, "the carved model"), shown=out / "enhance",
+                                dataset_label=out / "dataset", name=Path(scene_name).stem, later=later)
+
+            run_reconstruction(state, dataset, tmp / "reconstruction", settings, drawer, shown=out / "reconstruction",
+                               name=Path(scene_name).stem, later=later, before_report=enhancement)
             state.echo("finishing the figures and the report")
         (tmp / "demo.json").write_text(json.dumps({"scene": scene_name, "seed": seed,
                                                    "seconds": time.perf_counter() - start}, indent=2))
@@ -762,19 +766,21 @@ def demo(state: State, scene_name: str, out: Path, seed: int, iterations: int) -
 
 def run_reconstruction(state: State, dataset, out: Path, settings, drawer, *, depth0: float | None = None,
                        tilt0: float | None = None, shown: Path | None = None, name: str | None = None,
-                       later: ExitStack | None = None):
+                       later: ExitStack | None = None, before_report: Callable | None = None):
     """Reconstruct ``dataset`` from (depth0 m, tilt0 rad; default the measured values), write
     OUT/model.ply, carved.ply, result.json and figures (drawn by ``drawer``, a
     ``fsswarp.figures.FigureDrawer``; ``shown``: the folder's name in messages, when OUT is a
     temporary folder; ``name``: the scene's in titles, default the dataset folder's) and
     OUT/report.html (``fsswarp.report``); returns the ReconstructResult. ``later``: an ExitStack
-    whose closing finishes OUT (its figures, the report, the rename; default: before returning)."""
+    whose closing finishes OUT (its figures, the report, the rename; default: before returning).
+    ``before_report``: called with the result once the summary is said and the figures are
+    queued, before the report's views (the demo's enhancement: its figures, the slowest, are then
+    drawn before the report's)."""
     from .atomic import output_folder
     from .compare import PoseWarning, view_contours
     from .figures import carve_figure, contours_figure, history_figure, pose_figure
     from .outputs import write_reconstruction
-    from .pose import Z95
-    from .report import REPORT_FILE, write_report
+    from .report import write_report
     from .reconstruction import reconstruct as run
 
     backend = state.get_backend()
@@ -809,18 +815,33 @@ def run_reconstruction(state: State, dataset, out: Path, settings, drawer, *, de
             draw(pose_figure, result.pose_steps[0], tmp / "figures" / "pose.png",
                  truth=None if truth is None else (truth.depth, truth.tilt),
                  title="first pose step: the (D, tilt) grid search around the measured values")
+        if before_report is not None:
+            _say_reconstructed(state, dataset, result, shown or out)
+            before_report(result)
         write_report(tmp, dataset=dataset, backend=backend, command=command_line(), name=name, drawer=drawer,
                      later=finish)
+    if before_report is None:
+        _say_reconstructed(state, dataset, result, shown or out)
+    return result
+
+
+def _say_reconstructed(state: State, dataset, result, shown: Path) -> None:
+    """The summary of a reconstruction written to the folder ``shown``: the estimate and its
+    intervals, the start and the error against a truth, a warning for what is not identified."""
+    from .compare import PoseWarning
+    from .pose import Z95
+    from .report import REPORT_FILE
+
     best = result.history[result.best_iteration]
     if dataset.manifest.deep_water:  # no pose step: the known depth and tilt, no intervals
-        state.echo(f"wrote {shown or out}: E_I {best['E_I']:.3f} (iteration {result.best_iteration} of "
+        state.echo(f"wrote {shown}: E_I {best['E_I']:.3f} (iteration {result.best_iteration} of "
                    f"{result.iterations}, {'stopping rule met' if result.stopped else 'iteration limit'}), "
                    f"{result.seconds:.1f} s; no pose step: the dataset has no sea surface (deep water)")
-        return result
+        return
     summary = result.summary()
     (d0, d1), (t0, t1) = summary["depth_interval_m"], summary["tilt_interval_deg"]
     stop = "stopping rule met" if result.stopped else "iteration limit"
-    state.echo(f"wrote {shown or out}: depth {result.depth:.4f} m (95%: {d0:.4f}-{d1:.4f} m), tilt "
+    state.echo(f"wrote {shown}: depth {result.depth:.4f} m (95%: {d0:.4f}-{d1:.4f} m), tilt "
                f"{math.degrees(result.tilt):.2f} deg (95%: {t0:.2f}-{t1:.2f} deg), E_I {best['E_I']:.3f} "
                f"(iteration {result.best_iteration} of {result.iterations}, {stop}; "
                f"{'converged' if result.converged else 'not converged'}), {result.seconds:.1f} s")
@@ -838,8 +859,7 @@ def run_reconstruction(state: State, dataset, out: Path, settings, drawer, *, de
                       f"{'; '.join(widths[name] for name in unidentified)}: not half as wide), so the run is not "
                       f"called converged; the estimate of {' and '.join(unidentified)} rests on the sensor",
                       PoseWarning, __file__, 0)
-    state.echo(f"report: {(shown or out) / REPORT_FILE}")
-    return result
+    state.echo(f"report: {shown / REPORT_FILE}")
 
 
 @app.command()

@@ -504,13 +504,22 @@ def test_demo_simulates_and_reconstructs(tmp_path):
 
 def test_the_demo_draws_its_figures_while_it_goes_on_and_finishes_its_folders_at_the_end(tmp_path, monkeypatch):
     """The reconstruction's figures and report are finished when the demo ends, not before the
-    enhancement starts (their figures are drawn meanwhile); an error after them leaves no
-    output and no temporary folder."""
+    enhancement starts (their figures are drawn meanwhile); the enhancement's figures, the
+    slowest, are queued before the report's views; an error after them leaves no output and no
+    temporary folder."""
     import fsswarp.cli as cli
+    from fsswarp.figures import FigureDrawer
 
     monkeypatch.setenv("FSSWARP_FIGURE_WORKERS", "2")
     enhance = cli.run_enhancement
-    seen = []
+    seen, queued = [], []
+    submit = FigureDrawer._submit
+
+    def recorded(self, function, *args, **kwargs):
+        queued.append(function.__name__)
+        return submit(self, function, *args, **kwargs)
+
+    monkeypatch.setattr(FigureDrawer, "_submit", recorded)
 
     def watched(state, dataset, mesh, model_name, depth, tilt, out, *args, **kwargs):
         reconstruction = list(out.parent.glob(".reconstruction.*.tmp"))
@@ -525,6 +534,8 @@ def test_the_demo_draws_its_figures_while_it_goes_on_and_finishes_its_folders_at
     out = tmp_path / "demo"
     assert cli.main(["-q", "--backend", "opencl", "demo", "coral-one", "--out", str(out), "--iterations", "0"]) == 0
     assert seen == [[True, False]]  # written, its page not yet
+    last_enhancement = max(i for i, name in enumerate(queued) if name in ("enhance_figure", "comparison_figure"))
+    assert queued.index("carve_figure") < last_enhancement < queued.index("views_figure")
     for name in ("reconstruction/report.html", "reconstruction/figures/history.png", "enhance/enhance.png",
                  "enhance/views_optimized.png", "dataset/figures/layers.png"):
         assert (out / name).is_file(), name
