@@ -567,3 +567,24 @@ def test_cli_carve_bad_input_writes_nothing(coral_one, tmp_path):
     assert not out.exists()
     done = run_cli("carve", str(tmp_path / "missing"), "--out", str(out))
     assert done.returncode == 2 and "no such folder" in done.stderr and not out.exists()
+
+
+def test_summed_area_tables_count_the_masks_and_are_remembered_by_their_content():
+    """Each table entry counts the nonzero pixels above and left of it (brute force); equal
+    masks, even in another array, give the one read-only table; other masks their own."""
+    from fsswarp.backends.base import _summed_area
+
+    class Sonar:
+        bins, beams = 7, 5
+
+    rng = np.random.default_rng(3)
+    masks = (rng.random((2, 7, 5)) > 0.4).astype(np.uint8)
+    table = _summed_area(masks, Sonar)
+    want = np.zeros((2, 8, 6), np.int64)
+    for v, B, b in np.ndindex(want.shape):
+        want[v, B, b] = np.count_nonzero(masks[v, :B, :b])
+    np.testing.assert_array_equal(table, want)
+    assert _summed_area(masks.copy() * 3, Sonar) is table and not table.flags.writeable
+    other = masks.copy()
+    other[1, 6, 4] ^= 1
+    assert _summed_area(other, Sonar) is not table and _summed_area(other, Sonar)[1, 7, 5] != table[1, 7, 5]
