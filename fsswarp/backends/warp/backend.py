@@ -116,11 +116,8 @@ class WarpBackend(Backend):
         buffer (each upload costs ~0.1 ms of Warp's Python, and the loop makes thousands)."""
         host = [np.asarray(data, np.float32) for data, _ in items]
         buffer = self._array(np.concatenate([h.ravel() for h in host]), float)
-        views = []
-        for h, (_, dtype), end in zip(host, items, np.cumsum([h.size for h in host])):
-            view = buffer[int(end) - h.size:int(end)].reshape(h.shape)
-            views.append(view if dtype is float else view.view(dtype))
-        return views
+        views = (view.reshape(h.shape) for view, h in zip(_views(buffer, [h.size for h in host]), host))
+        return [view if dtype is float else view.view(dtype) for view, (_, dtype) in zip(views, items)]
 
     def _upload(self, array: np.ndarray) -> wp.array:
         return self._array(array, float)
