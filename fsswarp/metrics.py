@@ -442,9 +442,9 @@ def _check_mesh(name: str, mesh) -> None:
 def serve_compare(threads: int | None = None) -> None:
     """The loop of a ``compare`` worker process (fsswarp.reconstruction's truth metrics): from
     stdin, pickled objects, the truth mesh first, then (vertices, faces, part, parts) requests;
-    to stdout, one pickled ``compare_part(mesh, truth, part, parts, threads=threads)`` of the
-    mesh (``trimesh.Trimesh(vertices, faces, process=False)``) (or the exception it
-    raised) per request, in order. Anything the code prints goes to stderr, so that stdout
+    to stdout, per request and in order, one pickled ``compare_part(mesh, truth, part, parts,
+    threads=threads)`` of ``trimesh.Trimesh(vertices, faces, process=False)``, or the exception
+    it raised. Anything the code prints goes to stderr, so that stdout
     carries the replies alone. At the end of input the process exits at once (status 0),
     without the interpreter's teardown, which the run's end waited 0.1–0.2 s for."""
     import os
