@@ -431,6 +431,8 @@ class WarpBackend(Backend):
 
 
 def _views(array: wp.array, sizes) -> list[wp.array]:
-    """Consecutive 1-D views of ``array`` of the given sizes."""
+    """Consecutive 1-D views of ``array`` of the given sizes (an empty array for a size of 0,
+    which Warp does not slice)."""
     ends = np.cumsum(sizes)
-    return [array[int(end - size):int(end)] for end, size in zip(ends, sizes)]
+    return [array[int(end - size):int(end)] if size else wp.empty(0, dtype=array.dtype, device=array.device)
+            for end, size in zip(ends, sizes)]
