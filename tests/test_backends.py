@@ -255,6 +255,22 @@ def test_warp_reuses_an_input_upload_for_the_same_bytes(backend_for_label):
     assert backend._constant(a + 1, float) is not other  # dropped
 
 
+def test_warp_uploads_several_inputs_as_views_of_one_array(backend_for_label):
+    """``WarpBackend._arrays``: each (host array, dtype) comes back with its shape and float32
+    values, matrices and vectors as such, laid one after another in one device array; an empty
+    input gives an empty array of its type."""
+    import warp as wp
+
+    backend = backend_for_label("warp-cpu")
+    rotations = np.arange(18.0).reshape(2, 3, 3) / 7.0
+    empty, offsets = np.zeros((0, 3)), np.array([0.25, 1.0 / 3.0])
+    got = backend._arrays((rotations, wp.mat33), (empty, wp.vec3), (offsets, float))
+    assert [a.dtype for a in got] == [wp.mat33, wp.vec3, wp.float32] and [a.shape for a in got] == [(2,), (0,), (2,)]
+    np.testing.assert_array_equal(got[0].numpy(), rotations.astype(np.float32))
+    np.testing.assert_array_equal(got[2].numpy(), offsets.astype(np.float32))
+    assert got[2].ptr == got[0].ptr + rotations.size * 4  # the next run of the one upload
+
+
 def test_get_backend_is_cached():
     auto = get_backend()
     assert get_backend("auto") is auto
