@@ -76,7 +76,7 @@ def layers_figure(views: dict[str, np.ndarray], sonar: SonarSpec, path: str | Pa
     bar = fig.colorbar(shown, cax=fig.add_subplot(grid[-1, cols // 4: cols - cols // 4]), orientation="horizontal")
     bar.set_label("dB below the brightest pixel of all views", fontsize=8)
     bar.ax.tick_params(labelsize=7)
-    return save_figure(fig, path, laid_out=True)
+    return write_figure(fig, path)
 
 
 def _zoom_limits(views: dict[str, np.ndarray], sonar: SonarSpec, peak: float, *, margin_m: float = 0.15):
@@ -99,15 +99,19 @@ def _zoom_limits(views: dict[str, np.ndarray], sonar: SonarSpec, peak: float, *,
             "x": (min(x), max(x)), "y": (r_lo * math.cos(max(abs(t_lo), abs(t_hi))), r_hi)}
 
 
-def save_figure(fig, path: str | Path, title: str = "", *, rect=(0, 0, 1, 1), laid_out: bool = False) -> Path:
+def save_figure(fig, path: str | Path, title: str = "", *, rect=(0, 0, 1, 1)) -> Path:
     """Title (``fig.suptitle``), lay out inside ``rect`` below the title, close and write
-    ``fig`` as a PNG, atomically; returns the path. ``laid_out``: the figure has its title
-    and a fixed layout already (:func:`fixed_grid`), and is written as it is."""
+    ``fig`` as a PNG, atomically; returns the path."""
+    top = min(rect[3], 1 - title_height(fig, title) / fig.get_figheight())
+    fig.tight_layout(rect=(rect[0], rect[1], rect[2], top))
+    return write_figure(fig, path)
+
+
+def write_figure(fig, path: str | Path) -> Path:
+    """Close and write ``fig`` as it is laid out (e.g. on a :func:`fixed_grid`, its title set
+    by :func:`title_height`) as a PNG, atomically; returns the path."""
     import matplotlib.pyplot as plt
 
-    if not laid_out:
-        top = min(rect[3], 1 - title_height(fig, title) / fig.get_figheight())
-        fig.tight_layout(rect=(rect[0], rect[1], rect[2], top))
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=110)
     plt.close(fig)
@@ -433,7 +437,7 @@ def enhance_figure(images: dict[str, np.ndarray], results: dict, sonar: SonarSpe
     key.legend([matplotlib.patches.Patch(color=colour) for _, colour in REGIONS.values()],
                [name for name, _ in REGIONS.values()], loc="center", ncol=4, fontsize=7, frameon=False,
                title="regions (the model's, at D and β)", title_fontsize=7)
-    return save_figure(fig, path, laid_out=True)
+    return write_figure(fig, path)
 
 
 def comparison_figure(images: dict[str, np.ndarray], enhanced: dict[str, np.ndarray],
@@ -485,7 +489,7 @@ def comparison_figure(images: dict[str, np.ndarray], enhanced: dict[str, np.ndar
                        orientation="horizontal")
     bar.set_label("dB below the row's data peak", fontsize=7)
     bar.ax.tick_params(labelsize=6)
-    return save_figure(fig, path, laid_out=True)
+    return write_figure(fig, path)
 
 
 def views_figure(rows: dict[str, dict[str, np.ndarray]], sonar: SonarSpec, path: str | Path, *,

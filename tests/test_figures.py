@@ -106,16 +106,17 @@ def test_figures_are_drawn_here_where_processes_cannot_start(monkeypatch, tmp_pa
 # --- what the figures show ------------------------------------------------------------------------
 
 def captured_figures(monkeypatch):
-    """The figures that fsswarp.figures saves, kept for inspection after their layout."""
+    """The figures that fsswarp.figures writes (``write_figure``, which ``save_figure`` calls
+    after its layout), kept for inspection."""
     import fsswarp.figures as figures
 
-    kept, save = [], figures.save_figure
+    kept, write = [], figures.write_figure
 
-    def keep(fig, path, title="", **options):
+    def keep(fig, path):
         kept.append(fig)
-        return save(fig, path, title, **options)
+        return write(fig, path)
 
-    monkeypatch.setattr(figures, "save_figure", keep)
+    monkeypatch.setattr(figures, "write_figure", keep)
     return kept
 
 
