@@ -410,23 +410,24 @@ class WarpBackend(Backend):
         sizes = (n_points, n_points, target_x.shape[0], target_y.shape[0], n_runs, n_runs)
         read = np.concatenate([source_x, source_y, target_x, target_y, floors, step_tols]).astype(np.float64)
         written = np.concatenate([angles, np.ravel(translations), np.zeros(7 * n_points)]).astype(np.float64)
+        # angle, trans, moved_x, moved_y, dist (read back), then scratch; iterations, converged, nearest
+        float_sizes, int_sizes = (n_runs, 2 * n_runs) + (n_points,) * 7, (n_runs, n_runs, n_points)
         with wp.ScopedDevice(self._device):
             sx, sy, tx, ty, floor, tol = _views(self._array(read, wp.float64), sizes)
             io = self._array(written, wp.float64)
-            angle, trans, moved_x, moved_y, dist, anchor_x, anchor_y, room2, scratch = _views(
-                io, (n_runs, 2 * n_runs) + (n_points,) * 7)
-            counters = wp.zeros(2 * n_runs + n_points, dtype=wp.int32)
-            iterations, converged, nearest = _views(counters, (n_runs, n_runs, n_points))
+            angle, trans, moved_x, moved_y, dist, anchor_x, anchor_y, room2, scratch = _views(io, float_sizes)
+            counters = wp.zeros(sum(int_sizes), dtype=wp.int32)
+            iterations, converged, nearest = _views(counters, int_sizes)
             _launch(icp_runs_kernel, dim=n_runs,
                     inputs=[sx, sy, tx, ty, self._array(runs, wp.int32), floor, tol, max_iterations,
                             wp.float64(max_distance), wp.float64(tuning)],
                     outputs=[angle, trans.reshape((n_runs, 2)), iterations, converged, moved_x, moved_y, nearest,
                              dist, anchor_x, anchor_y, room2, scratch])
             wp.synchronize_device(self._device)
-            floats = io[:3 * n_runs + 3 * n_points].numpy()
+            floats = io[:sum(float_sizes[:5])].numpy()
             ints = counters.numpy()
-        angle, trans, moved_x, moved_y, dist = np.split(floats, np.cumsum((n_runs, 2 * n_runs, n_points, n_points)))
-        iterations, converged, nearest = np.split(ints, np.cumsum((n_runs, n_runs)))
+        angle, trans, moved_x, moved_y, dist = np.split(floats, np.cumsum(float_sizes[:4]))
+        iterations, converged, nearest = np.split(ints, np.cumsum(int_sizes[:2]))
         return angle, trans.reshape(n_runs, 2), iterations, converged, moved_x, moved_y, nearest, dist
 
 
