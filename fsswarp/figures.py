@@ -107,13 +107,14 @@ def save_figure(fig, path: str | Path, title: str = "", *, rect=(0, 0, 1, 1)) ->
     return write_figure(fig, path)
 
 
-def write_figure(fig, path: str | Path) -> Path:
+def write_figure(fig, path: str | Path, *, dpi: int = 110, **options) -> Path:
     """Close and write ``fig`` as it is laid out (e.g. on a :func:`fixed_grid`, its title set
-    by :func:`title_height`) as a PNG, atomically; returns the path."""
+    by :func:`title_height`) as a PNG, atomically (``options``: more of ``Figure.savefig``'s);
+    returns the path."""
     import matplotlib.pyplot as plt
 
     buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=110)
+    fig.savefig(buffer, format="png", dpi=dpi, **options)
     plt.close(fig)
     return write_bytes(path, buffer.getvalue())
 
@@ -528,10 +529,7 @@ def views_figure(rows: dict[str, dict[str, np.ndarray]], sonar: SonarSpec, path:
     bar.ax.tick_params(labelsize=7)
     if title:
         fig.suptitle(title, fontsize=9)
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=100, bbox_inches="tight", pad_inches=0.05)
-    plt.close(fig)
-    return write_bytes(path, buffer.getvalue())
+    return write_figure(fig, path, dpi=100, bbox_inches="tight", pad_inches=0.05)
 
 
 def _window(sonar: SonarSpec) -> dict:

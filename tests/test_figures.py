@@ -112,9 +112,9 @@ def captured_figures(monkeypatch):
 
     kept, write = [], figures.write_figure
 
-    def keep(fig, path):
+    def keep(fig, path, **options):
         kept.append(fig)
-        return write(fig, path)
+        return write(fig, path, **options)
 
     monkeypatch.setattr(figures, "write_figure", keep)
     return kept
