@@ -597,17 +597,10 @@ def figure_workers() -> int:
     """Processes that draw a command's figures: the environment variable
     FSSWARP_FIGURE_WORKERS (0: draw in the command's own process), else one per CPU that this
     process may use, at most ``MAX_FIGURE_WORKERS``."""
-    import os
-
+    from .processes import worker_count
     from .system import usable_cpus
-    from .errors import InputError
 
-    value = os.environ.get("FSSWARP_FIGURE_WORKERS", "").strip()
-    if value:
-        if not (value.isdigit() and int(value) <= 64):
-            raise InputError("must be an integer from 0 to 64", field="FSSWARP_FIGURE_WORKERS", value=value)
-        return int(value)
-    return min(MAX_FIGURE_WORKERS, usable_cpus())
+    return worker_count("FSSWARP_FIGURE_WORKERS", min(MAX_FIGURE_WORKERS, usable_cpus()))
 
 
 class FigureWarning(UserWarning):
@@ -635,37 +628,20 @@ class FigureDrawer:
         self.workers = figure_workers() if workers is None else workers
         self.pool = None
         if self.workers > 0:
-            import multiprocessing
             import warnings
-            from concurrent.futures import ProcessPoolExecutor
+
+            from .processes import WorkerProcesses
 
             try:
-                self.pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
-                                                initializer=_start_figure_process)
-                for _ in range(self.workers):  # each submit with no idle process starts one
-                    self._submit(int)
+                self.pool = WorkerProcesses(self.workers, _start_figure_process)
             except OSError as err:  # e.g. no /dev/shm for the pool's semaphores in some containers
-                self.close()
-                self.pool = None
                 warnings.warn(f"figure processes could not start ({err}); drawing the figures in this process "
                               "(FSSWARP_FIGURE_WORKERS=0 does so without this warning)", FigureWarning, stacklevel=2)
 
     def close(self) -> None:
         """Stop the processes (a figure being drawn is finished first)."""
         if self.pool is not None:
-            self.pool.shutdown(wait=True, cancel_futures=True)
-
-    def _submit(self, function, *args, **kwargs):
-        """``self.pool.submit`` with SIGINT blocked in this thread: a process that the submit
-        starts inherits the mask, so a Ctrl-C that comes before its initializer ignores SIGINT
-        reaches the command alone (no traceback from the child)."""
-        import signal
-
-        blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-        try:
-            return self.pool.submit(function, *args, **kwargs)
-        finally:
-            signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
+            self.pool.close()
 
     @contextmanager
     def batch(self):
@@ -675,7 +651,7 @@ class FigureDrawer:
             return
         futures = []
         try:
-            yield lambda function, *args, **kwargs: futures.append(self._submit(function, *args, **kwargs))
+            yield lambda function, *args, **kwargs: futures.append(self.pool.submit(function, *args, **kwargs))
         except BaseException:
             for future in futures:
                 future.cancel()
@@ -687,14 +663,12 @@ class FigureDrawer:
 
 
 def _start_figure_process() -> None:
-    """Set up a figure process: Ctrl-C is the command's to handle, and the modules that every
-    figure needs are imported before the first comes."""
+    """Set up a figure process: the modules that every figure needs are imported before the
+    first comes."""
     import importlib
-    import signal
 
     import matplotlib
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
     matplotlib.use("Agg")
     for module in ("matplotlib.pyplot", "trimesh"):  # trimesh: meshes arrive pickled
         importlib.import_module(module)

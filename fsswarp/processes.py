@@ -1,0 +1,67 @@
+"""Worker processes that run functions while the command goes on (figures, carvings' meshes).
+
+Spawned, never forked: a child gets no copy of the parent's CUDA or OpenCL state. Every process
+starts when the pool is made, so that its imports are done before the first job comes, and
+leaves Ctrl-C to the command (no traceback from a child).
+"""
+
+from __future__ import annotations
+
+import os
+
+
+def worker_count(variable: str, default: int) -> int:
+    """The integer 0..64 in the environment variable ``variable`` (0: no processes), else
+    ``default``; InputError naming the variable where it holds anything else."""
+    from .errors import InputError
+
+    value = os.environ.get(variable, "").strip()
+    if value:
+        if not (value.isdigit() and int(value) <= 64):
+            raise InputError("must be an integer from 0 to 64", field=variable, value=value)
+        return int(value)
+    return default
+
+
+class WorkerProcesses:
+    """``workers`` spawned processes (a ``concurrent.futures.ProcessPoolExecutor``), each of
+    which runs ``initializer(*initargs)`` first. Raises OSError where processes cannot start
+    (e.g. no /dev/shm for the pool's semaphores in some containers)."""
+
+    def __init__(self, workers: int, initializer, *initargs):
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        self.workers = workers
+        self.pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                                        initializer=_start, initargs=(initializer, initargs))
+        try:
+            for _ in range(workers):  # each submit with no idle process starts one
+                self.submit(int)
+        except BaseException:
+            self.close()
+            raise
+
+    def submit(self, function, *args, **kwargs):
+        """``function(*args, **kwargs)`` in a process: a Future. SIGINT is blocked in this thread
+        meanwhile: a process that the submit starts inherits the mask, so a Ctrl-C that comes
+        before its initializer ignores SIGINT reaches the command alone."""
+        import signal
+
+        blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            return self.pool.submit(function, *args, **kwargs)
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
+
+    def close(self) -> None:
+        """Stop the processes (a job being run is finished first; jobs not started are dropped)."""
+        self.pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _start(initializer, initargs) -> None:
+    """Set up a worker process: Ctrl-C is the command's to handle; then ``initializer``."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    initializer(*initargs)
