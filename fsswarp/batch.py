@@ -154,10 +154,13 @@ THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"
 
 
 def job_environment(threads: int, environment=os.environ) -> dict[str, str]:
-    """``environment`` with the BLAS/OpenMP threads and the figure processes of one job limited
-    to its share of the node's CPUs (``threads``), where the user has not set them: K jobs at
-    once with every library sized for the whole machine oversubscribe its cores."""
-    limits = dict.fromkeys(THREAD_VARIABLES, str(threads)) | {"FSSWARP_FIGURE_WORKERS": str(min(4, threads))}
+    """``environment`` with the BLAS/OpenMP threads, the figure processes and the mesh processes
+    of one job limited to its share of the node's CPUs (``threads``), where the user has not set
+    them: K jobs at once with every library sized for the whole machine oversubscribe its cores."""
+    from .carving import default_mesh_workers
+
+    limits = dict.fromkeys(THREAD_VARIABLES, str(threads)) | {"FSSWARP_FIGURE_WORKERS": str(min(4, threads)),
+                                                             "FSSWARP_MESH_WORKERS": str(default_mesh_workers(threads))}
     return limits | dict(environment)
 
 

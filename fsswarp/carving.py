@@ -19,7 +19,8 @@ voxels across to the finest voxel, the box's longest side / ``resolution``.
 Mesh. Holes filled, components under 1% of the largest dropped, marching cubes (scikit-image,
 Lewiner) at ``MC_LEVEL``, Taubin smoothing (``smooth`` iterations), and decimation to at most
 ``faces`` triangles by manifold3d's ``simplify``: a closed, outward-oriented, watertight
-trimesh in the reference frame of (depth m, tilt rad).
+trimesh in the reference frame of (depth m, tilt rad). :class:`MeshJob` makes it in a worker
+process (:func:`mesh_workers`) while the caller goes on.
 
 Masks: view name -> (bins, beams) bool. Why each rule: docs/decisions.md ("Space carving").
 """
@@ -131,7 +132,7 @@ class CarveResult:
 
 def carve(dataset, depth: float | None = None, tilt: float | None = None, *, resolution: int = 128,
           box=None, settings: CarveSettings = CarveSettings(), views=None, masks=None,
-          backend=None) -> CarveResult:
+          backend=None, mesh: bool = True) -> CarveResult:
     """Segment the views of ``dataset``, carve, and extract the mesh S0.
 
     depth (m), tilt (rad) : default the dataset's measured values (``manifest.surface``); for
@@ -141,6 +142,8 @@ def carve(dataset, depth: float | None = None, tilt: float | None = None, *, res
     views : names to carve with (default all); masks : optional {view: (bins, beams) bool}
         feasible masks used instead of segmenting (e.g. the true ones)
     backend : default ``get_backend("auto")``
+    mesh : False leaves ``CarveResult.mesh`` None and no mesh_s timing, for the caller to mesh
+        the voxels (:func:`voxel_mesh`, or a :class:`MeshJob` in a mesh process)
     Views without any highlight are left out with a CarveWarning (they would remove every
     voxel they see). Raises InputError when fewer than two views remain, when the views see
     nothing in common, or when no voxel survives.
@@ -191,10 +194,12 @@ def carve(dataset, depth: float | None = None, tilt: float | None = None, *, res
     voxels = carve_masks(stack, rotations, translations, dataset.sonar, resolution=resolution, box=box,
                          plane=plane, settings=settings,
                          backend=backend, timings=timings, source=dataset.root)
-    start = time.perf_counter()
-    mesh = voxel_mesh(voxels, smooth=settings.smooth, faces=settings.faces)
-    timings["mesh_s"] = time.perf_counter() - start
-    return CarveResult(mesh=mesh, voxels=voxels, depth=depth, tilt=tilt, views=tuple(used),
+    surface_mesh = None
+    if mesh:
+        start = time.perf_counter()
+        surface_mesh = voxel_mesh(voxels, smooth=settings.smooth, faces=settings.faces)
+        timings["mesh_s"] = time.perf_counter() - start
+    return CarveResult(mesh=surface_mesh, voxels=voxels, depth=depth, tilt=tilt, views=tuple(used),
                        segmentation=segmentation, timings=timings, backend=backend.name, device=backend.device)
 
 
@@ -467,6 +472,96 @@ def voxel_mesh(voxels: VoxelCarving, *, smooth: int = 10, faces: int = 20_000, t
     mesh = trimesh.Trimesh(vertices, triangles, process=False)
     lap("trimesh_s")
     return mesh
+
+
+#: Most processes that mesh carvings ahead (:func:`mesh_workers`).
+MAX_MESH_WORKERS = 3
+
+
+def mesh_workers() -> int:
+    """Processes that make carvings' meshes while the reconstruction goes on (:class:`MeshJob`):
+    the environment variable FSSWARP_MESH_WORKERS (0: each mesh is made in this process when it
+    is needed), else :func:`default_mesh_workers` of the CPUs that this process may use."""
+    from .processes import worker_count
+    from .system import usable_cpus
+
+    return worker_count("FSSWARP_MESH_WORKERS", default_mesh_workers(usable_cpus()))
+
+
+def default_mesh_workers(cpus: int) -> int:
+    """Mesh processes for ``cpus`` CPUs: one per 4 less one, at most ``MAX_MESH_WORKERS``: none
+    on fewer than 8, whose cores the loop's kernels and the truth metrics use; 3 on a 16-core
+    GPU host."""
+    return min(MAX_MESH_WORKERS, max(0, cpus // 4 - 1))
+
+
+#: The mesh processes of this Python process, made on first use: {workers: WorkerProcesses or
+#: None where they could not start}. They serve every reconstruction run here and stop at exit.
+_MESH_PROCESSES: dict = {}
+
+
+def start_mesh_workers():
+    """The mesh processes (:func:`mesh_workers` of them; None for none), started now if they are
+    not running, so that their imports (~1 s) are done before the first mesh comes. Where they
+    cannot start, a CarveWarning, once, and meshes are made in this process."""
+    workers = mesh_workers()
+    if workers == 0:
+        return None
+    if workers not in _MESH_PROCESSES:
+        from .processes import WorkerProcesses
+
+        try:
+            _MESH_PROCESSES[workers] = WorkerProcesses(workers, _start_mesh_process)
+        except OSError as err:
+            _MESH_PROCESSES[workers] = None
+            warnings.warn(f"mesh processes could not start ({err}); making carvings' meshes in this process "
+                          "(FSSWARP_MESH_WORKERS=0 does so without this warning)", CarveWarning, stacklevel=2)
+    return _MESH_PROCESSES[workers]
+
+
+def _start_mesh_process() -> None:
+    """Set up a mesh process: the modules that :func:`voxel_mesh` needs are imported now."""
+    import manifold3d  # noqa: F401
+    import skimage.measure  # noqa: F401
+    import trimesh  # noqa: F401
+
+
+class MeshJob:
+    """``voxel_mesh(voxels, smooth=smooth, faces=faces)`` being made: in a mesh process
+    (:func:`start_mesh_workers`) from when the job is made, while the caller goes on, else in
+    this process when :meth:`result` is first called; the same mesh either way, bit for bit.
+    A caller that knows which carvings it will need has their meshes (~0.2 s each on a GPU
+    host, mostly manifold3d's decimation, which holds the GIL) made side by side."""
+
+    def __init__(self, voxels: VoxelCarving, *, smooth: int = 10, faces: int = 20_000):
+        self.arguments = (voxels, smooth, faces)
+        processes = start_mesh_workers()
+        self.future = None if processes is None else processes.submit(_mesh_in_process, *self.arguments)
+        self.mesh = None
+
+    def result(self):
+        """The trimesh; raises what ``voxel_mesh`` raised, and issues the warnings it issued."""
+        if self.mesh is None:
+            voxels, smooth, faces = self.arguments
+            if self.future is None:
+                self.mesh = voxel_mesh(voxels, smooth=smooth, faces=faces)
+            else:
+                import trimesh
+
+                vertices, triangles, issued = self.future.result()
+                for message, category in issued:
+                    warnings.warn(message, category, stacklevel=2)
+                self.mesh = trimesh.Trimesh(vertices, triangles, process=False)
+        return self.mesh
+
+
+def _mesh_in_process(voxels: VoxelCarving, smooth: int, faces: int):
+    """(vertices (V, 3), triangles (F, 3), [(message, category)] of the warnings issued) of
+    ``voxel_mesh``, in a mesh process."""
+    with warnings.catch_warnings(record=True) as issued:
+        warnings.simplefilter("always")
+        mesh = voxel_mesh(voxels, smooth=smooth, faces=faces)
+    return np.asarray(mesh.vertices), np.asarray(mesh.faces), [(str(w.message), w.category) for w in issued]
 
 
 def _crop(occupancy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -249,6 +249,8 @@ def test_a_job_gets_its_share_of_the_cpus_unless_the_user_chose():
     shared = job_environment(2, {"PATH": "/bin"})
     assert shared["OMP_NUM_THREADS"] == shared["OPENBLAS_NUM_THREADS"] == shared["MKL_NUM_THREADS"] == "2"
     assert shared["FSSWARP_FIGURE_WORKERS"] == "2" and shared["PATH"] == "/bin"
+    assert shared["FSSWARP_MESH_WORKERS"] == "0"
     assert job_environment(16, {})["FSSWARP_FIGURE_WORKERS"] == "4"
+    assert job_environment(16, {})["FSSWARP_MESH_WORKERS"] == "3"
     chosen = job_environment(2, {"OMP_NUM_THREADS": "8", "FSSWARP_FIGURE_WORKERS": "0"})
     assert chosen["OMP_NUM_THREADS"] == "8" and chosen["FSSWARP_FIGURE_WORKERS"] == "0"

@@ -11,6 +11,7 @@ with such a pair are left out, and at least 98% must be compared.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import subprocess
@@ -21,9 +22,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from fsswarp.carving import (MC_LEVEL, CarveSettings, CarveWarning, VoxelCarving, carve, carve_masks,
-                           carve_reference, common_region, voxel_mesh, within, _Carver, _closed, _fill_holes,
-                           _step_tolerance)
+from fsswarp.carving import (MC_LEVEL, CarveSettings, CarveWarning, MeshJob, VoxelCarving, carve, carve_masks,
+                           carve_reference, common_region, mesh_workers, voxel_mesh, within, _Carver, _closed,
+                           _fill_holes, _step_tolerance)
 from fsswarp.errors import InputError
 from fsswarp.metrics import inside_grid
 from fsswarp.rendering import signed_volume
@@ -390,6 +391,76 @@ def test_voxel_mesh_of_a_ball_and_a_box():
               f"voxels, volume {mesh.volume / h**3 / volume:.4f}, area {mesh.area / h**2 / area:.4f} x the solid's")
         assert gap.max() <= 0.75
         assert abs(mesh.volume / h**3 / volume - 1) <= 0.02 and abs(mesh.area / h**2 / area - 1) <= 0.07
+
+
+def ball_voxels(radius: int = 10, side: int = 30) -> VoxelCarving:
+    z = np.indices((side,) * 3) - side // 2
+    return VoxelCarving(occupancy=(z ** 2).sum(axis=0) < radius ** 2, origin=np.full(3, -0.1), voxel_size=0.01,
+                        domain=np.array([[-0.1] * 3, [0.2] * 3]), tested=0)
+
+
+@pytest.mark.parametrize("workers", ["0", "2"])
+def test_a_mesh_job_is_the_voxel_mesh_wherever_it_is_made(monkeypatch, workers):
+    """In a mesh process (2) or here when asked for (0): the same vertices and faces bit for bit,
+    the warnings that voxel_mesh issued issued here, once, and its errors raised here."""
+    monkeypatch.setenv("FSSWARP_MESH_WORKERS", workers)
+    voxels = ball_voxels()
+    for faces in (400, 40):  # 40: decimation stops above it, with a CarveWarning
+        with warnings.catch_warnings(record=True) as expected:
+            warnings.simplefilter("always")
+            here = voxel_mesh(voxels, smooth=4, faces=faces)
+        job = MeshJob(voxels, smooth=4, faces=faces)
+        assert (job.future is not None) == (workers == "2")
+        with warnings.catch_warnings(record=True) as issued:
+            warnings.simplefilter("always")
+            made = job.result()
+            assert job.result() is made
+        assert [(str(w.message), w.category) for w in issued] == [(str(w.message), w.category) for w in expected]
+        assert len(issued) == (faces == 40)
+        assert made.vertices.dtype == here.vertices.dtype and np.array_equal(made.vertices, here.vertices)
+        assert np.array_equal(made.faces, here.faces)
+    empty = dataclasses.replace(voxels, occupancy=np.zeros_like(voxels.occupancy))
+    with pytest.raises(ValueError, match="Surface level must be within volume data range"):
+        MeshJob(empty).result()
+
+
+def test_mesh_workers_setting(monkeypatch):
+    import fsswarp.carving as carving
+
+    monkeypatch.setattr(carving, "_MESH_PROCESSES", {})
+    for cpus, expected in ((2, 0), (4, 0), (7, 0), (8, 1), (12, 2), (16, 3), (128, 3)):
+        monkeypatch.setattr("fsswarp.system.usable_cpus", lambda cpus=cpus: cpus)
+        assert mesh_workers() == expected
+    monkeypatch.setenv("FSSWARP_MESH_WORKERS", " 5 ")
+    assert mesh_workers() == 5
+    monkeypatch.setenv("FSSWARP_MESH_WORKERS", "0")
+    assert carving.start_mesh_workers() is None and MeshJob(ball_voxels()).future is None
+    for bad in ("-1", "two", "65"):
+        monkeypatch.setenv("FSSWARP_MESH_WORKERS", bad)
+        with pytest.raises(InputError, match=f"FSSWARP_MESH_WORKERS = '{bad}': must be an integer from 0 to 64"):
+            mesh_workers()
+
+
+def test_meshes_are_made_here_where_processes_cannot_start(monkeypatch):
+    """A system without the pool's semaphores (an OSError): one CarveWarning, and every mesh
+    job is made in this process."""
+    import concurrent.futures
+
+    import fsswarp.carving as carving
+
+    def refuse(*args, **kwargs):
+        raise OSError(38, "Function not implemented")
+
+    monkeypatch.setattr(concurrent.futures, "ProcessPoolExecutor", refuse)
+    monkeypatch.setattr(carving, "_MESH_PROCESSES", {})
+    monkeypatch.setenv("FSSWARP_MESH_WORKERS", "2")
+    with pytest.warns(CarveWarning, match=r"mesh processes could not start \(\[Errno 38\] Function not "
+                                          r"implemented\); making carvings' meshes in this process"):
+        assert carving.start_mesh_workers() is None
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # warned once
+        job = MeshJob(ball_voxels(), faces=400)
+    assert job.future is None and np.array_equal(job.result().faces, voxel_mesh(ball_voxels(), faces=400).faces)
 
 
 def test_within_keeps_the_kept_voxels_whose_centres_lie_inside_the_mesh():
