@@ -36,7 +36,7 @@ from typing import Callable
 
 import numpy as np
 
-from .carving import CarveSettings, carve, voxel_mesh, within
+from .carving import CarveSettings, MeshJob, carve, start_mesh_workers, within
 from .errors import InputError, check_depth_tilt, check_integer
 from .compare import PoseSettings, PoseWarning, ViewComparison
 from .metrics import average_contour_error, average_intensity_error, combine, image_error
@@ -147,6 +147,7 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
     backend = backend or get_backend()
     say = progress or (lambda line: None)
     start = time.perf_counter()
+    start_mesh_workers()  # on a many-core host: ready when the loop needs a carving ahead
     comparison = ViewComparison(dataset, settings=settings.pose, backend=backend)  # E_I, E_mu, the pose steps
     shaping = comparison if settings.refine.pose == settings.pose else \
         ViewComparison(dataset, settings=settings.refine.pose, backend=backend)  # the shape steps
@@ -186,11 +187,14 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
                 say(f"iteration {iteration}: the pose step found no (D, tilt) with a lower posterior cost; D and tilt "
                     "stay")
             for depth_tried, tilt_tried in trials:
+                recarve = (depth_tried, tilt_tried) != (depth, tilt) and _outside(carved_at, pose.posterior)
+                if recarve:  # its mesh is made while the model is refined
+                    _carve_ahead(dataset, depth_tried, tilt_tried, settings, backend, carvings)
                 trial = refine_shape(working, dataset, depth_tried, tilt_tried, settings=settings.refine,
                                      comparison=shaping).mesh
                 entry = _record(iteration, trial, dataset, depth_tried, tilt_tried, settings, comparison, first)
                 entry["recarved"] = False
-                if (depth_tried, tilt_tried) != (depth, tilt) and _outside(carved_at, pose.posterior):
+                if recarve:
                     carved_at = (depth_tried, tilt_tried)  # again only once the pose moves far from here
                     sighting = _carving(dataset, *carved_at, settings, backend, carvings)
                     trial, entry = _recarved(sighting, trial, entry, iteration, dataset, depth_tried, tilt_tried,
@@ -261,10 +265,12 @@ def _answer_model(kept, dataset, answer: tuple[float, float], iteration: int, se
     carving = _carve(dataset, *answer, settings, shaping.backend, carvings)
     held = within(carving.voxels, kept)
     starts = {"the kept model": kept}
-    if held.kept:  # else no carved voxel lies inside the kept model
-        starts["the kept model held to the carving there"] = voxel_mesh(held)
+    if held.kept:  # else no carved voxel lies inside the kept model; its mesh is made while kept is refined
+        starts["the kept model held to the carving there"] = MeshJob(held, smooth=settings.carve.smooth,
+                                                                     faces=settings.carve.faces)
     model, entry, said = None, None, []
     for name, start in starts.items():
+        start = start.result() if isinstance(start, MeshJob) else start
         trial = refine_shape(start, dataset, *answer, settings=settings.refine, comparison=shaping).mesh
         trial_entry = dict(_record(iteration, trial, dataset, *answer, settings, comparison, first), recarved=False)
         said.append(f"{name} E_I {trial_entry['E_I']:.3f}")
@@ -314,6 +320,8 @@ def carving_descent(dataset, comparison: ViewComparison, depth: float, tilt: flo
         value = comparison.exact(depth, at).value
         return value if math.isfinite(value) else math.inf
 
+    for at in (tilt, tilt - DESCENT_STEP, tilt + DESCENT_STEP):  # their meshes made side by side
+        _carve_ahead(dataset, depth, at, settings, comparison.backend, carvings)
     here = error(tilt)
     errors = {sign: error(tilt + sign * DESCENT_STEP) for sign in (-1, 1)}
     sign = min(errors, key=errors.get)
@@ -375,15 +383,53 @@ def _carving(dataset, depth: float, tilt: float, settings: ReconstructSettings, 
 
 def _carve(dataset, depth: float, tilt: float, settings: ReconstructSettings, backend, carvings: dict | None = None):
     """The CarveResult of the views carved at (depth m, tilt rad) at ``settings``' resolution.
-    ``carvings``, a reconstruction's (depth, tilt) -> CarveResult: a pose carved already is not
-    carved again (a carving depends on nothing else; the answer carves some poses twice)."""
+    ``carvings``, a reconstruction's (depth, tilt) -> CarveResult or _Ahead: a pose carved
+    already is not carved again (a carving depends on nothing else; the answer carves some poses
+    twice), and one started by :func:`_carve_ahead` is finished (or raises its InputError)."""
     key = (float(depth), float(tilt))
     if carvings is not None and key in carvings:
+        if isinstance(carvings[key], _Ahead):
+            carvings[key] = carvings[key].result()
         return carvings[key]
     result = carve(dataset, depth, tilt, resolution=settings.resolution, settings=settings.carve, backend=backend)
     if carvings is not None:
         carvings[key] = result
     return result
+
+
+def _carve_ahead(dataset, depth: float, tilt: float, settings: ReconstructSettings, backend,
+                 carvings: dict | None) -> None:
+    """Start the carving at (depth m, tilt rad) that a later :func:`_carve` with ``carvings``
+    will ask for: the voxels now, the mesh in a mesh process while the caller goes on
+    (``fsswarp.carving.MeshJob``; without mesh processes, at that ``_carve``). Nothing where
+    ``carvings`` is None or holds the pose."""
+    key = (float(depth), float(tilt))
+    if carvings is None or key in carvings:
+        return
+    try:
+        result = carve(dataset, depth, tilt, resolution=settings.resolution, settings=settings.carve,
+                       backend=backend, mesh=False)
+    except InputError as error:  # raised by the _carve that asks for it
+        carvings[key] = _Ahead(None, None, error)
+        return
+    carvings[key] = _Ahead(result, MeshJob(result.voxels, smooth=settings.carve.smooth, faces=settings.carve.faces))
+
+
+@dataclass(frozen=True)
+class _Ahead:
+    """A carving started by :func:`_carve_ahead`: its CarveResult without the mesh and the
+    mesh's job, or the InputError that carving raised."""
+
+    carving: object
+    job: MeshJob | None
+    error: InputError | None = None
+
+    def result(self):
+        """The CarveResult, its mesh filled in; raises the carving's InputError."""
+        if self.error is not None:
+            raise self.error
+        self.carving.mesh = self.job.result()
+        return self.carving
 
 
 def _posterior_axes(steps: list):

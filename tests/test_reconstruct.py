@@ -31,10 +31,13 @@ def run_cli(*args):
 
 @pytest.fixture(scope="module")
 def one_iteration(coral_one):
+    """A reconstruction of FAST settings on PoCL, every mesh made in this process, and its lines."""
     from fsswarp.backends import get_backend
 
     lines = []
-    return reconstruct(coral_one, settings=FAST, backend=get_backend("opencl"), progress=lines.append), lines
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("FSSWARP_MESH_WORKERS", "0")
+        return reconstruct(coral_one, settings=FAST, backend=get_backend("opencl"), progress=lines.append), lines
 
 
 def test_history_follows_the_contract(one_iteration, coral_one):
@@ -508,18 +511,18 @@ def test_the_demo_draws_its_figures_while_it_goes_on_and_finishes_its_folders_at
     slowest, are queued before the report's views; an error after them leaves no output and no
     temporary folder."""
     import fsswarp.cli as cli
-    from fsswarp.figures import FigureDrawer
+    from fsswarp.processes import WorkerProcesses
 
     monkeypatch.setenv("FSSWARP_FIGURE_WORKERS", "2")
     enhance = cli.run_enhancement
     seen, queued = [], []
-    submit = FigureDrawer._submit
+    submit = WorkerProcesses.submit
 
     def recorded(self, function, *args, **kwargs):
         queued.append(function.__name__)
         return submit(self, function, *args, **kwargs)
 
-    monkeypatch.setattr(FigureDrawer, "_submit", recorded)
+    monkeypatch.setattr(WorkerProcesses, "submit", recorded)
 
     def watched(state, dataset, mesh, model_name, depth, tilt, out, *args, **kwargs):
         reconstruction = list(out.parent.glob(".reconstruction.*.tmp"))
@@ -702,9 +705,13 @@ def test_the_answer_model_is_the_lowest_image_error_of_the_kept_held_and_fresh_m
         made.append(("within", model, carving.name))
         return SimpleNamespace(kept=overlap, name="held")
 
-    def voxel_mesh(held):
-        made.append(("meshed", held.name, None))
-        return "held mesh"
+    class MeshJob:  # the held model's mesh, made while the kept model is refined
+        def __init__(self, held, *, smooth, faces):
+            assert (smooth, faces) == (FAST.carve.smooth, FAST.carve.faces)
+            made.append(("meshed", held.name, None))
+
+        def result(self):
+            return "held mesh"
 
     def record(iteration, model, dataset, depth, tilt, settings, comparison, first):
         comparison.on = model
@@ -717,7 +724,7 @@ def test_the_answer_model_is_the_lowest_image_error_of_the_kept_held_and_fresh_m
             self.on = model
 
     for name, stand_in in (("refine_shape", refine), ("carve", carve), ("within", within),
-                           ("voxel_mesh", voxel_mesh), ("_record", record)):
+                           ("MeshJob", MeshJob), ("_record", record)):
         monkeypatch.setattr(reconstruct_module, name, stand_in)
     comparison = Comparison()
     model, entry = reconstruct_module._answer_model("kept", coral_one, answer, 7, FAST, comparison, comparison, {},
@@ -734,36 +741,95 @@ def test_the_answer_model_is_the_lowest_image_error_of_the_kept_held_and_fresh_m
 def test_a_reconstruction_carves_each_pose_once(coral_one, monkeypatch):
     """With a reconstruction's ``carvings`` a pose carved already comes back as it was (the same
     object, no second carving); another pose is carved; without ``carvings`` every call carves.
-    The answer's tilt check and its model pass one memo, so the answer's pose is carved once."""
+    A carving started ahead is carved without its mesh, whose job is made at once, and finished
+    by the ``_carve`` that asks for it; its InputError is raised there. The answer's tilt check
+    starts its three carvings ahead, in order, and passes the memo on to the answer's model."""
     from types import SimpleNamespace
 
-    carved = []
+    from fsswarp.errors import InputError
 
-    def carve(dataset, depth, tilt, *, resolution, settings, backend):
-        carved.append((depth, tilt, resolution))
-        return SimpleNamespace(mesh=f"mesh {len(carved)}", voxels=None)
+    carved, jobs = [], []
+
+    def carve(dataset, depth, tilt, *, resolution, settings, backend, mesh=True):
+        if tilt < 0:
+            raise InputError("every voxel was carved away", field="views", value=16)
+        carved.append((depth, tilt, resolution, mesh))
+        return SimpleNamespace(mesh=f"mesh {len(carved)}" if mesh else None, voxels=f"voxels {len(carved)}")
+
+    class MeshJob:
+        def __init__(self, voxels, *, smooth, faces):
+            jobs.append(voxels)
+            self.voxels = voxels
+
+        def result(self):
+            return f"mesh of {self.voxels}"
 
     monkeypatch.setattr(reconstruct_module, "carve", carve)
+    monkeypatch.setattr(reconstruct_module, "MeshJob", MeshJob)
     memo = {}
     first = reconstruct_module._carve(coral_one, 0.43, 0.18, FAST, None, memo)
     assert reconstruct_module._carving(coral_one, 0.43, np.float64(0.18), FAST, None, memo) is first.mesh
     assert reconstruct_module._carve(coral_one, 0.43, 0.19, FAST, None, memo) is not first
-    assert carved == [(0.43, 0.18, FAST.resolution), (0.43, 0.19, FAST.resolution)]
+    assert carved == [(0.43, 0.18, FAST.resolution, True), (0.43, 0.19, FAST.resolution, True)]
     reconstruct_module._carve(coral_one, 0.43, 0.18, FAST, None)
     reconstruct_module._carve(coral_one, 0.43, 0.18, FAST, None)
-    assert len(carved) == 4
+    assert len(carved) == 4 and not jobs
+
+    carved.clear()
+    for tilt in (0.18, 0.2, -0.1):  # 0.18 is carved already: nothing to start
+        reconstruct_module._carve_ahead(coral_one, 0.43, tilt, FAST, None, memo)
+    reconstruct_module._carve_ahead(coral_one, 0.43, 0.21, FAST, None, None)  # no memo: nothing to start
+    assert carved == [(0.43, 0.2, FAST.resolution, False)] and jobs == ["voxels 1"]
+    ahead = reconstruct_module._carve(coral_one, 0.43, 0.2, FAST, None, memo)
+    assert ahead.mesh == "mesh of voxels 1"
+    assert reconstruct_module._carve(coral_one, 0.43, 0.2, FAST, None, memo) is ahead
+    for _ in range(2):
+        with pytest.raises(InputError, match="every voxel was carved away"):
+            reconstruct_module._carve(coral_one, 0.43, -0.1, FAST, None, memo)
+    assert len(carved) == 1
 
     class Comparison:
         backend = None
+        used = []
 
         def use(self, model, depth, tilt):
             self.model = model
 
         def exact(self, depth, tilt):
+            self.used.append(self.model)
             return SimpleNamespace(value=0.01)
 
     carved.clear()
-    found = reconstruct_module.carving_descent(coral_one, Comparison(), 0.43, 0.18, FAST, lambda line: None, memo)
+    jobs.clear()
+    comparison = Comparison()
+    found = reconstruct_module.carving_descent(coral_one, comparison, 0.43, 0.18, FAST, lambda line: None, memo)
     assert found == 0.18  # no neighbour agrees better
-    assert [t for _, t, _ in carved] == pytest.approx([0.18 - reconstruct_module.DESCENT_STEP,
-                                                       0.18 + reconstruct_module.DESCENT_STEP])
+    step = reconstruct_module.DESCENT_STEP
+    assert [t for _, t, _, _ in carved] == pytest.approx([0.18 - step, 0.18 + step])
+    assert not any(mesh for _, _, _, mesh in carved) and jobs == ["voxels 1", "voxels 2"]
+    assert comparison.used == [first.mesh, "mesh of voxels 1", "mesh of voxels 2"]
+
+
+def test_meshes_made_in_processes_give_the_same_reconstruction(one_iteration, coral_one, monkeypatch):
+    """With two mesh processes (the carvings that the loop and the answer know ahead are meshed
+    there) the reconstruction is the one made without them, bit for bit."""
+    from fsswarp.backends import get_backend
+    from fsswarp.carving import MeshJob
+
+    started, job = [], MeshJob.__init__
+
+    def spy(self, *args, **kwargs):
+        job(self, *args, **kwargs)
+        started.append(self.future is not None)
+
+    monkeypatch.setattr(MeshJob, "__init__", spy)
+    monkeypatch.setenv("FSSWARP_MESH_WORKERS", "2")
+    result = reconstruct(coral_one, settings=FAST, backend=get_backend("opencl"))
+    assert len(started) >= 3 and all(started)  # the answer's tilt check's three at least
+    expected = one_iteration[0]
+    assert np.array_equal(result.model.vertices, expected.model.vertices)
+    assert np.array_equal(result.model.faces, expected.model.faces)
+    summary, summary_expected = result.summary(), expected.summary()
+    for made in (summary, summary_expected):
+        made.pop("seconds")
+    assert json.dumps(summary) == json.dumps(summary_expected)
