@@ -1,8 +1,8 @@
 """Worker processes that run functions while the command goes on (figures, carvings' meshes).
 
 Spawned, never forked: a child gets no copy of the parent's CUDA or OpenCL state. Every process
-starts when the pool is made, so that its imports are done before the first job comes, and
-leaves Ctrl-C to the command (no traceback from a child).
+starts when the pool is made, so that its imports are done before the first job comes,
+leaves Ctrl-C to the command (no traceback from a child), and ends without the interpreter's teardown.
 """
 
 from __future__ import annotations
@@ -60,8 +60,22 @@ class WorkerProcesses:
 
 
 def _start(initializer, initargs) -> None:
-    """Set up a worker process: Ctrl-C is the command's to handle; then ``initializer``."""
+    """Set up a worker process: Ctrl-C is the command's to handle, its end skips the
+    interpreter's teardown (:func:`_exit_at_once`); then ``initializer``."""
+    import atexit
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    atexit.register(_exit_at_once)
     initializer(*initargs)
+
+
+def _exit_at_once() -> None:
+    """End a worker process when it is told to stop (its jobs done, its results sent): exit
+    status 0 without freeing the imported modules one by one, which took 0.2 s (carvings'
+    meshes) to 0.35 s (figures) and which the command's end waited for."""
+    import sys
+
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)
