@@ -47,6 +47,14 @@ class State:
 
         return get_backend(self.backend, self.device)
 
+    def start_mesh_workers(self) -> None:
+        """Start the processes that mesh carvings (``fsswarp.carving.start_mesh_workers``) now,
+        before the backend: their imports (~1 s each) then overlap the command's input and
+        simulation instead of the loop's start; they stop when Python exits."""
+        from .carving import start_mesh_workers
+
+        start_mesh_workers()
+
     def figure_drawer(self):
         """A ``fsswarp.figures.FigureDrawer`` whose processes start now (call it once the
         command's input is checked) and stop when the command ends."""
@@ -564,6 +572,7 @@ def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, pat
         check_depth_tilt(depth0, tilt0)
         check_start(dataset, depth0, tilt0)  # the priors' sigmas first (Prior.of)
         check_uncertainties(dataset, depth0)
+    state.start_mesh_workers()
     run_reconstruction(state, dataset, out,
                        ReconstructSettings(iterations=iterations, patience=patience, resolution=resolution),
                        state.figure_drawer(), depth0=depth, tilt0=None if tilt is None else math.radians(tilt))
@@ -737,6 +746,7 @@ def demo(state: State, scene_name: str, out: Path, seed: int, iterations: int) -
     if check_scene(scene_name)[0].deep_water:
         raise InputError("is a deep-water scene (no [surface]): it has no ghosts to remove; run simulate and reconstruct",
                          field="SCENE", value=scene_name)
+    state.start_mesh_workers()
     backend = state.get_backend()
     start = time.perf_counter()
     with output_folder(out, marker=MARKERS["demo"]) as tmp:

@@ -15,6 +15,7 @@ import pytest
 
 from fsswarp.backends import describe_backends
 from fsswarp.cli import main
+from fsswarp.errors import InputError
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -161,3 +162,23 @@ def test_the_library_writes_what_the_command_line_writes(outputs, coral_one, tmp
         record["timings_s"] = sorted(record["timings_s"])
     assert written == expected
     assert sorted(p.name for p in tmp_path.iterdir()) == ["carve.json", "carved.ply"]
+
+
+def test_reconstruct_and_demo_start_the_mesh_processes_before_the_backend(coral_one, tmp_path, monkeypatch):
+    """Spawned before the backend starts, the mesh processes' imports overlap the command's
+    input and simulation (``State.start_mesh_workers``)."""
+    import fsswarp.carving as carving
+    import fsswarp.cli as cli
+
+    order = []
+    monkeypatch.setenv("FSSWARP_FIGURE_WORKERS", "0")
+    monkeypatch.setattr(carving, "start_mesh_workers", lambda: order.append("mesh processes"))
+
+    def backend(state):
+        order.append("backend")
+        raise InputError("stopped here", field="test")
+
+    monkeypatch.setattr(cli.State, "get_backend", backend)
+    assert cli.main(["-q", "reconstruct", str(coral_one.root), "--out", str(tmp_path / "r")]) == 2
+    assert cli.main(["-q", "demo", "coral-one", "--out", str(tmp_path / "d")]) == 2
+    assert order == ["mesh processes", "backend"] * 2
