@@ -508,8 +508,12 @@ def start_mesh_workers():
     if workers == 0:
         return None
     if workers not in _MESH_PROCESSES:
+        import atexit
+
         from .processes import WorkerProcesses
 
+        if not _MESH_PROCESSES:
+            atexit.register(_stop_mesh_workers)
         try:
             _MESH_PROCESSES[workers] = WorkerProcesses(workers, _start_mesh_process)
         except OSError as err:
@@ -517,6 +521,15 @@ def start_mesh_workers():
             warnings.warn(f"mesh processes could not start ({err}); making carvings' meshes in this process "
                           "(FSSWARP_MESH_WORKERS=0 does so without this warning)", CarveWarning, stacklevel=2)
     return _MESH_PROCESSES[workers]
+
+
+def _stop_mesh_workers() -> None:
+    """Stop the mesh processes at Python's exit, before its modules are torn down (the pool's
+    own clean-up would then find them gone)."""
+    for processes in _MESH_PROCESSES.values():
+        if processes is not None:
+            processes.close()
+    _MESH_PROCESSES.clear()
 
 
 def _start_mesh_process() -> None:
