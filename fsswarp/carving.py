@@ -547,25 +547,51 @@ class MeshJob:
     host, mostly manifold3d's decimation, which holds the GIL) made side by side."""
 
     def __init__(self, voxels: VoxelCarving, *, smooth: int = 10, faces: int = 20_000):
+        from concurrent.futures.process import BrokenProcessPool
+
         self.arguments = (voxels, smooth, faces)
+        self.future = self.mesh = None
         processes = start_mesh_workers()
-        self.future = None if processes is None else processes.submit(_mesh_in_process, *self.arguments)
-        self.mesh = None
+        if processes is not None:
+            try:
+                self.future = processes.submit(_mesh_in_process, *self.arguments)
+            except BrokenProcessPool:
+                _lost_mesh_workers()
 
     def result(self):
-        """The trimesh; raises what ``voxel_mesh`` raised, and issues the warnings it issued."""
+        """The trimesh; raises what ``voxel_mesh`` raised, and issues the warnings it issued.
+        Where a mesh process died (e.g. killed for memory), the mesh is made here instead."""
+        from concurrent.futures.process import BrokenProcessPool
+
         if self.mesh is None:
             voxels, smooth, faces = self.arguments
-            if self.future is None:
+            made = None
+            if self.future is not None:
+                try:
+                    made = self.future.result()
+                except BrokenProcessPool:
+                    _lost_mesh_workers()
+            if made is None:
                 self.mesh = voxel_mesh(voxels, smooth=smooth, faces=faces)
             else:
                 import trimesh
 
-                vertices, triangles, issued = self.future.result()
+                vertices, triangles, issued = made
                 for message, category in issued:
                     warnings.warn(message, category, stacklevel=2)
                 self.mesh = trimesh.Trimesh(vertices, triangles, process=False)
         return self.mesh
+
+
+def _lost_mesh_workers() -> None:
+    """A mesh process died: a CarveWarning, and the mesh processes are stopped; every mesh from
+    now on is made in this process."""
+    for workers, processes in _MESH_PROCESSES.items():
+        if processes is not None:
+            processes.close()
+            _MESH_PROCESSES[workers] = None
+            warnings.warn("a mesh process ended unexpectedly (killed, or out of memory); making carvings' meshes in "
+                          "this process from now on", CarveWarning, stacklevel=3)
 
 
 def _mesh_in_process(voxels: VoxelCarving, smooth: int, faces: int):

@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import subprocess
 import sys
 import warnings
@@ -461,6 +462,25 @@ def test_meshes_are_made_here_where_processes_cannot_start(monkeypatch):
         warnings.simplefilter("error")  # warned once
         job = MeshJob(ball_voxels(), faces=400)
     assert job.future is None and np.array_equal(job.result().faces, voxel_mesh(ball_voxels(), faces=400).faces)
+
+
+def test_a_mesh_process_that_dies_leaves_the_mesh_to_this_process(monkeypatch):
+    """A mesh process killed (out of memory, say) while its job waits: one CarveWarning, the
+    same mesh made here, and no mesh process from then on."""
+    import signal
+
+    import fsswarp.carving as carving
+
+    monkeypatch.setattr(carving, "_MESH_PROCESSES", {})
+    monkeypatch.setenv("FSSWARP_MESH_WORKERS", "2")
+    processes = carving.start_mesh_workers()
+    for child in list(processes.pool._processes.values()):
+        os.kill(child.pid, signal.SIGKILL)
+    voxels = ball_voxels()
+    with pytest.warns(CarveWarning, match="a mesh process ended unexpectedly"):
+        made = MeshJob(voxels, faces=400).result()
+    assert np.array_equal(made.faces, voxel_mesh(voxels, faces=400).faces)
+    assert carving.start_mesh_workers() is None and MeshJob(voxels).future is None
 
 
 def test_within_keeps_the_kept_voxels_whose_centres_lie_inside_the_mesh():
