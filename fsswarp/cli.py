@@ -572,7 +572,8 @@ def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, pat
         check_depth_tilt(depth0, tilt0)
         check_start(dataset, depth0, tilt0)  # the priors' sigmas first (Prior.of)
         check_uncertainties(dataset, depth0)
-    state.start_mesh_workers()
+        if iterations:  # only the loop and its answer mesh carvings ahead
+            state.start_mesh_workers()
     run_reconstruction(state, dataset, out,
                        ReconstructSettings(iterations=iterations, patience=patience, resolution=resolution),
                        state.figure_drawer(), depth0=depth, tilt0=None if tilt is None else math.radians(tilt))
@@ -746,7 +747,8 @@ def demo(state: State, scene_name: str, out: Path, seed: int, iterations: int) -
     if check_scene(scene_name)[0].deep_water:
         raise InputError("is a deep-water scene (no [surface]): it has no ghosts to remove; run simulate and reconstruct",
                          field="SCENE", value=scene_name)
-    state.start_mesh_workers()
+    if iterations:  # only the loop and its answer mesh carvings ahead
+        state.start_mesh_workers()
     backend = state.get_backend()
     start = time.perf_counter()
     with output_folder(out, marker=MARKERS["demo"]) as tmp:

@@ -147,7 +147,8 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
     backend = backend or get_backend()
     say = progress or (lambda line: None)
     start = time.perf_counter()
-    start_mesh_workers()  # on a many-core host: ready when the loop needs a carving ahead
+    if settings.iterations:  # on a many-core host: ready when the loop needs a carving ahead
+        start_mesh_workers()
     comparison = ViewComparison(dataset, settings=settings.pose, backend=backend)  # E_I, E_mu, the pose steps
     shaping = comparison if settings.refine.pose == settings.pose else \
         ViewComparison(dataset, settings=settings.refine.pose, backend=backend)  # the shape steps

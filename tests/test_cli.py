@@ -166,7 +166,8 @@ def test_the_library_writes_what_the_command_line_writes(outputs, coral_one, tmp
 
 def test_reconstruct_and_demo_start_the_mesh_processes_before_the_backend(coral_one, tmp_path, monkeypatch):
     """Spawned before the backend starts, the mesh processes' imports overlap the command's
-    input and simulation (``State.start_mesh_workers``)."""
+    input and simulation (``State.start_mesh_workers``); without iterations, which alone mesh
+    carvings ahead, none start."""
     import fsswarp.carving as carving
     import fsswarp.cli as cli
 
@@ -182,3 +183,7 @@ def test_reconstruct_and_demo_start_the_mesh_processes_before_the_backend(coral_
     assert cli.main(["-q", "reconstruct", str(coral_one.root), "--out", str(tmp_path / "r")]) == 2
     assert cli.main(["-q", "demo", "coral-one", "--out", str(tmp_path / "d")]) == 2
     assert order == ["mesh processes", "backend"] * 2
+    order.clear()
+    for command in (["reconstruct", str(coral_one.root)], ["demo", "coral-one"]):
+        assert cli.main(["-q", *command, "--out", str(tmp_path / "z"), "--iterations", "0"]) == 2
+    assert order == ["backend", "backend"]
