@@ -119,11 +119,13 @@ inline float fss_ray_box(const fss_ray *ray, float4 lo, float4 hi, float t_min, 
     return t_near <= t_far ? t_near : INFINITY;
 }
 
-/* Nearest hit in (t_min, t_max): returns its distance (INFINITY: none) and writes the
+/* Nearest hit in (t_min, t_max) (any_hit 0), or the first one found (any_hit 1: whether the
+ * segment is blocked; until its first hit the traversal is the nearest's, so it finds one
+ * exactly where the nearest does): returns its distance (INFINITY: none) and writes the
  * reordered triangle index to *tri_out (-1: none). */
-float fss_bvh_intersect(__global const float4 *nodes, __global const int *children,
-                        __global const float *tris, float3 org, float3 dir, float t_min,
-                        float t_max, int *tri_out)
+float fss_bvh_trace(__global const float4 *nodes, __global const int *children,
+                    __global const float *tris, float3 org, float3 dir, float t_min,
+                    float t_max, const int any_hit, int *tri_out)
 {
     const fss_ray ray = fss_make_ray(org, dir);
     int stack[FSS_BVH_STACK];
@@ -145,10 +147,14 @@ float fss_bvh_intersect(__global const float4 *nodes, __global const int *childr
         }
         if (c0 < 0 && t0 < INFINITY) {
             fss_intersect_leaf(&ray, tris, c0, t_min, &best, &best_tri);
+            if (any_hit && best_tri >= 0)
+                break;
             t0 = INFINITY;
         }
         if (c1 < 0 && t1 < best) {
             fss_intersect_leaf(&ray, tris, c1, t_min, &best, &best_tri);
+            if (any_hit && best_tri >= 0)
+                break;
             t1 = INFINITY;
         }
         const int go0 = t0 < best;
@@ -184,6 +190,23 @@ float fss_bvh_intersect(__global const float4 *nodes, __global const int *childr
     }
     *tri_out = best_tri;
     return best_tri >= 0 ? best : INFINITY;
+}
+
+/* Nearest hit in (t_min, t_max) (fss_bvh_trace). */
+inline float fss_bvh_intersect(__global const float4 *nodes, __global const int *children,
+                               __global const float *tris, float3 org, float3 dir, float t_min,
+                               float t_max, int *tri_out)
+{
+    return fss_bvh_trace(nodes, children, tris, org, dir, t_min, t_max, 0, tri_out);
+}
+
+/* Whether the mesh blocks the ray within (t_min, t_max) (fss_bvh_trace's any_hit). */
+inline int fss_bvh_blocked(__global const float4 *nodes, __global const int *children,
+                           __global const float *tris, float3 org, float3 dir, float t_min, float t_max)
+{
+    int tri;
+    fss_bvh_trace(nodes, children, tris, org, dir, t_min, t_max, 1, &tri);
+    return tri >= 0;
 }
 
 #endif /* FSSWARP_BVH_H */

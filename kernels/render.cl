@@ -250,10 +250,7 @@ __kernel void render_views(__global const float4 *nodes,
             return;
         /* leg O -> Q clear */
         const float qlen = fss_range(Q);
-        int blocker;
-        fss_bvh_intersect(nodes, children, tris, t, fss_rotate(rot, Q / qlen), 0.0f,
-                          qlen - epsilon, &blocker);
-        if (blocker >= 0)
+        if (fss_bvh_blocked(nodes, children, tris, t, fss_rotate(rot, Q / qlen), 0.0f, qlen - epsilon))
             return;
         /* leg Q -> P clear */
         const float3 QP = P - Q;
@@ -261,8 +258,7 @@ __kernel void render_views(__global const float4 *nodes,
         const float3 w = QP / qp;
         const float3 w_ref = fss_rotate(rot, w);
         const float3 Q_ref = fss_rotate(rot, Q) + t;
-        fss_bvh_intersect(nodes, children, tris, Q_ref, w_ref, 0.0f, qp - epsilon, &blocker);
-        if (blocker >= 0)
+        if (fss_bvh_blocked(nodes, children, tris, Q_ref, w_ref, 0.0f, qp - epsilon))
             return;
         const float c_in = -fss_dot(w_ref, N);
         if (!(c_in > 0.0f))
