@@ -439,35 +439,20 @@ def _check_mesh(name: str, mesh) -> None:
         raise InputError("holds no triangles", field=name, value=0)
 
 
-def serve_compare(threads: int | None = None) -> None:
-    """The loop of a ``compare`` worker process (fsswarp.reconstruction's truth metrics): from
-    stdin, pickled objects, the truth mesh first, then (vertices, faces, part, parts) requests;
-    to stdout, per request and in order, one pickled ``compare_part(mesh, truth, part, parts,
-    threads=threads)`` of ``trimesh.Trimesh(vertices, faces, process=False)``, or the exception
-    it raised. Anything the code prints goes to stderr, so that stdout
-    carries the replies alone. At the end of input the process exits at once (status 0),
-    without the interpreter's teardown, which the run's end waited 0.1–0.2 s for."""
-    import os
-    import pickle
-    import sys
+#: A truth-metrics worker process's truth mesh and threads (:func:`hold_truth`).
+_TRUTH: dict = {}
 
+
+def hold_truth(truth, threads: int | None = None) -> None:
+    """Set up a truth-metrics worker process (fsswarp.reconstruction): the truth mesh that
+    :func:`compare_with_truth` compares with, and its distances' threads."""
+    _TRUTH.update(mesh=truth, threads=threads)
+
+
+def compare_with_truth(vertices, faces, part: int, parts: int) -> tuple:
+    """:func:`compare_part` of the mesh (vertices (V, 3), faces (F, 3)) against the truth that
+    :func:`hold_truth` gave this process."""
     import trimesh
 
-    replies = os.fdopen(os.dup(1), "wb")
-    os.dup2(2, 1)
-    sys.stdout = sys.stderr
-    requests = sys.stdin.buffer
-    truth = pickle.load(requests)
-    while True:
-        try:
-            vertices, faces, part, parts = pickle.load(requests)
-        except EOFError:
-            replies.close()
-            sys.stderr.flush()
-            os._exit(0)
-        try:
-            reply = compare_part(trimesh.Trimesh(vertices, faces, process=False), truth, part, parts, threads=threads)
-        except Exception as error:  # handed to the parent, which raises it
-            reply = error
-        pickle.dump(reply, replies)
-        replies.flush()
+    return compare_part(trimesh.Trimesh(vertices, faces, process=False), _TRUTH["mesh"], part, parts,
+                        threads=_TRUTH["threads"])

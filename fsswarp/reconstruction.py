@@ -9,7 +9,7 @@
    below its lowest, again at the previous (D, β); of the refined and the fresh carving the
    lower E_I goes on (``recarved``);
 3. record D, β, intervals, E_mu, AIE, ACE, E_I and, with a truth, E_V, Chamfer and F-score
-   (``fsswarp.metrics``; the truth metrics in child processes while the loop goes on).
+   (``fsswarp.metrics``; the truth metrics in worker processes while the loop goes on).
 
 One ``fsswarp.compare.ViewComparison`` serves both steps and the metrics. The loop stops
 after ``iterations``, after ``patience`` iterations without a new lowest E_I, or when a shape
@@ -31,6 +31,8 @@ import dataclasses
 import math
 import time
 import warnings
+from concurrent.futures import Future
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -39,7 +41,8 @@ import numpy as np
 from .carving import CarveSettings, MeshJob, carve, start_mesh_workers, within
 from .errors import InputError, check_depth_tilt, check_integer
 from .compare import PoseSettings, PoseWarning, ViewComparison
-from .metrics import average_contour_error, average_intensity_error, combine, image_error
+from .metrics import (average_contour_error, average_intensity_error, combine, compare_part,
+                      compare_with_truth, hold_truth, image_error)
 from .pose import (BOUNDS_FACTOR, Prior, check_start, check_uncertainties, estimate_pose, fit_posterior, model_lever,
                    spans_an_area, valley_posterior)
 from .refine import RefineSettings, refine_shape
@@ -551,92 +554,60 @@ def _complete(entry: dict, comparison: ViewComparison, model, depth: float, tilt
 
 class _TruthMetrics:
     """E_V, Chamfer and F-score of recorded models against the truth mesh (None: no truth, and
-    nothing to do), computed in child Python processes (``fsswarp.metrics.serve_compare``),
-    each fed by a worker thread that waits on its pipe, while the loop goes on. A worker thread
-    alone held the GIL against the loop: coral-one took 34.4 and 35.2 s on an H100 with it,
-    24.2 and 24.7 s with the child process and 23.4 and 24.9 s with no truth metrics at all.
-    On this project's 2-core CPU the child uses the core that the loop's host work leaves idle
-    (coral-one 84.9 → 80.6 s). Up to ``workers`` worker threads (default :func:`truth_workers`)
-    each start their own child with their first request. Each compare is split into ``workers``
-    parts (``fsswarp.metrics.compare_part``: equal runs of the sampled points, one request
-    each), so that the last model's, which the run waits for at its end, takes a ``workers``-th
-    of its time; each child's distances run on :func:`truth_threads` threads, so that the
-    children leave CPUs to the loop (bench/notes.md, twelfth session). The values do not depend
-    on where they are computed. ``collect`` writes them into the history entries, in order, and
-    reports each with ``say``. A context manager: leaving it stops the workers and their
-    processes."""
+    nothing to do), computed in worker processes (``fsswarp.processes``; each holds the truth,
+    ``fsswarp.metrics.compare_with_truth``) while the loop goes on. In a thread of the loop's
+    process they held the GIL against it (coral-one 34.4 and 35.2 s on an H100, against 24.2
+    and 24.7 s in a child process; bench/notes.md). ``workers`` processes (default
+    :func:`truth_workers`) start at once; each compare is split into ``workers`` parts
+    (``fsswarp.metrics.compare_part``: equal runs of the sampled points), so that the last
+    model's, which the run waits for at its end, takes a ``workers``-th of its time; each
+    process's distances run on :func:`truth_threads` threads, leaving CPUs to the loop. Where
+    processes cannot start, one line said and each compare is made in this process. The values
+    do not depend on where they are computed. ``collect`` writes them into the history entries,
+    in order, and reports each with ``say``. A context manager: leaving it stops the processes."""
 
     def __init__(self, mesh, say: Callable[[str], None], workers: int | None = None):
-        import threading
-        from concurrent.futures import ThreadPoolExecutor
+        from .processes import WorkerProcesses
 
-        self.mesh, self.say = mesh, say
+        self.mesh, self.say, self.processes = mesh, say, None
         self.workers = truth_workers() if workers is None else workers
-        self.pool = ThreadPoolExecutor(self.workers, thread_name_prefix="fsswarp-truth") \
-            if mesh is not None else None
-        self.local = threading.local()  # each worker thread's child
-        self.children = []  # every compare process started (at most ``workers``)
         self.pending = []  # (history entry, the futures of its parts), oldest first
+        if mesh is not None:
+            try:
+                self.processes = WorkerProcesses(self.workers, hold_truth, mesh, truth_threads(self.workers))
+            except OSError as error:
+                say(f"truth metrics: worker processes could not start ({error}); computing them in this process")
 
     def __enter__(self):
         return self
 
     def __exit__(self, *exc) -> None:
-        if self.pool is not None:
-            self.pool.shutdown(wait=True, cancel_futures=True)
-        for child in self.children:  # every child ends at once: each takes ~0.1 s to exit
-            child.stdin.close()
-        for child in self.children:
-            child.wait()
-            child.stdout.close()
+        if self.processes is not None:
+            self.processes.close()
 
     def submit(self, entry: dict, model) -> None:
-        if self.pool is not None:
-            self.pending.append((entry, [self.pool.submit(self._compare_in_child, model, part)
-                                         for part in range(self.workers)]))
-
-    def _compare_in_child(self, model, part: int) -> tuple:
-        """``compare_part(model, truth, part, workers)`` in this worker thread's child process,
-        which gets the model's vertices and faces (a tenth of the bytes of the trimesh with its
-        caches, and ~0.1 ms of pickling while the loop waits for the GIL, against ~3 ms)."""
-        import pickle
-
-        child = getattr(self.local, "child", None)
-        if child is None:
-            child = self.local.child = self._start_child()
-        pickle.dump((np.asarray(model.vertices), np.asarray(model.faces), part, self.workers), child.stdin)
-        child.stdin.flush()
-        try:
-            reply = pickle.load(child.stdout)
-        except EOFError:
-            raise RuntimeError(f"the truth-metrics process ended (exit status {child.wait()})") from None
-        if isinstance(reply, Exception):
-            raise reply
-        return reply
-
-    def _start_child(self):
-        """A new compare process, handed the truth mesh."""
-        import os
-        import pickle
-        import subprocess
-        import sys
-        from pathlib import Path
-
-        path = [str(Path(__file__).resolve().parent.parent), os.environ.get("PYTHONPATH", "")]
-        serve = f"from fsswarp.metrics import serve_compare; serve_compare({truth_threads(self.workers)})"
-        child = subprocess.Popen(
-            [sys.executable, "-c", serve],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, start_new_session=True,  # Ctrl-C: the parent's alone
-            env=dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in path if p)))
-        self.children.append(child)
-        pickle.dump(self.mesh, child.stdin)
-        return child
+        """Start the compare of ``model`` against the truth, for ``entry``; only the vertices and
+        faces travel (a tenth of the bytes of the trimesh with its caches)."""
+        if self.mesh is None:
+            return
+        if self.processes is None:
+            done = Future()
+            done.set_result(compare_part(model, self.mesh, 0, 1))
+            self.pending.append((entry, [done]))
+            return
+        vertices, faces = np.asarray(model.vertices), np.asarray(model.faces)
+        self.pending.append((entry, [self.processes.submit(compare_with_truth, vertices, faces, part, self.workers)
+                                     for part in range(self.workers)]))
 
     def collect(self, *, wait: bool) -> None:
         """Fill in the finished entries (all of them, waiting, with ``wait``)."""
         while self.pending and (wait or all(future.done() for future in self.pending[0][1])):
             entry, futures = self.pending.pop(0)
-            metrics = combine(self.mesh, [future.result() for future in futures])
+            try:
+                parts = [future.result() for future in futures]
+            except BrokenProcessPool:
+                raise RuntimeError("a truth-metrics process ended before its compare was done") from None
+            metrics = combine(self.mesh, parts)
             entry.update(E_V=metrics["E_V"], chamfer_m=metrics["chamfer_m"], fscore=metrics["fscore"])
             self.say(f"iteration {entry['iteration']} against the truth: E_V {entry['E_V']:.3f}, Chamfer "
                      f"{entry['chamfer_m'] * 1e3:.2f} mm, F {entry['fscore']:.3f}")

@@ -3,6 +3,7 @@
 import dataclasses
 import json
 import math
+import os
 import subprocess
 import sys
 
@@ -112,35 +113,55 @@ def test_truth_metrics_reach_their_entries_in_order():
         metrics.submit(alone, truth)
         metrics.collect(wait=True)
     assert alone == {"iteration": 0} and len(lines) == 2  # no truth model: nothing to add
-    assert metrics.children == []
+    assert metrics.processes is None
 
 
 def test_truth_metrics_in_the_child_process_are_compares_and_raise_its_errors():
-    """The metrics come from a child process (one worker: one child, on any machine): the same
-    values as ``compare`` here, bit for bit; its errors reach ``collect``; the process ends
-    with the context; without a truth model no process starts."""
+    """The metrics come from a worker process (one worker: one process, on any machine): the
+    same values as ``compare`` here, bit for bit; its errors reach ``collect``; the process ends
+    with the context. Where processes cannot start, one line says so and the values are made
+    here, the same."""
     truth = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
     model = trimesh.creation.icosphere(subdivisions=2, radius=0.105)
     entry = {"iteration": 0}
     with reconstruct_module._TruthMetrics(truth, [].append, workers=1) as metrics:
         metrics.submit(entry, model)
         metrics.collect(wait=True)
-        children = metrics.children
+        children = processes_of(metrics)
     want = compare(model, truth)
     assert (entry["E_V"], entry["chamfer_m"], entry["fscore"]) == (want["E_V"], want["chamfer_m"], want["fscore"])
-    assert [child.returncode for child in children] == [0]
+    assert len(children) == 1 and os.getpid() not in {child.pid for child in children}
+    assert [child.exitcode for child in children] == [0]
     with pytest.raises(InputError, match="holds no triangles"):
         with reconstruct_module._TruthMetrics(truth, [].append, workers=1) as metrics:
+            children = processes_of(metrics)
             metrics.submit({"iteration": 1}, trimesh.Trimesh())
             metrics.collect(wait=True)
-    assert [child.returncode for child in metrics.children] == [0]
+    assert [child.exitcode for child in children] == [0]
+
+    def cannot_start(*args):
+        raise OSError("no /dev/shm")
+
+    here, lines = {"iteration": 2}, []
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr("fsswarp.processes.WorkerProcesses", cannot_start)
+        with reconstruct_module._TruthMetrics(truth, lines.append, workers=1) as metrics:
+            metrics.submit(here, model)
+            metrics.collect(wait=True)
+    assert metrics.processes is None and "could not start (no /dev/shm)" in lines[0]
+    assert (here["E_V"], here["chamfer_m"], here["fscore"]) == (want["E_V"], want["chamfer_m"], want["fscore"])
+
+
+def processes_of(metrics) -> list:
+    """The processes of a _TruthMetrics (started with it)."""
+    return list(metrics.processes.pool._processes.values())
 
 
 def test_truth_metrics_share_out_among_at_most_their_workers_in_order():
     """Five models on three workers (each compare in three parts, 20,000 points in runs of
     6,666 and 6,667): each entry gets its own model's compare, bit for bit and in order, from
-    no more than three child processes, which end with the context; one worker per 4 CPUs, 1
-    to 4; each child's threads share out the CPUs among the workers and the loop."""
+    three worker processes, which end with the context; one worker per 4 CPUs, 1 to 4; each
+    process's threads share out the CPUs among the workers and the loop."""
     truth = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
     models = [trimesh.creation.icosphere(subdivisions=2, radius=r) for r in (0.09, 0.1, 0.105, 0.11, 0.12)]
     entries = [{"iteration": i} for i in range(len(models))]
@@ -149,12 +170,12 @@ def test_truth_metrics_share_out_among_at_most_their_workers_in_order():
         for entry, model in zip(entries, models):
             metrics.submit(entry, model)
         metrics.collect(wait=True)
-        children = metrics.children
+        children = processes_of(metrics)
     for entry, model in zip(entries, models):
         want = compare(model, truth)
         assert (entry["E_V"], entry["chamfer_m"], entry["fscore"]) == (want["E_V"], want["chamfer_m"], want["fscore"])
     assert [line.split()[1] for line in lines] == ["0", "1", "2", "3", "4"]
-    assert 1 <= len(children) <= 3 and all(child.returncode == 0 for child in children)
+    assert len(children) == 3 and all(child.exitcode == 0 for child in children)
     for cpus, want in ((1, 1), (2, 1), (8, 2), (16, 4), (128, 4)):
         with pytest.MonkeyPatch.context() as patch:  # a container given `cpus` of a 128-CPU host
             patch.setattr("os.sched_getaffinity", lambda pid: set(range(cpus)), raising=False)
