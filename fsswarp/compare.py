@@ -66,7 +66,7 @@ class PoseSettings:
     shifts : candidate range shifts (rows) of the synthetic contours (the detection bias)
     polish : nlopt evaluations of E_mu at most (0: no polish)
     patch_rays : elevation rays per beam of the frontal-patch search
-    launch_bytes : most device memory (bytes) of one render launch's layers (2 × 16 B per
+    launch_bytes : most device memory (bytes) of one render launch's layers (16 B per
         pixel); a larger grid level is split into several launches
     segment : segmentation of the data
     """
@@ -393,12 +393,12 @@ class ViewComparison:
         """How :meth:`view_costs` renders the data views: (first (V,), R, read (V, 2, beams), cells per
         launch): the band of R rows from ``first`` that holds what each view's window reads
         (``rows_read``, the widest view's R, started lower where it would pass the last row), the
-        beams its masks read (``beams_read``), and the most cells whose layers (2 × 16 B per pixel
-        of the bands) fit ``settings.launch_bytes``."""
+        beams its masks read (``beams_read``), and the most cells whose layers (16 B per pixel of
+        the bands: four int32 layers) fit ``settings.launch_bytes``."""
         data, sonar = self.data, self.sonar
         need_lo, need_hi = rows_read(data.windows, len(self.smoothing[0]), sonar.bins)
         rows = int(np.max(need_hi - need_lo))
-        per = max(1, self.settings.launch_bytes // (32 * rows * sonar.beams * len(data.views)))
+        per = max(1, self.settings.launch_bytes // (16 * rows * sonar.beams * len(data.views)))
         return np.minimum(need_lo, sonar.bins - rows), rows, beams_read(data.masks, len(self.smoothing[1])), per
 
     def view_costs(self, depths: np.ndarray, tilts: np.ndarray, samples, cap: float, *, contours: bool = True):

@@ -30,7 +30,9 @@
  * band [first_rows[n], first_rows[n] + rows), so results equal those of full layers bit for bit.
  *
  * Arguments:
- *   layers       (N, 4, rows, beams) float: band n holds image rows first_rows[n] ..
+ *   layers       (N, 4, rows, beams) float32 (fixed 0) or render_views' fixed-point int
+ *                accumulator (fixed 1; 2^24 = 1, read as fixed_to_float converts it), in a
+ *                buffer read as int: band n holds image rows first_rows[n] ..
  *                first_rows[n] + rows − 1 (full layers: first_rows 0, rows = bins)
  *   first_rows   (N,) int;  rows  R, the rows of every band
  *   view_index   (N,) int        data view of each pair
@@ -56,19 +58,26 @@
  * smoothing sums every tap's row afresh. Either way the same sums in the same order. */
 #define RING_TAPS 33
 
+/* Value k of a layer plane: fixed-point (fixed 1, as fixed_to_float converts it) or float32 bits. */
+inline float layer_value(__global const int *plane, const size_t k, const int fixed)
+{
+    return fixed ? (float)plane[k] * (1.0f / FSS_FIXED) : as_float(plane[k]);
+}
+
 /* Component planes l0 + l1 in band row Bi smoothed across the beams at beam b. */
-static float beam_row(__global const float *l0, __global const float *l1, const int Bi, const int b,
+static float beam_row(__global const int *l0, __global const int *l1, const int fixed, const int Bi, const int b,
                       const int beams, __global const float *wb, const int rb)
 {
     float row = 0.0f;
     for (int j = 0; j <= 2 * rb; ++j) {
         const size_t k = (size_t)Bi * beams + clamp(b + j - rb, 0, beams - 1);
-        row += wb[j] * (l0[k] + l1[k]);
+        row += wb[j] * (layer_value(l0, k, fixed) + layer_value(l1, k, fixed));
     }
     return row;
 }
 
-__kernel void frontal_contour(__global const float *layers,
+__kernel void frontal_contour(__global const int *layers,
+                              const int fixed,
                               __global const int *view_index,
                               __global const float *threshold,
                               __global const int *window,
@@ -96,8 +105,8 @@ __kernel void frontal_contour(__global const float *layers,
     }
     const size_t plane = (size_t)rows * beams;
     const int first = first_rows[n];
-    __global const float *l0 = layers + ((size_t)n * 4 + 2 * c) * plane;
-    __global const float *l1 = l0 + plane;
+    __global const int *l0 = layers + ((size_t)n * 4 + 2 * c) * plane;
+    __global const int *l1 = l0 + plane;
     __global const float *thr = threshold + (size_t)v * bins;
     const int lo = window[2 * v];
     const int hi = window[2 * v + 1];
@@ -106,18 +115,18 @@ __kernel void frontal_contour(__global const float *layers,
     float ring[RING_TAPS]; /* row k (image row clamp(k), k > -taps) in slot (k + taps) % taps */
     if (cached)
         for (int k = lo - rB; k < lo + rB; ++k)
-            ring[(k + taps) % taps] = beam_row(l0, l1, clamp(k, 0, bins - 1) - first, b, beams, wb, rb);
+            ring[(k + taps) % taps] = beam_row(l0, l1, fixed, clamp(k, 0, bins - 1) - first, b, beams, wb, rb);
     float previous = 0.0f;
     for (int B = lo; B < hi; ++B) {
         float s = 0.0f;
         if (cached) {
             const int k = B + rB;
-            ring[(k + taps) % taps] = beam_row(l0, l1, clamp(k, 0, bins - 1) - first, b, beams, wb, rb);
+            ring[(k + taps) % taps] = beam_row(l0, l1, fixed, clamp(k, 0, bins - 1) - first, b, beams, wb, rb);
             for (int i = 0; i < taps; ++i)
                 s += wB[i] * ring[(B + i - rB + taps) % taps];
         } else {
             for (int i = 0; i < taps; ++i)
-                s += wB[i] * beam_row(l0, l1, clamp(B + i - rB, 0, bins - 1) - first, b, beams, wb, rb);
+                s += wB[i] * beam_row(l0, l1, fixed, clamp(B + i - rB, 0, bins - 1) - first, b, beams, wb, rb);
         }
         const float f = s - thr[B];
         if (f > 0.0f) {

@@ -198,6 +198,40 @@ def test_warp_and_opencl_agree_on_rendered_views(backend_for_label):
                                    rtol=1e-5, atol=1e-6)
 
 
+def test_device_layers_give_their_host_floats_results(backend):
+    """Device layers hold the render's fixed-point accumulator, which the contour kernels read
+    as it is: contours, sums, counts and view costs bit for bit those of the same layers handed
+    over as host floats (``numpy``), full and in bands; and ``numpy`` is the accumulator / 2^24."""
+    sonar, mesh, poses, thresholds, windows = sphere_views()
+    masks = np.ones((5, 2, sonar.beams), bool)
+    distances = np.random.default_rng(1).uniform(0, 0.05, (5, 2, sonar.bins, sonar.beams))
+    view_index = np.tile(np.arange(5), 3)
+    smoothing = (_gaussian(1.0), _gaussian(0.7))
+    handle = backend.load_mesh(mesh.vertices, mesh.faces)
+    for rows in (None, tight_bands(view_index, windows, (len(smoothing[0]) - 1) // 2, sonar.bins)):
+        layers = backend.render_device(handle, sonar, *poses, (1, 32), gamma=1.0, surface_reflection=0.9, rows=rows)
+        floats = layers.numpy()
+        fixed = layers.array.numpy() if backend.name == "warp" else _buffer_ints(layers)
+        assert fixed.dtype == np.int32 and np.count_nonzero(fixed) > 1000
+        np.testing.assert_array_equal(floats, fixed.astype(np.float32) * np.float32(2.0 ** -24))
+        results = []
+        for given in (layers, HostLayers(floats, layers.first_rows)):
+            args = (given, view_index, thresholds, windows, masks, distances, [0.0, 0.5], smoothing)
+            results.append((*backend.contour_cost(*args), backend.view_costs(*args, np.full((5, 2), 20), 0.04)))
+        assert (results[0][0] >= 0).sum() >= 100
+        for device, host in zip(*results):
+            np.testing.assert_array_equal(device, host)
+
+
+def _buffer_ints(layers) -> np.ndarray:
+    """The int32 accumulator of OpenCLLayers, copied as it is."""
+    import pyopencl as cl
+
+    ints = np.empty(layers.shape, np.int32)
+    cl.enqueue_copy(layers.backend.queue, ints, layers.buffer, is_blocking=True)
+    return ints
+
+
 @pytest.mark.parametrize("taps", [1, 3, 5, 9])
 def test_beams_read_are_the_beams_the_smoothing_reaches(taps):
     """beams_read: every beam that the contour of a masked beam reads, clamp(b + k, 0, beams − 1)

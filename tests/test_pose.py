@@ -295,7 +295,7 @@ def test_view_costs_planned_ahead_are_those_planned_in_turn(coral_one, truth_mod
     import fsswarp.compare as compare
 
     truth = coral_one.manifest.truth
-    comparison = ViewComparison(coral_one, settings=PoseSettings(launch_bytes=1 << 23), backend=opencl).use(
+    comparison = ViewComparison(coral_one, settings=PoseSettings(launch_bytes=1 << 22), backend=opencl).use(
         truth_model, truth.depth, truth.tilt)
     depths, tilts = np.meshgrid(truth.depth + np.linspace(-0.02, 0.02, 3), truth.tilt + np.radians([-1.0, 0.0, 1.0]),
                                 indexing="ij")

@@ -19,7 +19,7 @@ from ..constants import FRONTAL_VISIBLE, MAX_DISTANCE, RAY_EPSILON
 from ..runtimes import OpenCLDevice
 from .programs import GROUP, program
 
-#: Largest render accumulator or layers buffer (bytes) a CPU device keeps between renders.
+#: Largest layers buffer (bytes) a CPU device keeps between renders.
 SCRATCH_BYTES = 1 << 30
 #: Most layers buffers a CPU device keeps between renders (``_layers_buffer``).
 KEPT_LAYERS = 2
@@ -54,7 +54,6 @@ class OpenCLBackend(Backend):
         self.has_float64 = "cl_khr_fp64" in found.device.extensions.split()
         self._icp_kernel = cl.Kernel(program(self.context, "icp.cl"), "icp_runs") if self.has_float64 else None
         self._lock = threading.Lock()
-        self._scratch = None  # the accumulator kept between renders on a CPU device (_accumulator)
         self._kept_layers = []  # (layers buffer, weak reference to its holder) kept on a CPU device (_layers_buffer)
 
     def _input(self, array: np.ndarray) -> cl.Buffer:
@@ -180,33 +179,18 @@ class OpenCLBackend(Backend):
         shape = (rotations.shape[0], 4, rows, sonar.beams)
         size = int(np.prod(shape))
         with self._lock:
-            acc_buf, layers_buf = self._accumulator(4 * size), self._layers_buffer(4 * size)
+            layers_buf = self._layers_buffer(4 * size)
             self._enqueue_render(mesh, sonar, beam_widths, rotations, translations, plane_normals, plane_offsets,
-                                 k_theta, k_phi, gamma, surface_reflection, first_rows, spans, shape, acc_buf,
-                                 layers_buf, shared=shared, needed=needed)
+                                 k_theta, k_phi, gamma, surface_reflection, first_rows, spans, shape, layers_buf,
+                                 shared=shared, needed=needed)
             self.queue.finish()
-            if acc_buf is not self._scratch:
-                acc_buf.release()
-            layers = OpenCLLayers(self.queue, layers_buf, shape)
+            layers = OpenCLLayers(self, layers_buf, shape)
             self._kept_layers = [(kept, weakref.ref(layers) if kept is layers_buf else holder)
                                  for kept, holder in self._kept_layers]
         return layers
 
-    def _accumulator(self, nbytes: int) -> cl.Buffer:
-        """A render's fixed-point accumulator: on a CPU device one buffer kept for renders up to
-        ``SCRATCH_BYTES`` (grown as needed), since a fresh one costs its pages' first touch
-        (PoCL, 119 MB: 48 ms to allocate and zero, 7 ms to zero again); else a new buffer, which
-        the caller releases. Call holding ``_lock``."""
-        if self.is_gpu or nbytes > SCRATCH_BYTES:
-            return cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=nbytes)
-        if self._scratch is None or self._scratch.size < nbytes:
-            if self._scratch is not None:
-                self._scratch.release()
-            self._scratch = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=nbytes)
-        return self._scratch
-
     def _layers_buffer(self, nbytes: int) -> cl.Buffer:
-        """The float layers' buffer of a render: on a CPU device one of ``KEPT_LAYERS`` buffers
+        """The layers' buffer of a render (its accumulator): on a CPU device one of ``KEPT_LAYERS`` buffers
         kept from earlier renders whose layers are gone (the pose grid renders, reads and drops
         them level after level, beside the comparison's located layers), grown as needed, up to
         ``SCRATCH_BYTES``; else a new one. Call holding ``_lock``; ``_render`` records the holder."""
@@ -225,13 +209,13 @@ class OpenCLBackend(Backend):
 
     def _enqueue_render(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations, plane_normals,
                         plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, spans, shape, acc_buf,
-                        layers_buf, wait_for=None, shared=None, needed=None) -> cl.Event:
-        """Enqueue the zeroing of acc_buf, the render and fixed-point kernels of the views given
-        (clean float32 (n, ...) arrays, their (n, 4) ray spans; ``shared``, their SharedPoses or
-        None, first casts the direct legs of the distinct poses; ``needed``, None or the (n, 2,
-        beams) uint8 beams read, ``Backend._render``) into layers_buf, of ``shape``
-        (n, 4, R, beams), after the events ``wait_for``; returns the last kernel's event. Call
-        holding ``_lock``."""
+                        layers_buf=None, wait_for=None, shared=None, needed=None) -> cl.Event:
+        """Enqueue the zeroing of acc_buf and the render kernels of the views given (clean
+        float32 (n, ...) arrays, their (n, 4) ray spans; ``shared``, their SharedPoses or None,
+        first casts the direct legs of the distinct poses; ``needed``, None or the (n, 2, beams)
+        uint8 beams read, ``Backend._render``) into acc_buf, the fixed-point int32 layers of
+        ``shape`` (n, 4, R, beams), and with layers_buf their floats (``fixed_to_float``), after
+        the events ``wait_for``; returns the last kernel's event. Call holding ``_lock``."""
         if sonar.use_table:
             centres = np.ascontiguousarray(sonar.beam_table[0], np.float32)
         else:
@@ -249,7 +233,7 @@ class OpenCLBackend(Backend):
                                   self._input(np.ascontiguousarray(beam_widths, np.float32)), sonar.record(),
                                   np.int32(k_theta), np.int32(k_phi), directions)
             poses, hit_range, hit_tri = self._direct_hits(mesh, sonar, directions, shape[0], k_theta, k_phi, shared)
-            self._render_kernel(
+            done = self._render_kernel(
                 self.queue, (-(-sub // group) * group, widest, shape[0]), (group, 1, 1),
                 mesh.nodes, mesh.children, mesh.triangles,
                 self._input(rotations), self._input(translations), self._input(plane_normals),
@@ -260,8 +244,25 @@ class OpenCLBackend(Backend):
                 self._input(np.ascontiguousarray(spans, np.int32)), poses, hit_range, hit_tri,
                 np.int32(needed is not None), self._input(np.ones(1, np.uint8) if needed is None else needed),
                 acc_buf, wait_for=[zeroed])
+        else:
+            done = zeroed
+        if layers_buf is None:
+            return done
         return self._fixed_kernel(self.queue, (-(-size // GROUP) * GROUP,), None, acc_buf, layers_buf,
                                   np.int32(size))
+
+    def _floats(self, acc_buf: cl.Buffer, shape: tuple[int, ...]) -> np.ndarray:
+        """The host float32 array of ``shape`` of the fixed-point layers acc_buf (``OpenCLLayers.numpy``)."""
+        size = int(np.prod(shape))
+        host = np.empty(shape, np.float32)
+        if size == 0:
+            return host
+        with self._lock:
+            floats = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=4 * size)
+            self._fixed_kernel(self.queue, (-(-size // GROUP) * GROUP,), None, acc_buf, floats, np.int32(size))
+            cl.enqueue_copy(self.queue, host, floats, is_blocking=True)
+            floats.release()
+        return host
 
     def _direct_hits(self, mesh, sonar: SonarConstants, directions, n_views, k_theta, k_phi,
                      shared) -> tuple[cl.Buffer, cl.Buffer, cl.Buffer]:
@@ -371,10 +372,10 @@ class OpenCLBackend(Backend):
         Call holding ``_lock``."""
         n_pairs, bins, beams = view_index.shape[0], distances.shape[2], distances.shape[3]
         n_shifts = shifts.shape[0]
-        if isinstance(layers, OpenCLLayers) and layers.queue.context == self.context:
-            stack = layers.buffer
+        if isinstance(layers, OpenCLLayers) and layers.backend.context == self.context:
+            stack, fixed = layers.buffer, 1
         else:
-            stack = self._input(np.ascontiguousarray(layers.numpy(), np.float32))
+            stack, fixed = self._input(np.ascontiguousarray(layers.numpy(), np.float32)), 0
         index = self._input(view_index)
         rw = cl.mem_flags.READ_WRITE
         contour_buf = cl.Buffer(self.context, rw, size=4 * n_pairs * 2 * beams)
@@ -382,7 +383,7 @@ class OpenCLBackend(Backend):
         counts_buf = cl.Buffer(self.context, rw, size=4 * n_pairs * 2)
         self._frontal_kernel(
             self.queue, (-(-beams // GROUP) * GROUP, 2, n_pairs), (GROUP, 1, 1),
-            stack, index, self._input(thresholds), self._input(windows), self._input(masks),
+            stack, np.int32(fixed), index, self._input(thresholds), self._input(windows), self._input(masks),
             self._input(range_weights), np.int32((range_weights.shape[0] - 1) // 2),
             self._input(beam_weights), np.int32((beam_weights.shape[0] - 1) // 2), np.int32(bins),
             np.int32(beams), self._input(first_rows), np.int32(layers.shape[2]), contour_buf)
@@ -427,18 +428,18 @@ def _read(host, copied, start, count, slot) -> tuple[int, np.ndarray]:
 
 
 class OpenCLLayers(DeviceLayers):
-    """Rendered layers in an OpenCL buffer (``.buffer``) of (N, 4, bins, beams) float32, or
-    (N, 4, R, beams) for bands of rows (``first_rows``)."""
+    """Rendered layers of ``backend`` as the render's fixed-point accumulator, an OpenCL buffer
+    (``.buffer``) of (N, 4, bins, beams) int32 (2^24 = 1), or (N, 4, R, beams) for bands of rows
+    (``first_rows``): the contour kernels read it as it is, and ``numpy`` converts it on the
+    device first (``fixed_to_float``: the floats a render to float layers gives)."""
 
-    def __init__(self, queue: cl.CommandQueue, buffer: cl.Buffer, shape: tuple[int, int, int, int]):
-        self.queue = queue
+    def __init__(self, backend: OpenCLBackend, buffer: cl.Buffer, shape: tuple[int, int, int, int]):
+        self.backend = backend
         self.buffer = buffer
         self.shape = shape
 
     def numpy(self) -> np.ndarray:
-        host = np.empty(self.shape, np.float32)
-        cl.enqueue_copy(self.queue, host, self.buffer, is_blocking=True)
-        return host
+        return self.backend._floats(self.buffer, self.shape)
 
 
 class OpenCLMesh:

@@ -12,7 +12,7 @@ import warp as wp
 
 from ..base import Backend, DeviceLayers, PreparedLaunch, SonarConstants, span_extent
 from ..bvh import triangle_bounds
-from ..constants import FRONTAL_VISIBLE, MAX_DISTANCE, RAY_EPSILON, WARP_FAR
+from ..constants import FIXED_SCALE, FRONTAL_VISIBLE, MAX_DISTANCE, RAY_EPSILON, WARP_FAR
 from ..runtimes import import_warp
 from .carve import carve_grid, carve_points
 from .icp import icp_runs_kernel
@@ -35,15 +35,20 @@ CONSTANTS = 64
 
 
 class WarpLayers(DeviceLayers):
-    """Rendered layers in a (N, 4, bins, beams) float32 ``wp.array`` (``.array``), or (N, 4,
-    R, beams) for bands of rows (``first_rows``)."""
+    """Rendered layers as the render's fixed-point accumulator, a (N, 4, bins, beams) int32
+    ``wp.array`` (``.array``; 2^24 = 1), or (N, 4, R, beams) for bands of rows (``first_rows``):
+    the contour kernels read it as it is, and ``numpy`` converts it on the device first
+    (``fixed_to_float``: the floats a render to float layers gives)."""
 
     def __init__(self, array: wp.array):
         self.array = array
         self.shape = tuple(array.shape)
 
     def numpy(self) -> np.ndarray:
-        return self.array.numpy()
+        layers = wp.empty(self.shape, dtype=float, device=self.array.device)
+        _launch(fixed_to_float, dim=self.array.size, inputs=[self.array.flatten()], outputs=[layers.flatten()],
+                device=self.array.device)
+        return layers.numpy()
 
 
 class WarpMesh:
@@ -196,12 +201,10 @@ class WarpBackend(Backend):
         with wp.ScopedDevice(self._device):
             poses = self._poses(rotations, translations, plane_normals, plane_offsets)
             acc = wp.zeros(shape, dtype=wp.int32)
-            layers = wp.empty(shape, dtype=float)
             self._render_into(mesh, sonar, beam_widths, poses, k_theta, k_phi, gamma, surface_reflection,
-                              self._constant(first_rows, wp.int32), spans, acc, layers, shared=shared,
-                              needed=needed)
+                              self._constant(first_rows, wp.int32), spans, acc, shared=shared, needed=needed)
             wp.synchronize_device(self._device)
-            return WarpLayers(layers)
+            return WarpLayers(acc)
 
     def _poses(self, rotations, translations, plane_normals, plane_offsets, *more) -> list[wp.array]:
         """The (N,) views of a render on the device: rotations, translations, plane normals,
@@ -210,10 +213,10 @@ class WarpBackend(Backend):
                             (plane_offsets, float), *((extra, float) for extra in more))
 
     def _render_into(self, mesh, sonar: SonarConstants, beam_widths, poses, k_theta, k_phi, gamma,
-                     surface_reflection, first_rows, spans, acc, layers, shared=None, needed=None) -> None:
-        """Launch the render and fixed-point kernels of the views ``poses`` ((n,) device arrays of
-        ``_poses``) on the device's current stream: acc (n, 4, R, beams) int32, zeroed, receives
-        the deposits and layers (n, 4, R, beams) float32 the result; first_rows (n,) int32 on the
+                     surface_reflection, first_rows, spans, acc, layers=None, shared=None, needed=None) -> None:
+        """Launch the render kernels of the views ``poses`` ((n,) device arrays of ``_poses``) on
+        the device's current stream: acc (n, 4, R, beams) int32, zeroed, receives the deposits,
+        and layers (n, 4, R, beams) float32, if given, their floats; first_rows (n,) int32 on the
         device; spans (n, 4) int32 on the host (``Backend._render``); shared, the views' SharedPoses
         (or None), whose distinct poses' direct legs are cast first; needed, None or the (n, 2,
         beams) uint8 beams read (``Backend._render``). Returns without waiting."""
@@ -239,7 +242,8 @@ class WarpBackend(Backend):
                             int(needed is not None),
                             self._constant(np.ones((1, 1, 1), np.uint8) if needed is None else needed, wp.uint8)],
                     outputs=[acc])
-        _launch(fixed_to_float, dim=acc.size, inputs=[acc.flatten()], outputs=[layers.flatten()])
+        if layers is not None:
+            _launch(fixed_to_float, dim=acc.size, inputs=[acc.flatten()], outputs=[layers.flatten()])
 
     def _direct_hits(self, mesh, directions, n_views, shared) -> tuple[wp.array, wp.array, wp.array]:
         """render_kernel's poses, hit_range and hit_face: with ``shared`` (SharedPoses) the direct
@@ -380,13 +384,13 @@ class WarpBackend(Backend):
         returns their (N, 2, beams) contours, (N, 2, S) sums and (N, 2) counts without waiting."""
         n_pairs, beams = view_index.shape[0], distances.shape[3]
         if isinstance(layers, WarpLayers) and layers.array.device == self._device:
-            stack = layers.array
+            stack, scale = layers.array, 1.0 / FIXED_SCALE
         else:
-            stack = self._array(np.ascontiguousarray(layers.numpy(), np.float32), float)
+            stack, scale = self._array(np.ascontiguousarray(layers.numpy(), np.float32), float), 1.0
         index = self._constant(view_index, wp.int32)
         contour = wp.empty((n_pairs, 2, beams), dtype=float)
         _launch(frontal_contour, dim=(n_pairs, 2, beams),
-                inputs=[stack, self._constant(first_rows, wp.int32), index, self._constant(thresholds, float),
+                inputs=[stack, scale, self._constant(first_rows, wp.int32), index, self._constant(thresholds, float),
                         self._constant(windows, wp.int32),
                         self._constant(masks, wp.uint8), self._constant(range_weights, float),
                         (range_weights.shape[0] - 1) // 2, self._constant(beam_weights, float),

@@ -1,11 +1,14 @@
 """Warp kernels of ``Backend.contour_cost``: frontal contours and their distances to the data's.
 
-kernels/pose.cl documents the rule. ``frontal_contour`` writes (N, 2, beams) float32 rows
-(-1: none); ``contour_cost_kernel`` (N, 2, S) float32 sums and (N, 2) int32 counts;
-``view_cost_kernel`` (N, S) float32 view costs from them.
+kernels/pose.cl documents the rule. ``frontal_contour`` reads float32 layers or the render's
+fixed-point accumulator (int32, ``scale`` 2^-24: the same floats as ``fixed_to_float``'s) and
+writes (N, 2, beams) float32 rows (-1: none); ``contour_cost_kernel`` (N, 2, S) float32 sums and
+(N, 2) int32 counts; ``view_cost_kernel`` (N, S) float32 view costs from them.
 """
 
 from __future__ import annotations
+
+from typing import Any
 
 import warp as wp
 
@@ -21,25 +24,26 @@ Ring = wp.types.vector(length=RING_TAPS, dtype=float)
 
 
 @wp.func
-def beam_row(layers: wp.array4d(dtype=float), n: int, c: int, bi: int, b: int, beams: int,
+def beam_row(layers: wp.array4d(dtype=Any), scale: float, n: int, c: int, bi: int, b: int, beams: int,
              w_beam: wp.array(dtype=float), r_beam: int):
-    """Component c of pair n in band row bi smoothed across the beams at beam b."""
+    """Component c of pair n in band row bi smoothed across the beams at beam b (each value
+    float(layers[...]) · scale: exact, scale 1 or a power of two)."""
     row = float(0.0)
     for j in range(2 * r_beam + 1):
         bj = wp.clamp(b + j - r_beam, 0, beams - 1)
-        row += w_beam[j] * (layers[n, 2 * c, bi, bj] + layers[n, 2 * c + 1, bi, bj])
+        row += w_beam[j] * (float(layers[n, 2 * c, bi, bj]) * scale + float(layers[n, 2 * c + 1, bi, bj]) * scale)
     return row
 
 
 @wp.kernel
-def frontal_contour(layers: wp.array4d(dtype=float), first_rows: wp.array(dtype=wp.int32),
+def frontal_contour(layers: wp.array4d(dtype=Any), scale: float, first_rows: wp.array(dtype=wp.int32),
                     view_index: wp.array(dtype=wp.int32),
                     threshold: wp.array2d(dtype=float), window: wp.array2d(dtype=wp.int32),
                     mask: wp.array3d(dtype=wp.uint8), w_range: wp.array(dtype=float), r_range: int,
                     w_beam: wp.array(dtype=float), r_beam: int, contour: wp.array3d(dtype=float)):
     """Thread (n, c, b): first threshold crossing of the smoothed component c of pair n in beam b.
-    layers (N, 4, R, beams): image row B of pair n at row B − first_rows[n] (full layers: zeros,
-    R = bins); rows clamp to the image, and the host guarantees the band holds every row read.
+    layers (N, 4, R, beams) float32 (scale 1) or fixed-point int32 (scale 2^-24): image row B of
+    pair n at row B − first_rows[n] (full layers: zeros, R = bins); rows clamp to the image, and the host guarantees the band holds every row read.
     Each row's beam smoothing is summed once into a ring of the last 2 r_range + 1 rows
     (at most RING_TAPS; else afresh per tap): the same sums in the same order."""
     n, c, b = wp.tid()
@@ -56,7 +60,7 @@ def frontal_contour(layers: wp.array4d(dtype=float), first_rows: wp.array(dtype=
         cached = taps <= RING_TAPS
         if cached:  # rows lo − r_range .. lo + r_range − 1; row k in slot (k + taps) % taps (k > −taps)
             for k in range(lo - r_range, lo + r_range):
-                ring[(k + taps) % taps] = beam_row(layers, n, c, wp.clamp(k, 0, bins - 1) - first, b, beams,
+                ring[(k + taps) % taps] = beam_row(layers, scale, n, c, wp.clamp(k, 0, bins - 1) - first, b, beams,
                                                    w_beam, r_beam)
         previous = float(0.0)
         row_index = int(lo)
@@ -64,14 +68,14 @@ def frontal_contour(layers: wp.array4d(dtype=float), first_rows: wp.array(dtype=
             s = float(0.0)
             if cached:
                 k = row_index + r_range
-                ring[(k + taps) % taps] = beam_row(layers, n, c, wp.clamp(k, 0, bins - 1) - first, b, beams,
+                ring[(k + taps) % taps] = beam_row(layers, scale, n, c, wp.clamp(k, 0, bins - 1) - first, b, beams,
                                                    w_beam, r_beam)
                 for i in range(taps):
                     s += w_range[i] * ring[(row_index + i - r_range + taps) % taps]
             else:
                 for i in range(taps):
                     bi = wp.clamp(row_index + i - r_range, 0, bins - 1) - first
-                    s += w_range[i] * beam_row(layers, n, c, bi, b, beams, w_beam, r_beam)
+                    s += w_range[i] * beam_row(layers, scale, n, c, bi, b, beams, w_beam, r_beam)
             f = s - threshold[v, row_index]
             if f > 0.0:
                 if row_index == lo:
@@ -83,6 +87,10 @@ def frontal_contour(layers: wp.array4d(dtype=float), first_rows: wp.array(dtype=
                 previous = f
                 row_index += 1
     contour[n, c, b] = result
+
+
+for _dtype in (wp.float32, wp.int32):  # float layers from the host, the accumulator on the device
+    wp.overload(frontal_contour, {"layers": wp.array4d(dtype=_dtype)})
 
 
 @wp.kernel
