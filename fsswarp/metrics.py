@@ -439,20 +439,11 @@ def _check_mesh(name: str, mesh) -> None:
         raise InputError("holds no triangles", field=name, value=0)
 
 
-#: A truth-metrics worker process's truth mesh and threads (:func:`hold_truth`).
-_TRUTH: dict = {}
-
-
-def hold_truth(truth, threads: int | None = None) -> None:
-    """Set up a truth-metrics worker process (fsswarp.reconstruction): the truth mesh that
-    :func:`compare_with_truth` compares with, and its distances' threads."""
-    _TRUTH.update(mesh=truth, threads=threads)
-
-
-def compare_with_truth(vertices, faces, part: int, parts: int) -> tuple:
-    """:func:`compare_part` of the mesh (vertices (V, 3), faces (F, 3)) against the truth that
-    :func:`hold_truth` gave this process."""
+def compare_meshes(estimate: tuple, truth: tuple, part: int, parts: int, threads: int | None = None) -> tuple:
+    """:func:`compare_part` of two meshes given as (vertices (V, 3), faces (F, 3)) arrays (a
+    truth-metrics worker process's job, fsswarp.reconstruction: arrays pickle in a tenth of the
+    bytes of a trimesh with its caches)."""
     import trimesh
 
-    return compare_part(trimesh.Trimesh(vertices, faces, process=False), _TRUTH["mesh"], part, parts,
-                        threads=_TRUTH["threads"])
+    return compare_part(trimesh.Trimesh(*estimate, process=False), trimesh.Trimesh(*truth, process=False), part,
+                        parts, threads=threads)

@@ -25,10 +25,13 @@ def worker_count(variable: str, default: int) -> int:
 
 class WorkerProcesses:
     """``workers`` spawned processes (a ``concurrent.futures.ProcessPoolExecutor``), each of
-    which runs ``initializer(*initargs)`` first. Raises OSError where processes cannot start
-    (e.g. no /dev/shm for the pool's semaphores in some containers)."""
+    which runs ``initializer(*initargs)`` first, if given. Keep ``initargs`` small: a process's
+    start waits until it has imported the command's main module before it reads them, once
+    they pass a pipe's buffer (64 KiB; a truth mesh there held the demo's loop 14 s on a GPU
+    host). Raises OSError where processes cannot start (e.g. no /dev/shm for the pool's
+    semaphores in some containers)."""
 
-    def __init__(self, workers: int, initializer, *initargs):
+    def __init__(self, workers: int, initializer=None, *initargs):
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
@@ -61,13 +64,14 @@ class WorkerProcesses:
 
 def _start(initializer, initargs) -> None:
     """Set up a worker process: Ctrl-C is the command's to handle, its end skips the
-    interpreter's teardown (:func:`_exit_at_once`); then ``initializer``."""
+    interpreter's teardown (:func:`_exit_at_once`); then ``initializer``, if any."""
     import atexit
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     atexit.register(_exit_at_once)
-    initializer(*initargs)
+    if initializer is not None:
+        initializer(*initargs)
 
 
 def _exit_at_once() -> None:

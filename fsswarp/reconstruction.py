@@ -41,8 +41,8 @@ import numpy as np
 from .carving import CarveSettings, MeshJob, carve, start_mesh_workers, within
 from .errors import InputError, check_depth_tilt, check_integer
 from .compare import PoseSettings, PoseWarning, ViewComparison
-from .metrics import (average_contour_error, average_intensity_error, combine, compare_part,
-                      compare_with_truth, hold_truth, image_error)
+from .metrics import (average_contour_error, average_intensity_error, combine, compare_meshes, compare_part,
+                      image_error)
 from .pose import (BOUNDS_FACTOR, Prior, check_start, check_uncertainties, estimate_pose, fit_posterior, model_lever,
                    spans_an_area, valley_posterior)
 from .refine import RefineSettings, refine_shape
@@ -554,8 +554,8 @@ def _complete(entry: dict, comparison: ViewComparison, model, depth: float, tilt
 
 class _TruthMetrics:
     """E_V, Chamfer and F-score of recorded models against the truth mesh (None: no truth, and
-    nothing to do), computed in worker processes (``fsswarp.processes``; each holds the truth,
-    ``fsswarp.metrics.compare_with_truth``) while the loop goes on. In a thread of the loop's
+    nothing to do), computed in worker processes (``fsswarp.processes``; each job gets both
+    meshes, ``fsswarp.metrics.compare_meshes``) while the loop goes on. In a thread of the loop's
     process they held the GIL against it (coral-one 34.4 and 35.2 s on an H100, against 24.2
     and 24.7 s in a child process; bench/notes.md). ``workers`` processes (default
     :func:`truth_workers`) start at once; each compare is split into ``workers`` parts
@@ -574,7 +574,7 @@ class _TruthMetrics:
         self.pending = []  # (history entry, the futures of its parts), oldest first
         if mesh is not None:
             try:
-                self.processes = WorkerProcesses(self.workers, hold_truth, mesh, truth_threads(self.workers))
+                self.processes = WorkerProcesses(self.workers)
             except OSError as error:
                 say(f"truth metrics: worker processes could not start ({error}); computing them in this process")
 
@@ -586,8 +586,8 @@ class _TruthMetrics:
             self.processes.close()
 
     def submit(self, entry: dict, model) -> None:
-        """Start the compare of ``model`` against the truth, for ``entry``; only the vertices and
-        faces travel (a tenth of the bytes of the trimesh with its caches)."""
+        """Start the compare of ``model`` against the truth, for ``entry``: each part gets both
+        meshes' vertices and faces."""
         if self.mesh is None:
             return
         if self.processes is None:
@@ -595,8 +595,9 @@ class _TruthMetrics:
             done.set_result(compare_part(model, self.mesh, 0, 1))
             self.pending.append((entry, [done]))
             return
-        vertices, faces = np.asarray(model.vertices), np.asarray(model.faces)
-        self.pending.append((entry, [self.processes.submit(compare_with_truth, vertices, faces, part, self.workers)
+        meshes = [(np.asarray(mesh.vertices), np.asarray(mesh.faces)) for mesh in (model, self.mesh)]
+        threads = truth_threads(self.workers)
+        self.pending.append((entry, [self.processes.submit(compare_meshes, *meshes, part, self.workers, threads)
                                      for part in range(self.workers)]))
 
     def collect(self, *, wait: bool) -> None:

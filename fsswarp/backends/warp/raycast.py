@@ -61,22 +61,14 @@ class RayHit:
     face: int
 
 
-@wp.struct
-class WatertightRay:
-    """Per-ray constants of the watertight test (fss_make_ray): the dominant axis kz, kx and ky
-    (swapped to keep the winding), the shear sx, sy, sz, and the direction for the BVH query."""
-    kx: int
-    ky: int
-    kz: int
-    sx: float
-    sy: float
-    sz: float
-    query_dir: wp.vec3
-
-
 @wp.func
-def watertight_ray(dir: wp.vec3):
-    """The WatertightRay of direction ``dir``."""
+def first_hit(bvh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
+              org: wp.vec3, dir: wp.vec3, max_t: float, any_hit: bool):
+    """Nearest watertight hit of the ray in [0, max_t) (any_hit False), or the first one found
+    (any_hit True: until its first hit the search is the nearest's, so it finds one exactly
+    where the nearest does): candidates from the BVH over the triangles' boxes, each tested
+    exactly (face -1 and t = inf: none)."""
+    # dominant axis, shear constants (fss_make_ray)
     ax = wp.abs(dir[0])
     ay = wp.abs(dir[1])
     az = wp.abs(dir[2])
@@ -98,45 +90,26 @@ def watertight_ray(dir: wp.vec3):
         tmp = kx
         kx = ky
         ky = tmp
-    ray = WatertightRay()
-    ray.kx = kx
-    ray.ky = ky
-    ray.kz = kz
-    ray.sx = dir[kx] / dz
-    ray.sy = dir[ky] / dz
-    ray.sz = 1.0 / dz
+    sx = dir[kx] / dz
+    sy = dir[ky] / dz
+    sz = 1.0 / dz
     # the BVH takes 1/dir: keep zero components finite so the slab test has no 0·inf NaN
     qdir = dir
     for k in range(3):
         if qdir[k] == 0.0:
             qdir[k] = _TINY_DIR
-    ray.query_dir = qdir
-    return ray
-
-
-@wp.func
-def face_hit(points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), org: wp.vec3,
-             ray: WatertightRay, face: int, t_best: float):
-    """ray_triangle of face ``face`` for the ray from ``org``."""
-    return ray_triangle(org, ray.kx, ray.ky, ray.kz, ray.sx, ray.sy, ray.sz, points[indices[face * 3 + 0]],
-                        points[indices[face * 3 + 1]], points[indices[face * 3 + 2]], t_best)
-
-
-@wp.func
-def nearest_hit(bvh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
-                org: wp.vec3, dir: wp.vec3, max_t: float):
-    """Nearest watertight hit of the ray in [0, max_t): candidates from the BVH over the
-    triangles' boxes, each tested exactly (face -1 and t = inf: none)."""
-    ray = watertight_ray(dir)
     best = max_t
     best_face = int(-1)
-    query = wp.bvh_query_ray(bvh, org, ray.query_dir)
+    query = wp.bvh_query_ray(bvh, org, qdir)
     face = int(0)
     while wp.bvh_query_next(query, face, best * 1.000001):
-        t = face_hit(points, indices, org, ray, face, best)
+        t = ray_triangle(org, kx, ky, kz, sx, sy, sz, points[indices[face * 3 + 0]],
+                         points[indices[face * 3 + 1]], points[indices[face * 3 + 2]], best)
         if t < best or (t == best and best_face >= 0 and face < best_face):
             best = t
             best_face = face
+            if any_hit:
+                break
     hit = RayHit()
     hit.face = best_face
     if best_face >= 0:
@@ -147,17 +120,17 @@ def nearest_hit(bvh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.arr
 
 
 @wp.func
+def nearest_hit(bvh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
+                org: wp.vec3, dir: wp.vec3, max_t: float):
+    """The nearest hit of the ray in [0, max_t) (first_hit)."""
+    return first_hit(bvh, points, indices, org, dir, max_t, False)
+
+
+@wp.func
 def blocked(bvh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
             org: wp.vec3, dir: wp.vec3, max_t: float):
-    """Whether the mesh blocks the ray in [0, max_t): the first hit found ends the search (until
-    then the query is nearest_hit's, so it finds one exactly where nearest_hit does)."""
-    ray = watertight_ray(dir)
-    query = wp.bvh_query_ray(bvh, org, ray.query_dir)
-    face = int(0)
-    while wp.bvh_query_next(query, face, max_t * 1.000001):
-        if face_hit(points, indices, org, ray, face, max_t) < max_t:
-            return True
-    return False
+    """Whether the mesh blocks the ray in [0, max_t) (first_hit's any_hit)."""
+    return first_hit(bvh, points, indices, org, dir, max_t, True).face >= 0
 
 
 @wp.kernel
