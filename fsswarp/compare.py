@@ -394,11 +394,12 @@ class ViewComparison:
         launch): the band of R rows from ``first`` that holds what each view's window reads
         (``rows_read``, the widest view's R, started lower where it would pass the last row), the
         beams its masks read (``beams_read``), and the most cells whose layers (16 B per pixel of
-        the bands: four int32 layers) fit ``settings.launch_bytes``."""
+        the bands: four int32 layers) fit ``settings.launch_bytes`` and one launch's 2^31 values."""
         data, sonar = self.data, self.sonar
         need_lo, need_hi = rows_read(data.windows, len(self.smoothing[0]), sonar.bins)
         rows = int(np.max(need_hi - need_lo))
-        per = max(1, self.settings.launch_bytes // (16 * rows * sonar.beams * len(data.views)))
+        values = 4 * rows * sonar.beams * len(data.views)  # a cell's
+        per = max(1, min(self.settings.launch_bytes // (4 * values), (2**31 - 1) // values))
         return np.minimum(need_lo, sonar.bins - rows), rows, beams_read(data.masks, len(self.smoothing[1])), per
 
     def view_costs(self, depths: np.ndarray, tilts: np.ndarray, samples, cap: float, *, contours: bool = True):

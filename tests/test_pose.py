@@ -314,6 +314,19 @@ def test_view_costs_planned_ahead_are_those_planned_in_turn(coral_one, truth_mod
         np.testing.assert_array_equal(g, w)
 
 
+def test_grid_launches_hold_at_most_the_launch_bytes_and_2_31_values(coral_one, truth_model, opencl):
+    """Cells per launch: the layers' 16 B per pixel within ``launch_bytes``, and never past one
+    launch's 2^31 values (a render refuses more), however many bytes are allowed."""
+    truth = coral_one.manifest.truth
+    for size, binds in ((1 << 30, "bytes"), (1 << 40, "values")):
+        comparison = ViewComparison(coral_one, settings=PoseSettings(launch_bytes=size), backend=opencl).use(
+            truth_model, truth.depth, truth.tilt)
+        _, rows, _, per = comparison.grid_launches()
+        values = 4 * rows * coral_one.sonar.beams * len(comparison.data.views)
+        assert 4 * values * per <= size and per * values < 2**31
+        assert (4 * values * (per + 1) > size) if binds == "bytes" else ((per + 1) * values >= 2**31)
+
+
 def test_a_gpu_locates_without_the_host_copy(coral_one, truth_model, opencl, monkeypatch):
     """On a GPU, locating scans the predicted views from row 0 and leaves their host copy
     unread until ``predicted`` is read: the same data contours, anchors, shift, layers and

@@ -1,7 +1,6 @@
 """Watertight ray casting against a Warp BVH over a mesh's triangles (kernels/bvh.h, raycast.cl).
 
-``nearest_hit`` is the first hit of one ray and ``blocked`` whether anything lies on a segment
-(the render and frontal kernels use them);
+``nearest_hit`` is the first hit of one ray (the render and frontal kernels use it);
 ``cast_rays_kernel`` is ``Backend.cast_rays``: origins and directions (R,) vec3, distances
 (R,) float32 (inf: none), faces (R,) int32 (-1: none).
 """
@@ -62,12 +61,10 @@ class RayHit:
 
 
 @wp.func
-def first_hit(bvh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
-              org: wp.vec3, dir: wp.vec3, max_t: float, any_hit: bool):
-    """Nearest watertight hit of the ray in [0, max_t) (any_hit False), or the first one found
-    (any_hit True: until its first hit the search is the nearest's, so it finds one exactly
-    where the nearest does): candidates from the BVH over the triangles' boxes, each tested
-    exactly (face -1 and t = inf: none)."""
+def nearest_hit(bvh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
+                org: wp.vec3, dir: wp.vec3, max_t: float):
+    """Nearest watertight hit of the ray in [0, max_t): candidates from the BVH over the
+    triangles' boxes, each tested exactly (face -1 and t = inf: none)."""
     # dominant axis, shear constants (fss_make_ray)
     ax = wp.abs(dir[0])
     ay = wp.abs(dir[1])
@@ -108,8 +105,6 @@ def first_hit(bvh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array
         if t < best or (t == best and best_face >= 0 and face < best_face):
             best = t
             best_face = face
-            if any_hit:
-                break
     hit = RayHit()
     hit.face = best_face
     if best_face >= 0:
@@ -117,20 +112,6 @@ def first_hit(bvh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array
     else:
         hit.t = wp.inf
     return hit
-
-
-@wp.func
-def nearest_hit(bvh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
-                org: wp.vec3, dir: wp.vec3, max_t: float):
-    """The nearest hit of the ray in [0, max_t) (first_hit)."""
-    return first_hit(bvh, points, indices, org, dir, max_t, False)
-
-
-@wp.func
-def blocked(bvh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
-            org: wp.vec3, dir: wp.vec3, max_t: float):
-    """Whether the mesh blocks the ray in [0, max_t) (first_hit's any_hit)."""
-    return first_hit(bvh, points, indices, org, dir, max_t, True).face >= 0
 
 
 @wp.kernel

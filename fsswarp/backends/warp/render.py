@@ -10,7 +10,7 @@ from __future__ import annotations
 import warp as wp
 
 from ..constants import FIXED_SCALE, RAY_EPSILON, WARP_FAR
-from .raycast import blocked, nearest_hit
+from .raycast import nearest_hit
 from .sonar import MODULE_OPTIONS, KernelSonar, azimuth, beam_coordinate, bin_coordinate, elevation, nearest_index
 
 _EPS = wp.constant(RAY_EPSILON)
@@ -235,8 +235,10 @@ def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
                 want_mirror = needed_at(needed, masked, v, 1, mb)
                 if c_in > 0.0 and (want_object or want_mirror):
                     l_q = wp.length(qq)
-                    if not blocked(mesh, points, indices, org, rot * (qq / l_q), l_q - _EPS):
-                        if not blocked(mesh, points, indices, rot * qq + org, rot * w, l_pq - _EPS):
+                    leg1 = nearest_hit(mesh, points, indices, org, rot * (qq / l_q), l_q - _EPS)
+                    if leg1.face < 0:
+                        leg2 = nearest_hit(mesh, points, indices, rot * qq + org, rot * w, l_pq - _EPS)
+                        if leg2.face < 0:
                             a_s = surface_reflection * wp.pow(c * c_in, 0.5 * gamma)
                             rb = nearest_index(bin_coordinate(0.5 * (r + q), sonar))
                             if want_object:
