@@ -601,12 +601,13 @@ def pose_grid(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3,
         say(progress, out[-1])
         timing = measure(lambda: render_alone(depths.ravel(), tilts.ravel()), repeat, budget=budget)
         out.append(timed_record(bases["render alone"], side * side, timing, pairs, "cell-views", size=size,
-                                limit=physical_limit(profile, bytes_moved=mesh_bytes + pairs * 32 * rows * sonar.beams,
+                                limit=physical_limit(profile, bytes_moved=mesh_bytes + pairs * 16 * rows * sonar.beams,
                                                      ops=side * side * float(per_pair.sum()))))
         say(progress, out[-1])
-        if pairs * 8 * pixels > launch_bytes:
+        if pairs * 4 * pixels > launch_bytes or pairs * pixels >= 2**31:  # int32 layers
             out.append(skipped_record(bases["resident"], side * side, 0.0, budget,
-                                      reason=f"layers of {pairs} pairs exceed one launch ({launch_bytes >> 20} MB)"))
+                                      reason=f"layers of {pairs} pairs exceed one launch ({launch_bytes >> 20} MB "
+                                             "or 2^31 values)"))
             return out
         layers = problem.render_pairs(data.views, depths.ravel(), tilts.ravel(), settings.samples)
         index = np.tile(np.arange(views), side * side)
