@@ -41,8 +41,7 @@ import numpy as np
 from .carving import CarveSettings, MeshJob, carve, start_mesh_workers, within
 from .errors import InputError, check_depth_tilt, check_integer
 from .compare import PoseSettings, PoseWarning, ViewComparison
-from .metrics import (average_contour_error, average_intensity_error, combine, compare_meshes, compare_part,
-                      image_error)
+from .metrics import average_contour_error, average_intensity_error, combine, compare_meshes, image_error
 from .pose import (BOUNDS_FACTOR, Prior, check_start, check_uncertainties, estimate_pose, fit_posterior, model_lever,
                    spans_an_area, valley_posterior)
 from .refine import RefineSettings, refine_shape
@@ -562,7 +561,8 @@ class _TruthMetrics:
     (``fsswarp.metrics.compare_part``: equal runs of the sampled points), so that the last
     model's, which the run waits for at its end, takes a ``workers``-th of its time; each
     process's distances run on :func:`truth_threads` threads, leaving CPUs to the loop. Where
-    processes cannot start, one line said and each compare is made in this process. The values
+    processes cannot start, or one dies (killed, out of memory), one line said and each compare
+    from then on is made in this process. The values
     do not depend on where they are computed. ``collect`` writes them into the history entries,
     in order, and reports each with ``say``. A context manager: leaving it stops the processes."""
 
@@ -571,7 +571,7 @@ class _TruthMetrics:
 
         self.mesh, self.say, self.processes = mesh, say, None
         self.workers = truth_workers() if workers is None else workers
-        self.pending = []  # (history entry, the futures of its parts), oldest first
+        self.pending = []  # (history entry, the model's (vertices, faces), its parts' futures), oldest first
         if mesh is not None:
             try:
                 self.processes = WorkerProcesses(self.workers)
@@ -590,24 +590,39 @@ class _TruthMetrics:
         meshes' vertices and faces."""
         if self.mesh is None:
             return
-        if self.processes is None:
-            done = Future()
-            done.set_result(compare_part(model, self.mesh, 0, 1))
-            self.pending.append((entry, [done]))
-            return
         meshes = [(np.asarray(mesh.vertices), np.asarray(mesh.faces)) for mesh in (model, self.mesh)]
-        threads = truth_threads(self.workers)
-        self.pending.append((entry, [self.processes.submit(compare_meshes, *meshes, part, self.workers, threads)
-                                     for part in range(self.workers)]))
+        futures = None
+        if self.processes is not None:
+            threads = truth_threads(self.workers)
+            try:
+                futures = [self.processes.submit(compare_meshes, *meshes, part, self.workers, threads)
+                           for part in range(self.workers)]
+            except BrokenProcessPool:
+                self._lost()
+        self.pending.append((entry, meshes[0], futures or [self._here(meshes[0])]))
+
+    def _lost(self) -> None:
+        """A worker process died: one line said, and every compare from now on made here."""
+        if self.processes is not None:
+            self.say("truth metrics: a worker process ended unexpectedly; computing them in this process")
+            self.processes.close()
+            self.processes = None
+
+    def _here(self, model: tuple) -> Future:
+        """The compare of ``model`` (vertices, faces) made in this process, as a done Future."""
+        done = Future()
+        done.set_result(compare_meshes(model, (np.asarray(self.mesh.vertices), np.asarray(self.mesh.faces)), 0, 1))
+        return done
 
     def collect(self, *, wait: bool) -> None:
         """Fill in the finished entries (all of them, waiting, with ``wait``)."""
-        while self.pending and (wait or all(future.done() for future in self.pending[0][1])):
-            entry, futures = self.pending.pop(0)
+        while self.pending and (wait or all(future.done() for future in self.pending[0][2])):
+            entry, model, futures = self.pending.pop(0)
             try:
                 parts = [future.result() for future in futures]
             except BrokenProcessPool:
-                raise RuntimeError("a truth-metrics process ended before its compare was done") from None
+                self._lost()
+                parts = [self._here(model).result()]
             metrics = combine(self.mesh, parts)
             entry.update(E_V=metrics["E_V"], chamfer_m=metrics["chamfer_m"], fscore=metrics["fscore"])
             self.say(f"iteration {entry['iteration']} against the truth: E_V {entry['E_V']:.3f}, Chamfer "

@@ -152,6 +152,36 @@ def test_truth_metrics_in_the_child_process_are_compares_and_raise_its_errors():
     assert (here["E_V"], here["chamfer_m"], here["fscore"]) == (want["E_V"], want["chamfer_m"], want["fscore"])
 
 
+@pytest.mark.parametrize("killed", ["before the submit", "after the submit"])
+def test_truth_metrics_of_a_dead_process_are_made_here(killed):
+    """A worker process killed (out of memory, say), whether the pool knows it at the submit or
+    only at the collect: one line, the same values made in this process, and no process from
+    then on."""
+    import signal
+
+    truth = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
+    models = [trimesh.creation.icosphere(subdivisions=2, radius=r) for r in (0.105, 0.11)]
+    entries, lines = [{"iteration": 0}, {"iteration": 1}], []
+    with reconstruct_module._TruthMetrics(truth, lines.append, workers=2) as metrics:
+        children = processes_of(metrics)
+        if killed == "after the submit":
+            metrics.submit(entries[0], models[0])
+        for child in children:
+            os.kill(child.pid, signal.SIGKILL)
+        for child in children:
+            child.join()
+        if killed == "before the submit":
+            metrics.submit(entries[0], models[0])
+        metrics.submit(entries[1], models[1])
+        metrics.collect(wait=True)
+        assert metrics.processes is None
+    for entry, model in zip(entries, models):
+        want = compare(model, truth)
+        assert (entry["E_V"], entry["chamfer_m"], entry["fscore"]) == (want["E_V"], want["chamfer_m"], want["fscore"])
+    assert [line for line in lines if "ended unexpectedly" in line] == [
+        "truth metrics: a worker process ended unexpectedly; computing them in this process"]
+
+
 def processes_of(metrics) -> list:
     """The processes of a _TruthMetrics (started with it)."""
     return list(metrics.processes.pool._processes.values())
