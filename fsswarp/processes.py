@@ -25,11 +25,11 @@ def worker_count(variable: str, default: int) -> int:
 
 class WorkerProcesses:
     """``workers`` spawned processes (a ``concurrent.futures.ProcessPoolExecutor``), each of
-    which runs ``initializer(*initargs)`` first, if given. Keep ``initargs`` small: a process's
-    start waits until it has imported the command's main module before it reads them, once
-    they pass a pipe's buffer (64 KiB; a truth mesh there held the demo's loop 14 s on a GPU
-    host). Raises OSError where processes cannot start (e.g. no /dev/shm for the pool's
-    semaphores in some containers)."""
+    which runs ``initializer(*initargs)`` first, if given. Keep ``initargs`` small: once they
+    pass a pipe's buffer (64 KiB), each process's start waits until the process has read them,
+    after its start-up imports (the command's script, the modules their unpickling needs; a
+    truth mesh there held the demo's loop 14 s on a GPU host). Raises OSError where processes
+    cannot start (e.g. no /dev/shm for the pool's semaphores in some containers)."""
 
     def __init__(self, workers: int, initializer=None, *initargs):
         import multiprocessing
