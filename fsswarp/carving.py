@@ -515,7 +515,8 @@ def start_mesh_workers():
         if not _MESH_PROCESSES:
             atexit.register(_stop_mesh_workers)
         try:
-            _MESH_PROCESSES[workers] = WorkerProcesses(workers, _start_mesh_process)
+            _MESH_PROCESSES[workers] = WorkerProcesses(workers, _start_mesh_process,
+                                                       lost=lambda: _lost_mesh_workers(workers))
         except OSError as err:
             _MESH_PROCESSES[workers] = None
             warnings.warn(f"mesh processes could not start ({err}); making carvings' meshes in this process "
@@ -547,30 +548,16 @@ class MeshJob:
     host, mostly manifold3d's decimation, which holds the GIL) made side by side."""
 
     def __init__(self, voxels: VoxelCarving, *, smooth: int = 10, faces: int = 20_000):
-        from concurrent.futures.process import BrokenProcessPool
-
         self.arguments = (voxels, smooth, faces)
-        self.future = self.mesh = None
-        processes = start_mesh_workers()
-        if processes is not None:
-            try:
-                self.future = processes.submit(_mesh_in_process, *self.arguments)
-            except BrokenProcessPool:
-                _lost_mesh_workers()
+        self.processes, self.mesh = start_mesh_workers(), None
+        self.future = None if self.processes is None else self.processes.submit(_mesh_in_process, *self.arguments)
 
     def result(self):
         """The trimesh; raises what ``voxel_mesh`` raised, and issues the warnings it issued.
         Where a mesh process died (e.g. killed for memory), the mesh is made here instead."""
-        from concurrent.futures.process import BrokenProcessPool
-
         if self.mesh is None:
             voxels, smooth, faces = self.arguments
-            made = None
-            if self.future is not None:
-                try:
-                    made = self.future.result()
-                except BrokenProcessPool:
-                    _lost_mesh_workers()
+            made = None if self.future is None else self.processes.outcome(self.future)
             if made is None:
                 self.mesh = voxel_mesh(voxels, smooth=smooth, faces=faces)
             else:
@@ -583,15 +570,12 @@ class MeshJob:
         return self.mesh
 
 
-def _lost_mesh_workers() -> None:
-    """A mesh process died: a CarveWarning, and the mesh processes are stopped; every mesh from
-    now on is made in this process."""
-    for workers, processes in _MESH_PROCESSES.items():
-        if processes is not None:
-            processes.close()
-            _MESH_PROCESSES[workers] = None
-            warnings.warn("a mesh process ended unexpectedly (killed, or out of memory); making carvings' meshes in "
-                          "this process from now on", CarveWarning, stacklevel=3)
+def _lost_mesh_workers(workers: int) -> None:
+    """The mesh processes of ``workers`` broke (a process died; ``WorkerProcesses``' ``lost``):
+    a CarveWarning, and every mesh from now on is made in this process."""
+    _MESH_PROCESSES[workers] = None
+    warnings.warn("a mesh process ended unexpectedly (killed, or out of memory); making carvings' meshes in "
+                  "this process from now on", CarveWarning, stacklevel=5)
 
 
 def _mesh_in_process(voxels: VoxelCarving, smooth: int, faces: int):

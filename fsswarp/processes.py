@@ -29,13 +29,17 @@ class WorkerProcesses:
     pass a pipe's buffer (64 KiB), each process's start waits until the process has read them,
     after its start-up imports (the command's script, the modules their unpickling needs; a
     truth mesh there held the demo's loop 14 s on a GPU host). Raises OSError where processes
-    cannot start (e.g. no /dev/shm for the pool's semaphores in some containers)."""
+    cannot start (e.g. no /dev/shm for the pool's semaphores in some containers).
 
-    def __init__(self, workers: int, initializer=None, *initargs):
+    A process that dies (killed, out of memory) breaks the pool: it is closed, ``lost()`` is
+    called once, and from then on :meth:`submit` and :meth:`outcome` give None, for the caller
+    to do its jobs itself."""
+
+    def __init__(self, workers: int, initializer=None, *initargs, lost=lambda: None):
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
-        self.workers = workers
+        self.workers, self.lost, self.broken = workers, lost, False
         self.pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
                                         initializer=_start, initargs=(initializer, initargs))
         try:
@@ -46,16 +50,40 @@ class WorkerProcesses:
             raise
 
     def submit(self, function, *args, **kwargs):
-        """``function(*args, **kwargs)`` in a process: a Future. SIGINT is blocked in this thread
-        meanwhile: a process that the submit starts inherits the mask, so a Ctrl-C that comes
-        before its initializer ignores SIGINT reaches the command alone."""
+        """``function(*args, **kwargs)`` in a process: a Future, or None where the pool is broken.
+        SIGINT is blocked in this thread meanwhile: a process that the submit starts inherits the
+        mask, so a Ctrl-C that comes before its initializer ignores SIGINT reaches the command alone."""
         import signal
+        from concurrent.futures.process import BrokenProcessPool
 
+        if self.broken:
+            return None
         blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
         try:
             return self.pool.submit(function, *args, **kwargs)
+        except BrokenProcessPool:
+            self._break()
+            return None
         finally:
             signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
+
+    def outcome(self, future):
+        """``future.result()`` of a :meth:`submit` (raising what the job raised), or None where a
+        process died before it was done."""
+        from concurrent.futures.process import BrokenProcessPool
+
+        try:
+            return future.result()
+        except BrokenProcessPool:
+            self._break()
+            return None
+
+    def _break(self) -> None:
+        """The pool is broken: close it and call ``lost``, once."""
+        if not self.broken:
+            self.broken = True
+            self.close()
+            self.lost()
 
     def close(self) -> None:
         """Stop the processes (a job being run is finished first; jobs not started are dropped)."""

@@ -31,8 +31,6 @@ import dataclasses
 import math
 import time
 import warnings
-from concurrent.futures import Future
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -562,19 +560,20 @@ class _TruthMetrics:
     model's, which the run waits for at its end, takes a ``workers``-th of its time; each
     process's distances run on :func:`truth_threads` threads, leaving CPUs to the loop. Where
     processes cannot start, or one dies (killed, out of memory), one line said and each compare
-    from then on is made in this process. The values
-    do not depend on where they are computed. ``collect`` writes them into the history entries,
-    in order, and reports each with ``say``. A context manager: leaving it stops the processes."""
+    from then on is made in this process, when collected. The values do not depend on where they
+    are computed. ``collect`` writes them into the history entries, in order, and reports each
+    with ``say``. A context manager: leaving it stops the processes."""
 
     def __init__(self, mesh, say: Callable[[str], None], workers: int | None = None):
         from .processes import WorkerProcesses
 
         self.mesh, self.say, self.processes = mesh, say, None
         self.workers = truth_workers() if workers is None else workers
-        self.pending = []  # (history entry, the model's (vertices, faces), its parts' futures), oldest first
+        self.pending = []  # (history entry, the model's (vertices, faces), its parts' futures or None), oldest first
         if mesh is not None:
+            self.truth = (np.asarray(mesh.vertices), np.asarray(mesh.faces))
             try:
-                self.processes = WorkerProcesses(self.workers)
+                self.processes = WorkerProcesses(self.workers, lost=self._lost)
             except OSError as error:
                 say(f"truth metrics: worker processes could not start ({error}); computing them in this process")
 
@@ -587,46 +586,38 @@ class _TruthMetrics:
 
     def submit(self, entry: dict, model) -> None:
         """Start the compare of ``model`` against the truth, for ``entry``: each part gets both
-        meshes' vertices and faces."""
+        meshes' vertices and faces. Without processes it is made when collected."""
         if self.mesh is None:
             return
-        meshes = [(np.asarray(mesh.vertices), np.asarray(mesh.faces)) for mesh in (model, self.mesh)]
-        futures = None
-        if self.processes is not None:
-            threads = truth_threads(self.workers)
-            try:
-                futures = [self.processes.submit(compare_meshes, *meshes, part, self.workers, threads)
-                           for part in range(self.workers)]
-            except BrokenProcessPool:
-                self._lost()
-        self.pending.append((entry, meshes[0], futures or [self._here(meshes[0])]))
+        estimate, processes = (np.asarray(model.vertices), np.asarray(model.faces)), self.processes
+        futures = None if processes is None else [
+            processes.submit(compare_meshes, estimate, self.truth, part, self.workers, truth_threads(self.workers))
+            for part in range(self.workers)]
+        self.pending.append((entry, estimate, processes, futures))
 
     def _lost(self) -> None:
-        """A worker process died: one line said, and every compare from now on made here."""
-        if self.processes is not None:
-            self.say("truth metrics: a worker process ended unexpectedly; computing them in this process")
-            self.processes.close()
-            self.processes = None
-
-    def _here(self, model: tuple) -> Future:
-        """The compare of ``model`` (vertices, faces) made in this process, as a done Future."""
-        done = Future()
-        done.set_result(compare_meshes(model, (np.asarray(self.mesh.vertices), np.asarray(self.mesh.faces)), 0, 1))
-        return done
+        """A worker process died (``WorkerProcesses``' ``lost``): one line said, and every compare
+        from now on made here."""
+        self.say("truth metrics: a worker process ended unexpectedly; computing them in this process")
+        self.processes = None
 
     def collect(self, *, wait: bool) -> None:
         """Fill in the finished entries (all of them, waiting, with ``wait``)."""
-        while self.pending and (wait or all(future.done() for future in self.pending[0][2])):
-            entry, model, futures = self.pending.pop(0)
-            try:
-                parts = [future.result() for future in futures]
-            except BrokenProcessPool:
-                self._lost()
-                parts = [self._here(model).result()]
+        while self.pending and (wait or _collectable(self.pending[0][3])):
+            entry, estimate, processes, futures = self.pending.pop(0)
+            parts = None if futures is None or None in futures else [processes.outcome(f) for f in futures]
+            if parts is None or None in parts:  # no processes, or one died: made here
+                parts = [compare_meshes(estimate, self.truth, 0, 1)]
             metrics = combine(self.mesh, parts)
             entry.update(E_V=metrics["E_V"], chamfer_m=metrics["chamfer_m"], fscore=metrics["fscore"])
             self.say(f"iteration {entry['iteration']} against the truth: E_V {entry['E_V']:.3f}, Chamfer "
                      f"{entry['chamfer_m'] * 1e3:.2f} mm, F {entry['fscore']:.3f}")
+
+
+def _collectable(futures) -> bool:
+    """Whether a truth compare's parts (``_TruthMetrics.pending``) can be collected without
+    waiting: all done, or made here (no processes, or one died)."""
+    return futures is None or None in futures or all(future.done() for future in futures)
 
 
 def truth_workers() -> int:

@@ -43,3 +43,23 @@ def test_worker_count_reads_its_variable(monkeypatch):
         monkeypatch.setenv("FSSWARP_TEST_WORKERS", bad)
         with pytest.raises(InputError, match=f"FSSWARP_TEST_WORKERS = '{bad}': must be an integer from 0 to 64"):
             worker_count("FSSWARP_TEST_WORKERS", 5)
+
+
+def test_a_process_that_dies_breaks_the_pool_once():
+    """Processes killed: a job submitted then gets no outcome (None, or no future at all), the
+    pool closes, ``lost`` is called once, and every later submit gives None (the caller does the
+    job itself)."""
+    losses = []
+    processes = WorkerProcesses(2, lost=lambda: losses.append(1))
+    try:
+        assert processes.outcome(processes.submit(_where))[0] != os.getpid()
+        children = list(processes.pool._processes.values())
+        for child in children:
+            os.kill(child.pid, signal.SIGKILL)
+        for child in children:
+            child.join()
+        job = processes.submit(_where)  # None where the pool knows already
+        assert job is None or processes.outcome(job) is None
+        assert processes.submit(_where) is None and processes.broken and losses == [1]
+    finally:
+        processes.close()

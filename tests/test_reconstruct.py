@@ -139,7 +139,7 @@ def test_truth_metrics_in_the_child_process_are_compares_and_raise_its_errors():
             metrics.collect(wait=True)
     assert [child.exitcode for child in children] == [0]
 
-    def cannot_start(*args):
+    def cannot_start(*args, **kwargs):
         raise OSError("no /dev/shm")
 
     here, lines = {"iteration": 2}, []
