@@ -827,37 +827,39 @@ def ray_spans(bounds: np.ndarray, sonar: SonarSpec, rotations: np.ndarray, trans
     azimuths of a convex set ahead of the sonar (y > 0) lie between its corners'; its elevation
     atan(z/ρ) lies between the corners' least and most z over the least ρ (>= the least y) or
     the most; ± SPAN_MARGIN. Every sub-ray of a box not wholly ahead; zeros where none is
-    reached. About 1 µs a view."""
+    reached. About 0.5 µs a view."""
     corners = np.array(np.meshgrid(*np.asarray(bounds, np.float32).T, indexing="ij")).reshape(3, -1).T  # (8, 3)
     rot = np.asarray(rotations, np.float32)  # float32 as the kernels: far inside SPAN_MARGIN
     normal, offset = np.asarray(plane_normals, np.float32), np.asarray(plane_offsets, np.float32)
     origin = np.einsum("nji,nj->ni", rot, np.asarray(translations, np.float32))  # Rᵀ t
-    direct = np.tensordot(rot, corners, axes=([1], [1])) - origin[:, :, None]  # (N, 3, 8) view frame
-    height = np.einsum("nik,ni->nk", direct, normal) - offset[:, None]
-    mirror = direct - 2.0 * normal[:, :, None] * height[:, None]
-    x, y, z = (np.stack([direct[:, k], mirror[:, k]], axis=1) for k in range(3))  # (N, 2, 8): the box, its image
-    ahead = np.all(y > 0.0, axis=2)  # (N, 2): the box ahead of the sonar
-    y = np.where(ahead[..., None], y, 1.0)
+    # the corners lead and the views run along the last axis: the reductions over the 8 corners
+    # are then elementwise over long rows
+    x, y, z = boxes = np.empty((3, 2, 8, rot.shape[0]), np.float32)  # the box, its image
+    boxes[:, 0] = (np.tensordot(rot, corners, axes=([1], [1])) - origin[:, :, None]).transpose(1, 2, 0)
+    height = x[0] * normal[:, 0] + y[0] * normal[:, 1] + z[0] * normal[:, 2] - offset  # (8, N)
+    boxes[:, 1] = boxes[:, 0] - 2.0 * normal.T[:, None, :] * height
+    ahead = np.all(y > 0.0, axis=1)  # (2, N): the box ahead of the sonar
+    np.copyto(y, np.float32(1.0), where=~ahead[:, None])
     slopes = x / y  # tan(azimuth)
-    lo = np.where(ahead, np.arctan(slopes.min(axis=2)) - SPAN_MARGIN, -np.inf)
-    hi = np.where(ahead, np.arctan(slopes.max(axis=2)) + SPAN_MARGIN, np.inf)
+    lo = np.where(ahead, np.arctan(slopes.min(axis=1)) - SPAN_MARGIN, -np.inf)
+    hi = np.where(ahead, np.arctan(slopes.max(axis=1)) + SPAN_MARGIN, np.inf)
     centres = np.asarray(sonar.beam_centres, np.float64)
     half = 0.5 * np.asarray(sonar.beam_widths, np.float64)
     uppers = np.maximum.accumulate(centres + half)  # nondecreasing: the first beam reaching lo
     lowers = np.minimum.accumulate((centres - half)[::-1])[::-1]  # the last beam starting below hi
     first, end = np.searchsorted(uppers, lo, side="left"), np.searchsorted(lowers, hi, side="right")
-    near, far = y.min(axis=2), np.sqrt(x * x + y * y).max(axis=2)  # bounds of ρ per box
-    low, high = z.min(axis=2), z.max(axis=2)
+    near, far = y.min(axis=1), np.sqrt(x * x + y * y).max(axis=1)  # bounds of ρ per box
+    low, high = z.min(axis=1), z.max(axis=1)
     down = np.arctan(low / np.where(low < 0.0, near, far)) - SPAN_MARGIN
     up = np.arctan(high / np.where(high > 0.0, near, far)) + SPAN_MARGIN
     step = 2.0 * sonar.half_elevation / k_phi  # sample j at −half_elevation + (j + 0.5) step
     j_first = np.where(ahead, np.ceil((down + sonar.half_elevation) / step - 0.5), 0).clip(0, k_phi)
     j_end = np.where(ahead, np.floor((up + sonar.half_elevation) / step - 0.5) + 1, k_phi).clip(0, k_phi)
-    reached = (first < end) & (j_first < j_end)  # (N, 2) the box, the mirror image
+    reached = (first < end) & (j_first < j_end)  # (2, N) the box, the mirror image
     most = np.iinfo(np.int64).max
-    spans = np.stack([np.where(reached, first, most).min(axis=1), np.where(reached, end, 0).max(axis=1),
-                      np.where(reached, j_first, most).min(axis=1), np.where(reached, j_end, 0).max(axis=1)], axis=1)
-    spans[~reached.any(axis=1)] = 0
+    spans = np.stack([np.where(reached, first, most).min(axis=0), np.where(reached, end, 0).max(axis=0),
+                      np.where(reached, j_first, most).min(axis=0), np.where(reached, j_end, 0).max(axis=0)], axis=1)
+    spans[~reached.any(axis=0)] = 0
     return spans.astype(np.int32)
 
 
