@@ -61,10 +61,10 @@ class RayHit:
 
 
 @wp.func
-def nearest_hit(bvh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
-                org: wp.vec3, dir: wp.vec3, max_t: float):
+def nearest_hit(bvh: wp.uint64, corners: wp.array(dtype=wp.vec3), org: wp.vec3, dir: wp.vec3, max_t: float):
     """Nearest watertight hit of the ray in [0, max_t): candidates from the BVH over the
-    triangles' boxes, each tested exactly (face -1 and t = inf: none)."""
+    triangles' boxes, each tested exactly (face -1 and t = inf: none). corners (3F,): the
+    corners of face f at 3f, 3f + 1, 3f + 2 (``WarpMesh.corners``)."""
     # dominant axis, shear constants (fss_make_ray)
     ax = wp.abs(dir[0])
     ay = wp.abs(dir[1])
@@ -100,8 +100,8 @@ def nearest_hit(bvh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.arr
     query = wp.bvh_query_ray(bvh, org, qdir)
     face = int(0)
     while wp.bvh_query_next(query, face, best * 1.000001):
-        t = ray_triangle(org, kx, ky, kz, sx, sy, sz, points[indices[face * 3 + 0]],
-                         points[indices[face * 3 + 1]], points[indices[face * 3 + 2]], best)
+        t = ray_triangle(org, kx, ky, kz, sx, sy, sz, corners[face * 3 + 0],
+                         corners[face * 3 + 1], corners[face * 3 + 2], best)
         if t < best or (t == best and best_face >= 0 and face < best_face):
             best = t
             best_face = face
@@ -115,13 +115,12 @@ def nearest_hit(bvh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.arr
 
 
 @wp.kernel
-def cast_rays_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
-                     indices: wp.array(dtype=wp.int32), origins: wp.array(dtype=wp.vec3),
+def cast_rays_kernel(mesh: wp.uint64, corners: wp.array(dtype=wp.vec3), origins: wp.array(dtype=wp.vec3),
                      directions: wp.array(dtype=wp.vec3), max_distance: float,
                      distance_out: wp.array(dtype=float), face_out: wp.array(dtype=wp.int32)):
     """Thread i: nearest hit of ray i within max_distance (inf and -1 if none)."""
     i = wp.tid()
-    hit = nearest_hit(mesh, points, indices, origins[i], directions[i], max_distance)
+    hit = nearest_hit(mesh, corners, origins[i], directions[i], max_distance)
     if hit.face >= 0:
         distance_out[i] = hit.t
         face_out[i] = hit.face

@@ -25,19 +25,18 @@ wp.set_module_options({**MODULE_OPTIONS, "block_dim": RAY_BLOCK})
 
 
 @wp.func
-def face_normal(points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), face: int):
+def face_normal(corners: wp.array(dtype=wp.vec3), face: int):
     """Unit geometric normal cross(v1 − v0, v2 − v0) of a triangle (reference frame)."""
-    v0 = points[indices[face * 3 + 0]]
-    v1 = points[indices[face * 3 + 1]]
-    v2 = points[indices[face * 3 + 2]]
+    v0 = corners[face * 3 + 0]
+    v1 = corners[face * 3 + 1]
+    v2 = corners[face * 3 + 2]
     return wp.normalize(wp.cross(v1 - v0, v2 - v0))
 
 
 @wp.func
-def facing_normal(points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), face: int,
-                  r: wp.mat33, u: wp.vec3):
+def facing_normal(corners: wp.array(dtype=wp.vec3), face: int, r: wp.mat33, u: wp.vec3):
     """View-frame normal Rᵀ N of a face, turned against the view-frame direction u (u·N <= 0)."""
-    n = wp.transpose(r) * face_normal(points, indices, face)
+    n = wp.transpose(r) * face_normal(corners, face)
     if wp.dot(u, n) > 0.0:
         n = -n
     return n
@@ -64,7 +63,7 @@ def needed_at(needed: wp.array3d(dtype=wp.uint8), masked: int, v: int, c: int, b
 
 
 @wp.kernel
-def frontal_rays_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
+def frontal_rays_kernel(mesh: wp.uint64, corners: wp.array(dtype=wp.vec3),
                         rotations: wp.array(dtype=wp.mat33), translations: wp.array(dtype=wp.vec3),
                         plane_normals: wp.array(dtype=wp.vec3), plane_offsets: wp.array(dtype=float),
                         views: wp.array(dtype=wp.int32), azimuths: wp.array(dtype=float), mirror: int,
@@ -88,7 +87,7 @@ def frontal_rays_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indice
     s = float(wp.inf)
     if up > 0.0:
         s = d / up
-    hit = nearest_hit(mesh, points, indices, org, rot * u, max_distance)
+    hit = nearest_hit(mesh, corners, org, rot * u, max_distance)
     rng = float(wp.inf)
     face = int(-1)
     if mirror == 0:
@@ -98,12 +97,12 @@ def frontal_rays_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indice
     elif s < hit.t:
         q = s * u
         w = u - (2.0 * up) * n
-        leg = nearest_hit(mesh, points, indices, rot * (q + epsilon * w) + org, rot * w, max_distance)
+        leg = nearest_hit(mesh, corners, rot * (q + epsilon * w) + org, rot * w, max_distance)
         if leg.face >= 0:
             r2 = leg.t + epsilon
             p = q + r2 * w
             length = wp.length(p)
-            back = nearest_hit(mesh, points, indices, org, rot * (p / length), max_distance)
+            back = nearest_hit(mesh, corners, org, rot * (p / length), max_distance)
             if (wp.abs(elevation(p)) <= sonar.half_elevation and wp.abs(azimuth(p)) <= sonar.half_azimuth
                     and back.t >= length - visible):
                 rng = 0.5 * (length + s + r2)
@@ -137,7 +136,7 @@ def span_item(spans: wp.array2d(dtype=wp.int32), row: int, o: int, k: int, k_the
 
 
 @wp.kernel
-def direct_hits_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
+def direct_hits_kernel(mesh: wp.uint64, corners: wp.array(dtype=wp.vec3),
                        rotations: wp.array(dtype=wp.mat33), translations: wp.array(dtype=wp.vec3),
                        directions: wp.array3d(dtype=wp.vec3), k_theta: int, spans: wp.array2d(dtype=wp.int32),
                        hit_range: wp.array4d(dtype=float), hit_face: wp.array4d(dtype=wp.int32)):
@@ -152,14 +151,13 @@ def direct_hits_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices
     i = item[1]
     j = item[2]
     u = directions[b, i, j]
-    hit = nearest_hit(mesh, points, indices, translations[p], rotations[p] * u, _FAR)
+    hit = nearest_hit(mesh, corners, translations[p], rotations[p] * u, _FAR)
     hit_range[p, b, i, j] = hit.t
     hit_face[p, b, i, j] = hit.face
 
 
 @wp.kernel
-def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
-                  indices: wp.array(dtype=wp.int32), rotations: wp.array(dtype=wp.mat33),
+def render_kernel(mesh: wp.uint64, corners: wp.array(dtype=wp.vec3), rotations: wp.array(dtype=wp.mat33),
                   translations: wp.array(dtype=wp.vec3), plane_normals: wp.array(dtype=wp.vec3),
                   plane_offsets: wp.array(dtype=float), directions: wp.array3d(dtype=wp.vec3),
                   beam_table: wp.array2d(dtype=float), sonar: KernelSonar, k_theta: int, weight: float, gamma: float,
@@ -206,12 +204,12 @@ def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
         r = hit_range[pose, b, i, j]
         face = hit_face[pose, b, i, j]
     else:
-        hit = nearest_hit(mesh, points, indices, org, rot * u, _FAR)
+        hit = nearest_hit(mesh, corners, org, rot * u, _FAR)
         r = hit.t
         face = hit.face
     if face >= 0 and r < s:
         # 3. hit before the surface
-        nrm = facing_normal(points, indices, face, rot, u)
+        nrm = facing_normal(corners, face, rot, u)
         c = -wp.dot(u, nrm)
         want_object = needed_at(needed, masked, v, 0, b)
         if want_object:
@@ -235,9 +233,9 @@ def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
                 want_mirror = needed_at(needed, masked, v, 1, mb)
                 if c_in > 0.0 and (want_object or want_mirror):
                     l_q = wp.length(qq)
-                    leg1 = nearest_hit(mesh, points, indices, org, rot * (qq / l_q), l_q - _EPS)
+                    leg1 = nearest_hit(mesh, corners, org, rot * (qq / l_q), l_q - _EPS)
                     if leg1.face < 0:
-                        leg2 = nearest_hit(mesh, points, indices, rot * qq + org, rot * w, l_pq - _EPS)
+                        leg2 = nearest_hit(mesh, corners, rot * qq + org, rot * w, l_pq - _EPS)
                         if leg2.face < 0:
                             a_s = surface_reflection * wp.pow(c * c_in, 0.5 * gamma)
                             rb = nearest_index(bin_coordinate(0.5 * (r + q), sonar))
@@ -250,10 +248,10 @@ def render_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
         qs = s * u
         u2 = u - (2.0 * nu) * n
         dir2 = rot * u2
-        hit2 = nearest_hit(mesh, points, indices, rot * qs + org + _EPS * dir2, dir2, _FAR)
+        hit2 = nearest_hit(mesh, corners, rot * qs + org + _EPS * dir2, dir2, _FAR)
         if hit2.face >= 0:
             r2 = _EPS + hit2.t
-            nrm2 = facing_normal(points, indices, hit2.face, rot, u2)
+            nrm2 = facing_normal(corners, hit2.face, rot, u2)
             c2 = -wp.dot(u2, nrm2)
             deposit(acc, v, 3, nearest_index(bin_coordinate(s + r2, sonar)), b,
                     surface_reflection * surface_reflection * wp.pow(c2, gamma), weight, sonar.beams, first)
