@@ -231,8 +231,9 @@ class Backend(abc.ABC):
         """Upload a triangle mesh once for many launches; returns an opaque handle.
 
         vertices : (Nv, 3) float, faces : (Nf, 3) int, indices into vertices (Nf >= 1)
-        The handle keeps the device copy (Warp: ``wp.Mesh``; OpenCL: a flattened BVH) and the
-        vertices' box, ``bounds`` (2, 3) float64 (lower, upper)."""
+        The handle keeps the device copy (Warp: a ``wp.Bvh`` and the triangles' corners; OpenCL:
+        a flattened BVH, ``fsswarp.backends.bvh``) and the vertices' box, ``bounds`` (2, 3)
+        float64 (lower, upper)."""
         verts = real_array("vertices", vertices, ("Nv", 3))
         tris = np.asarray(faces)
         if tris.ndim != 2 or tris.shape[1] != 3 or tris.shape[0] == 0 or tris.dtype.kind not in "iu":
