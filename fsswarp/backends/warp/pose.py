@@ -43,7 +43,8 @@ def frontal_contour(layers: wp.array4d(dtype=Any), scale: float, first_rows: wp.
                     w_beam: wp.array(dtype=float), r_beam: int, contour: wp.array3d(dtype=float)):
     """Thread (n, c, b): first threshold crossing of the smoothed component c of pair n in beam b.
     layers (N, 4, R, beams) float32 (scale 1) or fixed-point int32 (scale 2^-24): image row B of
-    pair n at row B − first_rows[n] (full layers: zeros, R = bins); rows clamp to the image, and the host guarantees the band holds every row read.
+    pair n at row B − first_rows[n] (full layers: zeros, R = bins); rows clamp to the image,
+    and the host guarantees the band holds every row read.
     Each row's beam smoothing is summed once into a ring of the last 2 r_range + 1 rows
     (at most RING_TAPS; else afresh per tap): the same sums in the same order."""
     n, c, b = wp.tid()
