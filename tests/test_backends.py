@@ -271,6 +271,24 @@ def test_warp_uploads_several_inputs_as_views_of_one_array(backend_for_label):
     assert got[2].ptr == got[0].ptr + rotations.size * 4  # the next run of the one upload
 
 
+def test_opencl_keeps_a_launchs_buffers_until_its_queue_finishes(backend_for_label, monkeypatch):
+    """``OpenCLBackend._finish``: the buffers handed to a launch (its inputs and results) are
+    still held when the queue is waited for, and released right after (NVIDIA's OpenCL would
+    stall every thread on a buffer released while its kernel runs)."""
+    backend = backend_for_label("opencl-cpu")
+    held_at_finish = []
+    finish = backend._finish
+
+    def recording_finish():
+        held_at_finish.append(len(backend._held))
+        finish()
+    monkeypatch.setattr(backend, "_finish", recording_finish)
+    points, rotations, translations = random_scene(seed=7)
+    beam, _, _ = backend.project(points, rotations, translations, SONARS["linear"]())
+    assert held_at_finish == [7]  # points, rotations, translations, beam table; beam, bin, inside
+    assert backend._held == [] and beam.shape == (len(rotations), len(points))
+
+
 def test_get_backend_is_cached():
     auto = get_backend()
     assert get_backend("auto") is auto

@@ -54,18 +54,35 @@ class OpenCLBackend(Backend):
         self.has_float64 = "cl_khr_fp64" in found.device.extensions.split()
         self._icp_kernel = cl.Kernel(program(self.context, "icp.cl"), "icp_runs") if self.has_float64 else None
         self._lock = threading.Lock()
+        self._held = []  # buffers handed to queued kernels, released after the queue finishes (_finish)
         self._kept_layers = []  # (layers buffer, weak reference to its holder) kept on a CPU device (_layers_buffer)
 
     def _input(self, array: np.ndarray) -> cl.Buffer:
-        flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
-        return cl.Buffer(self.context, flags, hostbuf=array)
+        """A buffer holding a copy of ``array``, kept until the queue finishes (``_finish``)."""
+        buffer = cl.Buffer(self.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=array)
+        self._held.append(buffer)
+        return buffer
+
+    def _scratch(self, nbytes: int) -> cl.Buffer:
+        """A device buffer of ``nbytes`` for a kernel's results, kept until the queue finishes."""
+        buffer = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=max(nbytes, 4))
+        self._held.append(buffer)
+        return buffer
+
+    def _finish(self) -> None:
+        """Wait for the queue, then release the buffers its kernels used. NVIDIA's OpenCL makes
+        ``clReleaseMemObject`` wait for the kernels that use the buffer, and pyopencl calls it
+        holding the GIL: a buffer dropped after its launch stalls every thread until that kernel
+        ends (docs/decisions.md, "OpenCL buffers are released after the queue finishes")."""
+        self.queue.finish()
+        self._held.clear()
 
     def _upload(self, array: np.ndarray) -> cl.Buffer:
         return self._input(array)
 
     def _output(self, shape: tuple[int, ...], dtype) -> tuple[np.ndarray, cl.Buffer]:
         host = np.empty(shape, dtype)
-        return host, cl.Buffer(self.context, cl.mem_flags.WRITE_ONLY, size=host.nbytes)
+        return host, self._scratch(host.nbytes)
 
     def _project(self, points, rotations, translations, sonar: SonarConstants):
         n_views, n_points = rotations.shape[0], points.shape[0]
@@ -81,7 +98,7 @@ class OpenCLBackend(Backend):
                 beam_buf, bin_buf, inside_buf)
             for host, buf in ((beam, beam_buf), (bin_, bin_buf), (inside, inside_buf)):
                 cl.enqueue_copy(self.queue, host, buf, is_blocking=False)
-            self.queue.finish()
+            self._finish()
         return beam, bin_, inside
 
     def _prepared_carve(self, integral, rotations, translations, sonar: SonarConstants, voxel_size, radius, origin,
@@ -106,12 +123,12 @@ class OpenCLBackend(Backend):
         def launch():
             with self._lock:
                 kernel(self.queue, global_size, None, *args)
-                self.queue.finish()
+                self._finish()
 
         def read():
             for host, buf in outputs:
                 cl.enqueue_copy(self.queue, host, buf, is_blocking=False)
-            self.queue.finish()
+            self._finish()
             return tuple(host.copy() for host, _ in outputs)
         return PreparedLaunch(launch, read)
 
@@ -144,7 +161,7 @@ class OpenCLBackend(Backend):
 
         def device_to_device():
             cl.enqueue_copy(self.queue, target, source, byte_count=host.nbytes)
-            self.queue.finish()
+            self._finish()
 
         def host_to_device():
             cl.enqueue_copy(self.queue, source, host, is_blocking=True)
@@ -169,7 +186,7 @@ class OpenCLBackend(Backend):
                 rng_buf, face_buf)
             cl.enqueue_copy(self.queue, rng, rng_buf, is_blocking=False)
             cl.enqueue_copy(self.queue, face, face_buf, is_blocking=False)
-            self.queue.finish()
+            self._finish()
         return rng, face
 
     def _render(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations,
@@ -183,7 +200,7 @@ class OpenCLBackend(Backend):
             self._enqueue_render(mesh, sonar, beam_widths, rotations, translations, plane_normals, plane_offsets,
                                  k_theta, k_phi, gamma, surface_reflection, first_rows, spans, shape, layers_buf,
                                  shared=shared, needed=needed)
-            self.queue.finish()
+            self._finish()
             layers = OpenCLLayers(self, layers_buf, shape)
             self._kept_layers = [(kept, weakref.ref(layers) if kept is layers_buf else holder)
                                  for kept, holder in self._kept_layers]
@@ -228,7 +245,7 @@ class OpenCLBackend(Backend):
             sub = k_theta * samples
             group = min(GROUP, 1 << (sub - 1).bit_length())
             count = sonar.beams * k_theta * k_phi
-            directions = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=12 * count)
+            directions = self._scratch(12 * count)
             self._sub_rays_kernel(self.queue, (-(-count // GROUP) * GROUP,), None, self._input(centres),
                                   self._input(np.ascontiguousarray(beam_widths, np.float32)), sonar.record(),
                                   np.int32(k_theta), np.int32(k_phi), directions)
@@ -270,12 +287,12 @@ class OpenCLBackend(Backend):
         legs of its distinct poses, enqueued; without, poses of -1 for the ``n_views`` views (every
         view casts its own)."""
         if shared is None:
-            unused = cl.Buffer(self.context, cl.mem_flags.READ_ONLY, size=4)
+            unused = self._scratch(4)
             return self._input(np.full(n_views, -1, np.int32)), unused, unused
         widest, samples = span_extent(shared.spans)
         count = shared.count * sonar.beams * k_theta * k_phi
-        hit_range = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=4 * count)
-        hit_tri = cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=4 * count)
+        hit_range = self._scratch(4 * count)
+        hit_tri = self._scratch(4 * count)
         if widest:
             sub = k_theta * samples
             group = min(GROUP, 1 << (sub - 1).bit_length())
@@ -328,7 +345,7 @@ class OpenCLBackend(Backend):
             copier.finish()
             for array in host:
                 array.base.release(self.queue)
-            self.queue.finish()
+            self._finish()
             for buf in accs + layers + staging:
                 buf.release()
 
@@ -343,9 +360,7 @@ class OpenCLBackend(Backend):
                                           beam_weights, distances, cap, shifts)
             for host, buf in zip((contour, sums, counts), bufs):
                 cl.enqueue_copy(self.queue, host, buf, is_blocking=False)
-            self.queue.finish()
-        for buf in bufs:
-            buf.release()
+            self._finish()
         return contour, sums, counts
 
     def _view_costs(self, layers, first_rows, view_index, thresholds, windows, masks, range_weights,
@@ -360,9 +375,7 @@ class OpenCLBackend(Backend):
                                    self._input(view_index), self._input(data_counts), np.float32(cap),
                                    np.int32(n_shifts), costs_buf)
             cl.enqueue_copy(self.queue, costs, costs_buf, is_blocking=False)
-            self.queue.finish()
-        for buf in (*bufs, costs_buf):
-            buf.release()
+            self._finish()
         return costs
 
     def _enqueue_contours(self, layers, first_rows, view_index, thresholds, windows, masks, range_weights,
@@ -378,9 +391,9 @@ class OpenCLBackend(Backend):
             stack, fixed = self._input(np.ascontiguousarray(layers.numpy(), np.float32)), 0
         index = self._input(view_index)
         rw = cl.mem_flags.READ_WRITE
-        contour_buf = cl.Buffer(self.context, rw, size=4 * n_pairs * 2 * beams)
-        sums_buf = cl.Buffer(self.context, rw, size=4 * n_pairs * 2 * n_shifts)
-        counts_buf = cl.Buffer(self.context, rw, size=4 * n_pairs * 2)
+        contour_buf = self._scratch(4 * n_pairs * 2 * beams)
+        sums_buf = self._scratch(4 * n_pairs * 2 * n_shifts)
+        counts_buf = self._scratch(4 * n_pairs * 2)
         self._frontal_kernel(
             self.queue, (-(-beams // GROUP) * GROUP, 2, n_pairs), (GROUP, 1, 1),
             stack, np.int32(fixed), index, self._input(thresholds), self._input(windows), self._input(masks),
@@ -416,7 +429,7 @@ class OpenCLBackend(Backend):
                 *buffers, *work)
             for host, buf in zip(results, buffers):
                 cl.enqueue_copy(self.queue, host, buf, is_blocking=False)
-            self.queue.finish()
+            self._finish()
         for buf in buffers + work:
             buf.release()
         return results
