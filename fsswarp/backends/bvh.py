@@ -4,6 +4,7 @@ Triangles are sorted by the 30-bit Morton code of their centroid; the sorted ran
 top-down, one tree level at a time (no Python loop over nodes or triangles), at the highest
 Morton bit in which the range's first and last codes differ (Karras 2012), or at the middle
 when all codes of a range are equal. Ranges of at most ``LEAF_SIZE`` triangles become leaves.
+The boxes are then found bottom up, each inner child's from the two boxes its node holds.
 
 Layout (``kernels/bvh.h`` reads it): a binary tree whose every node stores the boxes of its two
 children, so that one node fetch tests both children. Node 0 is the root. Child references:
@@ -102,54 +103,58 @@ def build_bvh(vertices: np.ndarray, faces: np.ndarray) -> FlatBVH:
     codes = codes.astype(np.int64)
     order = np.argsort(codes, kind="stable")
     codes = codes[order]
-    lo_s = np.concatenate([tri_lo[order], np.zeros((1, 3), np.float32)])  # sentinel row
-    hi_s = np.concatenate([tri_hi[order], np.zeros((1, 3), np.float32)])
-
-    bounds_parts: list[np.ndarray] = []
-    children_parts: list[np.ndarray] = []
-    inverted = np.array([[np.inf] * 3 + [0.0], [-np.inf] * 3 + [0.0]], np.float32)
 
     if n <= LEAF_SIZE:
-        b = np.zeros((1, 2, 2, 4), np.float32)
-        b[0, 0, 0, :3] = lo_s[:n].min(axis=0)
-        b[0, 0, 1, :3] = hi_s[:n].max(axis=0)
-        b[0, 1] = inverted
-        ch = np.array([[_leaf(np.array(0), np.array(n)), _leaf(np.array(0), np.array(0))]], np.int64)
-        bounds_parts.append(b)
-        children_parts.append(ch)
+        node_bounds = np.zeros((1, 2, 2, 4), np.float32)
+        node_bounds[0, 0, 0, :3] = tri_lo.min(axis=0)
+        node_bounds[0, 0, 1, :3] = tri_hi.max(axis=0)
+        node_bounds[0, 1] = np.array([[np.inf] * 3 + [0.0], [-np.inf] * 3 + [0.0]], np.float32)  # empty
+        node_children = np.array([[_leaf(np.array(0), np.array(n)), _leaf(np.array(0), np.array(0))]], np.int32)
     else:
-        # ranges to split at this level; their node ids are next_id .. next_id + len - 1
-        lo = np.array([0], np.int64)
-        hi = np.array([n], np.int64)
-        next_id = 0  # id of the first node of the current level
-        while lo.size:
-            m = lo.size
-            first = codes[lo]
-            last = codes[hi - 1]
-            x = first ^ last
-            bit = np.frexp(x.astype(np.float64))[1] - 1          # highest differing bit
-            target = ((first >> np.maximum(bit, 0)) | 1) << np.maximum(bit, 0)
-            split = np.searchsorted(codes, target, side="left")
-            split = np.where(x == 0, (lo + hi) // 2, split)
-            split = np.clip(split, lo + 1, hi - 1)
-            # children ranges, interleaved (left, right) per node
-            c_lo = np.stack([lo, split], axis=1).reshape(-1)
-            c_hi = np.stack([split, hi], axis=1).reshape(-1)
-            idx = np.stack([c_lo, c_hi], axis=1).reshape(-1)
-            box_lo = np.minimum.reduceat(lo_s, idx, axis=0)[::2]
-            box_hi = np.maximum.reduceat(hi_s, idx, axis=0)[::2]
-            count = c_hi - c_lo
-            inner = count > LEAF_SIZE
-            ref = _leaf(c_lo, count)
-            ref[inner] = next_id + m + np.arange(int(inner.sum()))
-            b = np.zeros((m, 2, 2, 4), np.float32)
-            b[:, :, 0, :3] = box_lo.reshape(m, 2, 3)
-            b[:, :, 1, :3] = box_hi.reshape(m, 2, 3)
-            bounds_parts.append(b)
-            children_parts.append(ref.reshape(m, 2))
-            next_id += m
-            lo, hi = c_lo[inner], c_hi[inner]
-    node_bounds = np.ascontiguousarray(np.concatenate(bounds_parts), np.float32)
-    node_children = np.ascontiguousarray(np.concatenate(children_parts), np.int32)
+        node_bounds, node_children = _tree(codes, tri_lo[order], tri_hi[order])
     triangles = np.ascontiguousarray(verts[faces[order]].reshape(n, 9), np.float32)
     return FlatBVH(node_bounds, node_children, triangles, order.astype(np.int32))
+
+
+def _tree(codes: np.ndarray, tri_lo: np.ndarray, tri_hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(node_bounds (Nn, 2, 2, 4), node_children (Nn, 2)) of n > LEAF_SIZE triangles sorted by
+    their (n,) Morton ``codes``, with their (n, 3) box corners in that order. The ranges split top
+    down, one level at a time (node ids level after level); the boxes are then found bottom up:
+    each leaf's over its triangles (one reduction over the n), each inner child's from the two
+    boxes its node holds (the same minima and maxima as over its triangles, in O(n) in all)."""
+    n = codes.size
+    lo, hi = np.array([0], np.int64), np.array([n], np.int64)  # ranges to split at this level
+    levels, next_id = [], 0  # (first id, children's first triangles, their refs) per level
+    while lo.size:
+        m = lo.size
+        first, last = codes[lo], codes[hi - 1]
+        x = first ^ last
+        bit = np.frexp(x.astype(np.float64))[1] - 1  # highest differing bit
+        target = ((first >> np.maximum(bit, 0)) | 1) << np.maximum(bit, 0)
+        split = np.searchsorted(codes, target, side="left")
+        split = np.where(x == 0, (lo + hi) // 2, split)
+        split = np.clip(split, lo + 1, hi - 1)
+        c_lo = np.stack([lo, split], axis=1).reshape(-1)  # children's ranges, (left, right) per node
+        c_hi = np.stack([split, hi], axis=1).reshape(-1)
+        count = c_hi - c_lo
+        inner = count > LEAF_SIZE
+        ref = _leaf(c_lo, count)
+        ref[inner] = next_id + m + np.arange(int(inner.sum()))
+        levels.append((next_id, c_lo, ref))
+        next_id += m
+        lo, hi = c_lo[inner], c_hi[inner]
+    children = np.concatenate([ref for _, _, ref in levels])  # (2 Nn,), child slot 2 id + side
+    boxes = np.zeros((next_id * 2, 2, 3), np.float32)  # [slot, lo | hi, xyz]
+    leaf = np.flatnonzero(children < 0)
+    starts = np.concatenate([c_lo for _, c_lo, _ in levels])[leaf]
+    by_start = np.argsort(starts)  # the leaves partition the n triangles
+    boxes[leaf[by_start], 0] = np.minimum.reduceat(tri_lo, starts[by_start], axis=0)
+    boxes[leaf[by_start], 1] = np.maximum.reduceat(tri_hi, starts[by_start], axis=0)
+    for first_id, _, ref in reversed(levels):  # an inner child's node lies one level deeper
+        slots = 2 * first_id + np.flatnonzero(ref >= 0)
+        node = 2 * children[slots]
+        boxes[slots, 0] = np.minimum(boxes[node, 0], boxes[node + 1, 0])
+        boxes[slots, 1] = np.maximum(boxes[node, 1], boxes[node + 1, 1])
+    node_bounds = np.zeros((next_id, 2, 2, 4), np.float32)
+    node_bounds[..., :3] = boxes.reshape(next_id, 2, 2, 3)
+    return node_bounds, np.ascontiguousarray(children.reshape(next_id, 2), np.int32)
