@@ -898,7 +898,7 @@ def shared_poses(rotations: np.ndarray, translations: np.ndarray, spans: np.ndar
     apart by a 64-bit hash of their bits, checked exactly (a collision: None)."""
     n = rotations.shape[0]
     rows = np.ascontiguousarray(np.concatenate([rotations.reshape(n, 9), translations], axis=1), np.float32)
-    keys = (rows.view(np.uint32).astype(np.uint64) * _POSE_HASH).sum(axis=1)
+    keys = rows.view(np.uint32).astype(np.uint64) @ _POSE_HASH  # (mod 2^64: in any order, the same)
     _, first, index = np.unique(keys, return_index=True, return_inverse=True)
     if first.size == n or first.size * sub_rays > SHARED_HITS or not np.array_equal(rows[first][index], rows):
         return None
