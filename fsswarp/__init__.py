@@ -25,6 +25,9 @@ from .refine import refine_shape
 from .rendering import render
 from .scenes import builtin_scene
 from .simulation import simulate
+from .system import keep_freed_memory
+
+keep_freed_memory()  # NumPy's large temporaries reuse freed memory (fsswarp/system.py)
 
 __version__ = "0.1.0"
 __all__ = ["load_dataset", "load_scene", "builtin_scene", "simulate", "carve", "estimate_pose", "refine_shape",
