@@ -321,6 +321,7 @@ class OpenCLBackend(Backend):
         copier = cl.CommandQueue(self.context)
         first = np.zeros(shape[0], np.int32)
         copied: list = [None, None]  # the event of each slot's last read
+        inputs: list = [[], []]  # each slot's last batch's buffers (_held), dropped once it was read
         pending = None  # (start, count, slot) of the batch read last, not yet handed out
         try:
             for k, start in enumerate(range(0, n_views, batch)):
@@ -333,6 +334,7 @@ class OpenCLBackend(Backend):
                         surface_reflection, first[:n], spans[start:stop], (n, *shape[1:]), accs[slot], layers[slot],
                         wait_for=None if copied[slot] is None else [copied[slot]])
                     self.queue.flush()
+                    inputs[slot], self._held = self._held, []  # batch k - 2's: read already
                 copied[slot] = cl.enqueue_copy(copier, host[slot][:n], layers[slot], is_blocking=False,
                                                wait_for=[rendered])
                 copier.flush()
