@@ -36,14 +36,14 @@ def _check_structure(vertices, faces):
     assert np.array_equal(np.sort(inner), np.arange(1, bvh.n_nodes))
     parent = np.broadcast_to(np.arange(bvh.n_nodes)[:, None], ch.shape)[~leaf]
     assert np.all(inner > parent)
-    # a child box holds the child's node boxes or its leaf triangles
+    # a child box is the tightest box of the child's node boxes or of its leaf triangles
     child_lo = box_lo[inner].min(axis=1)
     child_hi = box_hi[inner].max(axis=1)
-    assert np.all(box_lo[~leaf] <= child_lo) and np.all(box_hi[~leaf] >= child_hi)
+    assert np.array_equal(box_lo[~leaf], child_lo) and np.array_equal(box_hi[~leaf], child_hi)
     tlo, thi = tri.min(axis=1), tri.max(axis=1)
     for lo, hi, f, c in zip(box_lo[leaf], box_hi[leaf], first, count):
         if c:
-            assert np.all(lo <= tlo[f:f + c]) and np.all(hi >= thi[f:f + c])
+            assert np.array_equal(lo, tlo[f:f + c].min(axis=0)) and np.array_equal(hi, thi[f:f + c].max(axis=0))
     return bvh
 
 
