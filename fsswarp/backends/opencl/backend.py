@@ -392,7 +392,6 @@ class OpenCLBackend(Backend):
         else:
             stack, fixed = self._input(np.ascontiguousarray(layers.numpy(), np.float32)), 0
         index = self._input(view_index)
-        rw = cl.mem_flags.READ_WRITE
         contour_buf = self._scratch(4 * n_pairs * 2 * beams)
         sums_buf = self._scratch(4 * n_pairs * 2 * n_shifts)
         counts_buf = self._scratch(4 * n_pairs * 2)
