@@ -73,7 +73,8 @@ class OpenCLBackend(Backend):
         """Wait for the queue, then release the buffers its kernels used. NVIDIA's OpenCL makes
         ``clReleaseMemObject`` wait for the kernels that use the buffer, and pyopencl calls it
         holding the GIL: a buffer dropped after its launch stalls every thread until that kernel
-        ends (docs/decisions.md, "OpenCL buffers are released after the queue finishes")."""
+        ends (docs/decisions.md, "OpenCL buffers are released after the queue finishes"). Call
+        holding ``_lock``: no other thread's launch may be enqueued between the wait and the release."""
         self.queue.finish()
         self._held.clear()
 
@@ -126,9 +127,10 @@ class OpenCLBackend(Backend):
                 self._finish()
 
         def read():
-            for host, buf in outputs:
-                cl.enqueue_copy(self.queue, host, buf, is_blocking=False)
-            self._finish()
+            with self._lock:
+                for host, buf in outputs:
+                    cl.enqueue_copy(self.queue, host, buf, is_blocking=False)
+                self._finish()
             return tuple(host.copy() for host, _ in outputs)
         return PreparedLaunch(launch, read)
 
@@ -161,7 +163,7 @@ class OpenCLBackend(Backend):
 
         def device_to_device():
             cl.enqueue_copy(self.queue, target, source, byte_count=host.nbytes)
-            self._finish()
+            self.queue.finish()
 
         def host_to_device():
             cl.enqueue_copy(self.queue, source, host, is_blocking=True)
@@ -347,7 +349,8 @@ class OpenCLBackend(Backend):
             copier.finish()
             for array in host:
                 array.base.release(self.queue)
-            self._finish()
+            with self._lock:
+                self._finish()
             for buf in accs + layers + staging:
                 buf.release()
 
