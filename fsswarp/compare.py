@@ -230,7 +230,7 @@ class ViewComparison:
         """(V, 4, bins, beams) float32 layers of the data views at the located estimate (exact
         samples), read from the device on first use."""
         if self._predicted is None:
-            self._predicted = self._layers.numpy()[self._keep]
+            self._predicted = _kept(self._layers.numpy(), self._keep)
         return self._predicted
 
     # --- data contours ---------------------------------------------------------------------
@@ -286,7 +286,7 @@ class ViewComparison:
         data = DataContours(tuple(views[k] for k in keep), tuple(names[k] for k in keep), threshold[keep],
                             np.asarray(windows, np.int64), np.asarray(masks), np.asarray(rows),
                             distances)
-        return data, layers, keep, None if predicted is None else predicted[keep]
+        return data, layers, keep, None if predicted is None else _kept(predicted, keep)
 
     def warn_unseen(self, names, depth: float, tilt: float, *, stacklevel: int = 2) -> None:
         """PoseWarning that the model is not seen in the views ``names`` at (depth m, tilt rad)."""
@@ -731,6 +731,12 @@ def _planned(plan, items, *, ahead: bool):
             current, coming = coming.result(), pool.submit(plan, item)
             yield current
         yield coming.result()
+
+
+def _kept(layers: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """The (V, ...) ``layers`` of the views at the sorted, distinct positions ``keep``: the array
+    itself where every view is kept (no 12.6 MB copy per locate on coral-one), else a copy."""
+    return layers if len(keep) == len(layers) else layers[keep]
 
 
 def _parabola_minimum(x: np.ndarray, y: np.ndarray) -> float:
