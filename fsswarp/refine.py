@@ -278,8 +278,8 @@ class _Update:
             lo, hi = int(row.min()), int(row.max()) + 1  # the rows the votes read
             threshold = data.threshold[k][lo:hi, None]
             band = row - lo
-            bright = smoothed_rows(layers[k, 0] + layers[k, 1], sigma, lo, hi) > threshold
-            corrupt = smoothed_rows(layers[k, 1:].sum(axis=0), sigma, lo, hi) > st.corrupt * threshold
+            bright = smoothed_rows(layers[k, :2], sigma, lo, hi) > threshold
+            corrupt = smoothed_rows(layers[k, 1:], sigma, lo, hi) > st.corrupt * threshold
             gap = dark[row, col]
             within = row <= last_rows[col]  # not beyond the data (step 4)
             vote = bright[band, col] & ~corrupt[band, col] & (gap > st.tolerance) & within
@@ -391,17 +391,17 @@ class _Membrane:
         return solution
 
 
-def smoothed_rows(image: np.ndarray, sigma: tuple[float, float], lo: int, hi: int) -> np.ndarray:
-    """Rows [lo, hi) of ``scipy.ndimage.gaussian_filter(image, sigma)`` (default truncate and
-    reflecting border), bit for bit, from the rows the range smoothing reaches: the filter runs
-    along range, then across beams, and a row of the first pass reads only the rows within its
-    radius, int(4 σ_range + 0.5) (the border is the image's, never the band's).
-    image : (bins, beams); returns (hi − lo, beams)."""
+def smoothed_rows(layers: np.ndarray, sigma: tuple[float, float], lo: int, hi: int) -> np.ndarray:
+    """Rows [lo, hi) of ``scipy.ndimage.gaussian_filter(layers.sum(axis=0), sigma)`` (default
+    truncate and reflecting border), bit for bit, from the rows the range smoothing reaches,
+    which alone are summed: the filter runs along range, then across beams, and a row of the
+    first pass reads only the rows within its radius, int(4 σ_range + 0.5) (the border is the
+    image's, never the band's). layers : (L, bins, beams); returns (hi − lo, beams)."""
     from scipy import ndimage
 
     radius = int(4.0 * float(sigma[0]) + 0.5)
-    start, stop = max(lo - radius, 0), min(hi + radius, image.shape[0])
-    return ndimage.gaussian_filter(image[start:stop], sigma)[lo - start:hi - start]
+    start, stop = max(lo - radius, 0), min(hi + radius, layers.shape[1])
+    return ndimage.gaussian_filter(layers[:, start:stop].sum(axis=0), sigma)[lo - start:hi - start]
 
 
 def _graph_laplacian(edges: np.ndarray, n: int):

@@ -312,12 +312,14 @@ def test_topology_is_remembered_by_the_faces_and_its_order_is_the_systems():
 
 @pytest.mark.parametrize("lo, hi", [(0, 1), (0, 40), (3, 9), (100, 180), (250, 256), (255, 256), (0, 256)])
 def test_smoothed_rows_are_the_whole_image_s_rows_bit_for_bit(lo, hi):
-    """The overshoot term smooths only the rows its votes read: those rows of the whole
-    image's gaussian_filter, to the bit, at the image's borders (reflected) and inside."""
+    """The overshoot term sums and smooths only the rows its votes read: those rows of the whole
+    summed image's gaussian_filter, to the bit, at the image's borders (reflected) and inside."""
     from scipy import ndimage
 
-    image = np.random.default_rng(2).gamma(0.3, 1.0, (256, 96)).astype(np.float32)
+    layers = np.random.default_rng(2).gamma(0.3, 1.0, (4, 256, 96)).astype(np.float32)
     sigma = (1.5, 0.8)
-    got = smoothed_rows(image, sigma, lo, hi)
-    assert got.dtype == np.float32 and got.shape == (hi - lo, 96)
-    np.testing.assert_array_equal(got, ndimage.gaussian_filter(image, sigma)[lo:hi])
+    for chosen in (layers[:2], layers[1:]):  # the overshoot's two sums: layers 0-1 and 1-3
+        got = smoothed_rows(chosen, sigma, lo, hi)
+        assert got.dtype == np.float32 and got.shape == (hi - lo, 96)
+        whole = chosen[0] + chosen[1] if len(chosen) == 2 else chosen[0] + chosen[1] + chosen[2]
+        np.testing.assert_array_equal(got, ndimage.gaussian_filter(whole, sigma)[lo:hi])
