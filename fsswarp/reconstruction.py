@@ -147,8 +147,8 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
     backend = backend or get_backend()
     say = progress or (lambda line: None)
     start = time.perf_counter()
-    if settings.iterations:  # on a many-core host: ready when the loop needs a carving ahead
-        start_mesh_workers()
+    # on a many-core host: ready when the loop needs a carving ahead (None: no mesh processes)
+    meshing = start_mesh_workers() if settings.iterations else None
     comparison = ViewComparison(dataset, settings=settings.pose, backend=backend)  # E_I, E_mu, the pose steps
     shaping = comparison if settings.refine.pose == settings.pose else \
         ViewComparison(dataset, settings=settings.refine.pose, backend=backend)  # the shape steps
@@ -187,6 +187,8 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
                 trials = [(depth, tilt)]
                 say(f"iteration {iteration}: the pose step found no (D, tilt) with a lower posterior cost; D and tilt "
                     "stay")
+                if meshing is not None:  # the answer starts from the best pose's carving: meshed meanwhile
+                    _carve_ahead(dataset, *best_pose, settings, backend, carvings)
             for depth_tried, tilt_tried in trials:
                 recarve = (depth_tried, tilt_tried) != (depth, tilt) and _outside(carved_at, pose.posterior)
                 if recarve:  # its mesh is made while the model is refined

@@ -884,3 +884,33 @@ def test_meshes_made_in_processes_give_the_same_reconstruction(one_iteration, co
     for made in (summary, summary_expected):
         made.pop("seconds")
     assert json.dumps(summary) == json.dumps(summary_expected)
+
+
+def test_a_resting_pose_step_has_the_best_pose_carved_ahead(coral_one, monkeypatch):
+    """Where mesh processes run and the pose step finds nothing better, the loop starts the best
+    pose's carving (its mesh in a process), which the answer's first model is made from; with
+    no mesh processes it carves nothing ahead."""
+    from fsswarp.backends import get_backend
+
+    class Reached(Exception):
+        pass
+
+    refused = reconstruct_module.estimate_pose
+
+    def estimate_pose(*args, **kwargs):
+        return dataclasses.replace(refused(*args, **kwargs), accepted=False)
+
+    def valley_answer(dataset, comparison, shaping, pose, *rest):
+        raise Reached(pose)
+
+    ahead = []
+    monkeypatch.setattr(reconstruct_module, "estimate_pose", estimate_pose)
+    monkeypatch.setattr(reconstruct_module, "_valley_answer", valley_answer)
+    monkeypatch.setattr(reconstruct_module, "_carve_ahead",
+                        lambda dataset, depth, tilt, *rest: ahead.append((depth, tilt)))
+    for workers, expected in ((object(), 1), (None, 0)):
+        ahead.clear()
+        monkeypatch.setattr(reconstruct_module, "start_mesh_workers", lambda: workers)
+        with pytest.raises(Reached) as reached:
+            reconstruct(coral_one, settings=FAST, backend=get_backend("opencl"))
+        assert ahead == [reached.value.args[0]] * expected
