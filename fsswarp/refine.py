@@ -364,14 +364,22 @@ def _topology(mesh) -> _Topology:
     return _TOPOLOGIES[key]
 
 
+#: SuperLU's options of the membrane solve. Diagonal dominance keeps each diagonal entry the
+#: largest of its column as the factorization goes, so the diagonal is taken without the pivot
+#: search (DiagPivotThresh = 0) and the rows are not equilibrated (Equil = False; the system's
+#: rows scale alike): SuperLU's defaults give the same factors bit for bit on the meshes tested
+#: (tests/test_refine.py), 12.3 -> 10.5 ms on coral-one's carved model here.
+SUPERLU_OPTIONS = dict(SymmetricMode=True, DiagPivotThresh=0.0, Equil=False)
+
+
 class _Membrane:
     """The membrane solve of one mesh topology (module docstring, step 5): x (Nv, 3) of
     (diag(w) + λ L) x = b, L the (Nv, Nv) graph Laplacian of the ``topology``
     (:class:`_Topology`), λ = ``smoothing``. The system is symmetric positive definite and
     diagonally dominant: SuperLU factors it permuted to the topology's fill-reducing order, in
-    that order (no pivoting happens), with unrelaxed supernodes of one column panels (relax = 1,
-    panel_size = 1: 7 ms instead of 10 ms on coral-one's carved model). The solution agrees with
-    a dense solve to the rounding of a backward-stable factorization (tests/test_refine.py)."""
+    that order, with unrelaxed supernodes of one column panels (relax = 1, panel_size = 1: 7 ms
+    instead of 10 ms on coral-one's carved model) and ``SUPERLU_OPTIONS``. The solution agrees
+    with a dense solve to the rounding of a backward-stable factorization (tests/test_refine.py)."""
 
     def __init__(self, topology: _Topology, smoothing: float):
         self.order, self.ordered, self.diagonal = topology.system
@@ -385,7 +393,7 @@ class _Membrane:
         data = self.data.copy()
         data[self.diagonal] += weights[self.order]
         system = csc_matrix((data, self.ordered.indices, self.ordered.indptr), shape=self.ordered.shape)
-        factor = splu(system, permc_spec="NATURAL", relax=1, panel_size=1, options=dict(SymmetricMode=True))
+        factor = splu(system, permc_spec="NATURAL", relax=1, panel_size=1, options=SUPERLU_OPTIONS)
         solution = np.empty_like(rhs)
         solution[self.order] = factor.solve(rhs[self.order])
         return solution

@@ -286,6 +286,32 @@ def test_membrane_solves_match_a_dense_solve():
         assert np.abs(dense @ got - rhs).max() <= 1e-12 * np.abs(rhs).max()
 
 
+def test_membrane_solves_are_superlu_s_own_pivoting_and_equilibration_bit_for_bit():
+    """Without the pivot search and the equilibration (``SUPERLU_OPTIONS``) the membrane solve
+    gives what SuperLU's defaults give, bit for bit: the diagonal stays the pivot. Also on a mesh
+    with a vertex of degree 40, whose row is scaled unlike the others."""
+    from scipy.sparse import csc_matrix
+    from scipy.sparse.linalg import splu
+
+    cone = trimesh.creation.cone(radius=1.0, height=1.0, sections=40)  # apex and base centre: degree 40
+    for mesh in (trimesh.creation.icosphere(subdivisions=3), cone):
+        n = len(mesh.vertices)
+        topology = _topology(mesh)
+        membrane = _Membrane(topology, 4.0)
+        rng = np.random.default_rng(4)
+        for _ in range(3):
+            weights = np.where(rng.random(n) < 0.3, rng.random(n), 0.0) + 1e-9
+            rhs = rng.normal(size=(n, 3))
+            order, ordered, diagonal = topology.system
+            data = 4.0 * ordered.data
+            data[diagonal] += weights[order]
+            system = csc_matrix((data, ordered.indices, ordered.indptr), shape=ordered.shape)
+            defaults = splu(system, permc_spec="NATURAL", relax=1, panel_size=1, options=dict(SymmetricMode=True))
+            want = np.empty_like(rhs)
+            want[order] = defaults.solve(rhs[order])
+            np.testing.assert_array_equal(membrane.solve(weights, rhs), want)
+
+
 def test_topology_is_remembered_by_the_faces_and_its_order_is_the_systems():
     """One topology per face list (a moved mesh of the same faces gets it again; other faces
     another): trimesh's unique edges and watertightness, and the fill-reducing order that
