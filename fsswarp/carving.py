@@ -348,16 +348,14 @@ def common_region(sonar: SonarSpec, rotations, translations, *, plane=None, samp
     if any(len(a) == 0 for a in axes):
         return None
     points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    inside = np.ones(len(points), bool)
     if plane is not None:
-        inside &= points @ np.asarray(plane[0], np.float64) <= plane[1]
-    for rot, t in zip(rotations, translations):
+        points = points[points @ np.asarray(plane[0], np.float64) <= plane[1]]
+    for rot, t in zip(rotations, translations):  # each view tests only the points that all before it see
         rng, az, el = to_polar(to_view(points, rot, t))
-        inside &= sonar.beam_bin(az, rng)[2] & sonar.in_elevation(el)
-    if not inside.any():
+        points = points[sonar.beam_bin(az, rng)[2] & sonar.in_elevation(el)]
+    if not len(points):
         return None
-    found = points[inside]
-    return np.stack([np.maximum(found.min(axis=0) - step, lo), np.minimum(found.max(axis=0) + step, hi)])
+    return np.stack([np.maximum(points.min(axis=0) - step, lo), np.minimum(points.max(axis=0) + step, hi)])
 
 
 def carve_reference(masks, rotations, translations, sonar: SonarSpec, voxel_size: float, *, origin=None,
