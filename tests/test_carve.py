@@ -227,6 +227,28 @@ def test_common_region_of_the_sphere_scene():
     assert common_region(sonar, away, trans) is None
 
 
+def test_common_region_holds_every_point_that_every_view_sees():
+    """The box bounds the points below the plane that all views see, by brute force over random
+    points around it (each tested by every view), and exceeds their box by at most two lattice
+    steps: for all eight views, and for two rolled views whose frustums' boxes overlap far more
+    widely than the views do."""
+    sonar = SonarSpec()
+    _, _, rot, trans = sphere_scene(sonar)
+    plane = (np.array([0.0, 0.0, 1.0]), 0.2)
+    for chosen in (slice(None), [1, 6]):
+        lo, hi = common_region(sonar, rot[chosen], trans[chosen], plane=plane, samples=32)
+        size = hi - lo
+        points = np.random.default_rng(7).uniform(lo - 0.5 * size, hi + 0.5 * size, (400_000, 3))
+        seen = points @ plane[0] <= plane[1]
+        for r, t in zip(rot[chosen], trans[chosen]):
+            rng, az, el = to_polar(to_view(points, r, t))
+            seen &= sonar.beam_bin(az, rng)[2] & sonar.in_elevation(el)
+        inside = points[seen]
+        assert len(inside) > 1000 and np.all(inside >= lo) and np.all(inside <= hi)
+        steps = 2 * float(size.max()) / 32
+        assert np.all(inside.min(axis=0) - lo <= steps) and np.all(hi - inside.max(axis=0) <= steps)
+
+
 # --- the mesh ----------------------------------------------------------------------------------
 def blob_voxels(seed: int, shape=(44, 40, 34), voxel_size: float = 0.0125) -> VoxelCarving:
     """Seeded voxels: five random balls (one through the grid's edge) with a hollow in the first
