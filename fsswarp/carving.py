@@ -171,7 +171,9 @@ def carve(dataset, depth: float | None = None, tilt: float | None = None, *, res
             continue
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # reported once below, as a CarveWarning
-            segmentation[name] = segment(dataset.images[name], settings.segment, name=f"images/{name}")
+            segmentation[name] = dataset.derived(  # a reconstruction carves the same images at many poses
+                ("segment", name, settings.segment),
+                lambda: segment(dataset.images[name], settings.segment, name=f"images/{name}"))
         feasible[name] = segmentation[name].feasible
     timings["segment_s"] = time.perf_counter() - start
     empty = [n for n in names if not feasible[n].any()]
