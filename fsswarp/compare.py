@@ -183,6 +183,7 @@ class ViewComparison:
             lambda: _view_highlights(dataset, self.views, settings.segment))
         self.model = self.estimate = None
         self._unseen: set[str] = set()
+        self._anchored: frozenset[int] | None = None  # rig views of poses that depend on neither D nor β
         self._no_distances = self.backend.device_distances(  # locating reads the contours alone: any distances do
             np.zeros((len(self.views), 2, self.sonar.bins, self.sonar.beams), np.float32))
 
@@ -302,10 +303,12 @@ class ViewComparison:
         object term; None without anchor views (each cell then takes its own best shift), from
         the located layers (``_located_costs``)."""
         data = self.data
-        pose_a = self.rig.relative_poses(depth, tilt)
-        pose_b = self.rig.relative_poses(depth + 0.01, tilt + 0.01)
-        fixed = [k for k, v in enumerate(data.views)
-                 if all(np.allclose(a[v], b[v], rtol=0, atol=1e-12) for a, b in zip(pose_a, pose_b))]
+        if self._anchored is None:  # a property of the rig: found at the first estimate located
+            pose_a = self.rig.relative_poses(depth, tilt)
+            pose_b = self.rig.relative_poses(depth + 0.01, tilt + 0.01)
+            self._anchored = frozenset(v for v in self.views if all(np.allclose(a[v], b[v], rtol=0, atol=1e-12)
+                                                                    for a, b in zip(pose_a, pose_b)))
+        fixed = [k for k, v in enumerate(data.views) if v in self._anchored]
         if not fixed:
             return (), None
         _, sums, counts = self._located_costs(self.shifts, self.settings.min_cap)
