@@ -184,6 +184,7 @@ class ViewComparison:
         self.model = self.estimate = None
         self._unseen: set[str] = set()
         self._anchored: frozenset[int] | None = None  # rig views of poses that depend on neither D nor β
+        self._data_distances = self._located_on = None  # (key, maps) of _data_distances; the maps located on
         self._no_distances = self.backend.device_distances(  # locating reads the contours alone: any distances do
             np.zeros((len(self.views), 2, self.sonar.bins, self.sonar.beams), np.float32))
 
@@ -209,8 +210,10 @@ class ViewComparison:
         stay on the device for the costs at the estimate; ``predicted`` reads them on first use."""
         check_depth_tilt(depth, tilt)
         self.data, self._layers, self._keep, self._predicted = self._data_contours(depth, tilt)
-        self._distances = self.backend.device_distances(self.data.distances)  # read at every cap
-        self._goals = self._data_points(self.data)
+        if self._located_on is not self.data.distances:  # new data contours: their device maps, ICP goals
+            self._distances = self.backend.device_distances(self.data.distances)  # read at every cap
+            self._goals = self._data_points(self.data)
+            self._located_on = self.data.distances
         self.anchors, self.shift = self._detection_shift(depth, tilt)
         self.estimate = (float(depth), float(tilt))
 
@@ -266,8 +269,7 @@ class ViewComparison:
         beams = np.arange(sonar.beams)
         pad = int(math.ceil(st.window / sonar.range_step))
         windows, masks, rows = [], [], []
-        distances = np.empty((len(keep), 2, sonar.bins, sonar.beams), np.float32)
-        for i, k in enumerate(keep):
+        for k in keep:
             first = contour[k][contour[k] >= 0]
             lo, hi = int(math.floor(first.min())) - pad, int(math.ceil(first.max())) + pad + 1
             windows.append((max(lo, 0), min(hi, sonar.bins)))
@@ -283,11 +285,10 @@ class ViewComparison:
             row = np.stack([np.where(obj, first_row, -1), np.where(mir, first_row, -1)])
             masks.append(np.stack([obj, mir]))
             rows.append(row)
-            for c, r in enumerate(row):
-                distances[i, c] = self._distance(r)
-        data = DataContours(tuple(views[k] for k in keep), tuple(names[k] for k in keep), threshold[keep],
-                            np.asarray(windows, np.int64), np.asarray(masks), np.asarray(rows),
-                            distances)
+        rows = np.asarray(rows)
+        seen_views = tuple(views[k] for k in keep)
+        data = DataContours(seen_views, tuple(names[k] for k in keep), threshold[keep], np.asarray(windows, np.int64),
+                            np.asarray(masks), rows, self._data_distances_of(seen_views, rows))
         return data, layers, keep, None if predicted is None else _kept(predicted, keep)
 
     def warn_unseen(self, names, depth: float, tilt: float, *, stacklevel: int = 2) -> None:
@@ -347,6 +348,22 @@ class ViewComparison:
         index = np.zeros(self._layers.shape[0], np.int64)
         index[self._keep] = np.arange(len(self._keep))
         return index
+
+    def _data_distances_of(self, views: tuple[int, ...], rows: np.ndarray) -> np.ndarray:
+        """(V, 2, bins, beams) float32 distance maps (:meth:`_distance`) of the data contours'
+        ``rows`` (V, 2, beams) in the dataset ``views``, read-only: the last call's maps (the same
+        object) where the views and rows are the last call's, as they mostly are from one locate
+        to the next, so that ``locate`` keeps their device copy and ICP goals too."""
+        key = (views, rows.tobytes())
+        if self._data_distances is None or self._data_distances[0] != key:
+            sonar = self.sonar
+            distances = np.empty((len(rows), 2, sonar.bins, sonar.beams), np.float32)
+            for i, row in enumerate(rows):
+                for c, r in enumerate(row):
+                    distances[i, c] = self._distance(r)
+            distances.setflags(write=False)
+            self._data_distances = (key, distances)
+        return self._data_distances[1]
 
     def _distance(self, rows: np.ndarray) -> np.ndarray:
         """(bins, beams) distance (m) of every pixel to the contour pixels (row per beam), at

@@ -500,6 +500,25 @@ def test_located_comparisons_share_their_data_distance_maps(coral_one, truth_com
     assert _remembered_distance.cache_info().hits >= 1
 
 
+def test_relocating_on_the_same_data_contours_keeps_their_maps_and_device_copy(coral_one, truth_model, opencl):
+    """Locating again where the data contours do not change (a nearby estimate) keeps the same
+    read-only distance maps and their device copy; where they change, new maps are made, each
+    the map of its contour."""
+    truth = coral_one.manifest.truth
+    comparison = ViewComparison(coral_one, backend=opencl).use(truth_model, truth.depth, truth.tilt)
+    maps, device, goals = comparison.data.distances, comparison._distances, comparison._goals
+    comparison.use(truth_model, truth.depth + 1e-5, truth.tilt)
+    assert comparison.estimate[0] != truth.depth  # located again
+    assert comparison.data.distances is maps and comparison._distances is device and comparison._goals is goals
+    assert not maps.flags.writeable
+    rows = comparison.data.rows.copy()
+    rows[0, 0, rows[0, 0] >= 0] += 3  # a moved contour
+    moved = comparison._data_distances_of(comparison.data.views, rows)
+    assert moved is not maps and np.array_equal(moved[1:], maps[1:])
+    np.testing.assert_array_equal(moved[0, 0], comparison._distance(rows[0, 0]))
+    assert not np.array_equal(moved[0, 0], maps[0, 0])
+
+
 def test_detection_shift_with_views_left_out_is_that_of_the_anchors_layers_alone(coral_one, truth_model, opencl):
     """Locating costs every rendered pair where it lies, views left out included (against
     data view 0, then dropped): the anchors' costs, and so the shift, equal those of the
