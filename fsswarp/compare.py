@@ -184,7 +184,7 @@ class ViewComparison:
         self.model = self.estimate = None
         self._unseen: set[str] = set()
         self._anchored: frozenset[int] | None = None  # rig views of poses that depend on neither D nor β
-        self._data_distances = self._located_on = None  # (key, maps) of _data_distances; the maps located on
+        self._data_distances = self._located_on = None  # _data_distances_of's last (key, maps); maps uploaded
         self._no_distances = self.backend.device_distances(  # locating reads the contours alone: any distances do
             np.zeros((len(self.views), 2, self.sonar.bins, self.sonar.beams), np.float32))
 
