@@ -172,7 +172,6 @@ class ViewComparison:
         self.smoothing = (_gaussian(settings.segment.sigma_bins), _gaussian(settings.segment.sigma_beams))
         self.shifts = np.asarray(settings.shifts, np.float64)
         self.reach = max(settings.cap, settings.min_cap)
-        self._beam_width = float(np.mean(np.diff(self.sonar.beam_centres)))  # rad, of the contours' distances
         self.counters = {"grid_cells": 0, "surrogate_cells": 0, "exact": 0}
         self.views = [i for i, v in enumerate(self.rig.views) if v.optimize]
         if not self.views:
@@ -370,8 +369,11 @@ class ViewComparison:
         most ``reach``: the range axis in δR, the beam axis in arc length at the contour's
         median range."""
         sonar = self.sonar
-        return _remembered_distance(np.ascontiguousarray(rows, np.int64).tobytes(), sonar.bins, sonar.range_min,
-                                    sonar.range_step, self._beam_width, self.reach)
+        beams = np.flatnonzero(rows >= 0)
+        arc = float(np.median(sonar.bin_range(rows[beams]))) * float(np.mean(np.diff(sonar.beam_centres))) \
+            if beams.size else 1.0
+        return _remembered_distance(np.ascontiguousarray(rows, np.int64).tobytes(), sonar.bins, sonar.range_step,
+                                    arc, self.reach)
 
     # --- synthesis and the surrogate -------------------------------------------------------
     def view_poses(self, views, depths: np.ndarray, tilts: np.ndarray):
@@ -697,16 +699,10 @@ def contour_distance(rows: np.ndarray, bins: int, range_step: float, arc: float,
 
 
 @functools.lru_cache(maxsize=128)
-def _remembered_distance(rows: bytes, bins: int, range_min: float, range_step: float, beam_width: float,
-                         reach: float) -> np.ndarray:
-    """:func:`contour_distance` of the int64 ``rows`` bytes of a sonar's ``bins`` rows from
-    ``range_min`` by ``range_step`` and beams ``beam_width`` apart (rad), the beam axis in arc
-    length at the contour's median range; read-only, for the 128 latest arguments: the loop
-    locates again and again on data contours that rarely change."""
-    array = np.frombuffer(rows, np.int64)
-    beams = np.flatnonzero(array >= 0)
-    arc = float(np.median(range_min + array[beams].astype(np.float64) * range_step)) * beam_width if beams.size else 1.0
-    out = contour_distance(array, bins, range_step, arc, reach)
+def _remembered_distance(rows: bytes, bins: int, range_step: float, arc: float, reach: float) -> np.ndarray:
+    """:func:`contour_distance` of the int64 ``rows`` bytes, read-only, for the 128 latest
+    arguments: the loop locates again and again on data contours that rarely change."""
+    out = contour_distance(np.frombuffer(rows, np.int64), bins, range_step, arc, reach)
     out.setflags(write=False)
     return out
 
