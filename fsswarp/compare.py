@@ -183,7 +183,7 @@ class ViewComparison:
         self.model = self.estimate = None
         self._unseen: set[str] = set()
         self._anchored: frozenset[int] | None = None  # rig views of poses that depend on neither D nor β
-        self._data_distances = self._located_on = None  # _data_distances_of's last (key, maps); maps uploaded
+        self._data_distances = None  # _data_distances_of's last (key, maps): their device copy is in use
         self._no_distances = self.backend.device_distances(  # locating reads the contours alone: any distances do
             np.zeros((len(self.views), 2, self.sonar.bins, self.sonar.beams), np.float32))
 
@@ -208,11 +208,11 @@ class ViewComparison:
         current estimate; ``estimate`` records it. The layers rendered there (exact samples)
         stay on the device for the costs at the estimate; ``predicted`` reads them on first use."""
         check_depth_tilt(depth, tilt)
+        made = self._data_distances
         self.data, self._layers, self._keep, self._predicted = self._data_contours(depth, tilt)
-        if self._located_on is not self.data.distances:  # new data contours: their device maps, ICP goals
+        if self._data_distances is not made:  # new data contours: their device maps, ICP goals
             self._distances = self.backend.device_distances(self.data.distances)  # read at every cap
             self._goals = self._data_points(self.data)
-            self._located_on = self.data.distances
         self.anchors, self.shift = self._detection_shift(depth, tilt)
         self.estimate = (float(depth), float(tilt))
 
