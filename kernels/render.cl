@@ -248,20 +248,21 @@ __kernel void render_views(__global const float4 *nodes,
         const int want_mirror = fss_needed(needed, masked, v, 1, bm, sonar.beams);
         if (!want_object && !want_mirror)
             return;
+        /* the leg Q -> P lights the face (tested first: it needs no traversal) */
+        const float3 QP = P - Q;
+        const float qp = sqrt(fss_dot(QP, QP));
+        const float3 w = QP / qp;
+        const float3 w_ref = fss_rotate(rot, w);
+        const float c_in = -fss_dot(w_ref, N);
+        if (!(c_in > 0.0f))
+            return;
         /* leg O -> Q clear */
         const float qlen = fss_range(Q);
         if (fss_bvh_blocked(nodes, children, tris, t, fss_rotate(rot, Q / qlen), 0.0f, qlen - epsilon))
             return;
         /* leg Q -> P clear */
-        const float3 QP = P - Q;
-        const float qp = sqrt(fss_dot(QP, QP));
-        const float3 w = QP / qp;
-        const float3 w_ref = fss_rotate(rot, w);
         const float3 Q_ref = fss_rotate(rot, Q) + t;
         if (fss_bvh_blocked(nodes, children, tris, Q_ref, w_ref, 0.0f, qp - epsilon))
-            return;
-        const float c_in = -fss_dot(w_ref, N);
-        if (!(c_in > 0.0f))
             return;
         const float a_s = surface_reflection * pow(c * c_in, 0.5f * gamma);
         const float R_s = (r + q) * 0.5f;
