@@ -189,15 +189,19 @@ class ViewComparison:
 
     def use(self, model, depth: float, tilt: float) -> "ViewComparison":
         """Compare ``model`` (trimesh-like, reference frame) located at (depth m, tilt rad): the
-        model is loaded unless it is the one in use (the same object), and located unless it is
-        located there already, so that the layers and contours found there are kept. Returns
-        self. Raises InputError when the model is seen in none of the views."""
+        model is loaded unless it is the one in use (the same object, or equal vertices and
+        faces), and located unless it is located there already, so that the layers and contours
+        found there are kept. Returns self. Raises InputError when the model is seen in none of
+        the views."""
         check_depth_tilt(depth, tilt)
         if model is not self.model:
             vertices, faces = check_mesh(model, name="model")
-            self.mesh = self.backend.load_mesh(vertices, faces)
-            self.model, self.vertices, self.faces = model, vertices, faces
-            self.estimate, self._unseen = None, set()
+            if not (self.model is not None and np.array_equal(vertices, self.vertices)
+                    and np.array_equal(faces, self.faces)):  # the copies loaded, whatever changed in place
+                self.mesh = self.backend.load_mesh(vertices, faces)
+                self.vertices, self.faces = vertices.copy(), faces.copy()
+                self.estimate, self._unseen = None, set()
+            self.model = model
         if self.estimate != (float(depth), float(tilt)):
             self.locate(depth, tilt)
         return self

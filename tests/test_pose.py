@@ -519,6 +519,27 @@ def test_relocating_on_the_same_data_contours_keeps_their_maps_and_device_copy(c
     assert not np.array_equal(moved[0, 0], maps[0, 0])
 
 
+def test_an_equal_model_keeps_the_loaded_mesh_and_its_location(coral_one, truth_model, opencl):
+    """A new model object with the same vertices and faces (as refinement makes of the model it
+    is given) is neither loaded nor located again; one that moved, or whose vertices the caller
+    changed in place after using it, is."""
+    truth = coral_one.manifest.truth
+    model = truth_model.copy()
+    comparison = ViewComparison(coral_one, backend=opencl).use(model, truth.depth, truth.tilt)
+    mesh, data = comparison.mesh, comparison.data
+    comparison.use(truth_model.copy(), truth.depth, truth.tilt)
+    assert comparison.mesh is mesh and comparison.data is data
+    moved = truth_model.copy()
+    moved.vertices += (0.0, 0.0, 0.002)
+    comparison.use(moved, truth.depth, truth.tilt)
+    assert comparison.mesh is not mesh and comparison.data is not data
+    mesh = comparison.mesh
+    moved.vertices -= (0.0, 0.0, 0.002)  # back where the model was, in place
+    comparison.use(truth_model.copy(), truth.depth, truth.tilt)
+    assert comparison.mesh is not mesh
+    np.testing.assert_array_equal(comparison.vertices, truth_model.vertices)
+
+
 def test_detection_shift_with_views_left_out_is_that_of_the_anchors_layers_alone(coral_one, truth_model, opencl):
     """Locating costs every rendered pair where it lies, views left out included (against
     data view 0, then dropped): the anchors' costs, and so the shift, equal those of the
