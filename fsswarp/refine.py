@@ -324,31 +324,30 @@ class _Topology:
         self.n = len(mesh.vertices)
 
     @functools.cached_property
-    def system(self) -> tuple[np.ndarray, object, np.ndarray]:
-        """(order (n,), ordered, diagonal (n,)): the system (diag(w) + λ L) of :class:`_Membrane`
-        has the pattern of the graph Laplacian L (:func:`_graph_laplacian`) whatever w and λ, so
-        its fill-reducing order (SuperLU's MMD on Aᵀ + A, which reads the pattern alone; found
-        by factoring L + I) is found once: row and column i of the permuted system are vertex
-        order[i]; ``ordered`` is L permuted to it (CSC, sorted indices) and ``diagonal`` the
-        positions of its diagonal entries in its data, column by column."""
-        from scipy.sparse import identity
-        from scipy.sparse.linalg import splu
+    def system(self) -> tuple[object, object, np.ndarray]:
+        """(solver, upper, diagonal): the system (diag(w) + λ L) of :class:`_Membrane` has the
+        pattern of the graph Laplacian L (:func:`_graph_laplacian`) whatever w and λ, so QDLDL's
+        LDLᵀ ``solver`` (``qdldl.Solver``: its AMD fill-reducing order and symbolic
+        factorization) is set up once, on L + I; ``upper`` is L's upper triangle (CSC, sorted
+        indices), the pattern the solver takes, and ``diagonal`` the positions of its diagonal
+        entries in its data, column by column."""
+        import qdldl
+        from scipy.sparse import triu
 
-        laplacian = _graph_laplacian(self.edges, self.n)
-        found = splu((laplacian + identity(self.n)).tocsc(), permc_spec="MMD_AT_PLUS_A",
-                     options=dict(SymmetricMode=True))
-        order = np.argsort(found.perm_c)
-        ordered = laplacian.tocsr()[order][:, order].tocsc()
-        ordered.sort_indices()
-        columns = np.repeat(np.arange(self.n), np.diff(ordered.indptr))
-        diagonal = np.flatnonzero(ordered.indices == columns)
-        for array in (order, ordered.data, ordered.indices, ordered.indptr, diagonal):
+        upper = triu(_graph_laplacian(self.edges, self.n), format="csc")
+        upper.sort_indices()
+        columns = np.repeat(np.arange(self.n), np.diff(upper.indptr))
+        diagonal = np.flatnonzero(upper.indices == columns)
+        start = upper.copy()
+        start.data[diagonal] += 1.0
+        solver = qdldl.Solver(start, upper=True)
+        for array in (upper.data, upper.indices, upper.indptr, diagonal):
             array.setflags(write=False)  # shared by every solve of this topology
-        return order, ordered, diagonal
+        return solver, upper, diagonal
 
 
 #: :class:`_Topology` by the digest of the (F, 3) faces (refinement calls on the models of one
-#: carving share it; factoring L + I for the order takes ~16 ms on coral-one's 9.5k vertices).
+#: carving share it; setting up its solver takes ~12 ms on coral-one's 9.5k vertices).
 #: Cleared when it reaches 8 entries.
 _TOPOLOGIES: dict[bytes, _Topology] = {}
 
@@ -364,39 +363,28 @@ def _topology(mesh) -> _Topology:
     return _TOPOLOGIES[key]
 
 
-#: SuperLU's options of the membrane solve. Diagonal dominance keeps each diagonal entry the
-#: largest of its column as the factorization goes, so the diagonal is taken without the pivot
-#: search (DiagPivotThresh = 0) and the rows are not equilibrated (Equil = False; the system's
-#: rows scale alike): SuperLU's defaults give the same factors bit for bit on the meshes tested
-#: (tests/test_refine.py), 12.3 -> 10.5 ms on coral-one's carved model here.
-SUPERLU_OPTIONS = dict(SymmetricMode=True, DiagPivotThresh=0.0, Equil=False)
-
-
 class _Membrane:
     """The membrane solve of one mesh topology (module docstring, step 5): x (Nv, 3) of
     (diag(w) + λ L) x = b, L the (Nv, Nv) graph Laplacian of the ``topology``
     (:class:`_Topology`), λ = ``smoothing``. The system is symmetric positive definite and
-    diagonally dominant: SuperLU factors it permuted to the topology's fill-reducing order, in
-    that order, with unrelaxed supernodes of one column panels (relax = 1, panel_size = 1: 7 ms
-    instead of 10 ms on coral-one's carved model) and ``SUPERLU_OPTIONS``. The solution agrees
-    with a dense solve to the rounding of a backward-stable factorization (tests/test_refine.py)."""
+    diagonally dominant, so an LDLᵀ factorization without pivoting is stable: the topology's
+    QDLDL solver factors each system anew in the order it found once (4-5 ms on coral-one's
+    carved model against SuperLU's 10 ms). The solution agrees with a dense solve to the
+    rounding of a backward-stable factorization (tests/test_refine.py)."""
 
     def __init__(self, topology: _Topology, smoothing: float):
-        self.order, self.ordered, self.diagonal = topology.system
-        self.data = smoothing * self.ordered.data  # λ L, permuted, CSC
+        self.solver, self.upper, self.diagonal = topology.system
+        self.data = smoothing * self.upper.data  # λ L, upper triangle, CSC
 
     def solve(self, weights: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         """x for the (Nv,) positive ``weights`` w and the (Nv, 3) ``rhs`` b."""
         from scipy.sparse import csc_matrix
-        from scipy.sparse.linalg import splu
 
         data = self.data.copy()
-        data[self.diagonal] += weights[self.order]
-        system = csc_matrix((data, self.ordered.indices, self.ordered.indptr), shape=self.ordered.shape)
-        factor = splu(system, permc_spec="NATURAL", relax=1, panel_size=1, options=SUPERLU_OPTIONS)
-        solution = np.empty_like(rhs)
-        solution[self.order] = factor.solve(rhs[self.order])
-        return solution
+        data[self.diagonal] += weights
+        self.solver.update(csc_matrix((data, self.upper.indices, self.upper.indptr), shape=self.upper.shape),
+                           upper=True)
+        return np.stack([self.solver.solve(np.ascontiguousarray(rhs[:, k])) for k in range(rhs.shape[1])], axis=1)
 
 
 def smoothed_rows(layers: np.ndarray, sigma: tuple[float, float], lo: int, hi: int) -> np.ndarray:

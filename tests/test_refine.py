@@ -286,38 +286,32 @@ def test_membrane_solves_match_a_dense_solve():
         assert np.abs(dense @ got - rhs).max() <= 1e-12 * np.abs(rhs).max()
 
 
-def test_membrane_solves_are_superlu_s_own_pivoting_and_equilibration_bit_for_bit():
-    """Without the pivot search and the equilibration (``SUPERLU_OPTIONS``) the membrane solve
-    gives what SuperLU's defaults give, bit for bit: the diagonal stays the pivot. Also on a mesh
-    with a vertex of degree 40, whose row is scaled unlike the others."""
-    from scipy.sparse import csc_matrix
-    from scipy.sparse.linalg import splu
-
+def test_membranes_of_one_topology_share_its_solver_and_each_solves_its_own_system():
+    """Two smoothings of one topology, solved in turn, share the topology's one factorization
+    set-up (QDLDL's order and symbolic factorization), and each solve is its own system's, also
+    on a mesh with a vertex of degree 40: none reads a factorization left by the other."""
     cone = trimesh.creation.cone(radius=1.0, height=1.0, sections=40)  # apex and base centre: degree 40
     for mesh in (trimesh.creation.icosphere(subdivisions=3), cone):
         n = len(mesh.vertices)
         topology = _topology(mesh)
-        membrane = _Membrane(topology, 4.0)
+        membranes = {smoothing: _Membrane(topology, smoothing) for smoothing in (4.0, 0.5)}
+        assert membranes[4.0].solver is membranes[0.5].solver is topology.system[0]
         rng = np.random.default_rng(4)
         for _ in range(3):
-            weights = np.where(rng.random(n) < 0.3, rng.random(n), 0.0) + 1e-9
-            rhs = rng.normal(size=(n, 3))
-            order, ordered, diagonal = topology.system
-            data = 4.0 * ordered.data
-            data[diagonal] += weights[order]
-            system = csc_matrix((data, ordered.indices, ordered.indptr), shape=ordered.shape)
-            defaults = splu(system, permc_spec="NATURAL", relax=1, panel_size=1, options=dict(SymmetricMode=True))
-            want = np.empty_like(rhs)
-            want[order] = defaults.solve(rhs[order])
-            np.testing.assert_array_equal(membrane.solve(weights, rhs), want)
+            for smoothing, membrane in membranes.items():
+                weights = np.where(rng.random(n) < 0.3, rng.random(n), 0.0) + 1e-9
+                rhs = rng.normal(size=(n, 3))
+                dense = _dense_membrane(mesh, weights, smoothing)
+                got = membrane.solve(weights, rhs)
+                np.testing.assert_allclose(got, np.linalg.solve(dense, rhs), rtol=1e-8,
+                                           atol=1e-11 * np.abs(rhs).max())
 
 
-def test_topology_is_remembered_by_the_faces_and_its_order_is_the_systems():
+def test_topology_is_remembered_by_the_faces_with_the_upper_triangle_of_its_laplacian():
     """One topology per face list (a moved mesh of the same faces gets it again; other faces
-    another): trimesh's unique edges and watertightness, and the fill-reducing order that
-    SuperLU's MMD finds on the weighted system itself (it reads the pattern alone)."""
-    from scipy.sparse import diags
-    from scipy.sparse.linalg import splu
+    another): trimesh's unique edges and watertightness, and the pattern its solver takes: the
+    upper triangle of the graph Laplacian, whose diagonal positions it knows."""
+    from scipy.sparse import triu
 
     mesh = trimesh.creation.icosphere(subdivisions=3)
     topology = _topology(mesh)
@@ -328,12 +322,11 @@ def test_topology_is_remembered_by_the_faces_and_its_order_is_the_systems():
     holed = trimesh.Trimesh(mesh.vertices, mesh.faces[1:], process=False)
     assert topology.watertight and not _topology(holed).watertight
     n = len(mesh.vertices)
-    weights = np.where(np.random.default_rng(5).random(n) < 0.2, 0.7, 0.0) + 1e-9
-    system = (diags(weights) + 4.0 * _graph_laplacian(mesh.edges_unique, n)).tocsc()
-    found = splu(system, permc_spec="MMD_AT_PLUS_A", options=dict(SymmetricMode=True))
-    order = topology.system[0]
-    np.testing.assert_array_equal(order, np.argsort(found.perm_c))
-    assert sorted(order) == list(range(n))
+    _, upper, diagonal = topology.system
+    laplacian = _graph_laplacian(mesh.edges_unique, n)
+    np.testing.assert_array_equal(upper.toarray(), triu(laplacian).toarray())
+    np.testing.assert_array_equal(upper.data[diagonal], laplacian.diagonal())
+    assert len(diagonal) == n
 
 
 @pytest.mark.parametrize("lo, hi", [(0, 1), (0, 40), (3, 9), (100, 180), (250, 256), (255, 256), (0, 256)])

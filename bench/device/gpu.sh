@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The project's GPU runs on a lent device machine, from the checkout root there, after
-# ../shared/device/README.md has staged the wheels (its /tmp/fsw/env.sh, or $FSW_ENV, exists):
+# ../shared/device/README.md has staged the wheels (its /tmp/fsw/env.sh, or $FSW_ENV, exists;
+# stage with the extra name qdldl, which the machine lacks: ../shared/device/stage-gpu-wheels.sh qdldl):
 #
 #   bash bench/device/gpu.sh tests                  pytest -m gpu (Warp CUDA and OpenCL on the GPU)
 #   bash bench/device/gpu.sh table NAME SCENE...    bench/paper_table.py on Warp CUDA
