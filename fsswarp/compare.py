@@ -195,9 +195,9 @@ class ViewComparison:
         the views."""
         check_depth_tilt(depth, tilt)
         if model is not self.model:
-            vertices, faces = check_mesh(model, name="model")
-            if not (self.model is not None and np.array_equal(vertices, self.vertices)
-                    and np.array_equal(faces, self.faces)):  # the copies loaded, whatever changed in place
+            same_faces = self.model is not None and np.array_equal(np.asarray(getattr(model, "faces", ())), self.faces)
+            vertices, faces = check_mesh(model, name="model", judge_watertight=not same_faces)  # judged at its load
+            if not (same_faces and np.array_equal(vertices, self.vertices)):  # the copies loaded, whatever changed
                 self.mesh = self.backend.load_mesh(vertices, faces)
                 self.vertices, self.faces = vertices.copy(), faces.copy()
                 self.estimate, self._unseen = None, set()

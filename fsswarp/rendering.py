@@ -80,16 +80,17 @@ class RenderSettings:
             raise InputError("must be in [0, 1]", field="surface_reflection", value=self.surface_reflection)
 
 
-def check_mesh(mesh, *, name: str = "mesh"):
+def check_mesh(mesh, *, name: str = "mesh", judge_watertight: bool = True):
     """``(vertices (Nv, 3) float64, faces (Nf, 3) int64)`` of a trimesh, or InputError if it holds
-    no triangles or non-finite vertices; warns (RenderWarning) when it is not watertight."""
+    no triangles or non-finite vertices; warns (RenderWarning) when it is not watertight (unless
+    ``judge_watertight`` is False: a caller that judged these faces already)."""
     vertices = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))), np.float64)
     faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), np.int64)
     if faces.ndim != 2 or faces.shape[0] == 0 or faces.shape[1] != 3:
         raise InputError("holds no triangles", field=name, value=f"{len(faces)} faces")
     if not np.all(np.isfinite(vertices)):
         raise InputError("has non-finite vertices", field=name, value=int((~np.isfinite(vertices)).sum()))
-    if hasattr(type(mesh), "is_watertight") and not is_watertight(mesh):
+    if judge_watertight and hasattr(type(mesh), "is_watertight") and not is_watertight(mesh):
         warnings.warn(f"{name} is not watertight: ghost and mirror legs may leak through holes; "
                       "close it (e.g. trimesh's fill_holes) or use a closed mesh", RenderWarning, stacklevel=2)
     return vertices, faces

@@ -540,6 +540,22 @@ def test_an_equal_model_keeps_the_loaded_mesh_and_its_location(coral_one, truth_
     np.testing.assert_array_equal(comparison.vertices, truth_model.vertices)
 
 
+def test_an_open_model_is_judged_once_for_its_faces(coral_one, truth_model, opencl):
+    """An open model warns when it is loaded; a moved copy of it (the faces in use) is not
+    judged again; a model of other faces is, and the open one again after it."""
+    from fsswarp.rendering import RenderWarning
+
+    truth = coral_one.manifest.truth
+    holed = trimesh.Trimesh(truth_model.vertices, truth_model.faces[1:], process=False)
+    moved = trimesh.Trimesh(truth_model.vertices + 0.001, truth_model.faces[1:], process=False)
+    comparison = ViewComparison(coral_one, backend=opencl)
+    for model, warns in ((holed, True), (moved, False), (truth_model, False), (holed, True)):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            comparison.use(model, truth.depth, truth.tilt)
+        assert any(issubclass(w.category, RenderWarning) for w in caught) == warns
+
+
 def test_detection_shift_with_views_left_out_is_that_of_the_anchors_layers_alone(coral_one, truth_model, opencl):
     """Locating costs every rendered pair where it lies, views left out included (against
     data view 0, then dropped): the anchors' costs, and so the shift, equal those of the
