@@ -76,8 +76,8 @@ def _expand_bits(v: np.ndarray) -> np.ndarray:
 def triangle_bounds(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(Nf, 3) lower and upper corners of the triangles' boxes, of vertices (Nv, 3) and faces
     (Nf, 3): the corners' element-wise minimum and maximum (as ``min(axis=1)`` on the (Nf, 3, 3)
-    triangles, 6x faster)."""
-    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    triangles, 6x faster; ``np.take`` gathers the corners faster than indexing does)."""
+    a, b, c = (np.take(vertices, faces[:, k], axis=0) for k in range(3))
     return np.minimum(np.minimum(a, b), c), np.maximum(np.maximum(a, b), c)
 
 

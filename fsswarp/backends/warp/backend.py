@@ -144,7 +144,7 @@ class WarpBackend(Backend):
     def _load_mesh(self, vertices, faces):
         with wp.ScopedDevice(self._device):
             points = np.asarray(vertices, np.float32)
-            corners = self._array(points[np.asarray(faces).reshape(-1)], wp.vec3)
+            corners = self._array(np.take(points, np.asarray(faces).reshape(-1), axis=0), wp.vec3)
             lo, hi = triangle_bounds(points, np.asarray(faces, np.int64).reshape(-1, 3))
             # pad so boxes of axis-aligned triangles have volume (and rounding never loses one)
             extent = float(np.max(np.abs(vertices))) if len(vertices) else 1.0
