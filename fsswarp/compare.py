@@ -183,6 +183,7 @@ class ViewComparison:
         self.model = self.estimate = None
         self._unseen: set[str] = set()
         self._anchored: frozenset[int] | None = None  # rig views of poses that depend on neither D nor β
+        self._errors_here = None  # contour_errors at the located estimate
         self._data_distances = None  # _data_distances_of's last (key, maps): their device copy is in use
         self._no_distances = self.backend.device_distances(  # locating reads the contours alone: any distances do
             np.zeros((len(self.views), 2, self.sonar.bins, self.sonar.beams), np.float32))
@@ -214,6 +215,7 @@ class ViewComparison:
         check_depth_tilt(depth, tilt)
         made = self._data_distances
         self.data, self._layers, self._keep, self._predicted = self._data_contours(depth, tilt)
+        self._errors_here = None
         if self._data_distances is not made:  # new data contours: their device maps, ICP goals
             self._distances = self.backend.device_distances(self.data.distances)  # read at every cap
             self._goals = self._data_points(self.data)
@@ -553,10 +555,15 @@ class ViewComparison:
         """(V,) CE (m) of the views ``data.views``: the error of the ICP of the synthetic object
         contour at (depth m, tilt rad) to the data's (paper eq. 9); NaN where a view has fewer
         than two points in either."""
+        here = self.estimate == (float(depth), float(tilt))
+        if here and self._errors_here is not None:  # found once per location (refinement's last CE, then E_I's)
+            return self._errors_here.copy()
         contour, shift = self.synthetic_contours(depth, tilt)
         errors = np.full(len(self.data.views), math.nan)
         for _, k, _, _, _, result in self.align(contour, shift, (0,)):
             errors[k] = result.error
+        if here:
+            self._errors_here = errors.copy()
         return errors
 
     def align(self, contours: np.ndarray, shift: float, components=(0, 1)) -> list[tuple]:

@@ -540,6 +540,25 @@ def test_an_equal_model_keeps_the_loaded_mesh_and_its_location(coral_one, truth_
     np.testing.assert_array_equal(comparison.vertices, truth_model.vertices)
 
 
+def test_contour_errors_at_the_estimate_are_found_once_per_location(coral_one, truth_model, opencl, monkeypatch):
+    """CE at the located estimate is computed once (refinement's last CE, then E_I's) and handed
+    out as a copy; elsewhere, or once located again, it is computed anew: the same values."""
+    truth = coral_one.manifest.truth
+    comparison = ViewComparison(coral_one, backend=opencl).use(truth_model, truth.depth, truth.tilt)
+    aligned = []
+    align = ViewComparison.align
+    monkeypatch.setattr(ViewComparison, "align", lambda self, *a, **k: aligned.append(1) or align(self, *a, **k))
+    first = comparison.contour_errors(truth.depth, truth.tilt)
+    first[:] = 1.0  # the caller's copy
+    again = comparison.contour_errors(truth.depth, truth.tilt)
+    assert len(aligned) == 1 and not np.any(again == 1.0)
+    elsewhere = comparison.contour_errors(truth.depth + 0.002, truth.tilt)
+    assert len(aligned) == 2 and not np.array_equal(elsewhere, again, equal_nan=True)
+    comparison.use(truth_model, truth.depth + 0.002, truth.tilt)
+    np.testing.assert_array_equal(comparison.contour_errors(truth.depth + 0.002, truth.tilt), elsewhere)
+    assert len(aligned) == 3
+
+
 def test_an_open_model_is_judged_once_for_its_faces(coral_one, truth_model, opencl):
     """An open model warns when it is loaded; a moved copy of it (the faces in use) is not
     judged again; a model of other faces is, and the open one again after it."""
