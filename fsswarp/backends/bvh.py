@@ -102,7 +102,7 @@ def build_bvh(vertices: np.ndarray, faces: np.ndarray) -> FlatBVH:
         | _expand_bits(q[:, 2])
     codes = codes.astype(np.int64)
     order = np.argsort(codes, kind="stable")
-    codes = codes[order]
+    codes = np.take(codes, order)
 
     if n <= LEAF_SIZE:
         node_bounds = np.zeros((1, 2, 2, 4), np.float32)
@@ -111,8 +111,8 @@ def build_bvh(vertices: np.ndarray, faces: np.ndarray) -> FlatBVH:
         node_bounds[0, 1] = np.array([[np.inf] * 3 + [0.0], [-np.inf] * 3 + [0.0]], np.float32)  # empty
         node_children = np.array([[_leaf(np.array(0), np.array(n)), _leaf(np.array(0), np.array(0))]], np.int32)
     else:
-        node_bounds, node_children = _tree(codes, tri_lo[order], tri_hi[order])
-    triangles = np.ascontiguousarray(verts[faces[order]].reshape(n, 9), np.float32)
+        node_bounds, node_children = _tree(codes, np.take(tri_lo, order, axis=0), np.take(tri_hi, order, axis=0))
+    triangles = np.take(verts, np.take(faces, order, axis=0).reshape(-1), axis=0).reshape(n, 9)
     return FlatBVH(node_bounds, node_children, triangles, order.astype(np.int32))
 
 
