@@ -180,6 +180,7 @@ class ViewComparison:
         self.highlight, self.threshold = dataset.derived(
             ("pose views", tuple(self.views), settings.segment),
             lambda: _view_highlights(dataset, self.views, settings.segment))
+        self._highlights = np.stack(self.highlight)  # (V, bins, beams), as data_windows reads them
         self.model = self.estimate = None
         self._unseen: set[str] = set()
         self._anchored: frozenset[int] | None = None  # rig views of poses that depend on neither D nor β
@@ -271,29 +272,12 @@ class ViewComparison:
             self._unseen |= unseen
             self.warn_unseen(unseen, depth, tilt, stacklevel=5)
         keep = np.flatnonzero(seen)
-        beams = np.arange(sonar.beams)
         pad = int(math.ceil(st.window / sonar.range_step))
-        windows, masks, rows = [], [], []
-        for k in keep:
-            first = contour[k][contour[k] >= 0]
-            lo, hi = int(math.floor(first.min())) - pad, int(math.ceil(first.max())) + pad + 1
-            windows.append((max(lo, 0), min(hi, sonar.bins)))
-            span = np.flatnonzero(contour[k, 0] >= 0)
-            obj = (beams >= span.min() - st.margin_beams) & (beams <= span.max() + st.margin_beams)
-            hl = highlight[k][windows[-1][0]:windows[-1][1]]
-            first_row = np.where(hl.any(axis=0), hl.argmax(axis=0) + windows[-1][0], -1)
-            left, right = beams < span.min() - st.margin_beams, beams > span.max() + st.margin_beams
-            found = first_row >= 0
-            mir = left if np.sum(found & left) > np.sum(found & right) else right
-            if np.sum(found & mir) < st.min_mirror_beams:
-                mir = np.zeros_like(obj)
-            row = np.stack([np.where(obj, first_row, -1), np.where(mir, first_row, -1)])
-            masks.append(np.stack([obj, mir]))
-            rows.append(row)
-        rows = np.asarray(rows)
+        windows, masks, rows = data_windows(contour[keep], self._highlights[keep], pad, st.margin_beams,
+                                            st.min_mirror_beams)
         seen_views = tuple(views[k] for k in keep)
-        data = DataContours(seen_views, tuple(names[k] for k in keep), threshold[keep], np.asarray(windows, np.int64),
-                            np.asarray(masks), rows, self._data_distances_of(seen_views, rows))
+        data = DataContours(seen_views, tuple(names[k] for k in keep), threshold[keep], windows, masks, rows,
+                            self._data_distances_of(seen_views, rows))
         return data, layers, keep, None if predicted is None else _kept(predicted, keep)
 
     def warn_unseen(self, names, depth: float, tilt: float, *, stacklevel: int = 2) -> None:
@@ -626,6 +610,37 @@ class ViewComparison:
         found = self.backend.frontal_faces(self.mesh, self.sonar, rot, t, n, d, views, azimuths,
                                            self.settings.patch_rays, mirror=mirror)
         return np.split(found, np.cumsum(sizes)[:-1])
+
+
+def data_windows(contour: np.ndarray, highlight: np.ndarray, pad: int, margin: int, min_mirror: int):
+    """(windows (K, 2) int64, masks (K, 2, beams) bool, rows (K, 2, beams) int64) of K views whose
+    predicted contours ``contour`` (K, 2, beams) (rows, -1: none) show the object (component 0)
+    in some beam, with their data highlights (K, bins, beams) bool. A view's window: the rows of
+    its predicted contour points widened by ``pad`` rows each side, within the image. Its data
+    rows: per beam the first highlight row in the window (-1: none); the object's where the
+    predicted object spans the beam (``margin`` beams more each side), the mirror's on the side
+    beyond it with more such rows, where at least ``min_mirror`` beams have one (else none)."""
+    beams = contour.shape[2]
+    bins = highlight.shape[1]
+    point = contour >= 0
+    lo = np.floor(np.where(point, contour, np.inf).min(axis=(1, 2))).astype(np.int64) - pad
+    hi = np.ceil(np.where(point, contour, -np.inf).max(axis=(1, 2))).astype(np.int64) + pad + 1
+    windows = np.stack([np.maximum(lo, 0), np.minimum(hi, bins)], axis=1)
+    top, bottom = int(windows[:, 0].min()), int(windows[:, 1].max())  # the rows any window holds
+    row = np.arange(top, bottom)
+    inside = (row >= windows[:, :1]) & (row < windows[:, 1:])  # (K, rows)
+    lit = highlight[:, top:bottom] & inside[:, :, None]
+    first_row = np.where(lit.any(axis=1), lit.argmax(axis=1) + top, -1)  # (K, beams)
+    index = np.arange(beams)
+    span = point[:, 0]
+    start = span.argmax(axis=1)[:, None] - margin
+    stop = beams - 1 - span[:, ::-1].argmax(axis=1)[:, None] + margin
+    obj, left, right = (index >= start) & (index <= stop), index < start, index > stop
+    found = first_row >= 0
+    mirror = np.where(((found & left).sum(axis=1) > (found & right).sum(axis=1))[:, None], left, right)
+    mirror &= ((found & mirror).sum(axis=1) >= min_mirror)[:, None]
+    rows = np.stack([np.where(obj, first_row, -1), np.where(mirror, first_row, -1)], axis=1)
+    return windows, np.stack([obj, mirror], axis=1), rows
 
 
 def _view_highlights(dataset, views, settings: SegmentSettings):

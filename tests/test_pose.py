@@ -575,6 +575,55 @@ def test_an_open_model_is_judged_once_for_its_faces(coral_one, truth_model, open
         assert any(issubclass(w.category, RenderWarning) for w in caught) == warns
 
 
+def _data_windows_one_view_at_a_time(contour, highlight, pad, margin, min_mirror):
+    """data_windows written view by view (the oracle): each view's window slice of its highlights."""
+    beams, bins = contour.shape[2], highlight.shape[1]
+    index = np.arange(beams)
+    windows, masks, rows = [], [], []
+    for k in range(contour.shape[0]):
+        points = contour[k][contour[k] >= 0]
+        lo, hi = int(math.floor(points.min())) - pad, int(math.ceil(points.max())) + pad + 1
+        lo, hi = max(lo, 0), min(hi, bins)
+        span = np.flatnonzero(contour[k, 0] >= 0)
+        obj = (index >= span.min() - margin) & (index <= span.max() + margin)
+        lit = highlight[k][lo:hi]
+        first_row = np.where(lit.any(axis=0), lit.argmax(axis=0) + lo, -1)
+        left, right = index < span.min() - margin, index > span.max() + margin
+        found = first_row >= 0
+        mirror = left if np.sum(found & left) > np.sum(found & right) else right
+        if np.sum(found & mirror) < min_mirror:
+            mirror = np.zeros_like(obj)
+        windows.append((lo, hi))
+        masks.append(np.stack([obj, mirror]))
+        rows.append(np.stack([np.where(obj, first_row, -1), np.where(mirror, first_row, -1)]))
+    return np.asarray(windows, np.int64), np.asarray(masks), np.asarray(rows)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_data_windows_of_all_views_at_once_are_each_view_s_own(seed):
+    """The windows, masks and data rows of many views at once equal those found view by view,
+    also with views near the image's edges, mirrors short of the fewest beams and ties of sides."""
+    from fsswarp.compare import data_windows
+
+    rng = np.random.default_rng(seed)
+    views, bins, beams = 9, 128, 40
+    contour = np.full((views, 2, beams), -1.0, np.float32)
+    for k in range(views):
+        first, width = rng.integers(0, beams - 3), rng.integers(1, 12)
+        near = rng.choice([2.0, 60.0, 125.0])
+        contour[k, 0, first:first + width] = near + rng.uniform(-2, 2, min(width, beams - first))
+        side = rng.integers(0, beams, rng.integers(0, 6))
+        contour[k, 1, side] = rng.uniform(0, bins - 1, side.size)
+    contour = np.clip(contour, -1.0, bins - 1.0)
+    highlight = rng.random((views, bins, beams)) < rng.choice([0.002, 0.02, 0.2])
+    for pad, margin, min_mirror in ((5, 2, 4), (0, 0, 2), (40, 3, 2)):
+        got = data_windows(contour, highlight, pad, margin, min_mirror)
+        want = _data_windows_one_view_at_a_time(contour, highlight, pad, margin, min_mirror)
+        for g, w in zip(got, want):
+            assert g.dtype == w.dtype
+            np.testing.assert_array_equal(g, w)
+
+
 def test_detection_shift_with_views_left_out_is_that_of_the_anchors_layers_alone(coral_one, truth_model, opencl):
     """Locating costs every rendered pair where it lies, views left out included (against
     data view 0, then dropped): the anchors' costs, and so the shift, equal those of the
