@@ -180,7 +180,7 @@ class ViewComparison:
         self.highlight, self.threshold = dataset.derived(
             ("pose views", tuple(self.views), settings.segment),
             lambda: _view_highlights(dataset, self.views, settings.segment))
-        self._highlights = np.stack(self.highlight)  # (V, bins, beams), as data_windows reads them
+        self._highlights = np.stack(self.highlight)  # (V, bins, beams), as _data_windows reads them
         self.model = self.estimate = None
         self._unseen: set[str] = set()
         self._anchored: frozenset[int] | None = None  # rig views of poses that depend on neither D nor β
@@ -273,8 +273,8 @@ class ViewComparison:
             self.warn_unseen(unseen, depth, tilt, stacklevel=5)
         keep = np.flatnonzero(seen)
         pad = int(math.ceil(st.window / sonar.range_step))
-        windows, masks, rows = data_windows(contour[keep], self._highlights[keep], pad, st.margin_beams,
-                                            st.min_mirror_beams)
+        windows, masks, rows = _data_windows(contour[keep], self._highlights[keep], pad, st.margin_beams,
+                                             st.min_mirror_beams)
         seen_views = tuple(views[k] for k in keep)
         data = DataContours(seen_views, tuple(names[k] for k in keep), threshold[keep], windows, masks, rows,
                             self._data_distances_of(seen_views, rows))
@@ -612,7 +612,7 @@ class ViewComparison:
         return np.split(found, np.cumsum(sizes)[:-1])
 
 
-def data_windows(contour: np.ndarray, highlight: np.ndarray, pad: int, margin: int, min_mirror: int):
+def _data_windows(contour: np.ndarray, highlight: np.ndarray, pad: int, margin: int, min_mirror: int):
     """(windows (K, 2) int64, masks (K, 2, beams) bool, rows (K, 2, beams) int64) of K views whose
     predicted contours ``contour`` (K, 2, beams) (rows, -1: none) show the object (component 0)
     in some beam, with their data highlights (K, bins, beams) bool. A view's window: the rows of

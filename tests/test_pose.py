@@ -576,7 +576,7 @@ def test_an_open_model_is_judged_once_for_its_faces(coral_one, truth_model, open
 
 
 def _data_windows_one_view_at_a_time(contour, highlight, pad, margin, min_mirror):
-    """data_windows written view by view (the oracle): each view's window slice of its highlights."""
+    """_data_windows written view by view (the oracle): each view's window slice of its highlights."""
     beams, bins = contour.shape[2], highlight.shape[1]
     index = np.arange(beams)
     windows, masks, rows = [], [], []
@@ -603,7 +603,7 @@ def _data_windows_one_view_at_a_time(contour, highlight, pad, margin, min_mirror
 def test_data_windows_of_all_views_at_once_are_each_view_s_own(seed):
     """The windows, masks and data rows of many views at once equal those found view by view,
     also with views near the image's edges, mirrors short of the fewest beams and ties of sides."""
-    from fsswarp.compare import data_windows
+    from fsswarp.compare import _data_windows
 
     rng = np.random.default_rng(seed)
     views, bins, beams = 9, 128, 40
@@ -617,7 +617,7 @@ def test_data_windows_of_all_views_at_once_are_each_view_s_own(seed):
     contour = np.clip(contour, -1.0, bins - 1.0)
     highlight = rng.random((views, bins, beams)) < rng.choice([0.002, 0.02, 0.2])
     for pad, margin, min_mirror in ((5, 2, 4), (0, 0, 2), (40, 3, 2)):
-        got = data_windows(contour, highlight, pad, margin, min_mirror)
+        got = _data_windows(contour, highlight, pad, margin, min_mirror)
         want = _data_windows_one_view_at_a_time(contour, highlight, pad, margin, min_mirror)
         for g, w in zip(got, want):
             assert g.dtype == w.dtype
