@@ -180,7 +180,6 @@ class ViewComparison:
         self.highlight, self.threshold = dataset.derived(
             ("pose views", tuple(self.views), settings.segment),
             lambda: _view_highlights(dataset, self.views, settings.segment))
-        self._highlights = np.stack(self.highlight)  # (V, bins, beams), as _data_windows reads them
         self.model = self.estimate = None
         self._unseen: set[str] = set()
         self._anchored: frozenset[int] | None = None  # rig views of poses that depend on neither D nor β
@@ -253,7 +252,7 @@ class ViewComparison:
         first see a return (every layer of a view is 0 above its first echo row, so no row there
         crosses the threshold): the same contours as a scan from row 0, which a GPU does
         instead, leaving the copy until ``predicted`` is read."""
-        sonar, st, views, highlight, threshold = self.sonar, self.settings, self.views, self.highlight, self.threshold
+        sonar, st, views, threshold = self.sonar, self.settings, self.views, self.threshold
         names = [self.rig.views[i].name for i in views]
         every = np.ones((len(views), 2, sonar.beams), bool)
         layers = self.render_pairs(views, np.array([depth]), np.array([tilt]), st.exact_samples)
@@ -273,7 +272,7 @@ class ViewComparison:
             self.warn_unseen(unseen, depth, tilt, stacklevel=5)
         keep = np.flatnonzero(seen)
         pad = int(math.ceil(st.window / sonar.range_step))
-        windows, masks, rows = _data_windows(contour[keep], self._highlights[keep], pad, st.margin_beams,
+        windows, masks, rows = _data_windows(contour[keep], _kept(self.highlight, keep), pad, st.margin_beams,
                                              st.min_mirror_beams)
         seen_views = tuple(views[k] for k in keep)
         data = DataContours(seen_views, tuple(names[k] for k in keep), threshold[keep], windows, masks, rows,
@@ -644,13 +643,14 @@ def _data_windows(contour: np.ndarray, highlight: np.ndarray, pad: int, margin: 
 
 
 def _view_highlights(dataset, views, settings: SegmentSettings):
-    """(read-only highlight masks (bins, beams) per view, read-only (V, bins) detection
-    thresholds) of the data images of the rig views ``views`` (indices)."""
+    """(read-only (V, bins, beams) highlight masks, read-only (V, bins) detection thresholds) of
+    the data images of the rig views ``views`` (indices)."""
     names = [dataset.rig.views[i].name for i in views]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # views without a highlight get no contour
-        highlight = [segment(dataset.images[n], settings, name=f"images/{n}").highlight for n in names]
+        highlight = np.stack([segment(dataset.images[n], settings, name=f"images/{n}").highlight for n in names])
     threshold = np.stack([detection_threshold(dataset.images[n], settings) for n in names])
+    highlight.setflags(write=False)
     threshold.setflags(write=False)
     return highlight, threshold
 
