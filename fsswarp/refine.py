@@ -13,7 +13,11 @@ One update at a given (D, β), over the views marked ``optimize``, with a
 4. Overshoot (the intensity term of eq. 4): a ray hit whose pixel the synthetic view calls
    bright, the data dark (farther than ``tolerance`` from every highlight pixel) and no ghost
    or mirror reaches votes to move its triangle inward by that distance; a hit past the last
-   highlight row of its beam does not vote. Triangles with a contour motion keep that one.
+   highlight row of its beam does not vote. With ``top_level`` > 0 the double-bounce mirror's
+   rays (sonar → surface → triangle: the top, seen from above) vote alike where the synthetic
+   mirror2 layer is at least ``top_level`` × the threshold and no other component reaches, by
+   that distance times the cosine between ray and normal. Triangles with a contour motion keep
+   that one.
 5. Vertex displacements: area-weighted motions with confidences, spread by the membrane solve
    ``(C + λ L) U = C Û`` (λ = ``smoothing``), capped at ``max_motion``, scaled by ``step``.
 6. Safety: the topology never changes. A triangle whose normal would turn more than
@@ -51,6 +55,9 @@ class RefineSettings:
     max_motion : cap (m) of a patch motion per update; smoothing : membrane weight λ
     shrink : weight of the overshoot term (0: contours only); tolerance : (m) overshoot dead band
     mirror : use the mirror contours; rays : (K_θ, K_φ) rays per beam of the overshoot term
+    top_level : the double-bounce votes' synthetic mirror2 level, × the detection threshold;
+        0 (the default): none. At a fixed pose 2 takes a carving's excess faster, in the loop
+        it did not reach the aims more often (docs/experiments.md, "Double-bounce votes")
     corrupt : a pixel counts as ghost/mirror corrupted where the smoothed synthetic ghost +
         mirror layers exceed ``corrupt`` × the detection threshold
     rcond : truncated-SVD cut-off of the patch solves; max_turn : (rad) largest normal turn
@@ -66,6 +73,7 @@ class RefineSettings:
     tolerance: float = 0.002
     mirror: bool = True
     rays: tuple[int, int] = (2, 32)
+    top_level: float = 0.0
     corrupt: float = 0.5
     rcond: float = 1e-2
     max_turn: float = math.radians(60.0)
@@ -78,6 +86,7 @@ class RefineSettings:
             check_integer(f"refine.{name}", getattr(self, name), lowest)
         for name, zero, high in (("step", False, 2.0), ("max_motion", False, 1.0), ("smoothing", False, 1e6),
                                  ("shrink", True, 10.0), ("tolerance", True, 1.0), ("corrupt", False, 1e6),
+                                 ("top_level", True, 1e6),
                                  ("rcond", False, 1.0), ("max_turn", False, math.pi)):
             value = getattr(self, name)
             ok = is_finite_number(value) and value <= high
@@ -239,9 +248,10 @@ class _Update:
     def _overshoot(self, dataset, skip: np.ndarray) -> np.ndarray:
         """Inward motions of triangles whose echo lands where the data is dark (module
         docstring, step 4); fills ``self.motion`` except on ``skip``; returns the faces moved.
-        The views' rays go to the backend in one launch; the synthetic views are the layers
-        that the comparison rendered at its (D, β) (``ViewComparison.predicted``); each is
-        smoothed only in the rows that its votes read (:func:`smoothed_rows`)."""
+        The views' direct rays go to the backend in one launch, their double-bounce legs in a
+        second; the synthetic views are the layers that the comparison rendered at its (D, β)
+        (``ViewComparison.predicted``); each is smoothed only in the rows that its votes read
+        (:func:`smoothed_rows`)."""
         comparison, sonar, st = self.comparison, self.comparison.sonar, self.settings
         data = comparison.data
         layers = comparison.predicted
@@ -255,9 +265,16 @@ class _Update:
         u = np.stack([np.cos(ph) * np.sin(th), np.cos(ph) * np.cos(th), np.sin(ph)], axis=-1).reshape(-1, 3)
         beam_of_ray = np.repeat(np.arange(sonar.beams), k_theta * k_phi)
         n_views = len(data.views)
+        directions = np.stack([u @ rot.T for rot in self.rot])  # (V, R, 3), reference frame
         dist, faces = comparison.backend.cast_rays(comparison.mesh, np.repeat(self.t, len(u), axis=0),
-                                                np.concatenate([u @ rot.T for rot in self.rot]))
+                                                directions.reshape(-1, 3))
         dist, faces = dist.astype(np.float64).reshape(n_views, -1), faces.reshape(n_views, -1)
+        up = u @ self.n_view.T  # (R, V)
+        surface = np.where(up > 0, self.d_view / np.where(up > 0, up, 1.0), np.inf).T  # (V, R): range to the surface
+        if st.top_level > 0:
+            normal = surface_in_reference(comparison.rig, self.depth, self.tilt)[0]
+            top = _double_bounce(comparison.backend, comparison.mesh, directions, self.t, surface, dist, normal,
+                                self.mesh.face_normals)
         total = np.zeros(len(self.mesh.faces))
         votes = np.zeros(len(self.mesh.faces))
         for k in range(n_views):
@@ -266,25 +283,29 @@ class _Update:
                 continue
             dark, last_rows = dataset.derived(("overshoot", data.views[k], segmentation),
                                               lambda: _dark_distance(highlight, sonar))
-            up = u @ self.n_view[k]
-            surface = np.where(up > 0, self.d_view[k] / np.where(up > 0, up, 1.0), np.inf)
-            hit = np.isfinite(dist[k]) & (dist[k] < surface)
-            row = np.rint(sonar.bin_coordinate(dist[k, hit])).astype(int)
-            col, face = beam_of_ray[hit], faces[k, hit]
-            inside = (row >= 0) & (row < sonar.bins)
-            row, col, face = row[inside], col[inside], face[inside]
-            if not row.size:
-                continue
-            lo, hi = int(row.min()), int(row.max()) + 1  # the rows the votes read
-            threshold = data.threshold[k][lo:hi, None]
-            band = row - lo
-            bright = smoothed_rows(layers[k, :2], sigma, lo, hi) > threshold
-            corrupt = smoothed_rows(layers[k, 1:], sigma, lo, hi) > st.corrupt * threshold
-            gap = dark[row, col]
-            within = row <= last_rows[col]  # not beyond the data (step 4)
-            vote = bright[band, col] & ~corrupt[band, col] & (gap > st.tolerance) & within
-            np.add.at(total, face[vote], gap[vote])
-            np.add.at(votes, face[vote], 1.0)
+            hit = np.isfinite(dist[k]) & (dist[k] < surface[k])
+            families = [(dist[k, hit], beam_of_ray[hit], faces[k, hit], None, slice(0, 2), 1.0, slice(1, None))]
+            if st.top_level > 0:
+                rays, ranges, face, cosine = top[k]
+                families.append((ranges, beam_of_ray[rays], face, cosine, slice(3, 4), st.top_level, slice(0, 3)))
+            for ranges, col, face, weight, bright_layers, level, other_layers in families:
+                row = np.rint(sonar.bin_coordinate(ranges)).astype(int)
+                inside = (row >= 0) & (row < sonar.bins)
+                row, col, face = row[inside], col[inside], face[inside]
+                if not row.size:
+                    continue
+                lo, hi = int(row.min()), int(row.max()) + 1  # the rows the votes read
+                threshold = data.threshold[k][lo:hi, None]
+                band = row - lo
+                bright = smoothed_rows(layers[k, bright_layers], sigma, lo, hi) > level * threshold
+                other = smoothed_rows(layers[k, other_layers], sigma, lo, hi) > st.corrupt * threshold
+                gap = dark[row, col]
+                within = row <= last_rows[col]  # not beyond the data (step 4)
+                vote = bright[band, col] & ~other[band, col] & (gap > st.tolerance) & within
+                if weight is not None:
+                    gap = gap * weight[inside]
+                np.add.at(total, face[vote], gap[vote])
+                np.add.at(votes, face[vote], 1.0)
         votes[skip] = 0.0
         chosen = np.flatnonzero(votes > 0)
         self.motion[chosen] = -st.shrink * (total[chosen] / votes[chosen])[:, None] * self.mesh.face_normals[chosen]
@@ -385,6 +406,29 @@ class _Membrane:
         self.solver.update(csc_matrix((data, self.upper.indices, self.upper.indptr), shape=self.upper.shape),
                            upper=True)
         return np.stack([self.solver.solve(np.ascontiguousarray(rhs[:, k])) for k in range(rhs.shape[1])], axis=1)
+
+
+def _double_bounce(backend, mesh, directions: np.ndarray, origins: np.ndarray, surface: np.ndarray,
+                  direct: np.ndarray, normal, face_normals: np.ndarray) -> list[tuple]:
+    """The double-bounce legs of rays (sonar → surface → triangle): of the (V, R, 3) unit
+    ``directions`` from the (V, 3) ``origins``, those that reach the surface (at the (V, R)
+    distances ``surface``, inf where never) before any triangle (the (V, R) ``direct``
+    distances), reflected there about the surface's unit ``normal`` (3,) and cast against the
+    backend ``mesh`` handle in one launch. All in one frame. Returns per view (indices of the
+    rays whose leg hits, their ranges: surface + leg (m), the faces hit, |cos| between the leg
+    and the face's normal of the (F, 3) ``face_normals``)."""
+    normal = np.asarray(normal, np.float64)
+    reach = np.isfinite(surface) & (surface > 0) & ~(direct < surface)
+    view, ray = np.nonzero(reach)
+    start = origins[view] + surface[view, ray, None] * directions[view, ray]
+    leg = directions[view, ray] - 2.0 * (directions[view, ray] @ normal)[:, None] * normal
+    dist, faces = backend.cast_rays(mesh, start, leg)
+    hit = np.isfinite(dist)
+    view, ray, leg, faces = view[hit], ray[hit], leg[hit], faces[hit]
+    ranges = surface[view, ray] + dist[hit].astype(np.float64)
+    cosine = np.abs(np.einsum("ij,ij->i", leg, face_normals[faces]))
+    bounds = np.searchsorted(view, np.arange(len(directions) + 1))
+    return [(ray[a:b], ranges[a:b], faces[a:b], cosine[a:b]) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
 def smoothed_rows(layers: np.ndarray, sigma: tuple[float, float], lo: int, hi: int) -> np.ndarray:

@@ -13,8 +13,8 @@ from fsswarp.carving import carve
 from fsswarp.compare import ViewComparison
 from fsswarp.errors import InputError
 from fsswarp.metrics import compare
-from fsswarp.refine import (RefineSettings, _graph_laplacian, _Membrane, _last_echo_rows, _topology, refine_shape,
-                            smoothed_rows)
+from fsswarp.refine import (RefineSettings, _double_bounce, _graph_laplacian, _Membrane, _last_echo_rows, _topology,
+                            refine_shape, smoothed_rows)
 
 
 @pytest.fixture(scope="module")
@@ -85,17 +85,22 @@ def test_refinement_does_not_eat_into_the_object(scene):
     """Overshoot votes from echoes beyond the data's last highlight of a beam used to push
     surface that lay too far (a dent) farther still: over 12 updates at the true (D, β) the
     share of the true volume inside the model fell from 0.976 to 0.933 and E_V turned back
-    up after 10; now it loses 0.014 and E_V keeps falling."""
+    up after 10. Now it loses 0.012 (to 0.964); with the double-bounce votes (``top_level``
+    2) 0.026, for an E_V of 0.231 against 0.264 (docs/experiments.md)."""
     dataset, truth, depth, tilt, backend = scene
-    model = carve(dataset, depth, tilt, backend=backend).mesh
-    kept, volume_error = [], []
-    for _ in range(12):
-        model = refine_shape(model, dataset, depth, tilt, settings=RefineSettings(iterations=1), backend=backend).mesh
-        metrics = compare(model, truth, samples=2000)
-        kept.append(metrics["truth_volume_kept"])
-        volume_error.append(metrics["E_V"])
-    assert kept[-1] > kept[0] - 0.02
-    assert volume_error[-1] < min(volume_error[:8])
+    carved = carve(dataset, depth, tilt, backend=backend).mesh
+    kept, volume_error = {}, {}
+    for level, loss in ((RefineSettings().top_level, 0.02), (2.0, 0.035)):
+        model, kept[level], volume_error[level] = carved, [], []
+        for _ in range(12):
+            model = refine_shape(model, dataset, depth, tilt, settings=RefineSettings(iterations=1, top_level=level),
+                                 backend=backend).mesh
+            metrics = compare(model, truth, samples=2000)
+            kept[level].append(metrics["truth_volume_kept"])
+            volume_error[level].append(metrics["E_V"])
+        assert kept[level][-1] > kept[level][0] - loss
+        assert volume_error[level][-1] < min(volume_error[level][:8])
+    assert volume_error[2.0][-1] < volume_error[RefineSettings().top_level][-1] - 0.02
 
 
 @given(st.lists(st.lists(st.booleans(), min_size=5, max_size=5), min_size=1, max_size=9))
@@ -120,6 +125,65 @@ def test_inflated_model_shrinks(scene):
     assert after["chamfer_m"] < before["chamfer_m"]
 
 
+def test_double_bounce_votes_take_the_carving_s_excess_volume_without_eating_into_the_object(scene, carved):
+    """The double-bounce rays see the top from above: at the true (D, β), 3 updates of the
+    carving with their votes end nearer the truth than without (measured: E_V 0.262 against
+    0.282 on coral-one seed 1 at resolution 128), and keep as much of the true volume."""
+    dataset, truth, depth, tilt, backend = scene
+    comparison = ViewComparison(dataset, backend=backend)
+    metrics = {}
+    for level in (0.0, 2.0):
+        model = refine_shape(carved, dataset, depth, tilt, settings=RefineSettings(iterations=3, top_level=level),
+                             comparison=comparison).mesh
+        metrics[level] = compare(model, truth, samples=5000)
+    assert metrics[2.0]["E_V"] < metrics[0.0]["E_V"] - 0.01
+    assert metrics[2.0]["truth_volume_kept"] > metrics[0.0]["truth_volume_kept"] - 0.01
+
+
+def test_double_bounce_legs_match_trimesh(backend):
+    """Rays from two sonars below a surface, reflected there down onto a sphere: which reach the
+    surface before the sphere, the legs' first hits, ranges (surface + leg) and cosines against
+    trimesh's own ray casting and the reflection worked out here."""
+    rng = np.random.default_rng(11)
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
+    normal = np.array([0.0, np.sin(0.2), np.cos(0.2)])  # a tilted surface n·x = 0.25
+    origins = np.array([[0.05, -1.0, -0.1], [-0.1, -0.8, 0.05]])
+    image = 0.5 * normal  # the sphere's centre mirrored in the surface
+    directions = np.stack([trimesh.unitize(image - o + 0.15 * rng.uniform(-1, 1, size=(400, 3))) for o in origins])
+    directions[0, :40] = trimesh.unitize(-origins[0] + 0.02 * rng.normal(size=(40, 3)))  # some hit the sphere first
+    up = directions @ normal
+    surface = np.where(up > 0, (0.25 - origins @ normal)[:, None] / np.where(up > 0, up, 1.0), np.inf)
+    intersector = trimesh.ray.ray_triangle.RayMeshIntersector(sphere)
+
+    def first_hits(org, d):
+        distance, face = np.full(len(d), np.inf), np.full(len(d), -1)
+        locations, ray, tri = intersector.intersects_location(org, d, multiple_hits=False)
+        if len(ray):
+            distance[ray] = np.einsum("ij,ij->i", np.reshape(locations, (-1, 3)) - org[ray], d[ray])
+            face[ray] = tri
+        return distance, face
+
+    direct = np.stack([first_hits(np.repeat(o[None], len(d), 0), d)[0] for o, d in zip(origins, directions)])
+    legs = _double_bounce(backend, backend.load_mesh(sphere.vertices, sphere.faces), directions, origins, surface,
+                          direct, normal, sphere.face_normals)
+    blocked = 0
+    for k, (rays, ranges, faces, cosine) in enumerate(legs):
+        reach = np.flatnonzero(np.isfinite(surface[k]) & ~(direct[k] < surface[k]))
+        blocked += int((np.isfinite(surface[k]) & (direct[k] < surface[k])).sum())
+        start = origins[k] + surface[k, reach, None] * directions[k, reach]
+        d = directions[k, reach]
+        leg = d - 2.0 * (d @ normal)[:, None] * normal
+        distance, face = first_hits(start, leg)
+        hit = np.isfinite(distance)
+        assert rays.tolist() == reach[hit].tolist()
+        assert np.mean(faces == face[hit]) > 0.99
+        np.testing.assert_allclose(ranges, surface[k, reach[hit]] + distance[hit], atol=2e-5)
+        np.testing.assert_allclose(cosine, np.abs(np.einsum("ij,ij->i", leg[hit], sphere.face_normals[faces])),
+                                   atol=1e-9)
+        assert 20 < len(rays) < len(reach)
+    assert blocked > 0
+
+
 def test_model_out_of_sight(scene):
     dataset, truth, depth, tilt, backend = scene
     far = truth.copy()
@@ -135,6 +199,8 @@ def test_settings_checked():
         RefineSettings(rays=(0, 4))
     with pytest.raises(InputError, match="refine.holds"):
         RefineSettings(holds=-1)
+    with pytest.raises(InputError, match="refine.top_level"):
+        RefineSettings(top_level=-1.0)
 
 
 def _ring_distance(mesh, sources: np.ndarray) -> np.ndarray:
