@@ -37,7 +37,7 @@ from typing import Callable
 import numpy as np
 
 from .carving import CarveSettings, MeshJob, carve, start_mesh_workers, within
-from .errors import InputError, check_depth_tilt, check_integer
+from .errors import InputError, check_depth_tilt, check_integer, is_finite_number
 from .compare import PoseSettings, PoseWarning, ViewComparison
 from .metrics import average_contour_error, average_intensity_error, combine, compare_meshes, image_error
 from .pose import (BOUNDS_FACTOR, Prior, check_start, check_uncertainties, estimate_pose, fit_posterior, model_lever,
@@ -60,6 +60,8 @@ class ReconstructSettings:
     resolution : voxels along the longest side of the carving box
     render : synthetic views for the image metrics; carve, pose, refine : the steps' settings
         (pose also finds E_I's contours; refine.iterations: refinement updates per shape step)
+    answer_top_level : ``refine.top_level`` of the shape steps at the answer (:func:`_answer_model`):
+        double-bounce votes where the pose is settled (docs/decisions.md); 0: none
     """
 
     iterations: int = 10
@@ -69,10 +71,13 @@ class ReconstructSettings:
     pose: PoseSettings = field(default_factory=PoseSettings)
     refine: RefineSettings = field(default_factory=lambda: RefineSettings(iterations=3))
     render: RenderSettings = field(default_factory=RenderSettings)
+    answer_top_level: float = 2.0
 
     def __post_init__(self) -> None:
         for name, lowest in (("iterations", 0), ("patience", 1), ("resolution", 16)):
             check_integer(f"--{name}", getattr(self, name), lowest)
+        if not (is_finite_number(self.answer_top_level) and 0 <= self.answer_top_level <= 1e6):
+            raise InputError("must be a number in [0, 1000000]", field="answer_top_level", value=self.answer_top_level)
 
 
 @dataclass
@@ -264,7 +269,10 @@ def _answer_model(kept, dataset, answer: tuple[float, float], iteration: int, se
     carving inside it: what the views see empty at the answer is empty); and that carving
     (:func:`_recarved`, as in the loop; ``recarved`` tells whether it won). Measured
     (docs/experiments.md): a shape carved at a wrong tilt does not become right by refining
-    (coral-two carved 2° off: E_V 0.57 refined, 0.25 held to the carving at the answer)."""
+    (coral-two carved 2° off: E_V 0.57 refined, 0.25 held to the carving at the answer). Here
+    refinement takes the double-bounce votes of ``settings.answer_top_level``."""
+    settings = dataclasses.replace(settings, refine=dataclasses.replace(settings.refine,
+                                                                        top_level=settings.answer_top_level))
     carving = _carve(dataset, *answer, settings, shaping.backend, carvings)
     held = within(carving.voxels, kept)
     starts = {"the kept model": kept}

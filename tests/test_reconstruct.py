@@ -461,6 +461,9 @@ def test_settings_are_validated():
         ReconstructSettings(resolution=4)
     with pytest.raises(InputError, match="patience"):
         ReconstructSettings(patience=0)
+    for bad in (-0.5, math.nan, "2"):
+        with pytest.raises(InputError, match="answer_top_level"):
+            ReconstructSettings(answer_top_level=bad)
 
 
 def test_reconstruct_command_writes_model_result_and_figures(coral_one, tmp_path):
@@ -740,12 +743,13 @@ def test_the_answer_model_is_the_lowest_image_error_of_the_kept_held_and_fresh_m
     (``overlap`` 0) there is no held model."""
     from types import SimpleNamespace
 
-    answer, made = (0.4321, math.radians(10.4)), []
+    answer, made, levels = (0.4321, math.radians(10.4)), [], []
     voxels = SimpleNamespace(name="voxels")
     refined = {"kept": "moved", "held mesh": "held", "carved": "fresh"}
 
     def refine(model, dataset, depth, tilt, *, settings, comparison):
         made.append(("refined", model, (depth, tilt)))
+        levels.append(settings.top_level)
         return SimpleNamespace(mesh=refined[model])
 
     def carve(dataset, depth, tilt, *, resolution, settings, backend):
@@ -787,6 +791,8 @@ def test_the_answer_model_is_the_lowest_image_error_of_the_kept_held_and_fresh_m
                     + ([("refined", "held mesh", answer)] if overlap else []) + [("refined", "carved", answer)])
     assert model == winner and comparison.on == winner
     assert entry == {"iteration": 7, "E_I": errors[winner], "recarved": winner == "fresh"}
+    # the answer's shape steps take the double-bounce votes, the loop's do not
+    assert FAST.refine.top_level == 0 < FAST.answer_top_level and levels == [FAST.answer_top_level] * len(candidates)
 
 
 def test_a_reconstruction_carves_each_pose_once(coral_one, monkeypatch):
