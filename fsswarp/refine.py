@@ -56,8 +56,8 @@ class RefineSettings:
     shrink : weight of the overshoot term (0: contours only); tolerance : (m) overshoot dead band
     mirror : use the mirror contours; rays : (K_θ, K_φ) rays per beam of the overshoot term
     top_level : the double-bounce votes' synthetic mirror2 level, × the detection threshold;
-        0 (the default): none. At a fixed pose 2 takes a carving's excess faster, in the loop
-        it did not reach the aims more often (docs/experiments.md, "Double-bounce votes")
+        0 (the default): none. 2 takes a carving's excess faster and erodes the true top over
+        many updates; the reconstruction uses it at its answer (docs/decisions.md)
     corrupt : a pixel counts as ghost/mirror corrupted where the smoothed synthetic ghost +
         mirror layers exceed ``corrupt`` × the detection threshold
     rcond : truncated-SVD cut-off of the patch solves; max_turn : (rad) largest normal turn
