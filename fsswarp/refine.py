@@ -420,8 +420,9 @@ def _double_bounce(backend, mesh, directions: np.ndarray, origins: np.ndarray, s
     normal = np.asarray(normal, np.float64)
     reach = np.isfinite(surface) & (surface > 0) & ~(direct < surface)
     view, ray = np.nonzero(reach)
-    start = origins[view] + surface[view, ray, None] * directions[view, ray]
-    leg = directions[view, ray] - 2.0 * (directions[view, ray] @ normal)[:, None] * normal
+    incoming = directions[view, ray]
+    start = origins[view] + surface[view, ray, None] * incoming
+    leg = incoming - 2.0 * (incoming @ normal)[:, None] * normal
     dist, faces = backend.cast_rays(mesh, start, leg)
     hit = np.isfinite(dist)
     view, ray, leg, faces = view[hit], ray[hit], leg[hit], faces[hit]
