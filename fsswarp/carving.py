@@ -412,6 +412,37 @@ def within(voxels: VoxelCarving, mesh) -> VoxelCarving:
     return dataclasses.replace(voxels, occupancy=voxels.occupancy & inside)
 
 
+#: A triangle nearer than this many voxel sizes before a voxel's centre does not hide it (:func:`held`).
+UNSEEN_MARGIN = 1.5
+
+
+def held(voxels: VoxelCarving, mesh, rotations, translations, sonar: SonarSpec, backend) -> VoxelCarving:
+    """The closed ``mesh`` held to the carving ``voxels`` (same frame): the kept voxels whose
+    centres lie inside it (:func:`within`), and those that no view sees past it, where the
+    views cannot tell full from empty. A view sees a centre where it lies in the view's
+    window (its nearest beam and bin in the image, its elevation in the aperture) and the line
+    from the view's origin to it meets ``mesh`` no nearer than ``UNSEEN_MARGIN`` voxels before
+    it. rotations (V, 3, 3), translations (V, 3): the views' poses in the voxels' frame (the
+    carving's views); one ray launch for all views."""
+    inside = within(voxels, mesh)
+    outside = np.argwhere(voxels.occupancy & ~inside.occupancy)
+    if not len(outside):
+        return inside
+    centres = voxels.origin + voxels.voxel_size * outside
+    origins = np.asarray(translations, np.float64)
+    rays = centres[None] - origins[:, None]  # (V, K, 3)
+    distance = np.linalg.norm(rays, axis=2)
+    rng, theta, phi = to_polar(np.einsum("vki,vij->vkj", rays, np.asarray(rotations, np.float64)))
+    in_window = sonar.beam_bin(theta, rng)[2] & sonar.in_elevation(phi)
+    hit, _ = backend.cast_rays(backend.load_mesh(mesh.vertices, mesh.faces), np.repeat(origins, len(centres), axis=0),
+                               (rays / distance[..., None]).reshape(-1, 3))
+    hidden = hit.reshape(distance.shape) < distance - UNSEEN_MARGIN * voxels.voxel_size
+    unseen = ~np.any(in_window & ~hidden, axis=0)
+    occupancy = inside.occupancy.copy()
+    occupancy[tuple(outside[unseen].T)] = True
+    return dataclasses.replace(inside, occupancy=occupancy)
+
+
 def voxel_mesh(voxels: VoxelCarving, *, smooth: int = 10, faces: int = 20_000, timings: dict | None = None):
     """The closed, outward-oriented, watertight surface of the kept voxels (module docstring:
     Mesh). Smoothing or decimation that would break watertightness is skipped with a

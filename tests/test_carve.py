@@ -23,8 +23,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from fsswarp.carving import (MC_LEVEL, CarveSettings, CarveWarning, MeshJob, VoxelCarving, carve, carve_masks,
-                           carve_reference, common_region, mesh_workers, voxel_mesh, within, _Carver, _closed,
+from fsswarp.carving import (MC_LEVEL, UNSEEN_MARGIN, CarveSettings, CarveWarning, MeshJob, VoxelCarving, carve,
+                           carve_masks,
+                           carve_reference, common_region, held, mesh_workers, voxel_mesh, within, _Carver, _closed,
                            _fill_holes, _step_tolerance)
 from fsswarp.errors import InputError
 from fsswarp.metrics import inside_grid
@@ -525,6 +526,60 @@ def test_within_keeps_the_kept_voxels_whose_centres_lie_inside_the_mesh():
     assert np.array_equal(voxels.occupancy, occupancy)
     assert held.voxel_size == h and held.tested == 1234 and np.array_equal(held.origin, origin)
     assert np.array_equal(held.domain, voxels.domain)
+
+
+def test_held_adds_to_the_voxels_inside_the_mesh_those_that_no_view_sees_past_it(backend):
+    """Against an oracle written out here: trimesh's first hit along each line from a view's origin
+    to a voxel centre, and the window of a linear sonar (nearest beam and bin in the image,
+    elevation within W_φ). A box of 2 cm voxels around an icosphere, a view from the front and one
+    from the side: the voxels inside the sphere are kept, those behind it from both views or
+    outside both windows (the box reaches above and below the side view's aperture) are added,
+    no other voxel is; decisions within 0.1 mm of the hiding distance are left out."""
+    sonar = SonarSpec()
+    h = 0.02
+    origin = np.array([-0.24, 1.76, -0.36])
+    occupancy = np.ones((25, 25, 37), bool)
+    occupancy[:, :, :2] = False  # voxels the carving did not keep are never added
+    voxels = VoxelCarving(occupancy.copy(), origin, h, np.array([[0.0, 0, 0], [1, 1, 1]]), 99)
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.15)
+    sphere.apply_translation([0.013, 2.007, -0.011])
+    rotations = np.stack([np.eye(3), rotation_z(math.pi / 2)])  # ahead along +y; from +x, ahead along -x
+    translations = np.array([[0.0, 0.0, 0.0], [1.8, 2.0, 0.0]])
+    result = held(voxels, sphere, rotations, translations, sonar, backend)
+
+    inside = within(voxels, sphere).occupancy
+    outside = np.argwhere(occupancy & ~inside)
+    centres = origin + h * outside
+    seen = np.zeros(len(centres), bool)
+    doubtful = np.zeros(len(centres), bool)
+    step = sonar.azimuth_fov / (sonar.beams - 1)
+    for rotation, translation in zip(rotations, translations):
+        q = (centres - translation) @ rotation
+        rng = np.linalg.norm(q, axis=1)
+        beam = np.floor((np.arctan2(q[:, 0], q[:, 1]) + sonar.azimuth_fov / 2) / step + 0.5)
+        row = np.floor((rng - sonar.range_min) / sonar.range_step + 0.5)
+        elevation = np.arctan2(q[:, 2], np.hypot(q[:, 0], q[:, 1]))
+        window = (beam >= 0) & (beam < sonar.beams) & (row >= 0) & (row < sonar.bins) & (
+            np.abs(elevation) <= sonar.elevation_fov / 2)
+        directions = (centres - translation) / rng[:, None]
+        hits, rays, _ = sphere.ray.intersects_location(np.repeat(translation[None], len(centres), 0), directions,
+                                                       multiple_hits=False)
+        first = np.full(len(centres), np.inf)
+        first[rays] = np.linalg.norm(hits - translation, axis=1)
+        limit = rng - UNSEEN_MARGIN * h
+        seen |= window & ~(first < limit)
+        doubtful |= window & (np.abs(first - limit) < 1e-4)
+    added = np.zeros(occupancy.shape, bool)
+    added[tuple(outside[~seen].T)] = True
+    expected = inside | added
+    clear = np.ones(occupancy.shape, bool)
+    clear[tuple(outside[doubtful].T)] = False
+    assert np.array_equal(result.occupancy[clear], expected[clear])
+    assert not (result.occupancy & ~occupancy).any() and np.array_equal(voxels.occupancy, occupancy)
+    behind = outside[~seen] @ [0, 0, 1] * h + origin[2]
+    assert np.abs(behind).min() < 0.2 < np.abs(behind).max()  # some added behind the sphere, some above or below
+    assert 0 < (~seen).sum() < 0.5 * len(outside) and inside.sum() > 0
+    assert result.voxel_size == h and result.tested == 99 and np.array_equal(result.origin, origin)
 
 
 # --- simulated coral-one -------------------------------------------------------------------------

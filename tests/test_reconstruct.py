@@ -737,10 +737,10 @@ def test_the_carving_descent_walks_to_the_least_self_disagreement(coral_one, mon
 def test_the_answer_model_is_the_lowest_image_error_of_the_kept_held_and_fresh_models(coral_one, monkeypatch,
                                                                                       errors, overlap):
     """At the answer the views are carved; the kept model, the kept model held to that carving
-    (its voxels inside the kept model, meshed) and the carving are each refined there, and the
-    lowest E_I is the result (greedy, as in the loop): ``recarved`` says whether the carving won,
-    and the comparison is left on the result. Where no carved voxel lies inside the kept model
-    (``overlap`` 0) there is no held model."""
+    (``fsswarp.carving.held`` with the carving's views at the answer, meshed) and the carving are
+    each refined there, and the lowest E_I is the result (greedy, as in the loop): ``recarved``
+    says whether the carving won, and the comparison is left on the result. Where no carved voxel
+    lies inside the kept model (``overlap`` 0) there is no held model."""
     from types import SimpleNamespace
 
     answer, made, levels = (0.4321, math.radians(10.4)), [], []
@@ -752,12 +752,17 @@ def test_the_answer_model_is_the_lowest_image_error_of_the_kept_held_and_fresh_m
         levels.append(settings.top_level)
         return SimpleNamespace(mesh=refined[model])
 
+    views = coral_one.rig.names[1::2]
+    rotations, translations = (a[1::2] for a in coral_one.rig.relative_poses(*answer))
+
     def carve(dataset, depth, tilt, *, resolution, settings, backend):
         made.append(("carved", None, (depth, tilt)))
-        return SimpleNamespace(mesh="carved", voxels=voxels)
+        return SimpleNamespace(mesh="carved", voxels=voxels, views=tuple(views))
 
-    def within(carving, model):
-        made.append(("within", model, carving.name))
+    def held(carving, model, view_rotations, view_translations, sonar, backend):
+        assert np.array_equal(view_rotations, rotations) and np.array_equal(view_translations, translations)
+        assert sonar is coral_one.sonar and backend is Comparison.backend
+        made.append(("held", model, carving.name))
         return SimpleNamespace(kept=overlap, name="held")
 
     class MeshJob:  # the held model's mesh, made while the kept model is refined
@@ -778,7 +783,7 @@ def test_the_answer_model_is_the_lowest_image_error_of_the_kept_held_and_fresh_m
         def use(self, model, depth, tilt):
             self.on = model
 
-    for name, stand_in in (("refine_shape", refine), ("carve", carve), ("within", within),
+    for name, stand_in in (("refine_shape", refine), ("carve", carve), ("held", held),
                            ("MeshJob", MeshJob), ("_record", record)):
         monkeypatch.setattr(reconstruct_module, name, stand_in)
     comparison = Comparison()
@@ -786,8 +791,8 @@ def test_the_answer_model_is_the_lowest_image_error_of_the_kept_held_and_fresh_m
                                                     lambda line: None)
     candidates = ["moved", "held", "fresh"] if overlap else ["moved", "fresh"]
     winner = min(candidates, key=errors.get)
-    held = [("meshed", "held", None)] if overlap else []
-    assert made == ([("carved", None, answer), ("within", "kept", "voxels")] + held + [("refined", "kept", answer)]
+    meshed = [("meshed", "held", None)] if overlap else []
+    assert made == ([("carved", None, answer), ("held", "kept", "voxels")] + meshed + [("refined", "kept", answer)]
                     + ([("refined", "held mesh", answer)] if overlap else []) + [("refined", "carved", answer)])
     assert model == winner and comparison.on == winner
     assert entry == {"iteration": 7, "E_I": errors[winner], "recarved": winner == "fresh"}
