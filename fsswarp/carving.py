@@ -423,21 +423,21 @@ def held(voxels: VoxelCarving, mesh, rotations, translations, sonar: SonarSpec, 
     window (its nearest beam and bin in the image, its elevation in the aperture) and the line
     from the view's origin to it meets ``mesh`` no nearer than ``UNSEEN_MARGIN`` voxels before
     it. rotations (V, 3, 3), translations (V, 3): the views' poses in the voxels' frame (the
-    carving's views); one ray launch for all views."""
+    carving's views); a ray launch per view, for the centres that no view before it saw."""
     inside = within(voxels, mesh)
     outside = np.argwhere(voxels.occupancy & ~inside.occupancy)
-    if not len(outside):
-        return inside
     centres = voxels.origin + voxels.voxel_size * outside
-    origins = np.asarray(translations, np.float64)
-    rays = centres[None] - origins[:, None]  # (V, K, 3)
-    distance = np.linalg.norm(rays, axis=2)
-    rng, theta, phi = to_polar(np.einsum("vki,vij->vkj", rays, np.asarray(rotations, np.float64)))
-    in_window = sonar.beam_bin(theta, rng)[2] & sonar.in_elevation(phi)
-    hit, _ = backend.cast_rays(backend.load_mesh(mesh.vertices, mesh.faces), np.repeat(origins, len(centres), axis=0),
-                               (rays / distance[..., None]).reshape(-1, 3))
-    hidden = hit.reshape(distance.shape) < distance - UNSEEN_MARGIN * voxels.voxel_size
-    unseen = ~np.any(in_window & ~hidden, axis=0)
+    unseen = np.ones(len(centres), bool)
+    handle = backend.load_mesh(mesh.vertices, mesh.faces) if len(centres) else None
+    for rotation, origin in zip(np.asarray(rotations, np.float64), np.asarray(translations, np.float64)):
+        left = np.flatnonzero(unseen)
+        rays = centres[left] - origin
+        rng, theta, phi = to_polar(rays @ rotation)
+        look = sonar.beam_bin(theta, rng)[2] & sonar.in_elevation(phi)
+        if not look.any():
+            continue
+        hit, _ = backend.cast_rays(handle, np.broadcast_to(origin, (int(look.sum()), 3)), rays[look] / rng[look, None])
+        unseen[left[look][~(hit < rng[look] - UNSEEN_MARGIN * voxels.voxel_size)]] = False
     occupancy = inside.occupancy.copy()
     occupancy[tuple(outside[unseen].T)] = True
     return dataclasses.replace(inside, occupancy=occupancy)
