@@ -353,8 +353,7 @@ def common_region(sonar: SonarSpec, rotations, translations, *, plane=None, samp
     if plane is not None:
         points = points[points @ np.asarray(plane[0], np.float64) <= plane[1]]
     for rot, t in zip(rotations, translations):  # each view tests only the points that all before it see
-        rng, az, el = to_polar(to_view(points, rot, t))
-        points = points[sonar.beam_bin(az, rng)[2] & sonar.in_elevation(el)]
+        points = points[sonar.in_window(*to_polar(to_view(points, rot, t)))]
     if not len(points):
         return None
     return np.stack([np.maximum(points.min(axis=0) - step, lo), np.minimum(points.max(axis=0) + step, hi)])
@@ -433,7 +432,7 @@ def held(voxels: VoxelCarving, mesh, rotations, translations, sonar: SonarSpec, 
         left = np.flatnonzero(unseen)
         rays = centres[left] - origin
         rng, theta, phi = to_polar(rays @ rotation)
-        look = sonar.beam_bin(theta, rng)[2] & sonar.in_elevation(phi)
+        look = sonar.in_window(rng, theta, phi)
         if not look.any():
             continue
         hit, _ = backend.cast_rays(handle, np.broadcast_to(origin, (int(look.sum()), 3)), rays[look] / rng[look, None])

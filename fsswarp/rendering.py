@@ -228,7 +228,7 @@ def warn_outside_window(mesh, sonar: SonarSpec, rotations, translations, normals
     for name, rot, t, n, d in zip(names, rotations, translations, normals, offsets):
         p = (points - t) @ rot
         rng, theta, phi = to_polar(p)
-        seen = sonar.in_elevation(phi) & sonar.beam_bin(theta, rng)[2]
+        seen = sonar.in_window(rng, theta, phi)
         if not seen.any():
             warnings.warn(f"view {name}: the object lies outside the range window, fan or elevation "
                           f"aperture (ranges {rng.min():.2f}-{rng.max():.2f} m, window "

@@ -170,6 +170,11 @@ class SonarSpec:
         """Whether elevation ``phi`` (rad) lies inside [-W_φ, W_φ]."""
         return np.abs(np.asarray(phi)) <= self.half_elevation
 
+    def in_window(self, rng, theta, phi) -> np.ndarray:
+        """Whether returns at (R, θ, φ) (as :func:`to_polar` gives them) land in the image
+        (:meth:`beam_bin`) and in the elevation aperture."""
+        return self.beam_bin(theta, rng)[2] & self.in_elevation(phi)
+
     # --- images ----------------------------------------------------------------------------
     def check_image(self, image, *, file=None, field: str = "image") -> np.ndarray:
         """``image`` as a (bins, beams) float32 array of finite values >= 0 (linear intensity),
