@@ -275,37 +275,26 @@ class _Update:
             normal = surface_in_reference(comparison.rig, self.depth, self.tilt)[0]
             top = _double_bounce(comparison.backend, comparison.mesh, directions, self.t, surface, dist, normal,
                                 self.mesh.face_normals)
-        total = np.zeros(len(self.mesh.faces))
-        votes = np.zeros(len(self.mesh.faces))
-        for k in range(n_views):
-            highlight = comparison.highlight[comparison.views.index(data.views[k])]
-            if not highlight.any():
-                continue
-            dark, last_rows = dataset.derived(("overshoot", data.views[k], segmentation),
-                                              lambda: _dark_distance(highlight, sonar))
-            hit = np.isfinite(dist[k]) & (dist[k] < surface[k])
-            families = [(dist[k, hit], beam_of_ray[hit], faces[k, hit], None, slice(0, 2), 1.0, slice(1, None))]
-            if st.top_level > 0:
-                rays, ranges, face, cosine = top[k]
-                families.append((ranges, beam_of_ray[rays], face, cosine, slice(3, 4), st.top_level, slice(0, 3)))
-            for ranges, col, face, weight, bright_layers, level, other_layers in families:
-                row = np.rint(sonar.bin_coordinate(ranges)).astype(int)
-                inside = (row >= 0) & (row < sonar.bins)
-                row, col, face = row[inside], col[inside], face[inside]
-                if not row.size:
-                    continue
-                lo, hi = int(row.min()), int(row.max()) + 1  # the rows the votes read
-                threshold = data.threshold[k][lo:hi, None]
-                band = row - lo
-                bright = smoothed_rows(layers[k, bright_layers], sigma, lo, hi) > level * threshold
-                other = smoothed_rows(layers[k, other_layers], sigma, lo, hi) > st.corrupt * threshold
-                gap = dark[row, col]
-                within = row <= last_rows[col]  # not beyond the data (step 4)
-                vote = bright[band, col] & ~other[band, col] & (gap > st.tolerance) & within
-                if weight is not None:
-                    gap = gap * weight[inside]
-                np.add.at(total, face[vote], gap[vote])
-                np.add.at(votes, face[vote], 1.0)
+        voting = np.array([comparison.highlight[comparison.views.index(name)].any() for name in data.views])
+        if not voting.any():
+            return np.zeros(0, int)
+        names = tuple(name for name, votes in zip(data.views, voting) if votes)
+        dark, last_rows = dataset.derived(("overshoot", names, segmentation), lambda: _stacked(
+            [dataset.derived(("overshoot", name, segmentation),
+                             lambda: _dark_distance(comparison.highlight[comparison.views.index(name)], sonar))
+             for name in names]))
+        view, ray = np.nonzero(np.isfinite(dist) & (dist < surface) & voting[:, None])
+        families = [(view, dist[view, ray], beam_of_ray[ray], faces[view, ray], None, slice(0, 2), 1.0,
+                     slice(1, None))]
+        if st.top_level > 0:
+            view = np.repeat(np.arange(n_views), [len(rays) for rays, *_ in top])
+            rays, ranges, face, cosine = (np.concatenate([legs[i] for legs in top]) for i in range(4))
+            keep = voting[view]
+            families.append((view[keep], ranges[keep], beam_of_ray[rays[keep]], face[keep], cosine[keep],
+                             slice(3, 4), st.top_level, slice(0, 3)))
+        local = np.cumsum(voting) - 1  # a voting view's place among the dark maps
+        total, votes = _overshoot_votes(layers, data.threshold, dark, last_rows, local, families, sonar, sigma, st,
+                                        len(self.mesh.faces))
         votes[skip] = 0.0
         chosen = np.flatnonzero(votes > 0)
         self.motion[chosen] = -st.shrink * (total[chosen] / votes[chosen])[:, None] * self.mesh.face_normals[chosen]
@@ -432,17 +421,57 @@ def _double_bounce(backend, mesh, directions: np.ndarray, origins: np.ndarray, s
     return [(ray[a:b], ranges[a:b], faces[a:b], cosine[a:b]) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
+def _overshoot_votes(layers: np.ndarray, threshold: np.ndarray, dark: np.ndarray, last_rows: np.ndarray,
+                     local: np.ndarray, families: list, sonar, sigma: tuple[float, float], settings: RefineSettings,
+                     n_faces: int) -> tuple[np.ndarray, np.ndarray]:
+    """(summed gaps (F,), vote counts (F,)) of the overshoot term (module docstring, step 4),
+    every view at once. layers : (V, 4, bins, beams) synthetic; threshold : (V, bins); dark,
+    last_rows : (K, bins, beams), (K, beams) of the voting views (:func:`_dark_distances`), view
+    v's at ``local[v]``; families : (view (N,), range m (N,), beam (N,), face (N,), gap weight (N,)
+    or None, bright layers, level × threshold, other layers), each in view order. A triangle's
+    votes are summed view by view, each view's families in their order."""
+    bins = threshold.shape[1]
+    found = []
+    for view, ranges, beam, face, weight, bright_layers, level, other_layers in families:
+        row = np.rint(sonar.bin_coordinate(ranges)).astype(int)
+        inside = (row >= 0) & (row < bins)
+        view, row, beam, face = view[inside], row[inside], beam[inside], face[inside]
+        if not row.size:
+            continue
+        lo, hi = int(row.min()), int(row.max()) + 1  # the rows the votes read
+        band = row - lo
+        bright = smoothed_rows(layers[:, bright_layers], sigma, lo, hi)[view, band, beam] \
+            > level * threshold[view, row]
+        other = smoothed_rows(layers[:, other_layers], sigma, lo, hi)[view, band, beam] \
+            > settings.corrupt * threshold[view, row]
+        gap = dark[local[view], row, beam]
+        within = row <= last_rows[local[view], beam]  # not beyond the data (step 4)
+        vote = bright & ~other & (gap > settings.tolerance) & within
+        if weight is not None:
+            gap = gap * weight[inside]
+        found.append((view[vote], face[vote], gap[vote]))
+    if not found:
+        return np.zeros(n_faces), np.zeros(n_faces)
+    view, face, gap = (np.concatenate(parts) for parts in zip(*found))
+    order = np.argsort(view, kind="stable")  # view by view; within a view, family by family
+    face, gap = face[order], gap[order]
+    return np.bincount(face, gap, n_faces), np.bincount(face, minlength=n_faces).astype(np.float64)
+
+
 def smoothed_rows(layers: np.ndarray, sigma: tuple[float, float], lo: int, hi: int) -> np.ndarray:
     """Rows [lo, hi) of ``scipy.ndimage.gaussian_filter(layers.sum(axis=0), sigma)`` (default
-    truncate and reflecting border), bit for bit, from the rows the range smoothing reaches,
-    which alone are summed: the filter runs along range, then across beams, and a row of the
-    first pass reads only the rows within its radius, int(4 σ_range + 0.5) (the border is the
-    image's, never the band's). layers : (L, bins, beams); returns (hi − lo, beams)."""
+    truncate and reflecting border) of each image, bit for bit, from the rows the range
+    smoothing reaches, which alone are summed: the filter runs along range, then across beams,
+    and a row of the first pass reads only the rows within its radius, int(4 σ_range + 0.5) (the
+    border is the image's, never the band's). layers : (..., L, bins, beams); returns (...,
+    hi − lo, beams)."""
     from scipy import ndimage
 
     radius = int(4.0 * float(sigma[0]) + 0.5)
-    start, stop = max(lo - radius, 0), min(hi + radius, layers.shape[1])
-    return ndimage.gaussian_filter(layers[:, start:stop].sum(axis=0), sigma)[lo - start:hi - start]
+    start, stop = max(lo - radius, 0), min(hi + radius, layers.shape[-2])
+    summed = layers[..., start:stop, :].sum(axis=-3)
+    sigmas = (0.0,) * (summed.ndim - 2) + tuple(sigma)  # an axis of σ 0 is not filtered
+    return ndimage.gaussian_filter(summed, sigmas)[..., lo - start:hi - start, :]
 
 
 def _graph_laplacian(edges: np.ndarray, n: int):
@@ -510,6 +539,15 @@ def _dark_distance(highlight: np.ndarray, sonar) -> tuple[np.ndarray, np.ndarray
     rng = float(np.median(sonar.bin_ranges[np.flatnonzero(highlight.any(axis=1))]))
     dark = ndimage.distance_transform_edt(~highlight, sampling=(sonar.range_step, rng * width))
     last_rows = _last_echo_rows(highlight)
+    dark.setflags(write=False)
+    last_rows.setflags(write=False)
+    return dark, last_rows
+
+
+def _stacked(maps: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """The (K, bins, beams) dark distances and (K, beams) last rows of K views'
+    :func:`_dark_distance`, read-only."""
+    dark, last_rows = (np.stack(parts) for parts in zip(*maps))
     dark.setflags(write=False)
     last_rows.setflags(write=False)
     return dark, last_rows

@@ -13,8 +13,8 @@ from fsswarp.carving import carve
 from fsswarp.compare import ViewComparison
 from fsswarp.errors import InputError
 from fsswarp.metrics import compare
-from fsswarp.refine import (RefineSettings, _double_bounce, _graph_laplacian, _Membrane, _last_echo_rows, _topology,
-                            refine_shape, smoothed_rows)
+from fsswarp.refine import (RefineSettings, _double_bounce, _graph_laplacian, _Membrane, _last_echo_rows,
+                            _overshoot_votes, _topology, refine_shape, smoothed_rows)
 
 
 @pytest.fixture(scope="module")
@@ -408,3 +408,70 @@ def test_smoothed_rows_are_the_whole_image_s_rows_bit_for_bit(lo, hi):
         assert got.dtype == np.float32 and got.shape == (hi - lo, 96)
         whole = chosen[0] + chosen[1] if len(chosen) == 2 else chosen[0] + chosen[1] + chosen[2]
         np.testing.assert_array_equal(got, ndimage.gaussian_filter(whole, sigma)[lo:hi])
+    stacked = np.random.default_rng(3).gamma(0.3, 1.0, (3, 4, 256, 96)).astype(np.float32)  # views at once
+    got = smoothed_rows(stacked[:, 1:], sigma, lo, hi)
+    assert got.shape == (3, hi - lo, 96)
+    for view in range(3):
+        whole = stacked[view, 1] + stacked[view, 2] + stacked[view, 3]
+        np.testing.assert_array_equal(got[view], ndimage.gaussian_filter(whole, sigma)[lo:hi])
+
+
+def _votes_view_by_view(layers, threshold, dark, last_rows, local, families, sonar, sigma, settings, n_faces):
+    """The overshoot's votes as the shape step once cast them: view by view, each view's
+    families in turn, each smoothed over the rows its own votes read (the oracle of
+    test_overshoot_votes_are_those_of_each_view_in_turn)."""
+    from scipy import ndimage
+
+    total, votes = np.zeros(n_faces), np.zeros(n_faces)
+    for k in range(len(layers)):
+        if local[k] < 0:
+            continue
+        for view, ranges, beam, face, weight, bright_layers, level, other_layers in families:
+            mine = view == k
+            row = np.rint((ranges[mine] - sonar.range_min) / sonar.range_step).astype(int)
+            inside = (row >= 0) & (row < sonar.bins)
+            row, col, hit = row[inside], beam[mine][inside], face[mine][inside]
+            if not row.size:
+                continue
+            bright = ndimage.gaussian_filter(layers[k, bright_layers].sum(axis=0), sigma)[row, col]
+            other = ndimage.gaussian_filter(layers[k, other_layers].sum(axis=0), sigma)[row, col]
+            gap = dark[local[k], row, col]
+            vote = (bright > level * threshold[k, row]) & ~(other > settings.corrupt * threshold[k, row]) \
+                & (gap > settings.tolerance) & (row <= last_rows[local[k], col])
+            if weight is not None:
+                gap = gap * weight[mine][inside]
+            np.add.at(total, hit[vote], gap[vote])
+            np.add.at(votes, hit[vote], 1.0)
+    return total, votes
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_overshoot_votes_are_those_of_each_view_in_turn(coral_one, seed):
+    """All views' votes at once sum, per triangle, the same gaps in the same order as one view
+    after another (so the same bits), with a view that does not vote, returns outside the image,
+    and a second family of other layers and level with weights."""
+    sonar = coral_one.sonar
+    rng = np.random.default_rng(seed)
+    n_views, n_faces, bins, beams = 5, 40, sonar.bins, sonar.beams
+    owner = rng.integers(0, 4, (n_views, bins // 8 + 1, beams // 8 + 1)).repeat(8, 1).repeat(8, 2)[:, :bins, :beams]
+    layers = (rng.gamma(2.0, 1.0, (n_views, 4, bins, beams)) * (owner[:, None] == np.arange(4)[:, None, None])
+              ).astype(np.float32)  # blocks of 8 x 8 pixels lit in one layer each
+    threshold = rng.uniform(0.5, 1.5, (n_views, bins))
+    local = np.array([0, 1, -1, 2, 3])  # view 2 has no highlight
+    dark = rng.uniform(0.0, 0.01, (4, bins, beams))
+    last_rows = rng.integers(bins // 2, bins, (4, beams))
+    settings = RefineSettings()
+    families = []
+    for weighted, (bright, level, other) in enumerate([(slice(0, 2), 1.0, slice(1, None)), (slice(3, 4), 2.0, slice(0, 3))]):
+        n = 3000
+        view = np.sort(rng.integers(0, n_views, n))
+        view = view[local[view] >= 0]
+        ranges = rng.uniform(sonar.range_min - 0.05, sonar.range_min + (bins + 2) * sonar.range_step, len(view))
+        families.append((view, ranges, rng.integers(0, beams, len(view)), rng.integers(0, n_faces, len(view)),
+                         rng.uniform(0.1, 1.0, len(view)) if weighted else None, bright, level, other))
+    sigma = (1.0, 0.7)
+    got = _overshoot_votes(layers, threshold, dark, last_rows, local, families, sonar, sigma, settings, n_faces)
+    want = _votes_view_by_view(layers, threshold, dark, last_rows, local, families, sonar, sigma, settings, n_faces)
+    assert want[1].sum() > 100  # the test casts votes
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
