@@ -276,7 +276,7 @@ def _answer_model(kept, dataset, answer: tuple[float, float], iteration: int, se
     double-bounce votes of ``settings.answer_top_level``."""
     settings = dataclasses.replace(settings, refine=dataclasses.replace(settings.refine,
                                                                         top_level=settings.answer_top_level))
-    carving = _carve(dataset, *answer, settings, shaping.backend, carvings)
+    carving = _carve_voxels(dataset, *answer, settings, shaping.backend, carvings)  # its mesh made meanwhile
     rotations, translations = (a[[dataset.rig.index(n) for n in carving.views]]
                                for a in dataset.rig.relative_poses(*answer))
     holding = held(carving.voxels, kept, rotations, translations, dataset.sonar, shaping.backend)
@@ -293,8 +293,8 @@ def _answer_model(kept, dataset, answer: tuple[float, float], iteration: int, se
         if entry is None or trial_entry["E_I"] < entry["E_I"]:
             model, entry, chosen = trial, trial_entry, name
     say(f"the answer: refined there, {', '.join(said)}")
-    return _recarved(carving.mesh, model, entry, iteration, dataset, *answer, settings, comparison, shaping, first,
-                     say, f"the answer: {chosen}, refined there")
+    return _recarved(_carving(dataset, *answer, settings, shaping.backend, carvings), model, entry, iteration, dataset,
+                     *answer, settings, comparison, shaping, first, say, f"the answer: {chosen}, refined there")
 
 
 def _out_of_patience(misses: int, settings: ReconstructSettings, best: dict, iteration: int, say) -> bool:
@@ -411,6 +411,17 @@ def _carve(dataset, depth: float, tilt: float, settings: ReconstructSettings, ba
     if carvings is not None:
         carvings[key] = result
     return result
+
+
+def _carve_voxels(dataset, depth: float, tilt: float, settings: ReconstructSettings, backend,
+                  carvings: dict | None):
+    """The CarveResult at (depth m, tilt rad) for its voxels and views, its mesh, where mesh
+    processes run, still being made (:func:`_carve_ahead`; :func:`_carve` finishes it)."""
+    _carve_ahead(dataset, depth, tilt, settings, backend, carvings)
+    pending = None if carvings is None else carvings.get((float(depth), float(tilt)))
+    if isinstance(pending, _Ahead) and pending.error is None:
+        return pending.carving
+    return _carve(dataset, depth, tilt, settings, backend, carvings)
 
 
 def _carve_ahead(dataset, depth: float, tilt: float, settings: ReconstructSettings, backend,

@@ -737,8 +737,8 @@ def test_the_carving_descent_walks_to_the_least_self_disagreement(coral_one, mon
 def test_the_answer_model_is_the_lowest_image_error_of_the_kept_held_and_fresh_models(coral_one, monkeypatch,
                                                                                       errors, overlap):
     """At the answer the views are carved; the kept model, the kept model held to that carving
-    (``fsswarp.carving.held`` with the carving's views at the answer, meshed) and the carving are
-    each refined there, and the lowest E_I is the result (greedy, as in the loop): ``recarved``
+    (``fsswarp.carving.held`` with the carving's views at the answer, meshed) and the carving (meshed
+    while the others are refined) are each refined there, and the lowest E_I is the result (greedy, as in the loop): ``recarved``
     says whether the carving won, and the comparison is left on the result. Where no carved voxel
     lies inside the kept model (``overlap`` 0) there is no held model."""
     from types import SimpleNamespace
@@ -755,9 +755,10 @@ def test_the_answer_model_is_the_lowest_image_error_of_the_kept_held_and_fresh_m
     views = coral_one.rig.names[1::2]
     rotations, translations = (a[1::2] for a in coral_one.rig.relative_poses(*answer))
 
-    def carve(dataset, depth, tilt, *, resolution, settings, backend):
+    def carve(dataset, depth, tilt, *, resolution, settings, backend, mesh=True):
+        assert not mesh  # the answer's carving is meshed while the other models are refined
         made.append(("carved", None, (depth, tilt)))
-        return SimpleNamespace(mesh="carved", voxels=voxels, views=tuple(views))
+        return SimpleNamespace(voxels=voxels, views=tuple(views))
 
     def held(carving, model, view_rotations, view_translations, sonar, backend):
         assert np.array_equal(view_rotations, rotations) and np.array_equal(view_translations, translations)
@@ -765,13 +766,14 @@ def test_the_answer_model_is_the_lowest_image_error_of_the_kept_held_and_fresh_m
         made.append(("held", model, carving.name))
         return SimpleNamespace(kept=overlap, name="held")
 
-    class MeshJob:  # the held model's mesh, made while the kept model is refined
-        def __init__(self, held, *, smooth, faces):
+    class MeshJob:  # the carving's and the held model's meshes, made while the kept model is refined
+        def __init__(self, voxels, *, smooth, faces):
             assert (smooth, faces) == (FAST.carve.smooth, FAST.carve.faces)
-            made.append(("meshed", held.name, None))
+            made.append(("meshed", voxels.name, None))
+            self.mesh = {"held": "held mesh", "voxels": "carved"}[voxels.name]
 
         def result(self):
-            return "held mesh"
+            return self.mesh
 
     def record(iteration, model, dataset, depth, tilt, settings, comparison, first):
         comparison.on = model
@@ -788,11 +790,12 @@ def test_the_answer_model_is_the_lowest_image_error_of_the_kept_held_and_fresh_m
         monkeypatch.setattr(reconstruct_module, name, stand_in)
     comparison = Comparison()
     model, entry = reconstruct_module._answer_model("kept", coral_one, answer, 7, FAST, comparison, comparison, {},
-                                                    lambda line: None)
+                                                    lambda line: None, carvings={})
     candidates = ["moved", "held", "fresh"] if overlap else ["moved", "fresh"]
     winner = min(candidates, key=errors.get)
     meshed = [("meshed", "held", None)] if overlap else []
-    assert made == ([("carved", None, answer), ("held", "kept", "voxels")] + meshed + [("refined", "kept", answer)]
+    assert made == ([("carved", None, answer), ("meshed", "voxels", None), ("held", "kept", "voxels")] + meshed
+                    + [("refined", "kept", answer)]
                     + ([("refined", "held mesh", answer)] if overlap else []) + [("refined", "carved", answer)])
     assert model == winner and comparison.on == winner
     assert entry == {"iteration": 7, "E_I": errors[winner], "recarved": winner == "fresh"}
