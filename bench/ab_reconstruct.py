@@ -9,7 +9,8 @@ simulated once (noisy, seed 0) with AFTER; then each tree reconstructs it from t
 start once without iterations (to fill the kernel caches) and ``--rounds`` times in
 alternation, each run in its own process with the tree first on ``PYTHONPATH``. Prints one
 Markdown table: per tree the median, min and max seconds of ``fsswarp.reconstruction`` (the
-process start and the dataset load are not timed), the final D, β and E_I (the trees should
+process start and the dataset load are not timed), the final D, β, E_I and the model's digest
+(the first 12 hex digits of SHA-256 over its float64 vertices and int64 faces; the trees should
 agree), and AFTER's median over BEFORE's. Timings taken one after the other drift with the
 machine's load; alternating rounds put that drift into both columns alike.
 """
@@ -38,8 +39,13 @@ dataset = load_dataset(sys.argv[1])
 backend = get_backend(sys.argv[2], sys.argv[3] or None)
 start = time.perf_counter()
 result = reconstruct(dataset, settings=ReconstructSettings(iterations=int(sys.argv[4])), backend=backend)
-print(json.dumps({"seconds": time.perf_counter() - start, "package": fsswarp.__path__[0], "depth_m": result.depth,
-                  "tilt_deg": result.summary()["tilt_deg"], "E_I": result.history[result.best_iteration]["E_I"]}))
+import hashlib, numpy as np
+seconds = time.perf_counter() - start
+model = hashlib.sha256(np.ascontiguousarray(result.model.vertices, np.float64).tobytes()
+                       + np.ascontiguousarray(result.model.faces, np.int64).tobytes()).hexdigest()[:12]
+print(json.dumps({"seconds": seconds, "package": fsswarp.__path__[0], "depth_m": result.depth,
+                  "tilt_deg": result.summary()["tilt_deg"], "E_I": result.history[result.best_iteration]["E_I"],
+                  "model": model}))
 """
 
 
@@ -94,13 +100,14 @@ def main(argv: list[str] | None = None) -> int:
                 runs[name].append(run_tree(tree, *common, "10"))
     medians = {name: statistics.median(r["seconds"] for r in found) for name, found in runs.items()}
     print(f"{options.scene}, measured start, backend {options.backend} {options.device}, {options.rounds} rounds\n")
-    print("| tree | median (s) | min–max (s) | final D (m), β (°), E_I |")
-    print("|---|---|---|---|")
+    print("| tree | median (s) | each run (s) | final D (m), β (°), E_I | model |")
+    print("|---|---|---|---|---|")
     for name, found in runs.items():
         seconds = [r["seconds"] for r in found]
         last = found[-1]
-        print(f"| {name} `{trees[name]}` | {medians[name]:.1f} | {min(seconds):.1f}–{max(seconds):.1f} | "
-              f"{last['depth_m']:.4f}, {last['tilt_deg']:.3f}, {last['E_I']:.3f} |")
+        print(f"| {name} `{trees[name]}` | {medians[name]:.2f} | {' / '.join(f'{s:.2f}' for s in seconds)} | "
+              f"{last['depth_m']:.6f}, {last['tilt_deg']:.5f}, {last['E_I']:.4f} | "
+              f"{', '.join(sorted({r['model'] for r in found}))} |")
     print(f"\nafter / before (medians): {medians['after'] / medians['before']:.2f}")
     return 0
 

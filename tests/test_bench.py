@@ -303,6 +303,7 @@ def test_ab_reconstruct_runs_each_tree_from_its_own_package(coral_one, tmp_path)
         shutil.copytree(repo / name, tree / name, ignore=shutil.ignore_patterns("__pycache__"))
     found = _bench_module("ab_reconstruct").run_tree(tree, str(coral_one.root), "auto", "", "0")
     assert Path(found["package"]) == tree / "fsswarp" and found["E_I"] == 1.0 and found["seconds"] > 0
+    assert len(found["model"]) == 12 and int(found["model"], 16) >= 0  # the model's digest, to compare trees
 
 
 @pytest.mark.parametrize("args", [["nowhere", "."], [".", ".", "--rounds", "0"]])
