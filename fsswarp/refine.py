@@ -254,7 +254,6 @@ class _Update:
         (:func:`smoothed_rows`)."""
         comparison, sonar, st = self.comparison, self.comparison.sonar, self.settings
         data = comparison.data
-        layers = comparison.predicted
         segmentation = comparison.settings.segment
         sigma = (segmentation.sigma_bins, segmentation.sigma_beams)
         k_theta, k_phi = st.rays
@@ -293,8 +292,8 @@ class _Update:
             families.append((view[keep], ranges[keep], beam_of_ray[rays[keep]], face[keep], cosine[keep],
                              slice(3, 4), st.top_level, slice(0, 3)))
         local = np.cumsum(voting) - 1  # a voting view's place among the dark maps
-        total, votes = _overshoot_votes(layers, data.threshold, dark, last_rows, local, families, sonar, sigma, st,
-                                        len(self.mesh.faces))
+        total, votes = _overshoot_votes(comparison.predicted_rows, data.threshold, dark, last_rows, local, families,
+                                        sonar, sigma, st, len(self.mesh.faces))
         votes[skip] = 0.0
         chosen = np.flatnonzero(votes > 0)
         self.motion[chosen] = -st.shrink * (total[chosen] / votes[chosen])[:, None] * self.mesh.face_normals[chosen]
@@ -421,55 +420,69 @@ def _double_bounce(backend, mesh, directions: np.ndarray, origins: np.ndarray, s
     return [(ray[a:b], ranges[a:b], faces[a:b], cosine[a:b]) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
-def _overshoot_votes(layers: np.ndarray, threshold: np.ndarray, dark: np.ndarray, last_rows: np.ndarray,
-                     local: np.ndarray, families: list, sonar, sigma: tuple[float, float], settings: RefineSettings,
+def _overshoot_votes(read, threshold: np.ndarray, dark: np.ndarray, last_rows: np.ndarray, local: np.ndarray,
+                     families: list, sonar, sigma: tuple[float, float], settings: RefineSettings,
                      n_faces: int) -> tuple[np.ndarray, np.ndarray]:
     """(summed gaps (F,), vote counts (F,)) of the overshoot term (module docstring, step 4),
-    every view at once. layers : (V, 4, bins, beams) synthetic; threshold : (V, bins); dark,
-    last_rows : (K, bins, beams), (K, beams) of the voting views (:func:`_dark_distances`), view
-    v's at ``local[v]``; families : (view (N,), range m (N,), beam (N,), face (N,), gap weight (N,)
-    or None, bright layers, level × threshold, other layers), each in view order. A triangle's
-    votes are summed view by view, each view's families in their order."""
+    every view at once. read(start, stop) : image rows [start, stop) of the (V, 4, bins, beams)
+    synthetic layers (read once, the rows the votes' smoothing reaches); threshold : (V, bins);
+    dark, last_rows : (K, bins, beams), (K, beams) of the voting views (:func:`_dark_distance`),
+    view v's at ``local[v]``; families : (view (N,), range m (N,), beam (N,), face (N,), gap
+    weight (N,) or None, bright layers, level × threshold, other layers), each in view order. A
+    triangle's votes are summed view by view, each view's families in their order."""
     bins = threshold.shape[1]
-    found = []
-    for view, ranges, beam, face, weight, bright_layers, level, other_layers in families:
+    placed = []
+    for view, ranges, beam, face, weight, *layers in families:
         row = np.rint(sonar.bin_coordinate(ranges)).astype(int)
         inside = (row >= 0) & (row < bins)
-        view, row, beam, face = view[inside], row[inside], beam[inside], face[inside]
-        if not row.size:
-            continue
+        if inside.any():
+            placed.append((view[inside], row[inside], beam[inside], face[inside],
+                           None if weight is None else weight[inside], *layers))
+    if not placed:
+        return np.zeros(n_faces), np.zeros(n_faces)
+    radius = smoothing_radius(sigma)
+    first = max(min(int(p[1].min()) for p in placed) - radius, 0)
+    synthetic = read(first, min(max(int(p[1].max()) for p in placed) + 1 + radius, bins))
+    found = []
+    for view, row, beam, face, weight, bright_layers, level, other_layers in placed:
         lo, hi = int(row.min()), int(row.max()) + 1  # the rows the votes read
         band = row - lo
-        bright = smoothed_rows(layers[:, bright_layers], sigma, lo, hi)[view, band, beam] \
+        bright = smoothed_rows(synthetic[:, bright_layers], sigma, lo, hi, first=first, bins=bins)[view, band, beam] \
             > level * threshold[view, row]
-        other = smoothed_rows(layers[:, other_layers], sigma, lo, hi)[view, band, beam] \
+        other = smoothed_rows(synthetic[:, other_layers], sigma, lo, hi, first=first, bins=bins)[view, band, beam] \
             > settings.corrupt * threshold[view, row]
         gap = dark[local[view], row, beam]
         within = row <= last_rows[local[view], beam]  # not beyond the data (step 4)
         vote = bright & ~other & (gap > settings.tolerance) & within
         if weight is not None:
-            gap = gap * weight[inside]
+            gap = gap * weight
         found.append((view[vote], face[vote], gap[vote]))
-    if not found:
-        return np.zeros(n_faces), np.zeros(n_faces)
     view, face, gap = (np.concatenate(parts) for parts in zip(*found))
     order = np.argsort(view, kind="stable")  # view by view; within a view, family by family
     face, gap = face[order], gap[order]
     return np.bincount(face, gap, n_faces), np.bincount(face, minlength=n_faces).astype(np.float64)
 
 
-def smoothed_rows(layers: np.ndarray, sigma: tuple[float, float], lo: int, hi: int) -> np.ndarray:
+def smoothing_radius(sigma: tuple[float, float]) -> int:
+    """Rows that :func:`smoothed_rows`' range pass reaches each side: int(4 σ_range + 0.5)."""
+    return int(4.0 * float(sigma[0]) + 0.5)
+
+
+def smoothed_rows(layers: np.ndarray, sigma: tuple[float, float], lo: int, hi: int, *, first: int = 0,
+                  bins: int | None = None) -> np.ndarray:
     """Rows [lo, hi) of ``scipy.ndimage.gaussian_filter(layers.sum(axis=0), sigma)`` (default
     truncate and reflecting border) of each image, bit for bit, from the rows the range
     smoothing reaches, which alone are summed: the filter runs along range, then across beams,
-    and a row of the first pass reads only the rows within its radius, int(4 σ_range + 0.5) (the
-    border is the image's, never the band's). layers : (..., L, bins, beams); returns (...,
-    hi − lo, beams)."""
+    and a row of the first pass reads only the rows within its radius
+    (:func:`smoothing_radius`; the border is the image's, never the band's). layers : (..., L,
+    R, beams), image rows [first, first + R) of images of ``bins`` rows (default first + R),
+    holding the rows the smoothing reaches; returns (..., hi − lo, beams)."""
     from scipy import ndimage
 
-    radius = int(4.0 * float(sigma[0]) + 0.5)
-    start, stop = max(lo - radius, 0), min(hi + radius, layers.shape[-2])
-    summed = layers[..., start:stop, :].sum(axis=-3)
+    radius = smoothing_radius(sigma)
+    bins = first + layers.shape[-2] if bins is None else bins
+    start, stop = max(lo - radius, 0), min(hi + radius, bins)
+    summed = layers[..., start - first:stop - first, :].sum(axis=-3)
     sigmas = (0.0,) * (summed.ndim - 2) + tuple(sigma)  # an axis of σ 0 is not filtered
     return ndimage.gaussian_filter(summed, sigmas)[..., lo - start:hi - start, :]
 

@@ -395,7 +395,7 @@ def test_topology_is_remembered_by_the_faces_with_the_upper_triangle_of_its_lapl
     assert len(diagonal) == n
 
 
-@pytest.mark.parametrize("lo, hi", [(0, 1), (0, 40), (3, 9), (100, 180), (250, 256), (255, 256), (0, 256)])
+@pytest.mark.parametrize("lo, hi", [(0, 1), (0, 40), (3, 9), (50, 60), (100, 180), (250, 256), (255, 256), (0, 256)])
 def test_smoothed_rows_are_the_whole_image_s_rows_bit_for_bit(lo, hi):
     """The overshoot term sums and smooths only the rows its votes read: those rows of the whole
     summed image's gaussian_filter, to the bit, at the image's borders (reflected) and inside."""
@@ -408,6 +408,10 @@ def test_smoothed_rows_are_the_whole_image_s_rows_bit_for_bit(lo, hi):
         assert got.dtype == np.float32 and got.shape == (hi - lo, 96)
         whole = chosen[0] + chosen[1] if len(chosen) == 2 else chosen[0] + chosen[1] + chosen[2]
         np.testing.assert_array_equal(got, ndimage.gaussian_filter(whole, sigma)[lo:hi])
+    band = layers[:, 40:200]  # a band of image rows that holds what the smoothing reaches
+    if 44 <= lo and hi <= 196:
+        np.testing.assert_array_equal(smoothed_rows(band[:2], sigma, lo, hi, first=40, bins=256),
+                                      smoothed_rows(layers[:2], sigma, lo, hi))
     stacked = np.random.default_rng(3).gamma(0.3, 1.0, (3, 4, 256, 96)).astype(np.float32)  # views at once
     got = smoothed_rows(stacked[:, 1:], sigma, lo, hi)
     assert got.shape == (3, hi - lo, 96)
@@ -470,7 +474,14 @@ def test_overshoot_votes_are_those_of_each_view_in_turn(coral_one, seed):
         families.append((view, ranges, rng.integers(0, beams, len(view)), rng.integers(0, n_faces, len(view)),
                          rng.uniform(0.1, 1.0, len(view)) if weighted else None, bright, level, other))
     sigma = (1.0, 0.7)
-    got = _overshoot_votes(layers, threshold, dark, last_rows, local, families, sonar, sigma, settings, n_faces)
+    reads = []
+
+    def read(start, stop):
+        reads.append((start, stop))
+        return layers[:, :, start:stop].copy()
+
+    got = _overshoot_votes(read, threshold, dark, last_rows, local, families, sonar, sigma, settings, n_faces)
+    assert len(reads) == 1  # one read, of the rows the votes' smoothing reaches
     want = _votes_view_by_view(layers, threshold, dark, last_rows, local, families, sonar, sigma, settings, n_faces)
     assert want[1].sum() > 100  # the test casts votes
     np.testing.assert_array_equal(got[0], want[0])

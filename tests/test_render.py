@@ -358,7 +358,8 @@ def test_backends_agree_on_coral(backend_for_label, pair):
 
 
 def test_render_device_keeps_layers_on_the_device(backend):
-    """render_device: complete layers in device memory, equal to render's host copy."""
+    """render_device: complete layers in device memory, equal to render's host copy; ``rows``
+    copies some rows alone, the same values."""
     sonar, mesh, rot, trans, normals, offsets = coral_inputs()
     handle = backend.load_mesh(mesh.vertices, mesh.faces)
     args = (handle, sonar, rot[:2], trans[:2], normals[:2], offsets[:2], SAMPLES)
@@ -367,6 +368,11 @@ def test_render_device_keeps_layers_on_the_device(backend):
     host = on_device.numpy()
     assert host.dtype == np.float32 and host.sum() > 0
     np.testing.assert_array_equal(host, backend.render(*args, gamma=GAMMA, surface_reflection=RS))
+    for start, stop in ((0, 1), (230, 300), (500, 512), (0, 512), (7, 7)):  # rows alone, bit for bit
+        rows = on_device.rows(start, stop)
+        assert rows.dtype == np.float32 and rows.shape == (2, 4, stop - start, sonar.beams)
+        np.testing.assert_array_equal(rows, host[:, :, start:stop])
+    assert on_device.rows(230, 300).sum() > 0.5 * host.sum()  # the echoes' rows
     empty = backend.render_device(handle, sonar, rot[:0], trans[:0], normals[:0], offsets[:0], SAMPLES,
                                   gamma=GAMMA, surface_reflection=RS)
     assert empty.numpy().shape == (0, 4, sonar.bins, sonar.beams)
@@ -391,6 +397,7 @@ def test_render_device_bands_equal_full_rows(backend, count, first):
     assert host.shape == (4, 4, count, sonar.beams) and host.dtype == np.float32
     for n, f in enumerate(first):
         np.testing.assert_array_equal(host[n], full[n, :, f:f + count])
+    np.testing.assert_array_equal(banded.rows(count // 3, count), host[:, :, count // 3:])  # rows of the bands
     if count == 260:
         assert all(host[n].sum() > 0.05 * full[n].sum() for n in range(4))  # bands hold echoes
     assert backend.render_device(*args, gamma=GAMMA, surface_reflection=RS).first_rows is None

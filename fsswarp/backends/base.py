@@ -26,7 +26,7 @@ import numpy as np
 
 from ..errors import is_integer, is_number, real_array
 from ..sonar import SonarSpec
-from .constants import MAX_DISTANCE
+from .constants import FIXED_SCALE, MAX_DISTANCE
 
 #: Margin (rad) of ``ray_spans`` around the azimuths and elevations a mesh covers; the kernels'
 #: float32 sub-ray angles round by about 1e-7 rad.
@@ -770,6 +770,11 @@ class DeviceLayers(abc.ABC):
     def numpy(self) -> np.ndarray:
         """A host copy of ``shape`` float32 (for banded layers the band as it is)."""
 
+    def rows(self, start: int, stop: int) -> np.ndarray:
+        """A host copy of rows [start, stop) of every layer, (N, 4, stop − start, beams) float32:
+        ``numpy()[:, :, start:stop]``, the same values, without copying the other rows."""
+        return self.numpy()[:, :, start:stop]
+
 
 class DeviceDistances:
     """Distance maps in a backend's device memory (``Backend.device_distances``): ``shape``
@@ -792,6 +797,12 @@ class HostLayers(DeviceLayers):
 
     def numpy(self) -> np.ndarray:
         return self.array
+
+
+def fixed_floats(acc: np.ndarray) -> np.ndarray:
+    """The float32 layers of a render's int32 fixed-point accumulator (2^24 = 1): the values the
+    kernels' ``fixed_to_float`` gives (the nearest float32, scaled by an exact power of two)."""
+    return acc.astype(np.float32) * np.float32(1.0 / FIXED_SCALE)
 
 
 def rows_read(windows, range_taps: int, bins: int) -> tuple[np.ndarray, np.ndarray]:

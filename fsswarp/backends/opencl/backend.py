@@ -13,7 +13,7 @@ import weakref
 import numpy as np
 import pyopencl as cl
 
-from ..base import Backend, DeviceLayers, PreparedLaunch, SonarConstants, span_extent
+from ..base import Backend, DeviceLayers, PreparedLaunch, SonarConstants, fixed_floats, span_extent
 from ..bvh import FlatBVH, build_bvh
 from ..constants import FRONTAL_VISIBLE, MAX_DISTANCE, RAY_EPSILON
 from ..runtimes import OpenCLDevice
@@ -283,6 +283,20 @@ class OpenCLBackend(Backend):
             floats.release()
         return host
 
+    def _rows(self, acc_buf: cl.Buffer, shape: tuple[int, int, int, int], start: int, stop: int) -> np.ndarray:
+        """Rows [start, stop) of every layer of the (N, 4, bins, beams) int32 buffer acc_buf, in one
+        rectangular read (``OpenCLLayers.rows``)."""
+        n, layers, bins, beams = shape
+        host = np.empty((n, layers, stop - start, beams), np.int32)
+        if host.size == 0:
+            return host
+        line = 4 * beams
+        with self._lock:
+            cl.enqueue_copy(self.queue, host, acc_buf, buffer_origin=(0, start, 0), host_origin=(0, 0, 0),
+                            region=(line, stop - start, n * layers), buffer_pitches=(line, line * bins),
+                            host_pitches=(line, line * (stop - start)), is_blocking=True)
+        return host
+
     def _direct_hits(self, mesh, sonar: SonarConstants, directions, n_views, k_theta, k_phi,
                      shared) -> tuple[cl.Buffer, cl.Buffer, cl.Buffer]:
         """render_views' poses, hit_range and hit_tri: with ``shared`` (SharedPoses) the direct
@@ -457,6 +471,9 @@ class OpenCLLayers(DeviceLayers):
 
     def numpy(self) -> np.ndarray:
         return self.backend._floats(self.buffer, self.shape)
+
+    def rows(self, start: int, stop: int) -> np.ndarray:
+        return fixed_floats(self.backend._rows(self.buffer, self.shape, start, stop))
 
 
 class OpenCLMesh:

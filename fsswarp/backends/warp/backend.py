@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from ..base import Backend, DeviceLayers, PreparedLaunch, SonarConstants, span_extent
+from ..base import Backend, DeviceLayers, PreparedLaunch, SonarConstants, fixed_floats, span_extent
 from ..bvh import triangle_bounds
 from ..constants import FIXED_SCALE, FRONTAL_VISIBLE, MAX_DISTANCE, RAY_EPSILON, WARP_FAR
 from ..runtimes import import_warp
@@ -49,6 +49,9 @@ class WarpLayers(DeviceLayers):
         _launch(fixed_to_float, dim=self.array.size, inputs=[self.array.flatten()], outputs=[layers.flatten()],
                 device=self.array.device)
         return layers.numpy()
+
+    def rows(self, start: int, stop: int) -> np.ndarray:
+        return fixed_floats(self.array[:, :, start:stop].numpy())
 
 
 class WarpMesh:
