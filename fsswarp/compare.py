@@ -582,40 +582,38 @@ class ViewComparison:
 
     def frontal_motions(self, rot, t, n, d, motions):
         """Every beam whose frontal patch is found, for ``motions``: (component k, view k, beams,
-        (beams, 2) 2-D motions) per contour; one ``frontal_faces`` call per component. Returns
-        (component (M,), view (M,), face (M,), 2-D motion (M, 2)), components in order, then
-        the contours' and beams' order. rot (V, 3, 3), t (V, 3), n (V, 3), d (V,) : every
+        (beams, 2) 2-D motions) per contour; one ``frontal_faces`` call for both components.
+        Returns (component (M,), view (M,), face (M,), 2-D motion (M, 2)), components in order,
+        then the contours' and beams' order. rot (V, 3, 3), t (V, 3), n (V, 3), d (V,) : every
         view's pose and surface plane, indexed by k."""
-        theta = self.sonar.beam_centres
-        parts = [(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)))]
-        for c in (0, 1):
-            mine = [m for m in motions if m[0] == c]
-            if not mine:
-                continue
-            v = [k for _, k, _, _ in mine]
-            found = np.concatenate(self.frontal_faces(rot[v], t[v], n[v], d[v],
-                                                      [theta[beams] for _, _, beams, _ in mine], mirror=c == 1))
-            ok = found >= 0
-            vectors = np.concatenate([np.asarray(vectors, np.float64) for *_, vectors in mine])
-            parts.append((np.full(int(ok.sum()), c), np.repeat(v, [len(beams) for _, _, beams, _ in mine])[ok],
-                          found[ok].astype(np.int64), vectors[ok]))
-        return tuple(np.concatenate(columns) for columns in zip(*parts))
+        ordered = [m for c in (0, 1) for m in motions if m[0] == c]
+        if not ordered:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2))
+        component, v = (np.array([m[i] for m in ordered], np.int64) for i in (0, 1))
+        sizes = [len(beams) for _, _, beams, _ in ordered]
+        found = np.concatenate(self.frontal_faces(rot[v], t[v], n[v], d[v],
+                                                  [self.sonar.beam_centres[beams] for _, _, beams, _ in ordered],
+                                                  mirror=component == 1))
+        ok = found >= 0
+        vectors = np.concatenate([np.asarray(vectors, np.float64).reshape(-1, 2) for *_, vectors in ordered])
+        return (np.repeat(component, sizes)[ok], np.repeat(v, sizes)[ok], found[ok].astype(np.int64), vectors[ok])
 
-    def frontal_faces(self, rot, t, n, d, thetas, *, mirror: bool) -> list[np.ndarray]:
+    def frontal_faces(self, rot, t, n, d, thetas, *, mirror) -> list[np.ndarray]:
         """Per view k: (len(thetas[k]),) face of the frontal patch of each beam azimuth, -1 where
         none: the hit at the shortest range (object), or at the shortest mirror range
         (|P| + |P'|)/2 over the beam's elevation rays that meet the surface first (mirror,
         DESIGN §3); ``Backend.frontal_faces``, all views' beams in one launch.
 
         rot (V, 3, 3), t (V, 3) : the views' poses; n (V, 3), d (V,) : their surface planes;
-        thetas : V arrays of beam azimuths (rad)."""
+        thetas : V arrays of beam azimuths (rad); mirror : a bool for every view, or (V,) bools."""
         if not len(thetas):
             return []
         sizes = [len(theta) for theta in thetas]
         views = np.repeat(np.arange(len(thetas)), sizes)
         azimuths = np.concatenate([np.asarray(theta, np.float64) for theta in thetas])
+        flags = np.asarray(mirror, bool)
         found = self.backend.frontal_faces(self.mesh, self.sonar, rot, t, n, d, views, azimuths,
-                                           self.settings.patch_rays, mirror=mirror)
+                                           self.settings.patch_rays, mirror=flags if flags.ndim == 0 else flags[views])
         return np.split(found, np.cumsum(sizes)[:-1])
 
 

@@ -294,9 +294,9 @@ __kernel void render_views(__global const float4 *nodes,
  *
  * Arguments: nodes, children, tris, face_index: the BVH (bvh.h); rotations, translations,
  * plane_normals, plane_offsets as render_views for V views; views (B,) int and azimuths (B,)
- * float: the beams; n_items = B * rays; mirror 0: the first hit before the surface, 1: the
- * first hit of the ray reflected at the surface (cast from epsilon past it) when it lies in the
- * fan and the sonar sees it (the first hit toward it is not nearer than |P| - visible), at the
+ * float: the beams; n_items = B * rays; mirrors (B,) uchar, per beam 0: the first hit before
+ * the surface, 1: the first hit of the ray reflected at the surface (cast from epsilon past it)
+ * when it lies in the fan and the sonar sees it (the first hit toward it is not nearer than |P| - visible), at the
  * mirror range (|P| + s + |P - Q|) / 2; sonar: the fan (its half_azimuth and half_elevation,
  * fss_sonar); range_out (B, rays) float (INFINITY: none) and
  * face_out (B, rays) int (the original face, -1: none).
@@ -313,7 +313,7 @@ __kernel void frontal_rays(__global const float4 *nodes,
                            __global const float *azimuths,
                            const int n_items,
                            const int rays,
-                           const int mirror,
+                           __global const uchar *mirrors,
                            const fss_sonar sonar,
                            const float epsilon,
                            const float visible,
@@ -341,7 +341,7 @@ __kernel void frontal_rays(__global const float4 *nodes,
     const float r = fss_bvh_intersect(nodes, children, tris, t, fss_rotate(rot, u), 0.0f, max_distance, &tri);
     float range = INFINITY;
     int found = -1;
-    if (!mirror) {
+    if (!mirrors[i]) {
         if (r < s) {
             range = r;
             found = tri;

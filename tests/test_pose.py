@@ -215,6 +215,11 @@ def test_frontal_faces_match_a_ray_casting_oracle_and_do_not_depend_on_the_batch
     assert (want >= 0).sum() >= 100
     assert np.mean(found == want) >= 0.98
     assert comparison.frontal_faces(rot[:0], t[:0], n[:0], d[:0], [], mirror=mirror) == []
+    mixed = np.arange(len(rot)) % 2 == 0  # object beams and mirror beams in one launch
+    other = comparison.frontal_faces(rot, t, n, d, thetas, mirror=not mirror)
+    both = comparison.frontal_faces(rot, t, n, d, thetas, mirror=np.where(mixed, mirror, not mirror))
+    for k in range(len(rot)):
+        np.testing.assert_array_equal(both[k], together[k] if mixed[k] else other[k])
 
 
 def test_costs_at_the_estimate_read_the_located_layers(coral_one, truth_model, backend):
@@ -394,6 +399,9 @@ def test_frontal_faces_validates(coral_one, truth_model, backend):
             backend.frontal_faces(handle, sonar, rot, t, n, d, views, azimuths, rays, mirror=False)
     with pytest.raises(ValueError, match="same views"):
         backend.frontal_faces(handle, sonar, rot, t, n, np.array([0.5, 0.5]), [0], [0.1], 4, mirror=False)
+    for mirror in ([True, False], 1, np.array([1], np.uint8)):
+        with pytest.raises(ValueError, match="mirror must be a bool"):
+            backend.frontal_faces(handle, sonar, rot, t, n, d, [0], [0.1], 4, mirror=mirror)
 
 
 def test_figure(tmp_path, coral_one, estimate):

@@ -286,10 +286,11 @@ class Backend(abc.ABC):
         host-to-device and device-to-host copies of its bytes, each waiting until done."""
 
     def frontal_faces(self, mesh, sonar: SonarSpec, rotations, translations, plane_normals, plane_offsets,
-                      views, azimuths, rays: int, *, mirror: bool) -> np.ndarray:
+                      views, azimuths, rays: int, *, mirror) -> np.ndarray:
         """Face of the frontal patch of every beam, -1 where none (the patches that E_mu and
         shape refinement move, fsswarp/compare.py): over the beam's ``rays`` elevation rays
-        φ_j = −W_φ + (j + ½) · 2W_φ / rays, the face seen at the shortest range.
+        φ_j = −W_φ + (j + ½) · 2W_φ / rays, the face seen at the shortest range. ``mirror``: a
+        bool for every beam, or (B,) bools, one per beam (both kinds in one launch).
 
         mirror False: a ray's first hit before it meets the surface, at its distance.
         mirror True: a ray that meets the surface at Q (s = d / (n·u), before any hit) is
@@ -311,12 +312,15 @@ class Backend(abc.ABC):
             raise ValueError(f"views must be ({theta.shape[0]},) like azimuths, got {index.shape}")
         if not is_integer(rays) or rays < 1:
             raise ValueError(f"rays must be a positive integer, got {rays!r}")
+        flags = np.asarray(mirror)
+        if flags.dtype != bool or flags.shape not in ((), theta.shape):
+            raise ValueError(f"mirror must be a bool or ({theta.shape[0]},) bools, got {flags.dtype} {flags.shape}")
         if theta.shape[0] == 0:
             return np.zeros(0, np.int32)
         if theta.shape[0] * rays >= 2**31 - 2**10:
             raise ValueError(f"too many rays for one launch ({theta.shape[0]} beams x {rays}); split them")
         ranges, faces = self._frontal_rays(mesh, SonarConstants.of(sonar), rot, trans, normals, offsets, index,
-                                           theta, int(rays), bool(mirror))
+                                           theta, int(rays), np.broadcast_to(flags, theta.shape).astype(np.uint8))
         nearest = np.argmin(ranges, axis=1)  # the first of equal ranges
         beams = np.arange(len(nearest))
         return np.where(np.isfinite(ranges[beams, nearest]), faces[beams, nearest], -1).astype(np.int32)
@@ -459,9 +463,10 @@ class Backend(abc.ABC):
     @abc.abstractmethod
     def _frontal_rays(self, mesh, sonar: SonarConstants, rotations: np.ndarray, translations: np.ndarray,
                       plane_normals: np.ndarray, plane_offsets: np.ndarray, views: np.ndarray,
-                      azimuths: np.ndarray, rays: int, mirror: bool) -> tuple[np.ndarray, np.ndarray]:
+                      azimuths: np.ndarray, rays: int, mirror: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Kernel launch of ``frontal_faces``, one thread per ray: clean float32 (V, 3, 3), (V, 3),
-        (V, 3), (V,) arrays, (B,) int32 views in range and (B,) float32 azimuths, B >= 1. Returns
+        (V, 3), (V,) arrays, (B,) int32 views in range, (B,) float32 azimuths and (B,) uint8 mirror
+        flags, B >= 1. Returns
         every ray's (B, rays) float32 range (inf: none) and int32 face (-1: none)."""
 
     @abc.abstractmethod

@@ -184,7 +184,7 @@ class OpenCLBackend(Backend):
                 mesh.nodes, mesh.children, mesh.triangles, mesh.face_index, self._input(rotations),
                 self._input(translations), self._input(plane_normals), self._input(plane_offsets),
                 self._input(views), self._input(azimuths), np.int32(n_items), np.int32(rays),
-                np.int32(mirror), sonar.record(), np.float32(RAY_EPSILON), np.float32(FRONTAL_VISIBLE), np.float32(MAX_DISTANCE),
+                self._input(mirror), sonar.record(), np.float32(RAY_EPSILON), np.float32(FRONTAL_VISIBLE), np.float32(MAX_DISTANCE),
                 rng_buf, face_buf)
             cl.enqueue_copy(self.queue, rng, rng_buf, is_blocking=False)
             cl.enqueue_copy(self.queue, face, face_buf, is_blocking=False)

@@ -188,7 +188,7 @@ class WarpBackend(Backend):
             *poses, azimuth = self._poses(rotations, translations, plane_normals, plane_offsets, azimuths)
             _launch(frontal_rays_kernel, dim=shape,
                     inputs=[mesh.id, mesh.corners, *poses, self._constant(views, wp.int32), azimuth,
-                            int(mirror), kernel_sonar(sonar),
+                            self._constant(mirror, wp.uint8), kernel_sonar(sonar),
                             float(np.float32(RAY_EPSILON)),
                             float(np.float32(FRONTAL_VISIBLE)), float(np.float32(MAX_DISTANCE))],
                     outputs=[rng, face])

@@ -66,12 +66,13 @@ def needed_at(needed: wp.array3d(dtype=wp.uint8), masked: int, v: int, c: int, b
 def frontal_rays_kernel(mesh: wp.uint64, corners: wp.array(dtype=wp.vec3),
                         rotations: wp.array(dtype=wp.mat33), translations: wp.array(dtype=wp.vec3),
                         plane_normals: wp.array(dtype=wp.vec3), plane_offsets: wp.array(dtype=float),
-                        views: wp.array(dtype=wp.int32), azimuths: wp.array(dtype=float), mirror: int,
+                        views: wp.array(dtype=wp.int32), azimuths: wp.array(dtype=float),
+                        mirrors: wp.array(dtype=wp.uint8),
                         sonar: KernelSonar, epsilon: float, visible: float,
                         max_distance: float, range_out: wp.array2d(dtype=float),
                         face_out: wp.array2d(dtype=wp.int32)):
-    """Thread (i, j): elevation ray j of beam i, its (mirror) range and face (Backend.frontal_faces;
-    kernels/render.cl)."""
+    """Thread (i, j): elevation ray j of beam i, its range and face, or its mirror range and face
+    where mirrors[i] is 1 (Backend.frontal_faces; kernels/render.cl)."""
     i, j = wp.tid()
     rays = range_out.shape[1]
     v = views[i]
@@ -90,7 +91,7 @@ def frontal_rays_kernel(mesh: wp.uint64, corners: wp.array(dtype=wp.vec3),
     hit = nearest_hit(mesh, corners, org, rot * u, max_distance)
     rng = float(wp.inf)
     face = int(-1)
-    if mirror == 0:
+    if mirrors[i] == wp.uint8(0):
         if hit.t < s:
             rng = hit.t
             face = hit.face
