@@ -440,7 +440,7 @@ def _overshoot_votes(read, threshold: np.ndarray, dark: np.ndarray, last_rows: n
                            None if weight is None else weight[inside], *layers))
     if not placed:
         return np.zeros(n_faces), np.zeros(n_faces)
-    radius = smoothing_radius(sigma)
+    radius = _smoothing_radius(sigma)
     first = max(min(int(p[1].min()) for p in placed) - radius, 0)
     synthetic = read(first, min(max(int(p[1].max()) for p in placed) + 1 + radius, bins))
     found = []
@@ -463,7 +463,7 @@ def _overshoot_votes(read, threshold: np.ndarray, dark: np.ndarray, last_rows: n
     return np.bincount(face, gap, n_faces), np.bincount(face, minlength=n_faces).astype(np.float64)
 
 
-def smoothing_radius(sigma: tuple[float, float]) -> int:
+def _smoothing_radius(sigma: tuple[float, float]) -> int:
     """Rows that :func:`smoothed_rows`' range pass reaches each side: int(4 σ_range + 0.5)."""
     return int(4.0 * float(sigma[0]) + 0.5)
 
@@ -474,12 +474,12 @@ def smoothed_rows(layers: np.ndarray, sigma: tuple[float, float], lo: int, hi: i
     truncate and reflecting border) of each image, bit for bit, from the rows the range
     smoothing reaches, which alone are summed: the filter runs along range, then across beams,
     and a row of the first pass reads only the rows within its radius
-    (:func:`smoothing_radius`; the border is the image's, never the band's). layers : (..., L,
+    (:func:`_smoothing_radius`; the border is the image's, never the band's). layers : (..., L,
     R, beams), image rows [first, first + R) of images of ``bins`` rows (default first + R),
     holding the rows the smoothing reaches; returns (..., hi − lo, beams)."""
     from scipy import ndimage
 
-    radius = smoothing_radius(sigma)
+    radius = _smoothing_radius(sigma)
     bins = first + layers.shape[-2] if bins is None else bins
     start, stop = max(lo - radius, 0), min(hi + radius, bins)
     summed = layers[..., start - first:stop - first, :].sum(axis=-3)
