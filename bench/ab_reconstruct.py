@@ -8,11 +8,12 @@ OpenCL backend), e.g. ``git archive REV fsswarp kernels | tar -x -C DIR``. The s
 simulated once (noisy, seed 0) with AFTER; then each tree reconstructs it from the measured
 start once without iterations (to fill the kernel caches) and ``--rounds`` times in
 alternation, each run in its own process with the tree first on ``PYTHONPATH``. Prints one
-Markdown table: per tree the median, min and max seconds of ``fsswarp.reconstruction`` (the
+Markdown table: per tree the median and each run's seconds of ``fsswarp.reconstruction`` (the
 process start and the dataset load are not timed), the final D, β, E_I and the model's digest
 (the first 12 hex digits of SHA-256 over its float64 vertices and int64 faces; the trees should
-agree), and AFTER's median over BEFORE's. Timings taken one after the other drift with the
-machine's load; alternating rounds put that drift into both columns alike.
+agree); then AFTER's median over BEFORE's and each round's ratio (``paired``). Timings taken one
+after the other drift with the machine's load; alternating rounds put that drift into both
+columns alike.
 """
 
 from __future__ import annotations
@@ -109,7 +110,19 @@ def main(argv: list[str] | None = None) -> int:
               f"{last['depth_m']:.6f}, {last['tilt_deg']:.5f}, {last['E_I']:.4f} | "
               f"{', '.join(sorted({r['model'] for r in found}))} |")
     print(f"\nafter / before (medians): {medians['after'] / medians['before']:.2f}")
+    ratios, faster = paired([r["seconds"] for r in runs["before"]], [r["seconds"] for r in runs["after"]])
+    print(f"after / before per round: {' / '.join(f'{r:.2f}' for r in ratios)}; after faster in {faster} of "
+          f"{len(ratios)} rounds")
     return 0
+
+
+def paired(before: list[float], after: list[float]) -> tuple[list[float], int]:
+    """Each round's after / before seconds and the rounds in which AFTER was faster. The runs
+    alternate, so a round's two saw the same machine; on a GPU host whose runs of one tree
+    spread by 10–20% the medians alone do not show a change of a few percent (bench/notes.md,
+    twenty-first session)."""
+    ratios = [a / b for b, a in zip(before, after)]
+    return ratios, sum(r < 1.0 for r in ratios)
 
 
 if __name__ == "__main__":

@@ -306,6 +306,12 @@ def test_ab_reconstruct_runs_each_tree_from_its_own_package(coral_one, tmp_path)
     assert len(found["model"]) == 12 and int(found["model"], 16) >= 0  # the model's digest, to compare trees
 
 
+def test_ab_reconstruct_pairs_the_rounds():
+    """Each round's after / before, and the rounds in which AFTER was faster."""
+    ratios, faster = _bench_module("ab_reconstruct").paired([10.0, 8.0, 9.0], [9.0, 9.0, 9.0])
+    assert ratios == [0.9, 1.125, 1.0] and faster == 1
+
+
 @pytest.mark.parametrize("args", [["nowhere", "."], [".", ".", "--rounds", "0"]])
 def test_ab_reconstruct_bad_options_exit_2_with_one_line(args, capsys, monkeypatch):
     monkeypatch.chdir(Path(__file__).parents[1])
