@@ -286,10 +286,10 @@ class _Update:
         families = [(view, dist[view, ray], beam_of_ray[ray], faces[view, ray], None, slice(0, 2), 1.0,
                      slice(1, None))]
         if st.top_level > 0:
-            view = np.repeat(np.arange(n_views), [len(rays) for rays, *_ in top])
+            leg_view = np.repeat(np.arange(n_views), [len(rays) for rays, *_ in top])
             rays, ranges, face, cosine = (np.concatenate([legs[i] for legs in top]) for i in range(4))
-            keep = voting[view]
-            families.append((view[keep], ranges[keep], beam_of_ray[rays[keep]], face[keep], cosine[keep],
+            keep = voting[leg_view]
+            families.append((leg_view[keep], ranges[keep], beam_of_ray[rays[keep]], face[keep], cosine[keep],
                              slice(3, 4), st.top_level, slice(0, 3)))
         local = np.cumsum(voting) - 1  # a voting view's place among the dark maps
         total, votes = _overshoot_votes(comparison.predicted_rows, data.threshold, dark, last_rows, local, families,

@@ -296,9 +296,9 @@ __kernel void render_views(__global const float4 *nodes,
  * plane_normals, plane_offsets as render_views for V views; views (B,) int and azimuths (B,)
  * float: the beams; n_items = B * rays; mirrors (B,) uchar, per beam 0: the first hit before
  * the surface, 1: the first hit of the ray reflected at the surface (cast from epsilon past it)
- * when it lies in the fan and the sonar sees it (the first hit toward it is not nearer than |P| - visible), at the
- * mirror range (|P| + s + |P - Q|) / 2; sonar: the fan (its half_azimuth and half_elevation,
- * fss_sonar); range_out (B, rays) float (INFINITY: none) and
+ * when it lies in the fan and the sonar sees it (the first hit toward it is not nearer than
+ * |P| - visible), at the mirror range (|P| + s + |P - Q|) / 2; sonar: the fan (its
+ * half_azimuth and half_elevation, fss_sonar); range_out (B, rays) float (INFINITY: none) and
  * face_out (B, rays) int (the original face, -1: none).
  * Work size: 1-D, n_items rounded up; item k is ray k % rays of beam k / rays. */
 __kernel void frontal_rays(__global const float4 *nodes,
