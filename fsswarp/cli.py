@@ -302,10 +302,8 @@ def render(state: State, model: Path, dataset_dir: Path, out: Path, depth, tilt,
     dataset's poses or at new rolls: OUT/<view>_{total,object,ghost,mirror,mirror2}.tiff and
     OUT/layers.png (beam-bin and fan images of up to six views)."""
 
-    import tifffile
-
     from .atomic import check_output_folder, output_folder
-    from .dataset import deep_water_pose, load_manifest
+    from .dataset import deep_water_pose, load_manifest, tiff_bytes
     from .figures import layers_figure
     from .rendering import LAYERS, RenderSettings, RenderWarning
     from .rendering import render as run
@@ -329,9 +327,9 @@ def render(state: State, model: Path, dataset_dir: Path, out: Path, depth, tilt,
             warnings.filterwarnings("ignore", "view .*: ghost returns reach", RenderWarning)
         views = run(mesh, manifest.sonar, rig, depth, tilt, views=names, settings=settings, backend=backend)
     with output_folder(out, marker=MARKERS["render"]) as tmp:
-        for name, stack in views.items():
-            for layer, image in zip(LAYERS, stack):
-                tifffile.imwrite(tmp / f"{name}_{layer}.tiff", image, compression="zlib")
+        images = {f"{name}_{layer}.tiff": image for name, stack in views.items() for layer, image in zip(LAYERS, stack)}
+        for file, data in tiff_bytes(images).items():
+            (tmp / file).write_bytes(data)
         shown = dict(list(views.items())[:6])
         layers_figure(shown, manifest.sonar, tmp / "layers.png",
                       title=f"{model.name}: D = {depth:.3f} m, tilt = {math.degrees(tilt):.2f} deg"

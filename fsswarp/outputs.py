@@ -17,7 +17,6 @@ folder of ``fsswarp.atomic.output_folder``, so a command's output appears whole 
 
 from __future__ import annotations
 
-import io
 import json
 import math
 import time
@@ -36,14 +35,6 @@ def _write_json(path: Path, record: dict) -> Path:
 
 def _write_mesh(path: Path, mesh) -> Path:
     return write_bytes(path, mesh.export(file_type="ply"))
-
-
-def _write_tiff(path: Path, image) -> Path:
-    import tifffile
-
-    buffer = io.BytesIO()
-    tifffile.imwrite(buffer, image, compression="zlib")
-    return write_bytes(path, buffer.getvalue())
 
 
 # --- carve -----------------------------------------------------------------------------------
@@ -171,9 +162,12 @@ def enhancement_record(dataset, results: dict, *, model_name: str, depth: float,
 def write_enhancement(out, results: dict, record: dict) -> Path:
     """OUT/<view>_enhanced.tiff and OUT/<view>_ghost.tiff of each of ``results`` and
     OUT/enhance.json (``record``, from :func:`enhancement_record`); returns OUT."""
+    from .dataset import tiff_bytes
+
     out = Path(out)
-    for name, result in results.items():
-        _write_tiff(out / f"{name}_enhanced.tiff", result.enhanced)
-        _write_tiff(out / f"{name}_ghost.tiff", result.ghost)
+    images = {f"{name}_{kind}.tiff": getattr(result, kind) for name, result in results.items()
+              for kind in ("enhanced", "ghost")}
+    for file, data in tiff_bytes(images).items():
+        write_bytes(out / file, data)
     _write_json(out / "enhance.json", record)
     return out

@@ -127,6 +127,26 @@ def test_dataset_round_trip(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["ds"]  # no temporary folders left beside it
 
 
+def test_tiff_bytes_encodes_each_image_under_its_key():
+    """Encoded on threads: each key gets its own image's file, in the order given, the same
+    bytes as tifffile writes alone; one image and none take the plain path."""
+    import io
+
+    from fsswarp.dataset import tiff_bytes
+
+    rng = np.random.default_rng(3)
+    images = {f"view{k}.tiff": rng.random((BINS, BEAMS), dtype=np.float32) * (k % 3) for k in range(12)}
+    files = tiff_bytes(images)
+    assert list(files) == list(images)
+    for key, image in images.items():
+        alone = io.BytesIO()
+        tifffile.imwrite(alone, image, compression="zlib")
+        assert files[key] == alone.getvalue()
+        assert tifffile.imread(io.BytesIO(files[key])).tobytes() == image.tobytes()
+    assert tiff_bytes({"one.tiff": images["view1.tiff"]}) == {"one.tiff": files["view1.tiff"]}
+    assert tiff_bytes({}) == {}
+
+
 def test_resaving_a_loaded_dataset_keeps_its_truth(tmp_path):
     import trimesh
 
