@@ -1,7 +1,7 @@
 """Side-by-side wall time of one reconstruction with two code trees, in one run:
 
     python bench/ab_reconstruct.py BEFORE AFTER [--rounds K] [--scene NAME] [--backend B]
-                                   [--device D]
+                                   [--device D] [--timeout S]
 
 BEFORE and AFTER are folders that each hold an ``fsswarp`` package (and ``kernels/`` for the
 OpenCL backend), e.g. ``git archive REV fsswarp kernels | tar -x -C DIR``. The scene is
@@ -13,7 +13,8 @@ process start and the dataset load are not timed), the final D, β, E_I and the 
 (the first 12 hex digits of SHA-256 over its float64 vertices and int64 faces; the trees should
 agree); then AFTER's median over BEFORE's and each round's ratio (``paired``). Timings taken one
 after the other drift with the machine's load; alternating rounds put that drift into both
-columns alike.
+columns alike. A run past ``--timeout`` seconds (default 300) is stopped with its processes:
+one line on stderr, exit 1.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import statistics
 import subprocess
 import sys
@@ -55,12 +57,24 @@ def tree_first(tree: Path) -> dict:
     return dict(os.environ, PYTHONPATH=os.pathsep.join([str(tree), os.environ.get("PYTHONPATH", "")]))
 
 
-def run_tree(tree: Path, *args: str) -> dict:
+def run_tree(tree: Path, *args: str, timeout: float = 300.0) -> dict:
     """One reconstruction in its own process with ``tree`` first on PYTHONPATH, run from the
-    tree (``python -c`` puts the working folder before PYTHONPATH); its JSON line."""
-    done = subprocess.run([sys.executable, "-c", RUN, *args], env=tree_first(tree), cwd=tree, capture_output=True,
-                          text=True, check=True)
-    found = json.loads(done.stdout.strip().splitlines()[-1])
+    tree (``python -c`` puts the working folder before PYTHONPATH); its JSON line. A run past
+    ``timeout`` seconds is stopped with every process it started (its own session), and
+    TimeoutError says so: on a lent GPU machine a hung run would spend the whole call
+    (bench/notes.md, twenty-second session)."""
+    with subprocess.Popen([sys.executable, "-c", RUN, *args], env=tree_first(tree), cwd=tree, stdout=subprocess.PIPE,
+                          stderr=subprocess.PIPE, text=True, start_new_session=True) as process:
+        try:
+            stdout, stderr = process.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.communicate()
+            raise TimeoutError(f"{tree}: a run took more than {timeout:g} s; it and its processes were stopped") \
+                from None
+    if process.returncode:
+        raise subprocess.CalledProcessError(process.returncode, process.args, stdout, stderr)
+    found = json.loads(stdout.strip().splitlines()[-1])
     if Path(found["package"]).resolve() != (tree / "fsswarp").resolve():
         raise RuntimeError(f"{tree}: the run imported fsswarp from {found['package']}")
     return found
@@ -74,6 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scene", default="coral-one")
     parser.add_argument("--backend", default="auto")
     parser.add_argument("--device", default="")
+    parser.add_argument("--timeout", type=float, default=300.0, help="most seconds of one run (default 300)")
     options = parser.parse_args(argv)
     from fsswarp.errors import InputError, check_integer
 
@@ -83,6 +98,8 @@ def main(argv: list[str] | None = None) -> int:
             if not (tree / "fsswarp" / "__init__.py").is_file():
                 raise InputError("holds no fsswarp package", field=name, value=str(tree))
         check_integer("--rounds", options.rounds, 1)
+        if not options.timeout > 0:
+            raise InputError("must be a number of seconds above 0", field="--timeout", value=options.timeout)
     except InputError as err:
         print(f"bench/ab_reconstruct.py: error: {err}", file=sys.stderr)
         return 2
@@ -93,12 +110,16 @@ def main(argv: list[str] | None = None) -> int:
                         "--out", str(data), "--seed", "0"], check=True,
                        env=tree_first(trees["after"]))
         common = (str(data), options.backend, options.device)
-        for tree in trees.values():
-            run_tree(tree, *common, "0")
         runs = {name: [] for name in trees}
-        for _ in range(options.rounds):
-            for name, tree in trees.items():
-                runs[name].append(run_tree(tree, *common, "10"))
+        try:
+            for tree in trees.values():
+                run_tree(tree, *common, "0", timeout=options.timeout)
+            for _ in range(options.rounds):
+                for name, tree in trees.items():
+                    runs[name].append(run_tree(tree, *common, "10", timeout=options.timeout))
+        except TimeoutError as err:
+            print(f"bench/ab_reconstruct.py: error: {err}", file=sys.stderr)
+            return 1
     medians = {name: statistics.median(r["seconds"] for r in found) for name, found in runs.items()}
     print(f"{options.scene}, measured start, backend {options.backend} {options.device}, {options.rounds} rounds\n")
     print("| tree | median (s) | each run (s) | final D (m), β (°), E_I | model |")

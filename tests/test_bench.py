@@ -306,6 +306,36 @@ def test_ab_reconstruct_runs_each_tree_from_its_own_package(coral_one, tmp_path)
     assert len(found["model"]) == 12 and int(found["model"], 16) >= 0  # the model's digest, to compare trees
 
 
+def test_ab_reconstruct_stops_a_run_that_hangs_with_every_process_it_started(tmp_path):
+    """A run past its timeout is stopped with the processes it started, even one that holds its
+    output open (a hung pool's children did so on a GPU machine), and TimeoutError names the tree."""
+    tree = tmp_path / "tree"
+    (tree / "fsswarp").mkdir(parents=True)
+    marker = tmp_path / "child.pid"
+    (tree / "fsswarp" / "__init__.py").write_text(
+        "import subprocess, sys, time\n"
+        f"child = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)'])\n"
+        f"open({str(marker)!r}, 'w').write(str(child.pid))\n"
+        "time.sleep(60)\n")
+    start = time.perf_counter()
+    with pytest.raises(TimeoutError, match=f"{tree}: a run took more than 3 s"):
+        _bench_module("ab_reconstruct").run_tree(tree, "data", "auto", "", "0", timeout=3)
+    assert time.perf_counter() - start < 20
+    status = Path(f"/proc/{int(marker.read_text())}/status")
+    for _ in range(50):  # the child is gone (or a zombie: killed, not yet reaped) once the kill reaches it
+        if not status.exists() or "\nState:\tZ" in status.read_text():
+            break
+        time.sleep(0.1)
+    else:
+        pytest.fail("the run's child process was left running")
+
+
+def test_ab_reconstruct_refuses_a_timeout_of_no_time(capsys, monkeypatch):
+    monkeypatch.chdir(Path(__file__).parents[1])
+    assert _bench_module("ab_reconstruct").main([".", ".", "--timeout", "0"]) == 2
+    assert "--timeout" in capsys.readouterr().err
+
+
 def test_ab_reconstruct_pairs_the_rounds():
     """Each round's after / before, and the rounds in which AFTER was faster."""
     ratios, faster = _bench_module("ab_reconstruct").paired([10.0, 8.0, 9.0], [9.0, 9.0, 9.0])
