@@ -266,3 +266,38 @@ def test_a_fan_puts_each_cell_at_its_range_and_azimuth_with_labelled_arcs_and_ra
     labels = [t.get_text() for t in ax.texts]
     assert any(re.fullmatch(r"\d\.\d\d m", t) for t in labels) and any(re.fullmatch(r"-?\d+°", t) for t in labels)
     plt.close(fig)
+
+
+def test_views_rows_keep_their_labels_inside_the_figure_and_clear_of_each_other(monkeypatch, tmp_path):
+    """The report's view rows are laid out without a tight bounding box: every title, range and
+    azimuth label lies inside the figure, none overlaps the colour bar, and no two titles overlap."""
+    import numpy as np
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from fsswarp.figures import views_figure
+
+    sonar = small_sonar()
+    views = fake_views(sonar, 2)
+    rows = {name: {"data": image, "ghost-free data": result.enhanced, "carved model at D0 0.432 m": result.synthetic,
+                   "final model at D 0.433 m": np.roll(result.synthetic, 2, axis=0)}
+            for name, (image, result) in views.items()}
+    for shown, title in (({"V0": rows["V0"]}, ""), (rows, "coral-one: two views with a title")):
+        kept = captured_figures(monkeypatch)
+        views_figure(shown, sonar, tmp_path / "views.png", title=title)
+        fig = kept[-1]
+        renderer = FigureCanvasAgg(fig).get_renderer()
+        page = fig.bbox
+        bar = next(ax for ax in fig.axes if "dB" in ax.get_xlabel())
+        panels = [ax for ax in fig.axes if ax is not bar]
+        assert len(panels) == 4 * len(shown)
+        texts = [t for ax in panels for t in ax.texts] + [ax.title for ax in panels]
+        boxes = [t.get_window_extent(renderer) for t in texts if t.get_text()]
+        assert len(boxes) > 8 * len(shown)
+        for box in boxes + [bar.get_tightbbox(renderer)]:
+            assert page.x0 - 1 <= box.x0 and box.x1 <= page.x1 + 1 and page.y0 - 1 <= box.y0 and box.y1 <= page.y1 + 1, box
+        assert not any(box.overlaps(bar.get_tightbbox(renderer)) for box in boxes)
+        titles = [ax.title.get_window_extent(renderer) for ax in panels]
+        if title:
+            titles.append(fig._suptitle.get_window_extent(renderer))
+        for i, first in enumerate(titles):
+            assert not any(first.overlaps(second) for second in titles[i + 1:])
