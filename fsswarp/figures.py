@@ -195,7 +195,10 @@ def carve_figure(mesh, path: str | Path, *, truth=None, title: str = "", label: 
     from matplotlib.collections import LineCollection, PolyCollection
     from matplotlib.colors import to_rgb
 
-    fig, axes = plt.subplots(1, 3, figsize=(12.6, 4.6))
+    fig = plt.figure(figsize=(12.6, 4.6))
+    grid = fixed_grid(fig, 1, 3, top=title_height(fig, title) + 0.35, bottom=0.75, left=0.7, right=0.15, wspace=0.8,
+                      hspace=0.0)
+    axes = [fig.add_subplot(grid[0, k]) for k in range(3)]
     colour = np.array(to_rgb(MODEL_COLOURS.get(label, MODEL_COLOURS["final"])))
     points = np.concatenate([np.asarray(m.vertices) for m in (mesh, truth) if m is not None])
     pad = 0.05 * float(np.ptp(points, axis=0).max())
@@ -205,8 +208,8 @@ def carve_figure(mesh, path: str | Path, *, truth=None, title: str = "", label: 
         order = np.argsort(triangles[:, :, k].mean(axis=1))  # far faces first
         shade = 0.3 + 0.7 * np.abs(normals[order, k])[:, None]
         faces = np.clip(shade * colour, 0, 1)
-        ax.add_collection(PolyCollection(triangles[order][:, :, (i, j)], facecolors=faces, edgecolors=faces,
-                                         linewidths=0.2))
+        ax.add_collection(PolyCollection(triangles[order][:, :, (i, j)], facecolors=faces, edgecolors="none",
+                                         antialiased=False))
         if truth is not None:
             ax.add_collection(LineCollection(_outline(truth, k)[:, :, (i, j)], colors=MODEL_COLOURS["truth"],
                                              linewidths=0.9))
@@ -221,7 +224,7 @@ def carve_figure(mesh, path: str | Path, *, truth=None, title: str = "", label: 
     if truth is not None:
         handles["truth (outline)"] = matplotlib.lines.Line2D([], [], color=MODEL_COLOURS["truth"], lw=1.2)
     _bottom_legend(fig, handles)
-    return save_figure(fig, path, title, rect=(0, 0.08, 1, 1))
+    return write_figure(fig, path)
 
 
 def _outline(mesh, axis: int) -> np.ndarray:

@@ -268,11 +268,39 @@ def test_a_fan_puts_each_cell_at_its_range_and_azimuth_with_labelled_arcs_and_ra
     plt.close(fig)
 
 
-def test_views_rows_keep_their_labels_inside_the_figure_and_clear_of_each_other(monkeypatch, tmp_path):
-    """The report's view rows are laid out without a tight bounding box: every title, range and
-    azimuth label lies inside the figure, none overlaps the colour bar, and no two titles overlap."""
-    import numpy as np
+
+def assert_laid_out(fig) -> None:
+    """Each axes of ``fig`` (a figure laid out on a fixed grid, no tight bounding box to crop
+    it) with all it draws (tick labels, titles, texts) lies inside the figure and clear of every
+    other axes' box; so do the figure's title and legends; no two titles overlap."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    renderer = FigureCanvasAgg(fig).get_renderer()  # the figure is closed: a canvas of its own, same layout
+    fig.draw(renderer)
+    page = fig.bbox
+    areas = {ax: ax.get_window_extent(renderer) for ax in fig.axes}
+    extents = [(ax, ax.get_tightbbox(renderer)) for ax in fig.axes]
+    extents += [(None, artist.get_window_extent(renderer)) for artist in [fig._suptitle, *fig.legends] if artist]
+    for owner, box in extents:
+        assert not any(box.overlaps(area) for other, area in areas.items() if other is not owner), owner
+        assert page.x0 - 1 <= box.x0 and box.x1 <= page.x1 + 1 and page.y0 - 1 <= box.y0 and box.y1 <= page.y1 + 1, \
+            (owner, box, page)
+    for ax in fig.axes:
+        for text in [ax.title, *ax.texts, ax.xaxis.label, ax.yaxis.label]:
+            if text.get_visible() and text.get_text():
+                box = text.get_window_extent(renderer)
+                assert not any(box.overlaps(area) for other, area in areas.items() if other is not ax), text.get_text()
+    titles = [ax.title.get_window_extent(renderer) for ax in fig.axes if ax.get_title()]
+    if fig._suptitle is not None:
+        titles.append(fig._suptitle.get_window_extent(renderer))
+    for k, first in enumerate(titles):
+        assert not any(first.overlaps(second) for second in titles[k + 1:])
+
+
+def test_views_rows_keep_their_labels_inside_the_figure_and_clear_of_each_other(monkeypatch, tmp_path):
+    """The report's view rows: four panels a row and one colour bar, laid out as
+    :func:`assert_laid_out` checks, with one row and with two under a title."""
+    import numpy as np
 
     from fsswarp.figures import views_figure
 
@@ -284,20 +312,15 @@ def test_views_rows_keep_their_labels_inside_the_figure_and_clear_of_each_other(
     for shown, title in (({"V0": rows["V0"]}, ""), (rows, "coral-one: two views with a title")):
         kept = captured_figures(monkeypatch)
         views_figure(shown, sonar, tmp_path / "views.png", title=title)
-        fig = kept[-1]
-        renderer = FigureCanvasAgg(fig).get_renderer()
-        page = fig.bbox
-        bar = next(ax for ax in fig.axes if "dB" in ax.get_xlabel())
-        panels = [ax for ax in fig.axes if ax is not bar]
-        assert len(panels) == 4 * len(shown)
-        texts = [t for ax in panels for t in ax.texts] + [ax.title for ax in panels]
-        boxes = [t.get_window_extent(renderer) for t in texts if t.get_text()]
-        assert len(boxes) > 8 * len(shown)
-        for box in boxes + [bar.get_tightbbox(renderer)]:
-            assert page.x0 - 1 <= box.x0 and box.x1 <= page.x1 + 1 and page.y0 - 1 <= box.y0 and box.y1 <= page.y1 + 1, box
-        assert not any(box.overlaps(bar.get_tightbbox(renderer)) for box in boxes)
-        titles = [ax.title.get_window_extent(renderer) for ax in panels]
-        if title:
-            titles.append(fig._suptitle.get_window_extent(renderer))
-        for i, first in enumerate(titles):
-            assert not any(first.overlaps(second) for second in titles[i + 1:])
+        assert len(kept[-1].axes) == 4 * len(shown) + 1
+        assert_laid_out(kept[-1])
+
+
+def test_the_carved_model_figure_keeps_its_labels_inside_and_apart(monkeypatch, tmp_path):
+    from fsswarp.figures import carve_figure
+
+    kept = captured_figures(monkeypatch)
+    carve_figure(trimesh.creation.box((0.3, 0.1, 0.05)), tmp_path / "carved.png",
+                 truth=trimesh.creation.icosphere(radius=0.06), title="coral-one: carved model (iteration 0)")
+    assert len(kept[-1].axes) == 3
+    assert_laid_out(kept[-1])
