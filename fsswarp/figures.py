@@ -247,7 +247,10 @@ def pose_figure(result, path: str | Path, *, truth: tuple[float, float] | None =
     import matplotlib.pyplot as plt
 
     levels = result.levels
-    fig, axes = plt.subplots(1, len(levels), figsize=(4.2 * len(levels), 4.3), squeeze=False)
+    fig = plt.figure(figsize=(4.2 * len(levels), 4.3))
+    grid = fixed_grid(fig, 1, len(levels), top=title_height(fig, title) + 0.3, bottom=0.95, left=0.7, right=0.15,
+                      wspace=0.75, hspace=0.0)
+    axes = [[fig.add_subplot(grid[0, k]) for k in range(len(levels))]]
     marks = [((result.depth0, result.tilt0), dict(marker="^", color="tab:orange", markersize=7, ls="none"), "start"),
              ((result.depth, result.tilt), dict(marker="*", color="tab:red", markersize=11, ls="none"), "estimate")]
     if truth is not None:
@@ -266,13 +269,14 @@ def pose_figure(result, path: str | Path, *, truth: tuple[float, float] | None =
                 handles[label], = ax.plot(depth, math.degrees(tilt), **style)
         ax.set_xlim(extent[0], extent[1])
         ax.set_ylim(extent[2], extent[3])
+        ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(5))
         ax.set_xlabel("depth D (m)")
         ax.set_ylabel("tilt β (deg)")
         ax.set_title(f"level {k + 1}: {len(depths)} x {len(tilts)} cells, "
                      f"{step[0] * 1000:.2f} mm x {step[1]:.3f} deg", fontsize=8)
         ax.tick_params(labelsize=7)
     _bottom_legend(fig, handles)
-    return save_figure(fig, path, title, rect=(0, 0.07, 1, 1))
+    return write_figure(fig, path)
 
 
 def contours_figure(images: dict[str, np.ndarray], contours: dict[str, dict], sonar: SonarSpec, path: str | Path, *,
@@ -292,7 +296,10 @@ def contours_figure(images: dict[str, np.ndarray], contours: dict[str, dict], so
     names = [name for name in contours if name in images]
     cols = min(5, max(1, len(names)))
     rows = max(1, math.ceil(len(names) / cols))
-    fig, axes = plt.subplots(rows, cols, figsize=(3.0 * cols, 3.1 * rows + 0.4), squeeze=False)
+    fig = plt.figure(figsize=(3.0 * cols, 3.1 * rows + 0.4))
+    grid = fixed_grid(fig, rows, cols, top=title_height(fig, title) + 0.25, bottom=0.75, left=0.45, right=0.1,
+                      wspace=0.45, hspace=0.6)
+    axes = np.array([[fig.add_subplot(grid[r, c]) for c in range(cols)] for r in range(rows)])
     azimuth = np.degrees(sonar.beam_centres)
     extent = (azimuth[0], azimuth[-1], sonar.range_min, sonar.range_max)
     colours = ("red", "yellow", "lime", "magenta")
@@ -325,7 +332,7 @@ def contours_figure(images: dict[str, np.ndarray], contours: dict[str, dict], so
     for ax in axes.ravel()[len(names):]:
         ax.axis("off")
     _bottom_legend(fig, handles, markerscale=2.5)
-    return save_figure(fig, path, title, rect=(0, 0.05, 1, 1))
+    return write_figure(fig, path)
 
 
 def history_figure(history: list[dict], path: str | Path, *, truth_depth: float | None = None,
@@ -344,7 +351,10 @@ def history_figure(history: list[dict], path: str | Path, *, truth_depth: float 
 
     it = np.array([h["iteration"] for h in history])
     panels = 4 if "E_V" in history[0] else 3
-    fig, axes = plt.subplots(1, panels, figsize=(3.6 * panels, 3.6))
+    fig = plt.figure(figsize=(3.6 * panels, 3.6))
+    grid = fixed_grid(fig, 1, panels, top=title_height(fig, title) + 0.15, bottom=1.0, left=0.75, right=0.1,
+                      wspace=0.8, hspace=0.0)
+    axes = [fig.add_subplot(grid[0, k]) for k in range(panels)]
     for ax, key, unit, truth, interval in ((axes[0], "depth_m", "depth D (m)", truth_depth, depth_interval_m),
                                            (axes[1], "tilt_deg", "tilt β (deg)", truth_tilt_deg, tilt_interval_deg)):
         band = np.array([h.get(key.replace("_", "_interval_", 1)) or (np.nan, np.nan) for h in history], float)
@@ -377,7 +387,7 @@ def history_figure(history: list[dict], path: str | Path, *, truth_depth: float 
         a.tick_params(labelsize=7)
         handles.update({label: handle for handle, label in zip(*a.get_legend_handles_labels())})
     _bottom_legend(fig, handles)
-    return save_figure(fig, path, title, rect=(0, 0.08, 1, 1))
+    return write_figure(fig, path)
 
 
 #: The regions of ``enhance_figure``: name and colour, by code (1 object + 2 ghost + 4 mirror).
@@ -624,7 +634,7 @@ class FigureDrawer:
     fraction of that, they were most of the demo's wall time. The processes start (and import
     matplotlib, about 0.9 s) when the drawer is made, at the start of the command, so they
     are ready when its first figure comes. Each figure's arguments are pickled to its process,
-    and its file is written there, atomically (``save_figure``).
+    and its file is written there, atomically (``write_figure``).
 
     Use: per output folder ``with drawer.batch() as draw:`` and ``draw(figure_function, *args,
     **kwargs)``. Leaving a batch waits for its figures and raises the first failure; leaving it

@@ -6,6 +6,7 @@ import time
 
 import pytest
 import trimesh
+from figure_checks import assert_laid_out, captured_figures
 
 from fsswarp.atomic import write_bytes
 from fsswarp.cli import main
@@ -104,21 +105,6 @@ def test_figures_are_drawn_here_where_processes_cannot_start(monkeypatch, tmp_pa
 
 
 # --- what the figures show ------------------------------------------------------------------------
-
-def captured_figures(monkeypatch):
-    """The figures that fsswarp.figures writes (``write_figure``, which ``save_figure`` calls
-    after its layout), kept for inspection."""
-    import fsswarp.figures as figures
-
-    kept, write = [], figures.write_figure
-
-    def keep(fig, path, **options):
-        kept.append(fig)
-        return write(fig, path, **options)
-
-    monkeypatch.setattr(figures, "write_figure", keep)
-    return kept
-
 
 def small_sonar():
     from fsswarp.sonar import SonarSpec
@@ -236,6 +222,8 @@ def test_history_shades_the_intervals_where_the_entries_have_them(monkeypatch, t
     low, high = band.get_paths()[0].vertices[:, 1].min(), band.get_paths()[0].vertices[:, 1].max()
     assert np.isclose(low, 0.44) and np.isclose(high, 0.473)
     assert "result's interval" in [t.get_text() for t in bands.legends[0].get_texts()]
+    for fig in kept:
+        assert_laid_out(fig)
 
 
 def test_a_fan_puts_each_cell_at_its_range_and_azimuth_with_labelled_arcs_and_rays():
@@ -269,34 +257,6 @@ def test_a_fan_puts_each_cell_at_its_range_and_azimuth_with_labelled_arcs_and_ra
 
 
 
-def assert_laid_out(fig) -> None:
-    """Each axes of ``fig`` (a figure laid out on a fixed grid, no tight bounding box to crop
-    it) with all it draws (tick labels, titles, texts) lies inside the figure and clear of every
-    other axes' box; so do the figure's title and legends; no two titles overlap."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-
-    renderer = FigureCanvasAgg(fig).get_renderer()  # the figure is closed: a canvas of its own, same layout
-    fig.draw(renderer)
-    page = fig.bbox
-    areas = {ax: ax.get_window_extent(renderer) for ax in fig.axes}
-    extents = [(ax, ax.get_tightbbox(renderer)) for ax in fig.axes]
-    extents += [(None, artist.get_window_extent(renderer)) for artist in [fig._suptitle, *fig.legends] if artist]
-    for owner, box in extents:
-        assert not any(box.overlaps(area) for other, area in areas.items() if other is not owner), owner
-        assert page.x0 - 1 <= box.x0 and box.x1 <= page.x1 + 1 and page.y0 - 1 <= box.y0 and box.y1 <= page.y1 + 1, \
-            (owner, box, page)
-    for ax in fig.axes:
-        for text in [ax.title, *ax.texts, ax.xaxis.label, ax.yaxis.label]:
-            if text.get_visible() and text.get_text():
-                box = text.get_window_extent(renderer)
-                assert not any(box.overlaps(area) for other, area in areas.items() if other is not ax), text.get_text()
-    titles = [ax.title.get_window_extent(renderer) for ax in fig.axes if ax.get_title()]
-    if fig._suptitle is not None:
-        titles.append(fig._suptitle.get_window_extent(renderer))
-    for k, first in enumerate(titles):
-        assert not any(first.overlaps(second) for second in titles[k + 1:])
-
-
 def test_views_rows_keep_their_labels_inside_the_figure_and_clear_of_each_other(monkeypatch, tmp_path):
     """The report's view rows: four panels a row and one colour bar, laid out as
     :func:`assert_laid_out` checks, with one row and with two under a title."""
@@ -324,3 +284,29 @@ def test_the_carved_model_figure_keeps_its_labels_inside_and_apart(monkeypatch, 
                  truth=trimesh.creation.icosphere(radius=0.06), title="coral-one: carved model (iteration 0)")
     assert len(kept[-1].axes) == 3
     assert_laid_out(kept[-1])
+
+
+def test_pose_levels_keep_their_tick_labels_apart(monkeypatch, tmp_path):
+    """The first pose step's levels of coral-one's demo (9 × 9 cells, 2.25 mm × 0.45° and finer):
+    laid out on the fixed grid, their depth tick labels do not run into each other."""
+    import math
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from fsswarp.figures import pose_figure
+
+    levels = []
+    for k, (centre, step, tilt_step) in enumerate(((0.432, 2.25e-3, 0.45), (0.4342, 1.125e-3, 0.225),
+                                                   (0.4342, 0.5625e-3, 0.1125))):
+        depths = centre + step * np.arange(-4, 5)
+        tilts = np.radians(10.7 + tilt_step * np.arange(-4, 5))
+        costs = (depths[:, None] - 0.4336) ** 2 * 1e3 + (tilts[None, :] - math.radians(10.69)) ** 2 + 0.015
+        levels.append(SimpleNamespace(depths=depths, tilts=tilts, costs=costs))
+    result = SimpleNamespace(levels=levels, depth0=0.432, tilt0=math.radians(11.1), depth=0.4336,
+                             tilt=math.radians(10.69))
+    kept = captured_figures(monkeypatch)
+    pose_figure(result, tmp_path / "pose.png", truth=(0.43, math.radians(10.3)),
+                title="first pose step: the (D, tilt) grid search around the measured values")
+    assert len(kept[0].axes) == 6  # three levels, each with its colour bar
+    assert_laid_out(kept[0])

@@ -12,6 +12,7 @@ import trimesh
 from hypothesis import given
 from hypothesis import strategies as st
 from scipy.ndimage import distance_transform_edt
+from figure_checks import assert_laid_out, captured_figures
 
 from fsswarp.backends import get_backend
 from fsswarp.cli import main
@@ -404,10 +405,12 @@ def test_frontal_faces_validates(coral_one, truth_model, backend):
             backend.frontal_faces(handle, sonar, rot, t, n, d, [0], [0.1], 4, mirror=mirror)
 
 
-def test_figure(tmp_path, coral_one, estimate):
+def test_figure(tmp_path, coral_one, estimate, monkeypatch):
     truth = coral_one.manifest.truth
+    kept = captured_figures(monkeypatch)
     path = pose_figure(estimate[0], tmp_path / "pose.png", truth=(truth.depth, truth.tilt), title="coral-one")
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert_laid_out(kept[0])
 
 
 def test_bad_input(coral_one, truth_model, opencl):
@@ -761,7 +764,7 @@ def test_cli_pose_bad_input(coral_one, tmp_path, capsys):
         assert not bad.exists() and not list(tmp_path.glob(".bad.*"))
 
 
-def test_view_contours_are_what_e_mu_compares(coral_one, truth_model, opencl, tmp_path):
+def test_view_contours_are_what_e_mu_compares(coral_one, truth_model, opencl, tmp_path, monkeypatch):
     """At the truth the mean μ_m is E_mu (``pose_objective``) and the synthetic object
     contours of the true model lie on the data's (median within a range bin); 4 cm and 0.8°
     off, the views away from the reference position see them move, and μ_m grows."""
@@ -783,8 +786,10 @@ def test_view_contours_are_what_e_mu_compares(coral_one, truth_model, opencl, tm
     images = {name: coral_one.images[name] for name in contours}
     blank = dict(next(iter(contours.values())), data=np.full((2, sonar.beams), np.nan))
     blank["synthetic"] = [np.full((2, sonar.beams), np.nan)] * 2
+    kept = captured_figures(monkeypatch)
     path = contours_figure(images, dict(contours, Sm90=blank), sonar, tmp_path / "c.png", title="coral-one")
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert_laid_out(kept[0])
 
 
 @pytest.mark.filterwarnings("always::fsswarp.compare.PoseWarning")  # main prints it
