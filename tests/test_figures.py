@@ -179,6 +179,26 @@ def test_enhance_names_its_region_colours_and_its_titles_do_not_overlap(monkeypa
     for i, first in enumerate(boxes):
         for second in boxes[i + 1:]:
             assert not first.overlaps(second), (first, second)
+    assert_laid_out(fig)
+
+
+def test_the_comparison_rows_keep_their_labels_inside_and_apart(monkeypatch, tmp_path):
+    """The paper's Figures 10-14 (three views, with and without the initial model's column): one
+    colour bar, the labels laid out as :func:`assert_laid_out` checks."""
+    sonar = small_sonar()
+    views = fake_views(sonar, 3)
+    images = {n: image for n, (image, _) in views.items()}
+    enhanced = {n: r.enhanced for n, (_, r) in views.items()}
+    synthetic = {n: r.synthetic for n, (_, r) in views.items()}
+    from fsswarp.figures import comparison_figure
+
+    for initial in (None, synthetic):
+        kept = captured_figures(monkeypatch)
+        comparison_figure(images, enhanced, synthetic, sonar, tmp_path / "views.png", initial=initial,
+                          title="coral-one: the views optimized, with a title long enough to wrap onto two lines")
+        columns = 3 if initial is None else 4
+        assert len(kept[-1].axes) == 3 * columns + 1
+        assert_laid_out(kept[-1])
 
 
 def test_the_carved_and_the_final_model_have_their_own_shaded_colours(monkeypatch, tmp_path):
