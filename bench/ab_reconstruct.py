@@ -1,7 +1,7 @@
-"""Side-by-side wall time of one reconstruction with two code trees, in one run:
+"""Side-by-side wall time of one reconstruction (or the whole demo) with two code trees, in one run:
 
     python bench/ab_reconstruct.py BEFORE AFTER [--rounds K] [--scene NAME] [--backend B]
-                                   [--device D] [--timeout S]
+                                   [--device D] [--timeout S] [--demo]
 
 BEFORE and AFTER are folders that each hold an ``fsswarp`` package (and ``kernels/`` for the
 OpenCL backend), e.g. ``git archive REV fsswarp kernels | tar -x -C DIR``. The scene is
@@ -14,12 +14,15 @@ process start and the dataset load are not timed), the final D, β, E_I and the 
 agree); then AFTER's median over BEFORE's and each round's ratio (``paired``). Timings taken one
 after the other drift with the machine's load; alternating rounds put that drift into both
 columns alike. A run past ``--timeout`` seconds (default 300) is stopped with its processes:
-one line on stderr, exit 1.
+one line on stderr, exit 1. With ``--demo`` each run is the command ``fsswarp demo SCENE``
+instead, timed from its process's first import to its end (simulation, reconstruction,
+enhancement, figures and report); the digest is then of its ``model.ply``.
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import signal
@@ -51,19 +54,44 @@ print(json.dumps({"seconds": seconds, "package": fsswarp.__path__[0], "depth_m":
                   "model": model}))
 """
 
+RUN_DEMO = """
+import time
+start = time.perf_counter()
+import hashlib, json, sys
+from pathlib import Path
+import fsswarp
+from fsswarp.cli import main
+out, backend, device, scene, iterations = sys.argv[1:]
+status = main(["--quiet", "--backend", backend, *(["--device", device] if device else []), "demo", scene, "--out", out,
+               "--iterations", iterations])
+seconds = time.perf_counter() - start
+if status:
+    sys.exit(status)
+import numpy as np, trimesh
+record = json.loads((Path(out) / "reconstruction" / "result.json").read_text())
+mesh = trimesh.load_mesh(Path(out) / "reconstruction" / "model.ply", process=False)
+model = hashlib.sha256(np.ascontiguousarray(mesh.vertices, np.float64).tobytes()
+                       + np.ascontiguousarray(mesh.faces, np.int64).tobytes()).hexdigest()[:12]
+print(json.dumps({"seconds": seconds, "package": fsswarp.__path__[0], "depth_m": record["depth_m"],
+                  "tilt_deg": record["tilt_deg"], "E_I": record["history"][record["best_iteration"]]["E_I"],
+                  "model": model}))
+"""
+
 
 def tree_first(tree: Path) -> dict:
     """The environment with ``tree`` first on PYTHONPATH."""
     return dict(os.environ, PYTHONPATH=os.pathsep.join([str(tree), os.environ.get("PYTHONPATH", "")]))
 
 
-def run_tree(tree: Path, *args: str, timeout: float = 300.0) -> dict:
-    """One reconstruction in its own process with ``tree`` first on PYTHONPATH, run from the
-    tree (``python -c`` puts the working folder before PYTHONPATH); its JSON line. A run past
+def run_tree(tree: Path, *args: str, timeout: float = 300.0, script: str = RUN) -> dict:
+    """One reconstruction (``script``: RUN, or RUN_DEMO for the demo) in its own process with
+    ``tree`` first on PYTHONPATH, run from the tree (``python -c`` and ``python -m`` put the
+    working folder before PYTHONPATH: a demo A/B that ran ``-m fsswarp`` from a checkout timed
+    that checkout twice, bench/notes.md, twenty-third session); its JSON line. A run past
     ``timeout`` seconds is stopped with every process it started (its own session), and
     TimeoutError says so: on a lent GPU machine a hung run would spend the whole call
     (bench/notes.md, twenty-second session)."""
-    with subprocess.Popen([sys.executable, "-c", RUN, *args], env=tree_first(tree), cwd=tree, stdout=subprocess.PIPE,
+    with subprocess.Popen([sys.executable, "-c", script, *args], env=tree_first(tree), cwd=tree, stdout=subprocess.PIPE,
                           stderr=subprocess.PIPE, text=True, start_new_session=True) as process:
         try:
             stdout, stderr = process.communicate(timeout=timeout)
@@ -89,6 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--backend", default="auto")
     parser.add_argument("--device", default="")
     parser.add_argument("--timeout", type=float, default=300.0, help="most seconds of one run (default 300)")
+    parser.add_argument("--demo", action="store_true", help="time the command `fsswarp demo SCENE` instead")
     options = parser.parse_args(argv)
     from fsswarp.errors import InputError, check_integer
 
@@ -104,24 +133,35 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bench/ab_reconstruct.py: error: {err}", file=sys.stderr)
         return 2
     with tempfile.TemporaryDirectory() as scratch:
-        data = Path(scratch) / options.scene
-        subprocess.run([sys.executable, "-m", "fsswarp", "--quiet", "--backend", options.backend,
-                        *(["--device", options.device] if options.device else []), "simulate", options.scene,
-                        "--out", str(data), "--seed", "0"], check=True,
-                       env=tree_first(trees["after"]))
-        common = (str(data), options.backend, options.device)
         runs = {name: [] for name in trees}
         try:
+            if options.demo:
+                count = itertools.count()
+
+                def run(tree: Path, iterations: str) -> dict:  # a fresh output folder each time
+                    return run_tree(tree, str(Path(scratch) / f"demo{next(count)}"), options.backend, options.device,
+                                    options.scene, iterations, timeout=options.timeout, script=RUN_DEMO)
+            else:
+                data = Path(scratch) / options.scene
+                subprocess.run([sys.executable, "-m", "fsswarp", "--quiet", "--backend", options.backend,
+                                *(["--device", options.device] if options.device else []), "simulate", options.scene,
+                                "--out", str(data), "--seed", "0"], check=True, env=tree_first(trees["after"]),
+                               cwd=trees["after"])
+
+                def run(tree: Path, iterations: str) -> dict:
+                    return run_tree(tree, str(data), options.backend, options.device, iterations,
+                                    timeout=options.timeout)
             for tree in trees.values():
-                run_tree(tree, *common, "0", timeout=options.timeout)
+                run(tree, "0")
             for _ in range(options.rounds):
                 for name, tree in trees.items():
-                    runs[name].append(run_tree(tree, *common, "10", timeout=options.timeout))
+                    runs[name].append(run(tree, "10"))
         except TimeoutError as err:
             print(f"bench/ab_reconstruct.py: error: {err}", file=sys.stderr)
             return 1
     medians = {name: statistics.median(r["seconds"] for r in found) for name, found in runs.items()}
-    print(f"{options.scene}, measured start, backend {options.backend} {options.device}, {options.rounds} rounds\n")
+    what = "`fsswarp demo`, the whole command" if options.demo else "measured start"
+    print(f"{options.scene}, {what}, backend {options.backend} {options.device}, {options.rounds} rounds\n")
     print("| tree | median (s) | each run (s) | final D (m), β (°), E_I | model |")
     print("|---|---|---|---|---|")
     for name, found in runs.items():

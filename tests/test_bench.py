@@ -607,3 +607,19 @@ def test_stage_times_count_a_nested_stage_under_its_outer_one_and_restore_the_or
     assert times.current["inner"] >= 0.01  # alone, it counts
     times.restore()
     assert (owner.inner, owner.outer) == originals and times.undo == []
+
+
+def test_ab_reconstruct_times_the_demo_command_of_each_tree(tmp_path):
+    """--demo: each run is `fsswarp demo` with the tree's own package, its result and model's
+    digest read from what it wrote."""
+    import shutil
+
+    repo = Path(__file__).parents[1]
+    tree = tmp_path / "tree"
+    for name in ("fsswarp", "kernels"):
+        shutil.copytree(repo / name, tree / name, ignore=shutil.ignore_patterns("__pycache__"))
+    module = _bench_module("ab_reconstruct")
+    found = module.run_tree(tree, str(tmp_path / "demo"), "auto", "", "coral-one", "0", script=module.RUN_DEMO)
+    assert Path(found["package"]) == tree / "fsswarp" and found["E_I"] == 1.0 and found["seconds"] > 0
+    assert (tmp_path / "demo" / "reconstruction" / "report.html").is_file()
+    assert len(found["model"]) == 12 and found["depth_m"] == pytest.approx(0.432)  # the measured start, kept
