@@ -1,8 +1,9 @@
 """Figures for people, as PNG files: synthetic layers (``layers_figure``), fan images
 (``fan_figure``), a mesh over the truth (``carve_figure``), the pose grid levels
 (``pose_figure``), frontal contours per view (``contours_figure``), a reconstruction's history
-(``history_figure``), ghost removal (``enhance_figure``, ``comparison_figure``) and one view
-beside its syntheses as fan images with range and azimuth axes (``views_figure``, the report's).
+(``history_figure``), ghost removal (``enhance_figure``) and views beside their syntheses as
+fan images with range and azimuth axes (``views_figure``, the report's rows; ``comparison_figure``,
+the paper's Figures 10–14, draws its rows so).
 ``FigureDrawer`` draws them in child processes while a command goes on
 (``FSSWARP_FIGURE_WORKERS``; the files are the same byte for byte either way).
 
@@ -460,53 +461,16 @@ def comparison_figure(images: dict[str, np.ndarray], enhanced: dict[str, np.ndar
                       initial: dict[str, np.ndarray] | None = None, floor_db: float = -40.0,
                       title: str = "") -> Path:
     """Save a PNG like the paper's Figures 10–14, one row per view: data | ghost-free data |
-    initial synthetic (only when ``initial`` is given) | optimized synthetic, as fan images
-    zoomed on the synthetic returns (x across, y ahead, metres).
+    initial synthetic (only when ``initial`` is given) | optimized synthetic, drawn as
+    :func:`views_figure` draws the report's rows (fans zoomed on the synthetic returns, one
+    colour scale per row: dB below the row's data peak, down to ``floor_db``).
 
     Every dict is {view: (bins, beams) linear image}, keyed like ``images``; the synthetic
-    images should already be scaled to the data's level (fsswarp.enhancement.match_level). One
-    colour scale per row: dB below the row's data peak, down to ``floor_db``."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    columns = [("data", images), ("ghost-free data", enhanced)]
-    if initial is not None:
-        columns.append(("initial synthetic", initial))
-    columns.append(("optimized synthetic", synthetic))
-    fig = plt.figure(figsize=(2.6 * len(columns) + 0.4, 2.5 * len(images) + 1.1))
-    grid = fixed_grid(fig, len(images) + 1, len(columns), top=title_height(fig, title) + 0.3, bottom=0.45, left=0.45,
-                      right=0.15, wspace=0.12, hspace=0.6, height_ratios=[1.0] * len(images) + [0.04])
-    axes = np.array([[fig.add_subplot(grid[r, c]) for c in range(len(columns))] for r in range(len(images))])
-    for row, name in enumerate(images):
-        peak = float(np.max(images[name])) or 1.0
-        models = {label: source[name] for label, source in columns[2:]}
-        model_peak = max(float(np.max(m)) for m in models.values()) or 1.0
-        limits = _zoom_limits({name: np.stack(list(models.values()))}, sonar, model_peak)
-        for col, (label, source) in enumerate(columns):
-            ax = axes[row, col]
-            with np.errstate(divide="ignore"):
-                db = np.maximum(20.0 * np.log10(np.maximum(source[name], 0) / peak), floor_db)
-            fan, extent = scan_convert(db.astype(np.float32), sonar, fill=np.nan)
-            shown = ax.imshow(fan, extent=extent, cmap="magma", vmin=floor_db, vmax=0)
-            if limits is not None:
-                ax.set_xlim(limits["x"])
-                ax.set_ylim(limits["y"])
-            ax.set_title(f"{name}: {label}", fontsize=8)
-            ax.set_xlabel("x (m)", fontsize=6)
-            ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(4))
-            if col == 0:  # a row's panels show the same place
-                ax.set_ylabel("y (m)", fontsize=6)
-                ax.yaxis.set_major_locator(matplotlib.ticker.MaxNLocator(4))
-            else:  # no ticks: each costs ~1 ms to make, most of the figure's time
-                ax.yaxis.set_major_locator(matplotlib.ticker.NullLocator())
-            ax.tick_params(labelsize=5)
-    bar = fig.colorbar(shown, cax=fig.add_subplot(grid[-1, 1:-1] if len(columns) > 2 else grid[-1, :]),
-                       orientation="horizontal")
-    bar.set_label("dB below the row's data peak", fontsize=7)
-    bar.ax.tick_params(labelsize=6)
-    return write_figure(fig, path)
+    images should already be scaled to the data's level (fsswarp.enhancement.match_level)."""
+    rows = {name: {"data": images[name], "ghost-free data": enhanced[name]}
+            | ({} if initial is None else {"initial synthetic": initial[name]})
+            | {"optimized synthetic": synthetic[name]} for name in images}
+    return views_figure(rows, sonar, path, floor_db=floor_db, title=title)
 
 
 def views_figure(rows: dict[str, dict[str, np.ndarray]], sonar: SonarSpec, path: str | Path, *,
