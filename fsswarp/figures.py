@@ -437,14 +437,15 @@ def enhance_figure(images: dict[str, np.ndarray], results: dict, sonar: SonarSpe
                             min(sonar.range_max, float(sonar.bin_ranges[rows.max()]) + 0.1))
                 ax.set_xlim(max(extent[0], math.degrees(sonar.beam_centres[cols.min()]) - 4.0),
                             min(extent[1], math.degrees(sonar.beam_centres[cols.max()]) + 4.0))
-            ax.set_xlabel("azimuth (deg)", fontsize=7)
-            ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(5))
-            if ax is axes[row, 0]:  # a row's panels show the same ranges
+            if ax is axes[row, 0]:  # a row's panels show the same place: its first one has the axes
+                ax.set_xlabel("azimuth (deg)", fontsize=7)
                 ax.set_ylabel("range (m)", fontsize=7)
+                ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(5))
                 ax.yaxis.set_major_locator(matplotlib.ticker.MaxNLocator(5))
+                ax.tick_params(labelsize=7)
             else:  # no ticks: each costs ~1 ms to make, most of the figure's time
+                ax.xaxis.set_major_locator(matplotlib.ticker.NullLocator())
                 ax.yaxis.set_major_locator(matplotlib.ticker.NullLocator())
-            ax.tick_params(labelsize=7)
     bar = fig.colorbar(decibels, cax=fig.add_subplot(grid[-1, :2]), orientation="horizontal")
     bar.set_label("dB below the view's data peak", fontsize=8)
     bar.ax.tick_params(labelsize=7)
