@@ -185,12 +185,13 @@ def test_enhance_names_its_region_colours_and_its_titles_do_not_overlap(monkeypa
 def test_the_comparison_rows_keep_their_labels_inside_and_apart(monkeypatch, tmp_path):
     """The paper's Figures 10-14 (three views, with and without the initial model's column): one
     colour bar, the labels laid out as :func:`assert_laid_out` checks."""
+    from fsswarp.figures import comparison_figure
+
     sonar = small_sonar()
     views = fake_views(sonar, 3)
     images = {n: image for n, (image, _) in views.items()}
     enhanced = {n: r.enhanced for n, (_, r) in views.items()}
     synthetic = {n: r.synthetic for n, (_, r) in views.items()}
-    from fsswarp.figures import comparison_figure
 
     for initial in (None, synthetic):
         kept = captured_figures(monkeypatch)
@@ -276,7 +277,6 @@ def test_a_fan_puts_each_cell_at_its_range_and_azimuth_with_labelled_arcs_and_ra
     plt.close(fig)
 
 
-
 def test_views_rows_keep_their_labels_inside_the_figure_and_clear_of_each_other(monkeypatch, tmp_path):
     """The report's view rows: four panels a row and one colour bar, laid out as
     :func:`assert_laid_out` checks, with one row and with two under a title."""
@@ -317,8 +317,7 @@ def test_pose_levels_keep_their_tick_labels_apart(monkeypatch, tmp_path):
     from fsswarp.figures import pose_figure
 
     levels = []
-    for k, (centre, step, tilt_step) in enumerate(((0.432, 2.25e-3, 0.45), (0.4342, 1.125e-3, 0.225),
-                                                   (0.4342, 0.5625e-3, 0.1125))):
+    for centre, step, tilt_step in ((0.432, 2.25e-3, 0.45), (0.4342, 1.125e-3, 0.225), (0.4342, 0.5625e-3, 0.1125)):
         depths = centre + step * np.arange(-4, 5)
         tilts = np.radians(10.7 + tilt_step * np.arange(-4, 5))
         costs = (depths[:, None] - 0.4336) ** 2 * 1e3 + (tilts[None, :] - math.radians(10.69)) ** 2 + 0.015
