@@ -33,7 +33,7 @@ from pathlib import Path
 POSES = ((0.004, 0.0), (-0.004, 0.25), (0.0, -0.25), (0.002, 0.1), (-0.002, -0.1))
 #: ViewComparison methods and compare-module functions timed as stages, in call order.
 STAGES = ("synthetic_contours", "align", "frontal_motions", "patch_motions")
-BACKEND_CALLS = ("render_device", "contour_cost", "icp_runs", "frontal_faces")
+BACKEND_CALLS = ("render_planned", "contour_cost", "icp_runs", "frontal_faces")
 
 _spec = importlib.util.spec_from_file_location("bench_profiling", Path(__file__).resolve().parent / "profiling.py")
 profiling = importlib.util.module_from_spec(_spec)

@@ -33,7 +33,7 @@ WRAPPED = (
     ("fsswarp.carving", None, ("carve", "voxel_mesh")),
     ("fsswarp.reconstruction", None, ("_image_errors", "_complete", "sighting", "_valley_answer")),
 )
-BACKEND_METHODS = ("render_device", "contour_cost", "view_costs", "icp_runs", "frontal_faces", "load_mesh",
+BACKEND_METHODS = ("render_planned", "contour_cost", "view_costs", "icp_runs", "frontal_faces", "load_mesh",
                    "device_distances", "carve")
 #: Functions that other modules import by name: those modules get the wrapper too.
 REBOUND = {"estimate_pose": ("fsswarp.reconstruction",), "refine_shape": ("fsswarp.reconstruction",),

@@ -44,7 +44,7 @@ INNER = (
     ("fsswarp.compare", "ViewComparison", "frontal_motions", "contour_motions.frontal_motions"),
     ("fsswarp.refine", "_Membrane", "solve", "displacement.membrane"),
 )
-BACKEND_CALLS = ("load_mesh", "device_distances", "render_device", "contour_cost", "view_costs", "icp_runs",
+BACKEND_CALLS = ("load_mesh", "device_distances", "render_planned", "contour_cost", "view_costs", "icp_runs",
                  "frontal_faces", "cast_rays")
 #: Stages whose time holds other stages' (``contour_errors`` calls ``synthetic_contours`` and ``align``).
 NESTED = {"synthetic_contours", "align"}

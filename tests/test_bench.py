@@ -516,6 +516,7 @@ def test_loop_profile_times_a_reconstruction_and_leaves_fsswarp_as_it_was(capsys
     assert fsswarp.reconstruction.carve is fsswarp.carving.carve
     out = capsys.readouterr().out
     assert "0 iterations" in out and "| `carve` | 1 |" in out and "| `_image_errors` | 1 |" in out
+    assert "| `backend.render_planned` |" in out  # the render is timed (its method's name is current)
 
 
 def test_loop_profile_bad_options_exit_2():
@@ -623,3 +624,15 @@ def test_ab_reconstruct_times_the_demo_command_of_each_tree(tmp_path):
     assert Path(found["package"]) == tree / "fsswarp" and found["E_I"] == 1.0 and found["seconds"] > 0
     assert (tmp_path / "demo" / "reconstruction" / "report.html").is_file()
     assert len(found["model"]) == 12 and found["depth_m"] == pytest.approx(0.432)  # the measured start, kept
+
+
+def test_exact_profile_replays_the_render_and_every_other_backend_call(tmp_path, capsys):
+    """With --replay every backend call answers from the recording: the render (through
+    ``render_planned``) is among them and takes no device time, and E_mu stays the same."""
+    out = tmp_path / "exact.json"
+    assert _bench_module("exact_profile").main(["--backend", "opencl", "--calls", "2", "--replay",
+                                                "--out", str(out)]) == 0
+    medians = json.loads(out.read_text())["median_ms"]
+    for call in ("render_planned", "contour_cost", "icp_runs", "frontal_faces"):
+        assert 0.0 <= medians[f"backend.{call}"] < 0.5  # a PoCL render alone takes tens of ms here
+    assert medians["host"] > 0.9 * medians["total"]
