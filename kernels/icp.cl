@@ -131,10 +131,11 @@ __kernel void icp_runs(__global const double *sx, __global const double *sy,
                        __global double *moved_x, __global double *moved_y,
                        __global int *nearest, __global double *dist,
                        __global double *anchor_x, __global double *anchor_y,
-                       __global double *room2, __global double *scratch)
+                       __global double *room2, __global double *scratch, const int lanes)
 {
-    const int r = get_global_id(0);
-    if (r >= n_runs)
+    /* work-item r * lanes runs run r; the run's other lanes - 1 return (GPU_ICP_LANES) */
+    const int r = get_global_id(0) / lanes;
+    if (get_global_id(0) % lanes != 0 || r >= n_runs)
         return;
     const int4 run = runs[r];
     const int first = run.x;

@@ -7,6 +7,7 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
+from fsswarp.backends.constants import GPU_ICP_LANES
 from fsswarp.icp import _Active, _medians, _Runs, contour_error, icp, icp_many
 
 finite = dict(allow_nan=False, allow_infinity=False)
@@ -321,6 +322,21 @@ def test_device_runs_give_the_host_s_results(backend, max_distance):
     assert len({r.iterations for r in host}) > 2  # the runs stop at different times
     if max_distance is not None:
         assert len(device[-1].pairs) == 0 and not device[-1].converged  # no weight: stops unconverged
+
+
+def test_device_runs_with_a_warp_each_give_the_same_bits(backend, monkeypatch):
+    """A GPU gives each run ``GPU_ICP_LANES`` threads, of which one works: forced on this
+    device, every run's result is the one-thread-per-run launch's, bit for bit."""
+    problems = contour_problems(7)
+    one = icp_many(problems, max_distance=0.05, backend=backend)
+    assert backend.icp_lanes == (GPU_ICP_LANES if backend.is_gpu else 1)
+    monkeypatch.setattr(type(backend), "icp_lanes", property(lambda self: GPU_ICP_LANES))
+    spread = icp_many(problems, max_distance=0.05, backend=backend)
+    for a, b in zip(spread, one, strict=True):
+        for field in ("rotation", "translation", "motions", "weights", "pairs", "iterations", "converged",
+                      "error", "scale"):
+            np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+    assert len({r.iterations for r in one}) > 2
 
 
 @given(angle=st.floats(-0.01, 0.01, **finite), sx=st.floats(-5e-4, 5e-4, **finite),

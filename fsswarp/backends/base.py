@@ -26,7 +26,7 @@ import numpy as np
 
 from ..errors import is_integer, is_number, real_array
 from ..sonar import SonarSpec
-from .constants import FIXED_SCALE, MAX_DISTANCE
+from .constants import FIXED_SCALE, GPU_ICP_LANES, MAX_DISTANCE
 
 #: Margin (rad) of ``ray_spans`` around the azimuths and elevations a mesh covers; the kernels'
 #: float32 sub-ray angles round by about 1e-7 rad.
@@ -93,6 +93,7 @@ class Backend(abc.ABC):
     is_gpu : whether the device is a GPU
     has_float64 : whether its kernels can compute in float64 (``icp_runs`` needs it)
     device_name : the device's own name (property)
+    icp_lanes : threads given to each ICP run (property: ``GPU_ICP_LANES`` on a GPU, else 1)
 
     For timing kernels without their transfers: ``prepared_cast``, ``prepared_carve`` (launches
     on inputs uploaded once) and ``transfer_calls`` (copies).
@@ -105,6 +106,10 @@ class Backend(abc.ABC):
 
     def __repr__(self) -> str:
         return f"<{type(self).__name__} {self.name} on {self.device!r}>"
+
+    @property
+    def icp_lanes(self) -> int:
+        return GPU_ICP_LANES if self.is_gpu else 1
 
     # --- projection (voxel carving) -----------------------------------------------------------
     def project(self, points, rotations, translations, sonar: SonarSpec):
@@ -644,7 +649,7 @@ class Backend(abc.ABC):
     # --- IRLS-ICP of 2-D contours (fsswarp/icp.py), float64 ------------------------------------
     def icp_runs(self, source_x, source_y, target_x, target_y, runs, angles, translations, floors, step_tols,
                  *, max_iterations: int, max_distance: float, tuning: float) -> "ICPRuns":
-        """R IRLS-ICP runs of fsswarp/icp.py, one thread each, in float64: every iteration
+        """R IRLS-ICP runs of fsswarp/icp.py, one thread each (of ``icp_lanes``), in float64: every iteration
         matches each moved source point to its nearest target (brute force; the first of
         equal distances), weighs the pairs with Cauchy weights at the robust scale
         σ = max(median distance / √(2 ln 2), floor), solves the weighted Procrustes problem

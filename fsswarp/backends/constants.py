@@ -22,6 +22,11 @@ WARP_FAR = 1e30
 INDEX_LIMIT = 1073741824.0
 #: Fixed-point scale of render's integer accumulator: 2^24 = 1.
 FIXED_SCALE = 16777216.0
+#: Threads per ICP run on a GPU (``Backend.icp_runs``): the first works, the others return, so
+#: each run has a warp of its own instead of 32 runs sharing one warp and its divergent loops
+#: (the run's iterations, its points' searches and its median's partitioning differ from run
+#: to run). One on a CPU device. A run's operations are the same either way.
+GPU_ICP_LANES = 32
 
 
 def opencl_defines() -> tuple[str, ...]:

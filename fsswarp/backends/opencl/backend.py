@@ -439,12 +439,13 @@ class OpenCLBackend(Backend):
         buffers += [cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=a.nbytes) for a in results[4:]]
         work = [cl.Buffer(self.context, cl.mem_flags.READ_WRITE, size=moved_x.nbytes)
                 for _ in range(4)]  # anchor_x, anchor_y, room2, scratch
+        lanes = self.icp_lanes
         with self._lock:
             self._icp_kernel(
-                self.queue, (-(-n_runs // GROUP) * GROUP,), (GROUP,),
+                self.queue, (-(-n_runs * lanes // GROUP) * GROUP,), (GROUP,),
                 *(self._input(a) for a in (source_x, source_y, target_x, target_y, runs, floors, step_tols)),
                 np.int32(max_iterations), np.float64(max_distance), np.float64(tuning), np.int32(n_runs),
-                *buffers, *work)
+                *buffers, *work, np.int32(lanes))
             for host, buf in zip(results, buffers):
                 cl.enqueue_copy(self.queue, host, buf, is_blocking=False)
             self._finish()

@@ -424,11 +424,12 @@ class WarpBackend(Backend):
             angle, trans, moved_x, moved_y, dist, anchor_x, anchor_y, room2, scratch = _views(io, float_sizes)
             counters = wp.zeros(sum(int_sizes), dtype=wp.int32)
             iterations, converged, nearest = _views(counters, int_sizes)
-            _launch(icp_runs_kernel, dim=n_runs,
+            lanes = self.icp_lanes
+            _launch(icp_runs_kernel, dim=n_runs * lanes,
                     inputs=[sx, sy, tx, ty, self._array(runs, wp.int32), floor, tol, max_iterations,
                             wp.float64(max_distance), wp.float64(tuning)],
                     outputs=[angle, trans.reshape((n_runs, 2)), iterations, converged, moved_x, moved_y, nearest,
-                             dist, anchor_x, anchor_y, room2, scratch])
+                             dist, anchor_x, anchor_y, room2, scratch, lanes])
             wp.synchronize_device(self._device)
             floats = io[:sum(float_sizes[:5])].numpy()
             ints = counters.numpy()

@@ -107,11 +107,15 @@ def icp_runs_kernel(sx: wp.array(dtype=wp.float64), sy: wp.array(dtype=wp.float6
                     moved_x: wp.array(dtype=wp.float64), moved_y: wp.array(dtype=wp.float64),
                     nearest: wp.array(dtype=wp.int32), dist: wp.array(dtype=wp.float64),
                     anchor_x: wp.array(dtype=wp.float64), anchor_y: wp.array(dtype=wp.float64),
-                    room2: wp.array(dtype=wp.float64), scratch: wp.array(dtype=wp.float64)):
-    """Thread r: IRLS-ICP run r (Backend.icp_runs). runs[r] = (first source point, first
-    target, targets, source points); angles, trans hold the start and receive the result; dist
-    receives the distances after the last move, -1 where a pair is not usable."""
-    r = wp.tid()
+                    room2: wp.array(dtype=wp.float64), scratch: wp.array(dtype=wp.float64), lanes: int):
+    """Thread r · lanes: IRLS-ICP run r (Backend.icp_runs; the run's other lanes - 1 threads
+    return, ``GPU_ICP_LANES``). runs[r] = (first source point, first target, targets, source
+    points); angles, trans hold the start and receive the result; dist receives the distances
+    after the last move, -1 where a pair is not usable."""
+    thread = wp.tid()
+    r = thread // lanes
+    if thread - r * lanes != 0:
+        return
     first = runs[r, 0]
     end = first + runs[r, 3]
     c = wp.cos(angles[r])
