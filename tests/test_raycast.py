@@ -183,3 +183,28 @@ def test_warp_and_opencl_agree():
         hit = np.isfinite(a[0])
         np.testing.assert_allclose(a[0][hit], b[0][hit], atol=1e-5, rtol=0, err_msg=name)
         assert np.mean(a[1][hit] == b[1][hit]) > 0.999, name
+
+
+def test_warp_mesh_corners_and_boxes_are_the_host_s_bit_for_bit(wp_device):
+    """``load_mesh`` on Warp gathers the corners and pads the boxes on the device: the float32
+    corners (np.take), boxes (``triangle_bounds``) and pad (1e-6 × the largest |coordinate| +
+    1e-6 × the box's longest side, float32) of NumPy, bit for bit, on a coral, a mesh far from
+    the origin with axis-aligned triangles, and one of random triangles."""
+    from fsswarp.backends.bvh import triangle_bounds
+
+    backend = get_backend("warp", wp_device)
+    rng = np.random.default_rng(3)
+    box = trimesh.creation.box(extents=(0.3, 0.2, 0.1))
+    meshes = [builtin_mesh("coral-one"), (box.vertices + (120.0, -40.0, 7.5), box.faces),
+              (rng.normal(0.0, 2.0, (300, 3)), rng.integers(0, 300, (500, 3)))]
+    for mesh in meshes:
+        vertices, faces = (mesh.vertices, mesh.faces) if hasattr(mesh, "faces") else mesh
+        handle = backend.load_mesh(vertices, faces)
+        points = np.asarray(vertices, np.float32)
+        lo, hi = triangle_bounds(points, np.asarray(faces, np.int64))
+        pad = np.float32(1.0e-6 * max(float(np.max(np.abs(vertices))), 1.0e-12)) \
+            + 1.0e-6 * (hi - lo).max(axis=1, keepdims=True)
+        np.testing.assert_array_equal(handle.corners.numpy(), np.take(points, np.ravel(faces), axis=0))
+        np.testing.assert_array_equal(handle.lowers.numpy(), lo - pad)
+        np.testing.assert_array_equal(handle.uppers.numpy(), hi + pad)
+        assert handle.lowers.numpy().dtype == np.float32 and (handle.uppers.numpy() > handle.lowers.numpy()).all()

@@ -11,7 +11,6 @@ import numpy as np
 import warp as wp
 
 from ..base import Backend, DeviceLayers, PreparedLaunch, SonarConstants, fixed_floats, span_extent
-from ..bvh import triangle_bounds
 from ..constants import FIXED_SCALE, FRONTAL_VISIBLE, MAX_DISTANCE, RAY_EPSILON, WARP_FAR
 from ..runtimes import import_warp
 from .carve import carve_grid, carve_points
@@ -19,7 +18,8 @@ from .icp import icp_runs_kernel
 from .pose import contour_cost_kernel, frontal_contour, view_cost_kernel
 from .project import project_points
 from .raycast import cast_rays_kernel
-from .render import direct_hits_kernel, fixed_to_float, frontal_rays_kernel, render_kernel, sub_rays_kernel
+from .render import (direct_hits_kernel, fixed_to_float, frontal_rays_kernel, render_kernel, sub_rays_kernel,
+                     triangle_boxes_kernel)
 from .sonar import kernel_sonar
 
 #: Share of a CUDA device's memory that Warp's memory pool keeps after a synchronize instead of
@@ -145,15 +145,19 @@ class WarpBackend(Backend):
 
     # --- ray casting and image synthesis ------------------------------------------------------
     def _load_mesh(self, vertices, faces):
+        """The float32 corners and each triangle's box, padded so that boxes of axis-aligned
+        triangles have volume (and rounding never loses one) by 1e-6 × (the largest |vertex
+        coordinate|, at least 1e-12) + 1e-6 × the box's longest side, made on the device
+        (``triangle_boxes_kernel``, float32 throughout)."""
+        n_faces = faces.shape[0]
+        extent = float(np.max(np.abs(vertices))) if len(vertices) else 1.0
         with wp.ScopedDevice(self._device):
-            points = np.asarray(vertices, np.float32)
-            corners = self._array(np.take(points, np.asarray(faces).reshape(-1), axis=0), wp.vec3)
-            lo, hi = triangle_bounds(points, np.asarray(faces, np.int64).reshape(-1, 3))
-            # pad so boxes of axis-aligned triangles have volume (and rounding never loses one)
-            extent = float(np.max(np.abs(vertices))) if len(vertices) else 1.0
-            pad = np.float32(1.0e-6 * max(extent, 1.0e-12)) + 1.0e-6 * (hi - lo).max(axis=1, keepdims=True)
-            lowers = self._array(np.ascontiguousarray(lo - pad, np.float32), wp.vec3)
-            uppers = self._array(np.ascontiguousarray(hi + pad, np.float32), wp.vec3)
+            corners = wp.empty(3 * n_faces, dtype=wp.vec3)
+            lowers, uppers = wp.empty(n_faces, dtype=wp.vec3), wp.empty(n_faces, dtype=wp.vec3)
+            _launch(triangle_boxes_kernel, dim=n_faces,
+                    inputs=[self._array(np.asarray(vertices, np.float32), wp.vec3), self._array(faces.reshape(-1),
+                            wp.int32), float(np.float32(1.0e-6 * max(extent, 1.0e-12)))],
+                    outputs=[corners, lowers, uppers])
             bvh = wp.Bvh(lowers, uppers)
         return WarpMesh(bvh, corners, lowers, uppers, self.device)
 

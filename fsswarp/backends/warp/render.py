@@ -3,6 +3,8 @@
 ``render_kernel`` deposits every sub-ray's object, ghost, mirror and mirror2 returns into a
 fixed-point (N, 4, R, beams) int32 accumulator, ``fixed_to_float`` converts it to float32
 layers, and ``frontal_rays_kernel`` finds the frontal patch of beams (``Backend.frontal_faces``).
+``triangle_boxes_kernel`` gathers a mesh's corners and padded boxes for ``Backend.load_mesh``
+(here, so that a synthesis compiles this module alone).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from .sonar import MODULE_OPTIONS, KernelSonar, azimuth, beam_coordinate, bin_co
 _EPS = wp.constant(RAY_EPSILON)
 _FAR = wp.constant(WARP_FAR)
 _FIXED = wp.constant(FIXED_SCALE)
+_BOX_PAD = wp.constant(wp.float32(1.0e-6))  # a box's pad per unit of its longest side (load_mesh)
 #: CUDA threads per block of this module's kernels (its option, which every launch follows): the
 #: render kernel of a 64 × 64 pose grid took 107 ms at 128 against 131 ms at Warp's 256 (H200;
 #: 116 ms at 64, 110 ms at 32), the same layers. A CPU launch runs one thread per block either way.
@@ -263,3 +266,25 @@ def fixed_to_float(acc: wp.array(dtype=wp.int32), layers: wp.array(dtype=float))
     """Thread i: layers[i] = acc[i] / 2^24 (the accumulator's fixed point)."""
     i = wp.tid()
     layers[i] = float(acc[i]) * (1.0 / _FIXED)
+
+
+@wp.kernel
+def triangle_boxes_kernel(points: wp.array(dtype=wp.vec3), faces: wp.array(dtype=wp.int32), pad: float,
+                          corners: wp.array(dtype=wp.vec3), lowers: wp.array(dtype=wp.vec3),
+                          uppers: wp.array(dtype=wp.vec3)):
+    """Thread f: triangle f's corners (faces (3F,): its points in turn) into corners[3f..3f+2],
+    and its box, the corners' minimum and maximum each moved out by pad + 1e-6 × the box's
+    longest side, into lowers[f] and uppers[f] (float32, as ``WarpBackend._load_mesh`` says)."""
+    f = wp.tid()
+    a = points[faces[3 * f]]
+    b = points[faces[3 * f + 1]]
+    c = points[faces[3 * f + 2]]
+    corners[3 * f] = a
+    corners[3 * f + 1] = b
+    corners[3 * f + 2] = c
+    lo = wp.min(wp.min(a, b), c)
+    hi = wp.max(wp.max(a, b), c)
+    side = hi - lo
+    margin = pad + _BOX_PAD * wp.max(wp.max(side[0], side[1]), side[2])
+    lowers[f] = lo - wp.vec3(margin, margin, margin)
+    uppers[f] = hi + wp.vec3(margin, margin, margin)
