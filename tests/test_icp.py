@@ -325,18 +325,19 @@ def test_device_runs_give_the_host_s_results(backend, max_distance):
 
 
 def test_device_runs_with_a_warp_each_give_the_same_bits(backend, monkeypatch):
-    """A GPU gives each run ``GPU_ICP_LANES`` threads, of which one works: forced on this
-    device, every run's result is the one-thread-per-run launch's, bit for bit."""
+    """A GPU gives each run ``GPU_ICP_LANES`` threads, of which one works, a CPU one: with the
+    other count forced on this device, every run's result is the same, bit for bit."""
     problems = contour_problems(7)
-    one = icp_many(problems, max_distance=0.05, backend=backend)
+    own = icp_many(problems, max_distance=0.05, backend=backend)
     assert backend.icp_lanes == (GPU_ICP_LANES if backend.is_gpu else 1)
-    monkeypatch.setattr(type(backend), "icp_lanes", property(lambda self: GPU_ICP_LANES))
-    spread = icp_many(problems, max_distance=0.05, backend=backend)
-    for a, b in zip(spread, one, strict=True):
+    other = 1 if backend.is_gpu else GPU_ICP_LANES
+    monkeypatch.setattr(type(backend), "icp_lanes", property(lambda self: other))
+    forced = icp_many(problems, max_distance=0.05, backend=backend)
+    for a, b in zip(forced, own, strict=True):
         for field in ("rotation", "translation", "motions", "weights", "pairs", "iterations", "converged",
                       "error", "scale"):
             np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
-    assert len({r.iterations for r in one}) > 2
+    assert len({r.iterations for r in own}) > 2
 
 
 @given(angle=st.floats(-0.01, 0.01, **finite), sx=st.floats(-5e-4, 5e-4, **finite),
