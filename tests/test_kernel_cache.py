@@ -1,7 +1,8 @@
 """``fsswarp info``'s kernel-cache lines (fsswarp/backends/cache.py) on the CPU backends: cold
 on fresh cache folders, without compiling anything itself; warm where a synthesis compiled or
-built the kernels; cold again when the driver's cache is gone. Every step runs in a child
-process whose caches all lie in one temporary folder (``families.cache_environment``)."""
+built the kernels; cold again when the driver's cache is gone, even where its folder is made
+anew with the same inode. Every step runs in a child process whose caches all lie in one
+temporary folder (``families.cache_environment``)."""
 
 from __future__ import annotations
 
@@ -72,5 +73,9 @@ def test_pocl_cache_cold_then_warm_then_cold_without_the_driver_cache(caches, tm
     line = cache_line(child(caches, "-m", "fsswarp", "info"), "opencl", device)
     assert re.match(r"warm \(\d programs built for this device and driver in the driver's cache ", line), line
     assert str(tmp_path / "pocl") in line
-    shutil.rmtree(tmp_path / "pocl")  # PoCL's binaries gone: the records alone do not make it warm
+    assert [p.name for p in (tmp_path / "pocl").glob("*fsswarp-cache-id*")] == ["fsswarp-cache-id"]
+    # PoCL's binaries gone, the folder made anew (PoCL does so at its start; the file system
+    # may give it the same inode): the records alone do not make it warm
+    shutil.rmtree(tmp_path / "pocl")
+    (tmp_path / "pocl").mkdir()
     assert cache_line(child(caches, "-m", "fsswarp", "info"), "opencl", device).startswith("cold"), line

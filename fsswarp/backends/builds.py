@@ -1,11 +1,18 @@
 """Records of fsswarp's OpenCL builds, for ``fsswarp info`` (``cache.opencl_cache``): each
 build writes a file named by pyopencl's cache key (device, driver, options, source) holding
-the driver's cache folder and its inode at the time (``programs.program`` writes them)."""
+the driver's cache folder and the token of the marker file fsswarp keeps in that folder
+(``programs.program`` writes them)."""
 
 from __future__ import annotations
 
 import os
+import secrets
 from pathlib import Path
+
+#: The marker file fsswarp keeps in a driver's cache folder: a random token that names this
+#: folder's lifetime (a folder removed and made anew, by the driver itself at its start, has
+#: none; its inode alone is no proof: file systems reuse inodes at once).
+MARKER = "fsswarp-cache-id"
 
 
 def cache_home() -> Path:
@@ -26,23 +33,40 @@ def records() -> Path:
 
 def record_build(devices, options: tuple[str, ...], source: str) -> None:
     """Note that ``source`` was built with ``options`` for ``devices`` (``opencl_cache``): the
-    record holds the driver's cache folder and its inode, so that a cache folder removed since
-    (and made anew) reads cold. A folder that cannot be written is passed over."""
+    record holds the driver's cache folder and its marker's token, so that a cache folder
+    removed since (and made anew) reads cold. A folder that cannot be written, or a driver that
+    keeps no cache folder, is passed over (no record: cold)."""
     try:
         folder = records()
         folder.mkdir(parents=True, exist_ok=True)
         for device in devices:
-            (folder / build_key(device, options, source)).write_text(driver_identity(device))
+            identity = driver_identity(device, mark=True)
+            if identity != "-":
+                (folder / build_key(device, options, source)).write_text(identity)
     except OSError:
         pass
 
 
-def driver_identity(device) -> str:
-    """"<folder> <inode>" of the device's driver cache as it is now ("-" where none is kept)."""
+def driver_identity(device, mark: bool = False) -> str:
+    """"<folder> <token>" of the device's driver cache as it is now: its marker's token, the
+    marker first written where ``mark`` ("-" where no cache is kept or no marker is found)."""
     where, off = driver_cache(device)
     if where is None or off or not where.is_dir():
         return "-"
-    return f"{where} {where.stat().st_ino}"
+    marker = where / MARKER
+    if mark and not marker.is_file():
+        draft = where / f".{MARKER}.{os.getpid()}"
+        draft.write_text(secrets.token_hex(16))
+        try:
+            os.link(draft, marker)  # atomic, and never over a marker another process wrote
+        except FileExistsError:
+            pass
+        finally:
+            draft.unlink()
+    try:
+        return f"{where} {marker.read_text().strip()}"
+    except OSError:
+        return "-"
 
 
 def driver_cache(device) -> tuple[Path | None, str]:

@@ -1,22 +1,23 @@
 """Whether a backend's kernels are in its kernel cache, told without compiling (``fsswarp info``).
 
-- Warp compiles each kernel module, at the first launch of one of its kernels, once per module hash, device kind (a CPU target or a CUDA
-  architecture) and Warp version into ``wp.config.kernel_cache_dir`` (``WARP_CACHE_PATH``,
-  default ~/.cache/warp/<version>). ``warp_cache`` hashes fsswarp's Warp modules as Warp
-  would for the device (the hash covers the kernels' code and options; no code is generated
-  for a compiler) and looks for each module's binary and metadata there: exact, as long as
-  Warp keeps its cache layout (private names; anything unexpected gives "unknown").
+- Warp compiles each kernel module, at the first launch of one of its kernels, once per module
+  hash, device kind (a CPU target or a CUDA architecture) and Warp version into
+  ``wp.config.kernel_cache_dir`` (``WARP_CACHE_PATH``, default ~/.cache/warp/<version>).
+  ``warp_cache`` hashes fsswarp's Warp modules as Warp would for the device (the hash covers the
+  kernels' code and options; no code is generated for a compiler) and looks for each module's
+  binary and metadata there: exact, as long as Warp keeps its cache layout (private names;
+  anything unexpected gives "unknown").
 - OpenCL: PoCL and NVIDIA's driver cache program binaries themselves (pyopencl then keeps
   none), under keys of their own that only a build can look up. fsswarp records each program
-  it builds (``builds.record_build``: a file named by pyopencl's key of device, driver, options and
-  source, under ``$XDG_CACHE_HOME/fsswarp/opencl``); ``opencl_cache`` says warm when every
-  program of the backend is recorded with the driver's cache folder as it is now (its path
-  and inode: PoCL's ``POCL_CACHE_DIR``, default ``$XDG_CACHE_HOME/pocl/kcache``; NVIDIA's
-  ``CUDA_CACHE_PATH``, default ~/.nv/ComputeCache), cold when one is missing, the folder was
-  removed or moved since, or the driver's cache is switched off (``POCL_KERNEL_CACHE=0``,
-  ``CUDA_CACHE_DISABLE=1``). Entries removed from inside the folder, or evicted by size,
-  still read warm: the driver alone knows. Other
-  drivers use pyopencl's binary cache, whose entry for each program is looked up exactly.
+  it builds (``builds.record_build``: a file named by pyopencl's key of device, driver, options
+  and source, under ``$XDG_CACHE_HOME/fsswarp/opencl``); ``opencl_cache`` says warm when every
+  program of the backend is recorded with the driver's cache folder as it is now (its path and
+  the token of a marker file fsswarp keeps in it, ``builds.MARKER``: PoCL's ``POCL_CACHE_DIR``,
+  default ``$XDG_CACHE_HOME/pocl/kcache``; NVIDIA's ``CUDA_CACHE_PATH``, default
+  ~/.nv/ComputeCache), cold when one is missing, the folder was removed or moved since, or the
+  driver's cache is switched off (``POCL_KERNEL_CACHE=0``, ``CUDA_CACHE_DISABLE=1``). Entries
+  removed from inside the folder, or evicted by size, still read warm: the driver alone knows.
+  Other drivers use pyopencl's binary cache, whose entry for each program is looked up exactly.
 """
 
 from __future__ import annotations
