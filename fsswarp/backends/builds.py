@@ -40,33 +40,43 @@ def record_build(devices, options: tuple[str, ...], source: str) -> None:
         folder = records()
         folder.mkdir(parents=True, exist_ok=True)
         for device in devices:
-            identity = driver_identity(device, mark=True)
+            _mark(device)
+            identity = driver_identity(device)
             if identity != "-":
                 (folder / build_key(device, options, source)).write_text(identity)
     except OSError:
         pass
 
 
-def driver_identity(device, mark: bool = False) -> str:
-    """"<folder> <token>" of the device's driver cache as it is now: its marker's token, the
-    marker first written where ``mark`` ("-" where no cache is kept or no marker is found)."""
-    where, off = driver_cache(device)
-    if where is None or off or not where.is_dir():
-        return "-"
-    marker = where / MARKER
-    if mark and not marker.is_file():
-        draft = where / f".{MARKER}.{os.getpid()}"
-        draft.write_text(secrets.token_hex(16))
-        try:
-            os.link(draft, marker)  # atomic, and never over a marker another process wrote
-        except FileExistsError:
-            pass
-        finally:
-            draft.unlink()
+def driver_identity(device) -> str:
+    """"<folder> <token>" of the device's driver cache as it is now, the token its marker's
+    ("-" where no cache is kept or no marker is found)."""
+    where = _kept_cache(device)
     try:
-        return f"{where} {marker.read_text().strip()}"
+        return "-" if where is None else f"{where} {(where / MARKER).read_text().strip()}"
     except OSError:
         return "-"
+
+
+def _mark(device) -> None:
+    """Write a fresh marker into the device's driver cache folder where it has none."""
+    where = _kept_cache(device)
+    if where is None or (where / MARKER).is_file():
+        return
+    draft = where / f".{MARKER}.{os.getpid()}"
+    draft.write_text(secrets.token_hex(16))
+    try:
+        os.link(draft, where / MARKER)  # atomic, and never over a marker another process wrote
+    except FileExistsError:
+        pass
+    finally:
+        draft.unlink()
+
+
+def _kept_cache(device) -> Path | None:
+    """The device's driver cache folder where the driver keeps one and it exists, else None."""
+    where, off = driver_cache(device)
+    return None if where is None or off or not where.is_dir() else where
 
 
 def driver_cache(device) -> tuple[Path | None, str]:
