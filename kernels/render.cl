@@ -32,6 +32,12 @@
  *                 a return of view v at image row B lands in acc[v][layer][B − first_rows[v]]
  *                 when that lies in [0, R) (and its beam in the image), else it is dropped.
  *                 Integer atomics: a pixel's value does not depend on which pixels are kept.
+ *   hits, hit_items, hit_ranges, hit_size  the queue of the hits before the surface (hit_returns
+ *                 deposits their returns; hit_size 0: no queue, each hit's returns at once): a
+ *                 hit counts itself in hits (1,) int, zeroed by the host, and the count before
+ *                 it, c, is its slot: where c < hit_size it writes (v, b, i k_phi + j, triangle)
+ *                 to hit_items[c] (int4) and r to hit_ranges[c] (the host renders again with a
+ *                 larger queue where the count passes hit_size).
  *
  * Work size: 3-D global (k_theta × the most samples J_v = spans[v][3] − spans[v][2], rounded up;
  * the widest beam span; N); work-item (s, o, v): sub-ray i = s / J_v, j = spans[v][2] + s % J_v
@@ -161,6 +167,78 @@ __kernel void direct_hits(__global const float4 *nodes,
     hit_tri[k] = tri;
 }
 
+/* The returns of view v's hit before the surface at r on triangle tri, sub-ray item.z = i k_phi
+ * + j of beam b (step 3): the object's, then, where both legs of its path via the surface are
+ * clear, its ghost (layer 1, beam b) and mirror (layer 2), each where it is read. Arguments as
+ * render_views; render_views calls it, or hit_returns for the queued hits. */
+void fss_hit_returns(__global const float4 *nodes, __global const int *children, __global const float *tris,
+                     __global const float *rotations, __global const float *translations,
+                     __global const float *plane_normals, __global const float *plane_offsets,
+                     __global const float *directions, __global const float *beam_table, const fss_sonar sonar,
+                     const int k_theta, const int k_phi, const float weight, const float gamma,
+                     const float surface_reflection, const float epsilon, __global const int *first_rows,
+                     const int rows, const int masked, __global const uchar *needed, const int4 item, const float r,
+                     __global int *acc)
+{
+    const int v = item.x;
+    const int b = item.y;
+    const int first = first_rows[v];
+    __global const float *rot = rotations + 9 * v;
+    const float3 t = vload3(v, translations);
+    const float3 u = vload3(b * k_theta * k_phi + item.z, directions);
+    const float3 n = vload3(v, plane_normals);
+    const float d = plane_offsets[v];
+    float3 N = fss_tri_normal(tris, item.w);
+    float un = fss_dot(fss_rotate(rot, u), N);
+    if (un > 0.0f) {
+        N = -N;
+        un = -un;
+    }
+    const float c = -un;
+    const int want_object = fss_needed(needed, masked, v, 0, b, sonar.beams);
+    if (want_object)
+        fss_deposit(acc, v, 0, b, r, pow(c, gamma), weight, sonar, first, rows);
+    /* the path via the surface: Q on the surface, between the mirror sonar O2 and P */
+    const float3 P = r * u;
+    const float3 O2 = (2.0f * d) * n;
+    const float3 PO = P - O2;
+    const float q_len = sqrt(fss_dot(PO, PO));
+    const float nP = fss_dot(n, P);
+    const float lambda = d / (2.0f * d - nP);
+    const float3 Q = O2 + lambda * PO;
+    if (!(Q.y > 0.0f))
+        return;
+    const float bq = fss_beam_coordinate(fss_azimuth(Q), sonar, beam_table);
+    if (!(bq >= -0.5f && bq < (float)sonar.beams - 0.5f))
+        return;
+    if (!(fabs(fss_elevation(Q)) <= sonar.half_elevation))
+        return;
+    const float3 Pm = P - (2.0f * (nP - d)) * n;
+    const int bm = fss_nearest_index(fss_beam_coordinate(fss_azimuth(Pm), sonar, beam_table));
+    const int want_mirror = fss_needed(needed, masked, v, 1, bm, sonar.beams);
+    if (!want_object && !want_mirror)
+        return;
+    /* the leg Q -> P lights the face (tested first: it needs no traversal) */
+    const float3 QP = P - Q;
+    const float qp = sqrt(fss_dot(QP, QP));
+    const float3 w_ref = fss_rotate(rot, QP / qp);
+    const float c_in = -fss_dot(w_ref, N);
+    if (!(c_in > 0.0f))
+        return;
+    /* legs O -> Q and Q -> P clear */
+    const float qlen = fss_range(Q);
+    if (fss_bvh_blocked(nodes, children, tris, t, fss_rotate(rot, Q / qlen), 0.0f, qlen - epsilon))
+        return;
+    if (fss_bvh_blocked(nodes, children, tris, fss_rotate(rot, Q) + t, w_ref, 0.0f, qp - epsilon))
+        return;
+    const float a_s = surface_reflection * pow(c * c_in, 0.5f * gamma);
+    const float R_s = (r + q_len) * 0.5f;
+    if (want_object)
+        fss_deposit(acc, v, 1, b, R_s, a_s, weight, sonar, first, rows);
+    if (want_mirror)
+        fss_deposit(acc, v, 2, bm, R_s, a_s, weight, sonar, first, rows);
+}
+
 __kernel void render_views(__global const float4 *nodes,
                            __global const int *children,
                            __global const float *tris,
@@ -186,7 +264,11 @@ __kernel void render_views(__global const float4 *nodes,
                            __global const int *hit_tri,
                            const int masked,
                            __global const uchar *needed,
-                           __global int *acc)
+                           __global int *acc,
+                           __global int *hits,
+                           __global int4 *hit_items,
+                           __global float *hit_ranges,
+                           const int hit_size)
 {
     const int v = (int)get_global_id(2);
     int b, i, j;
@@ -217,59 +299,19 @@ __kernel void render_views(__global const float4 *nodes,
     const float s_surf = nu > 0.0f ? d / nu : INFINITY;
 
     if (tri >= 0 && r < s_surf) {
-        /* 3. hit */
-        float3 N = fss_tri_normal(tris, tri);
-        float un = fss_dot(u_ref, N);
-        if (un > 0.0f) {
-            N = -N;
-            un = -un;
+        /* 3. hit: its returns now (hit_size 0), or queued for hit_returns */
+        const int4 item = (int4)(v, b, i * k_phi + j, tri);
+        if (hit_size == 0) {
+            fss_hit_returns(nodes, children, tris, rotations, translations, plane_normals, plane_offsets,
+                            directions, beam_table, sonar, k_theta, k_phi, weight, gamma, surface_reflection,
+                            epsilon, first_rows, rows, masked, needed, item, r, acc);
+        } else {
+            const int slot = atomic_inc(hits);
+            if (slot < hit_size) {
+                hit_items[slot] = item;
+                hit_ranges[slot] = r;
+            }
         }
-        const float c = -un;
-        const int want_object = fss_needed(needed, masked, v, 0, b, sonar.beams);
-        if (want_object)
-            fss_deposit(acc, v, 0, b, r, pow(c, gamma), weight, sonar, first, rows);
-
-        const float3 P = r * u;
-        const float3 O2 = (2.0f * d) * n;
-        const float3 PO = P - O2;
-        const float q = sqrt(fss_dot(PO, PO));
-        const float nP = fss_dot(n, P);
-        const float lambda = d / (2.0f * d - nP);
-        const float3 Q = O2 + lambda * PO;
-        if (!(Q.y > 0.0f))
-            return;
-        const float bq = fss_beam_coordinate(fss_azimuth(Q), sonar, beam_table);
-        if (!(bq >= -0.5f && bq < (float)sonar.beams - 0.5f))
-            return;
-        if (!(fabs(fss_elevation(Q)) <= sonar.half_elevation))
-            return;
-        const float3 Pm = P - (2.0f * (nP - d)) * n;
-        const int bm = fss_nearest_index(fss_beam_coordinate(fss_azimuth(Pm), sonar, beam_table));
-        const int want_mirror = fss_needed(needed, masked, v, 1, bm, sonar.beams);
-        if (!want_object && !want_mirror)
-            return;
-        /* the leg Q -> P lights the face (tested first: it needs no traversal) */
-        const float3 QP = P - Q;
-        const float qp = sqrt(fss_dot(QP, QP));
-        const float3 w = QP / qp;
-        const float3 w_ref = fss_rotate(rot, w);
-        const float c_in = -fss_dot(w_ref, N);
-        if (!(c_in > 0.0f))
-            return;
-        /* leg O -> Q clear */
-        const float qlen = fss_range(Q);
-        if (fss_bvh_blocked(nodes, children, tris, t, fss_rotate(rot, Q / qlen), 0.0f, qlen - epsilon))
-            return;
-        /* leg Q -> P clear */
-        const float3 Q_ref = fss_rotate(rot, Q) + t;
-        if (fss_bvh_blocked(nodes, children, tris, Q_ref, w_ref, 0.0f, qp - epsilon))
-            return;
-        const float a_s = surface_reflection * pow(c * c_in, 0.5f * gamma);
-        const float R_s = (r + q) * 0.5f;
-        if (want_object)
-            fss_deposit(acc, v, 1, b, R_s, a_s, weight, sonar, first, rows);
-        if (want_mirror)
-            fss_deposit(acc, v, 2, bm, R_s, a_s, weight, sonar, first, rows);
     } else if (s_surf < r && s_surf < INFINITY) {
         /* 4. surface first: mirror2 */
         if (!fss_needed(needed, masked, v, 1, b, sonar.beams))
@@ -287,6 +329,43 @@ __kernel void render_views(__global const float4 *nodes,
         fss_deposit(acc, v, 3, b, s_surf + r2, surface_reflection * surface_reflection * pow(c2, gamma),
                     weight, sonar, first, rows);
     }
+}
+
+/* hit_returns -- the returns of render_views' queued hits (fss_hit_returns). Arguments as
+ * render_views, and its queue: work-item q < min(hits[0], hit_size) takes queued hit q (work
+ * size: hit_size, rounded up). */
+__kernel void hit_returns(__global const float4 *nodes,
+                          __global const int *children,
+                          __global const float *tris,
+                          __global const float *rotations,
+                          __global const float *translations,
+                          __global const float *plane_normals,
+                          __global const float *plane_offsets,
+                          __global const float *directions,
+                          __global const float *beam_table,
+                          const fss_sonar sonar,
+                          const int k_theta,
+                          const int k_phi,
+                          const float weight,
+                          const float gamma,
+                          const float surface_reflection,
+                          const float epsilon,
+                          __global const int *first_rows,
+                          const int rows,
+                          const int masked,
+                          __global const uchar *needed,
+                          __global const int *hits,
+                          __global const int4 *hit_items,
+                          __global const float *hit_ranges,
+                          const int hit_size,
+                          __global int *acc)
+{
+    const int q = (int)get_global_id(0);
+    if (q >= hit_size || q >= hits[0])
+        return;
+    fss_hit_returns(nodes, children, tris, rotations, translations, plane_normals, plane_offsets, directions,
+                    beam_table, sonar, k_theta, k_phi, weight, gamma, surface_reflection, epsilon, first_rows, rows,
+                    masked, needed, hit_items[q], hit_ranges[q], acc);
 }
 
 /* frontal_rays -- the elevation rays of the beams whose frontal patch Backend.frontal_faces

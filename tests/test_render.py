@@ -488,6 +488,23 @@ def test_render_is_deterministic(backend):
     np.testing.assert_array_equal(first, second)
 
 
+@pytest.mark.parametrize("rows", [None, (np.array([200, 230, 0, 252]), 260)])
+def test_render_with_an_overflowing_hit_queue_gives_the_same_bits(backend, monkeypatch, rows):
+    """The hits before the surface go through a queue (``Backend.hit_queue``); a render whose
+    queue is too small is made again with room for every hit: with one slot forced, the layers
+    (full and banded, with beams read) equal the backend's own bit for bit, object, ghost and
+    mirror included (OpenCL on a CPU: its own deposit each hit's returns at once, no queue)."""
+    sonar, mesh, rot, trans, normals, offsets = coral_inputs()
+    handle = backend.load_mesh(mesh.vertices, mesh.faces)
+    args = (handle, sonar, rot, trans, normals, offsets, SAMPLES)
+    kw = dict(gamma=GAMMA, surface_reflection=RS, rows=rows, beams=beam_masks(4, sonar.beams))
+    own = backend.render_device(*args, **kw).numpy()
+    monkeypatch.setattr(type(backend), "hit_queue", property(lambda self: 1e-12))
+    forced = backend.render_device(*args, **kw).numpy()
+    assert own[:, 0].sum() > 0 and own[:, 1].sum() > 0 and own[:, 2].sum() > 0
+    np.testing.assert_array_equal(forced, own)
+
+
 @pytest.mark.parametrize("batch", [1, 3, 4, 8])
 def test_render_batches_equal_render_and_the_oracle(backend, batch):
     """render_batches (pinned staging and a copy stream or queue on a GPU, two slots

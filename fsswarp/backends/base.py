@@ -26,7 +26,7 @@ import numpy as np
 
 from ..errors import is_integer, is_number, real_array
 from ..sonar import SonarSpec
-from .constants import FIXED_SCALE, GPU_ICP_LANES, MAX_DISTANCE
+from .constants import CPU_HIT_QUEUE, FIXED_SCALE, GPU_HIT_QUEUE, GPU_ICP_LANES, MAX_DISTANCE
 
 #: Margin (rad) of ``ray_spans`` around the azimuths and elevations a mesh covers; the kernels'
 #: float32 sub-ray angles round by about 1e-7 rad.
@@ -94,6 +94,8 @@ class Backend(abc.ABC):
     has_float64 : whether its kernels can compute in float64 (``icp_runs`` needs it)
     device_name : the device's own name (property)
     icp_lanes : threads given to each ICP run (property: ``GPU_ICP_LANES`` on a GPU, else 1)
+    hit_queue : the render's queue of hits, its slots per thread of a launch (property:
+        ``GPU_HIT_QUEUE`` on a GPU, ``CPU_HIT_QUEUE`` on a CPU; OpenCL on a CPU: 0, no queue)
 
     For timing kernels without their transfers: ``prepared_cast``, ``prepared_carve`` (launches
     on inputs uploaded once) and ``transfer_calls`` (copies).
@@ -110,6 +112,10 @@ class Backend(abc.ABC):
     @property
     def icp_lanes(self) -> int:
         return GPU_ICP_LANES if self.is_gpu else 1
+
+    @property
+    def hit_queue(self) -> float:
+        return GPU_HIT_QUEUE if self.is_gpu else CPU_HIT_QUEUE
 
     # --- projection (voxel carving) -----------------------------------------------------------
     def project(self, points, rotations, translations, sonar: SonarSpec):
@@ -939,6 +945,15 @@ def span_extent(spans: np.ndarray) -> tuple[int, int]:
     """A render launch's extent over (N, 4) :func:`ray_spans`: the widest beam span and the
     most elevation samples of any view (0 beams: no view reaches the mesh, nothing to cast)."""
     return int(np.max(spans[:, 1] - spans[:, 0])), int(np.max(spans[:, 3] - spans[:, 2]))
+
+
+def hit_queue_size(threads: int, share: float | None) -> int:
+    """The slots of a render's queue of hits (``Backend.hit_queue``) over a launch of ``threads``
+    threads: ``share`` of them, at least one (0 for a share of 0: no queue), or with ``share``
+    None one each (a thread queues at most one hit: the queue cannot overflow)."""
+    if share is None:
+        return threads
+    return 0 if share == 0 else max(1, min(threads, math.ceil(share * threads)))
 
 
 def _needed_beams(beams, n_views: int, n_beams: int) -> np.ndarray | None:

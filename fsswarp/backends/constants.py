@@ -27,6 +27,15 @@ FIXED_SCALE = 16777216.0
 #: (the run's iterations, its points' searches and its median's partitioning differ from run
 #: to run). One on a CPU device. A run's operations are the same either way.
 GPU_ICP_LANES = 32
+#: The render's queue of hits (``Backend.hit_queue``): the render kernel queues each sub-ray's
+#: hit before the surface, and a second kernel deposits their returns (the object's, and the
+#: ghost and mirror after the two legs via the surface), so that the legs fill whole warps
+#: (about one sub-ray in four of a warp reaches them) and the first kernel keeps few registers.
+#: The queue's slots per thread of a launch: a render whose queue overflows is made again with
+#: room for every hit (the same deposits; ``fsswarp.backends.base.hit_queue_size``). On a CPU
+#: OpenCL deposits each hit's returns at once (no queue); Warp, one thread there, keeps it.
+GPU_HIT_QUEUE = 1 / 4
+CPU_HIT_QUEUE = 1 / 2
 
 
 def opencl_defines() -> tuple[str, ...]:

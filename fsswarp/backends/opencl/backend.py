@@ -13,9 +13,9 @@ import weakref
 import numpy as np
 import pyopencl as cl
 
-from ..base import Backend, DeviceLayers, PreparedLaunch, SonarConstants, fixed_floats, span_extent
+from ..base import Backend, DeviceLayers, PreparedLaunch, SonarConstants, fixed_floats, hit_queue_size, span_extent
 from ..bvh import FlatBVH, build_bvh
-from ..constants import FRONTAL_VISIBLE, MAX_DISTANCE, RAY_EPSILON
+from ..constants import FRONTAL_VISIBLE, GPU_HIT_QUEUE, MAX_DISTANCE, RAY_EPSILON
 from ..runtimes import OpenCLDevice
 from .programs import GROUP, program
 
@@ -47,6 +47,7 @@ class OpenCLBackend(Backend):
         self._direct_hits_kernel = cl.Kernel(program(self.context, "render.cl"), "direct_hits")
         self._sub_rays_kernel = cl.Kernel(program(self.context, "render.cl"), "sub_rays")
         self._fixed_kernel = cl.Kernel(program(self.context, "render.cl"), "fixed_to_float")
+        self._hits_kernel = cl.Kernel(program(self.context, "render.cl"), "hit_returns")
         self._frontal_rays_kernel = cl.Kernel(program(self.context, "render.cl"), "frontal_rays")
         self._frontal_kernel = cl.Kernel(program(self.context, "pose.cl"), "frontal_contour")
         self._contour_cost_kernel = cl.Kernel(program(self.context, "pose.cl"), "contour_cost")
@@ -56,6 +57,12 @@ class OpenCLBackend(Backend):
         self._lock = threading.Lock()
         self._held = []  # buffers handed to queued kernels, released after the queue finishes (_finish)
         self._kept_layers = []  # (layers buffer, weak reference to its holder) kept on a CPU device (_layers_buffer)
+
+    @property
+    def hit_queue(self) -> float:
+        """No queue on a CPU device: render_views deposits each hit's returns at once (PoCL has no
+        warps to fill, and the queue made the 24 × 24 pose grid 2–6% slower here)."""
+        return GPU_HIT_QUEUE if self.is_gpu else 0.0
 
     def _input(self, array: np.ndarray) -> cl.Buffer:
         """A buffer holding a copy of ``array``, kept until the queue finishes (``_finish``)."""
@@ -199,10 +206,16 @@ class OpenCLBackend(Backend):
         size = int(np.prod(shape))
         with self._lock:
             layers_buf = self._layers_buffer(4 * size)
-            self._enqueue_render(mesh, sonar, beam_widths, rotations, translations, plane_normals, plane_offsets,
-                                 k_theta, k_phi, gamma, surface_reflection, first_rows, spans, shape, layers_buf,
-                                 shared=shared, needed=needed)
-            self._finish()
+            share = self.hit_queue
+            while True:  # again, with room for every hit, where the queue of hits overflowed
+                hits = self._enqueue_render(mesh, sonar, beam_widths, rotations, translations, plane_normals,
+                                            plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows,
+                                            spans, shape, layers_buf, shared=shared, needed=needed,
+                                            hit_share=share)[1]
+                self._finish()
+                if hits is None or hits[1] >= hits[0][0]:
+                    break
+                share = None
             layers = OpenCLLayers(self, layers_buf, shape)
             self._kept_layers = [(kept, weakref.ref(layers) if kept is layers_buf else holder)
                                  for kept, holder in self._kept_layers]
@@ -228,13 +241,16 @@ class OpenCLBackend(Backend):
 
     def _enqueue_render(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations, plane_normals,
                         plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, spans, shape, acc_buf,
-                        layers_buf=None, wait_for=None, shared=None, needed=None) -> cl.Event:
+                        layers_buf=None, wait_for=None, shared=None, needed=None, hit_share=None):
         """Enqueue the zeroing of acc_buf and the render kernels of the views given (clean
         float32 (n, ...) arrays, their (n, 4) ray spans; ``shared``, their SharedPoses or None,
         first casts the direct legs of the distinct poses; ``needed``, None or the (n, 2, beams)
         uint8 beams read, ``Backend._render``) into acc_buf, the fixed-point int32 layers of
         ``shape`` (n, 4, R, beams), and with layers_buf their floats (``fixed_to_float``), after
-        the events ``wait_for``; returns the last kernel's event. Call holding ``_lock``."""
+        the events ``wait_for``; ``hit_share``, the queue of hits (``hit_queue_size``; None: room
+        for every hit; 0: none, each hit's returns at once). Returns the last kernel's event and, where anything was cast with a
+        ``hit_share``, the queue's count (1,) int32 (read) and its slots L (a count above L: the
+        queue overflowed and acc_buf lacks returns), else None. Call holding ``_lock``."""
         if sonar.use_table:
             centres = np.ascontiguousarray(sonar.beam_table[0], np.float32)
         else:
@@ -243,6 +259,7 @@ class OpenCLBackend(Backend):
         size = int(np.prod(shape))
         zeroed = cl.enqueue_fill_buffer(self.queue, acc_buf, np.int32(0), 0, 4 * size, wait_for=wait_for)
         widest, samples = span_extent(spans)
+        hits = None
         if widest:  # else no view reaches the mesh: the layers stay zeros
             sub = k_theta * samples
             group = min(GROUP, 1 << (sub - 1).bit_length())
@@ -252,23 +269,35 @@ class OpenCLBackend(Backend):
                                   self._input(np.ascontiguousarray(beam_widths, np.float32)), sonar.record(),
                                   np.int32(k_theta), np.int32(k_phi), directions)
             poses, hit_range, hit_tri = self._direct_hits(mesh, sonar, directions, shape[0], k_theta, k_phi, shared)
-            done = self._render_kernel(
+            hit_size = hit_queue_size(shape[0] * widest * sub, hit_share)
+            counts = self._scratch(4)
+            queue = (counts, self._scratch(16 * hit_size), self._scratch(4 * hit_size), np.int32(hit_size))
+            views = (self._input(rotations), self._input(translations), self._input(plane_normals),
+                     self._input(plane_offsets), directions, self._input(sonar.beam_table), sonar.record(),
+                     np.int32(k_theta), np.int32(k_phi), np.float32(1.0 / (k_theta * k_phi)), np.float32(gamma),
+                     np.float32(surface_reflection), np.float32(RAY_EPSILON))
+            masks = (np.int32(needed is not None), self._input(np.ones(1, np.uint8) if needed is None else needed))
+            rows, first = np.int32(shape[2]), self._input(first_rows)
+            counted = cl.enqueue_fill_buffer(self.queue, counts, np.int32(0), 0, 4)
+            rendered = self._render_kernel(
                 self.queue, (-(-sub // group) * group, widest, shape[0]), (group, 1, 1),
-                mesh.nodes, mesh.children, mesh.triangles,
-                self._input(rotations), self._input(translations), self._input(plane_normals),
-                self._input(plane_offsets), directions, self._input(sonar.beam_table), sonar.record(),
-                np.int32(k_theta), np.int32(k_phi),
-                np.float32(1.0 / (k_theta * k_phi)), np.float32(gamma), np.float32(surface_reflection),
-                np.float32(RAY_EPSILON), np.float32(MAX_DISTANCE), self._input(first_rows), np.int32(shape[2]),
-                self._input(np.ascontiguousarray(spans, np.int32)), poses, hit_range, hit_tri,
-                np.int32(needed is not None), self._input(np.ones(1, np.uint8) if needed is None else needed),
-                acc_buf, wait_for=[zeroed])
+                mesh.nodes, mesh.children, mesh.triangles, *views, np.float32(MAX_DISTANCE), first, rows,
+                self._input(np.ascontiguousarray(spans, np.int32)), poses, hit_range, hit_tri, *masks, acc_buf,
+                *queue, wait_for=[zeroed, counted])
+            done = rendered
+            if hit_size:
+                done = self._hits_kernel(self.queue, (-(-hit_size // GROUP) * GROUP,), None, mesh.nodes,
+                                         mesh.children, mesh.triangles, *views, first, rows, *masks, *queue[:3],
+                                         queue[3], acc_buf, wait_for=[rendered])
+            if hit_size and hit_share is not None:  # else the count cannot pass L: nothing to read
+                hits = (np.empty(1, np.int32), hit_size)
+                cl.enqueue_copy(self.queue, hits[0], counts, wait_for=[done])
         else:
             done = zeroed
-        if layers_buf is None:
-            return done
-        return self._fixed_kernel(self.queue, (-(-size // GROUP) * GROUP,), None, acc_buf, layers_buf,
-                                  np.int32(size))
+        if layers_buf is not None:
+            done = self._fixed_kernel(self.queue, (-(-size // GROUP) * GROUP,), None, acc_buf, layers_buf,
+                                      np.int32(size))
+        return done, hits
 
     def _floats(self, acc_buf: cl.Buffer, shape: tuple[int, ...]) -> np.ndarray:
         """The host float32 array of ``shape`` of the fixed-point layers acc_buf (``OpenCLLayers.numpy``)."""
@@ -348,7 +377,8 @@ class OpenCLBackend(Backend):
                         mesh, sonar, beam_widths, rotations[start:stop], translations[start:stop],
                         plane_normals[start:stop], plane_offsets[start:stop], k_theta, k_phi, gamma,
                         surface_reflection, first[:n], spans[start:stop], (n, *shape[1:]), accs[slot], layers[slot],
-                        wait_for=None if copied[slot] is None else [copied[slot]])
+                        wait_for=None if copied[slot] is None else [copied[slot]],
+                        hit_share=None if self.hit_queue else 0.0)[0]
                     self.queue.flush()
                     inputs[slot], self._held = self._held, []  # batch k - 2's: read already
                 copied[slot] = cl.enqueue_copy(copier, host[slot][:n], layers[slot], is_blocking=False,

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from ..base import Backend, DeviceLayers, PreparedLaunch, SonarConstants, fixed_floats, span_extent
+from ..base import Backend, DeviceLayers, PreparedLaunch, SonarConstants, fixed_floats, hit_queue_size, span_extent
 from ..constants import FIXED_SCALE, FRONTAL_VISIBLE, MAX_DISTANCE, RAY_EPSILON, WARP_FAR
 from ..runtimes import import_warp
 from .carve import carve_grid, carve_points
@@ -18,8 +18,8 @@ from .icp import icp_runs_kernel
 from .pose import contour_cost_kernel, frontal_contour, view_cost_kernel
 from .project import project_points
 from .raycast import cast_rays_kernel
-from .render import (direct_hits_kernel, fixed_to_float, frontal_rays_kernel, render_kernel, sub_rays_kernel,
-                     triangle_boxes_kernel)
+from .render import (direct_hits_kernel, fixed_to_float, frontal_rays_kernel, hits_kernel, render_kernel,
+                     sub_rays_kernel, triangle_boxes_kernel)
 from .sonar import kernel_sonar
 
 #: Share of a CUDA device's memory that Warp's memory pool keeps after a synchronize instead of
@@ -207,10 +207,16 @@ class WarpBackend(Backend):
         with wp.ScopedDevice(self._device):
             poses = self._poses(rotations, translations, plane_normals, plane_offsets)
             acc = wp.zeros(shape, dtype=wp.int32)
-            self._render_into(mesh, sonar, beam_widths, poses, k_theta, k_phi, gamma, surface_reflection,
-                              self._constant(first_rows, wp.int32), spans, acc, shared=shared, needed=needed)
-            wp.synchronize_device(self._device)
-            return WarpLayers(acc)
+            first = self._constant(first_rows, wp.int32)
+            share = self.hit_queue
+            while True:
+                hits = self._render_into(mesh, sonar, beam_widths, poses, k_theta, k_phi, gamma, surface_reflection,
+                                         first, spans, acc, shared=shared, needed=needed, hit_share=share)
+                wp.synchronize_device(self._device)
+                if hits is None or hits[1] >= int(hits[0].numpy()[0]):
+                    return WarpLayers(acc)
+                acc.zero_()  # the queue overflowed: again, with room for every hit
+                share = None
 
     def _poses(self, rotations, translations, plane_normals, plane_offsets, *more) -> list[wp.array]:
         """The (N,) views of a render on the device: rotations, translations, plane normals,
@@ -219,13 +225,17 @@ class WarpBackend(Backend):
                             (plane_offsets, float), *((extra, float) for extra in more))
 
     def _render_into(self, mesh, sonar: SonarConstants, beam_widths, poses, k_theta, k_phi, gamma,
-                     surface_reflection, first_rows, spans, acc, layers=None, shared=None, needed=None) -> None:
+                     surface_reflection, first_rows, spans, acc, layers=None, shared=None, needed=None,
+                     hit_share=None) -> tuple[wp.array, int] | None:
         """Launch the render kernels of the views ``poses`` ((n,) device arrays of ``_poses``) on
         the device's current stream: acc (n, 4, R, beams) int32, zeroed, receives the deposits,
         and layers (n, 4, R, beams) float32, if given, their floats; first_rows (n,) int32 on the
         device; spans (n, 4) int32 on the host (``Backend._render``); shared, the views' SharedPoses
         (or None), whose distinct poses' direct legs are cast first; needed, None or the (n, 2,
-        beams) uint8 beams read (``Backend._render``). Returns without waiting."""
+        beams) uint8 beams read (``Backend._render``); hit_share, the queue of hits
+        (``hit_queue_size``; None: room for every hit). Returns without waiting: the queue's count
+        (1,) int32 on the device and its slots L (a count above L: the queue overflowed and acc
+        lacks returns), or None where nothing was cast."""
         if sonar.use_table:
             centres = np.ascontiguousarray(sonar.beam_table[0], np.float32)
         else:  # the centres of SonarSpec.beam_centres
@@ -240,16 +250,25 @@ class WarpBackend(Backend):
                             self._constant(np.asarray(beam_widths, np.float32), float), kernel_sonar(sonar)],
                     outputs=[directions])
             hits = self._direct_hits(mesh, directions, acc.shape[0], shared)
-            _launch(render_kernel, dim=(acc.shape[0], widest, k_theta * samples),
-                    inputs=[mesh.id, mesh.corners, *poses, directions,
-                            self._constant(sonar.beam_table, float), kernel_sonar(sonar), int(k_theta),
+            dim = (acc.shape[0], widest, k_theta * samples)
+            size = hit_queue_size(dim[0] * dim[1] * dim[2], hit_share)
+            queue = (wp.zeros(1, dtype=wp.int32), wp.empty(size, dtype=wp.vec4i), wp.empty(size, dtype=float))
+            table, masks = (self._constant(sonar.beam_table, float),
+                            self._constant(np.ones((1, 1, 1), np.uint8) if needed is None else needed, wp.uint8))
+            _launch(render_kernel, dim=dim,
+                    inputs=[mesh.id, mesh.corners, *poses, directions, kernel_sonar(sonar), int(k_theta),
                             weight, float(gamma), float(surface_reflection), first_rows,
                             self._constant(np.ascontiguousarray(spans, np.int32), wp.int32), *hits,
-                            int(needed is not None),
-                            self._constant(np.ones((1, 1, 1), np.uint8) if needed is None else needed, wp.uint8)],
+                            int(needed is not None), masks],
+                    outputs=[acc, *queue])
+            _launch(hits_kernel, dim=size,
+                    inputs=[mesh.id, mesh.corners, *poses, directions, table, kernel_sonar(sonar), weight,
+                            float(gamma), float(surface_reflection), first_rows, int(needed is not None), masks,
+                            *queue],
                     outputs=[acc])
         if layers is not None:
             _launch(fixed_to_float, dim=acc.size, inputs=[acc.flatten()], outputs=[layers.flatten()])
+        return (queue[0], size) if widest else None
 
     def _direct_hits(self, mesh, directions, n_views, shared) -> tuple[wp.array, wp.array, wp.array]:
         """render_kernel's poses, hit_range and hit_face: with ``shared`` (SharedPoses) the direct

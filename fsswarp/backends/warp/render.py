@@ -1,8 +1,9 @@
 """Warp kernels of image synthesis (kernels/render.cl; fsswarp/rendering.py documents the algorithm).
 
-``render_kernel`` deposits every sub-ray's object, ghost, mirror and mirror2 returns into a
-fixed-point (N, 4, R, beams) int32 accumulator, ``fixed_to_float`` converts it to float32
-layers, and ``frontal_rays_kernel`` finds the frontal patch of beams (``Backend.frontal_faces``).
+``render_kernel`` deposits every sub-ray's mirror2 return into a fixed-point (N, 4, R, beams)
+int32 accumulator and queues its hit before the surface, whose object, ghost and mirror returns
+``hits_kernel`` deposits (``Backend.hit_queue``); ``fixed_to_float`` converts the accumulator to
+float32 layers, and ``frontal_rays_kernel`` finds the frontal patch of beams (``Backend.frontal_faces``).
 ``triangle_boxes_kernel`` gathers a mesh's corners and padded boxes for ``Backend.load_mesh``
 (here, so that a synthesis compiles this module alone).
 """
@@ -164,20 +165,26 @@ def direct_hits_kernel(mesh: wp.uint64, corners: wp.array(dtype=wp.vec3),
 def render_kernel(mesh: wp.uint64, corners: wp.array(dtype=wp.vec3), rotations: wp.array(dtype=wp.mat33),
                   translations: wp.array(dtype=wp.vec3), plane_normals: wp.array(dtype=wp.vec3),
                   plane_offsets: wp.array(dtype=float), directions: wp.array3d(dtype=wp.vec3),
-                  beam_table: wp.array2d(dtype=float), sonar: KernelSonar, k_theta: int, weight: float, gamma: float,
+                  sonar: KernelSonar, k_theta: int, weight: float, gamma: float,
                   surface_reflection: float,
                   first_rows: wp.array(dtype=wp.int32), spans: wp.array2d(dtype=wp.int32),
                   poses: wp.array(dtype=wp.int32), hit_range: wp.array4d(dtype=float),
                   hit_face: wp.array4d(dtype=wp.int32), masked: int, needed: wp.array3d(dtype=wp.uint8),
-                  acc: wp.array4d(dtype=wp.int32)):
+                  acc: wp.array4d(dtype=wp.int32), hits: wp.array(dtype=wp.int32), hit_items: wp.array(dtype=wp.vec4i),
+                  hit_ranges: wp.array(dtype=float)):
     """Thread (v, o, k): sub-ray (i, spans[v, 2] + q), (i, q) = divmod(k, J_v), of beam
     b = spans[v, 0] + o in view v, J_v = spans[v, 3] − spans[v, 2] (none where b >= spans[v, 1]
-    or k >= K_θ J_v); deposits its object, ghost, mirror and mirror2 returns into acc (N, 4, R,
-    beams), view v's image row B at row B − first_rows[v] when that lies in [0, R), else
-    nowhere (kernels/render.cl). Where poses[v] = p >= 0 the direct leg is hit_range and
+    or k >= K_θ J_v); deposits its mirror2 return into acc (N, 4, R, beams), view v's image row
+    B at row B − first_rows[v] when that lies in [0, R), else nowhere, and queues its hit before
+    the surface for hits_kernel, which deposits the object, ghost and mirror returns
+    (kernels/render.cl). Where poses[v] = p >= 0 the direct leg is hit_range and
     hit_face[p, b, i, j] (direct_hits_kernel), else cast here. With masked 1 a return lands only
     where its component's beam is needed[v, c, beam] (N, 2, beams) (c 0: object and ghost, 1:
-    mirror and mirror2), and a leg whose returns land nowhere needed is not cast."""
+    mirror and mirror2), and a leg whose returns land nowhere needed is not cast. The queue: a
+    hit counts itself in hits (1,) int32, zeroed, and the count before it, c, is its slot: where
+    c < L it writes (v, b, i K_φ + j, face) to hit_items[c] and r to hit_ranges[c], hit_items
+    (L,) vec4i, hit_ranges (L,) float (the host renders again with a larger queue where the
+    count passes L)."""
     v, o, k = wp.tid()
     item = span_item(spans, v, o, k, k_theta)
     b = item[0]
@@ -212,41 +219,11 @@ def render_kernel(mesh: wp.uint64, corners: wp.array(dtype=wp.vec3), rotations: 
         r = hit.t
         face = hit.face
     if face >= 0 and r < s:
-        # 3. hit before the surface
-        nrm = facing_normal(corners, face, rot, u)
-        c = -wp.dot(u, nrm)
-        want_object = needed_at(needed, masked, v, 0, b)
-        if want_object:
-            deposit(acc, v, 0, nearest_index(bin_coordinate(r, sonar)), b,
-                    wp.pow(c, gamma), weight, sonar.beams, first)
-        p = r * u
-        o_m = (2.0 * d) * n
-        q = wp.length(p - o_m)
-        n_p = wp.dot(n, p)
-        lam = d / (2.0 * d - n_p)
-        qq = o_m + lam * (p - o_m)
-        if qq[1] > 0.0:
-            bq = beam_coordinate(azimuth(qq), sonar, beam_table)
-            if bq >= -0.5 and bq < float(sonar.beams) - 0.5 and wp.abs(elevation(qq)) <= sonar.half_elevation:
-                pq = p - qq
-                l_pq = wp.length(pq)
-                w = pq / l_pq
-                c_in = -wp.dot(w, nrm)
-                pm = p - (2.0 * (n_p - d)) * n
-                mb = nearest_index(beam_coordinate(azimuth(pm), sonar, beam_table))
-                want_mirror = needed_at(needed, masked, v, 1, mb)
-                if c_in > 0.0 and (want_object or want_mirror):
-                    l_q = wp.length(qq)
-                    leg1 = nearest_hit(mesh, corners, org, rot * (qq / l_q), l_q - _EPS)
-                    if leg1.face < 0:
-                        leg2 = nearest_hit(mesh, corners, rot * qq + org, rot * w, l_pq - _EPS)
-                        if leg2.face < 0:
-                            a_s = surface_reflection * wp.pow(c * c_in, 0.5 * gamma)
-                            rb = nearest_index(bin_coordinate(0.5 * (r + q), sonar))
-                            if want_object:
-                                deposit(acc, v, 1, rb, b, a_s, weight, sonar.beams, first)
-                            if want_mirror:
-                                deposit(acc, v, 2, rb, mb, a_s, weight, sonar.beams, first)
+        # 3. hit before the surface: queued for hits_kernel (the object, then the path via the surface)
+        slot = wp.atomic_add(hits, 0, 1)
+        if slot < hit_items.shape[0]:
+            hit_items[slot] = wp.vec4i(v, b, i * directions.shape[2] + j, face)
+            hit_ranges[slot] = r
     elif has_surface and needed_at(needed, masked, v, 1, b):
         # 4. surface first: mirror2 along the reflected ray
         qs = s * u
@@ -259,6 +236,69 @@ def render_kernel(mesh: wp.uint64, corners: wp.array(dtype=wp.vec3), rotations: 
             c2 = -wp.dot(u2, nrm2)
             deposit(acc, v, 3, nearest_index(bin_coordinate(s + r2, sonar)), b,
                     surface_reflection * surface_reflection * wp.pow(c2, gamma), weight, sonar.beams, first)
+
+
+@wp.kernel
+def hits_kernel(mesh: wp.uint64, corners: wp.array(dtype=wp.vec3), rotations: wp.array(dtype=wp.mat33),
+                translations: wp.array(dtype=wp.vec3), plane_normals: wp.array(dtype=wp.vec3),
+                plane_offsets: wp.array(dtype=float), directions: wp.array3d(dtype=wp.vec3),
+                beam_table: wp.array2d(dtype=float), sonar: KernelSonar, weight: float, gamma: float,
+                surface_reflection: float, first_rows: wp.array(dtype=wp.int32), masked: int,
+                needed: wp.array3d(dtype=wp.uint8), hits: wp.array(dtype=wp.int32),
+                hit_items: wp.array(dtype=wp.vec4i), hit_ranges: wp.array(dtype=float),
+                acc: wp.array4d(dtype=wp.int32)):
+    """Thread t < min(hits[0], L): render_kernel's queued hit t (step 3 of kernels/render.cl): its
+    object return, then, where both legs of its path via the surface are clear, its ghost and
+    mirror returns, each where it is read."""
+    t = wp.tid()
+    if t >= hits[0]:
+        return
+    item = hit_items[t]
+    v = item[0]
+    b = item[1]
+    face = item[3]
+    r = hit_ranges[t]
+    rot = rotations[v]
+    first = first_rows[v]
+    k_phi = directions.shape[2]
+    u = directions[b, item[2] // k_phi, item[2] % k_phi]
+    n = plane_normals[v]
+    d = plane_offsets[v]
+    nrm = facing_normal(corners, face, rot, u)
+    c = -wp.dot(u, nrm)
+    want_object = needed_at(needed, masked, v, 0, b)
+    if want_object:
+        deposit(acc, v, 0, nearest_index(bin_coordinate(r, sonar)), b, wp.pow(c, gamma), weight, sonar.beams, first)
+    # the path via the surface: Q on the surface, between the mirror sonar O_m and P
+    p = r * u
+    o_m = (2.0 * d) * n
+    q = wp.length(p - o_m)
+    n_p = wp.dot(n, p)
+    lam = d / (2.0 * d - n_p)
+    qq = o_m + lam * (p - o_m)
+    if qq[1] > 0.0:
+        bq = beam_coordinate(azimuth(qq), sonar, beam_table)
+        if bq >= -0.5 and bq < float(sonar.beams) - 0.5 and wp.abs(elevation(qq)) <= sonar.half_elevation:
+            pq = p - qq
+            l_pq = wp.length(pq)
+            w = pq / l_pq
+            c_in = -wp.dot(w, nrm)
+            pm = p - (2.0 * (n_p - d)) * n
+            mb = nearest_index(beam_coordinate(azimuth(pm), sonar, beam_table))
+            want_mirror = needed_at(needed, masked, v, 1, mb)
+            if c_in > 0.0 and (want_object or want_mirror):
+                org = translations[v]
+                l_q = wp.length(qq)
+                leg1 = nearest_hit(mesh, corners, org, rot * (qq / l_q), l_q - _EPS)
+                if leg1.face < 0:
+                    leg2 = nearest_hit(mesh, corners, rot * qq + org, rot * w, l_pq - _EPS)
+                    if leg2.face < 0:
+                        a_s = surface_reflection * wp.pow(c * c_in, 0.5 * gamma)
+                        rb = nearest_index(bin_coordinate(0.5 * (r + q), sonar))
+                        if want_object:
+                            deposit(acc, v, 1, rb, b, a_s, weight, sonar.beams, first)
+                        if want_mirror:
+                            deposit(acc, v, 2, rb, mb, a_s, weight, sonar.beams, first)
 
 
 @wp.kernel
