@@ -248,9 +248,10 @@ class OpenCLBackend(Backend):
         uint8 beams read, ``Backend._render``) into acc_buf, the fixed-point int32 layers of
         ``shape`` (n, 4, R, beams), and with layers_buf their floats (``fixed_to_float``), after
         the events ``wait_for``; ``hit_share``, the queue of hits (``hit_queue_size``; None: room
-        for every hit; 0: none, each hit's returns at once). Returns the last kernel's event and, where anything was cast with a
-        ``hit_share``, the queue's count (1,) int32 (read) and its slots L (a count above L: the
-        queue overflowed and acc_buf lacks returns), else None. Call holding ``_lock``."""
+        for every hit; 0: none, each hit's returns at once). Returns the last kernel's event and,
+        where anything was cast through a queue with a ``hit_share``, the queue's count (1,)
+        int32 (read) and its slots L (a count above L: the queue overflowed and acc_buf lacks
+        returns), else None. Call holding ``_lock``."""
         if sonar.use_table:
             centres = np.ascontiguousarray(sonar.beam_table[0], np.float32)
         else:
