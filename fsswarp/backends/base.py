@@ -956,6 +956,16 @@ def hit_queue_size(threads: int, share: float | None) -> int:
     return 0 if share == 0 else max(1, min(threads, math.ceil(share * threads)))
 
 
+def render_with_room(render_once: Callable[[float | None], tuple[int, int] | None], share: float) -> None:
+    """``render_once(share)``: a render through a queue of hits of ``share`` (``hit_queue_size``)
+    that returns, once done, the queue's (count, slots), or None where it queued nothing. Where
+    the count passed the slots (hits were dropped), the render is made again with room for every
+    hit (``render_once(None)``, which cannot overflow)."""
+    filled = render_once(share)
+    if filled is not None and filled[0] > filled[1]:
+        render_once(None)
+
+
 def _needed_beams(beams, n_views: int, n_beams: int) -> np.ndarray | None:
     """``render_device``'s ``beams`` as (N, 2, beams) uint8 0/1 (C order), None for every beam, or raise."""
     if beams is None:

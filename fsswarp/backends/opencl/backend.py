@@ -13,7 +13,8 @@ import weakref
 import numpy as np
 import pyopencl as cl
 
-from ..base import Backend, DeviceLayers, PreparedLaunch, SonarConstants, fixed_floats, hit_queue_size, span_extent
+from ..base import (Backend, DeviceLayers, PreparedLaunch, SonarConstants, fixed_floats, hit_queue_size,
+                    render_with_room, span_extent)
 from ..bvh import FlatBVH, build_bvh
 from ..constants import FRONTAL_VISIBLE, GPU_HIT_QUEUE, MAX_DISTANCE, RAY_EPSILON
 from ..runtimes import OpenCLDevice
@@ -206,16 +207,16 @@ class OpenCLBackend(Backend):
         size = int(np.prod(shape))
         with self._lock:
             layers_buf = self._layers_buffer(4 * size)
-            share = self.hit_queue
-            while True:  # again, with room for every hit, where the queue of hits overflowed
+
+            def render_once(share):
                 hits = self._enqueue_render(mesh, sonar, beam_widths, rotations, translations, plane_normals,
                                             plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows,
                                             spans, shape, layers_buf, shared=shared, needed=needed,
                                             hit_share=share)[1]
                 self._finish()
-                if hits is None or hits[1] >= hits[0][0]:
-                    break
-                share = None
+                return None if hits is None else (int(hits[0][0]), hits[1])
+
+            render_with_room(render_once, self.hit_queue)
             layers = OpenCLLayers(self, layers_buf, shape)
             self._kept_layers = [(kept, weakref.ref(layers) if kept is layers_buf else holder)
                                  for kept, holder in self._kept_layers]
@@ -279,12 +280,12 @@ class OpenCLBackend(Backend):
                      np.float32(surface_reflection), np.float32(RAY_EPSILON))
             masks = (np.int32(needed is not None), self._input(np.ones(1, np.uint8) if needed is None else needed))
             rows, first = np.int32(shape[2]), self._input(first_rows)
-            counted = cl.enqueue_fill_buffer(self.queue, counts, np.int32(0), 0, 4)
+            counted = [cl.enqueue_fill_buffer(self.queue, counts, np.int32(0), 0, 4)] if hit_size else []
             rendered = self._render_kernel(
                 self.queue, (-(-sub // group) * group, widest, shape[0]), (group, 1, 1),
                 mesh.nodes, mesh.children, mesh.triangles, *views, np.float32(MAX_DISTANCE), first, rows,
                 self._input(np.ascontiguousarray(spans, np.int32)), poses, hit_range, hit_tri, *masks, acc_buf,
-                *queue, wait_for=[zeroed, counted])
+                *queue, wait_for=[zeroed, *counted])
             done = rendered
             if hit_size:
                 done = self._hits_kernel(self.queue, (-(-hit_size // GROUP) * GROUP,), None, mesh.nodes,

@@ -10,7 +10,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from ..base import Backend, DeviceLayers, PreparedLaunch, SonarConstants, fixed_floats, hit_queue_size, span_extent
+from ..base import (Backend, DeviceLayers, PreparedLaunch, SonarConstants, fixed_floats, hit_queue_size,
+                    render_with_room, span_extent)
 from ..constants import FIXED_SCALE, FRONTAL_VISIBLE, MAX_DISTANCE, RAY_EPSILON, WARP_FAR
 from ..runtimes import import_warp
 from .carve import carve_grid, carve_points
@@ -206,17 +207,18 @@ class WarpBackend(Backend):
         shape = (rotations.shape[0], 4, rows, sonar.beams)
         with wp.ScopedDevice(self._device):
             poses = self._poses(rotations, translations, plane_normals, plane_offsets)
-            acc = wp.zeros(shape, dtype=wp.int32)
+            acc = wp.empty(shape, dtype=wp.int32)
             first = self._constant(first_rows, wp.int32)
-            share = self.hit_queue
-            while True:
+
+            def render_once(share):
+                acc.zero_()
                 hits = self._render_into(mesh, sonar, beam_widths, poses, k_theta, k_phi, gamma, surface_reflection,
                                          first, spans, acc, shared=shared, needed=needed, hit_share=share)
                 wp.synchronize_device(self._device)
-                if hits is None or hits[1] >= int(hits[0].numpy()[0]):
-                    return WarpLayers(acc)
-                acc.zero_()  # the queue overflowed: again, with room for every hit
-                share = None
+                return None if hits is None else (int(hits[0].numpy()[0]), hits[1])
+
+            render_with_room(render_once, self.hit_queue)
+            return WarpLayers(acc)
 
     def _poses(self, rotations, translations, plane_normals, plane_offsets, *more) -> list[wp.array]:
         """The (N,) views of a render on the device: rotations, translations, plane normals,
