@@ -402,9 +402,9 @@ class ViewComparison:
         return self.backend.plan_render(self.mesh, self.sonar, rot.reshape(-1, 3, 3), t.reshape(-1, 3),
                                         n.reshape(-1, 3), d.reshape(-1), samples, rows=rows, beams=beams)
 
-    def _render_planned(self, plan):
+    def _render_planned(self, plan, wait: bool = True):
         return self.backend.render_planned(self.mesh, self.sonar, plan, gamma=ECHO.gamma,
-                                           surface_reflection=ECHO.surface_reflection)
+                                           surface_reflection=ECHO.surface_reflection, wait=wait)
 
     def grid_launches(self) -> tuple[np.ndarray, int, np.ndarray, int]:
         """How :meth:`view_costs` renders the data views: (first (V,), R, read (V, 2, beams), cells per
@@ -432,13 +432,16 @@ class ViewComparison:
         the exact samples reads the layers rendered there, on the device (``_located_index``; no
         render: the same pixels). On a GPU the host work of each launch after the first
         (:meth:`plan_pairs`) is done in a thread while the launch before it runs, and the first
-        launch is short (:func:`_launches`)."""
+        launch is short (:func:`_launches`); without ``contours`` every launch is then queued on
+        the device, its costs read back after the last (a render whose queue of hits overflowed
+        is made again then, ``Backend.render_planned``)."""
         data = self.data
         n_views = len(data.views)
         first, rows, read, per = self.grid_launches()
         shifts = self.shifts if self.shift is None else [self.shift]
         ahead = self.backend.is_gpu
         launches = _launches(len(depths), per, ahead)
+        queued = ahead and not contours
 
         def plan(launch: slice):
             cell_d, cell_t = depths[launch], tilts[launch]
@@ -448,24 +451,35 @@ class ViewComparison:
             return self.plan_pairs(data.views, cell_d, cell_t, samples, rows=(np.tile(first, len(cell_d)), rows),
                                    beams=np.tile(read, (len(cell_d), 1, 1)))
 
-        costs, found = [], []
-        for launch, planned in zip(launches, _planned(plan, launches, ahead=ahead)):
-            g = launch.stop - launch.start
+        def launch_costs(g: int, planned, wait: bool):
+            """(the launch's costs (g, V, S), or with ``wait`` false a function that returns them;
+            None, or a function that says whether its render dropped hits: ``DeviceLayers.overflowed``)."""
             if planned is None:
                 layers, index, keep = self._layers, self._located_index(), self._keep
             else:
-                layers = self._render_planned(planned)
+                layers = self._render_planned(planned, wait=wait)
                 index, keep = np.tile(np.arange(n_views), g), slice(None)
             arguments = (layers, index, data.threshold, data.windows, data.masks, self._distances, shifts,
                          self.smoothing)
             if contours:
                 contour, sums, counts = (a[keep] for a in self.backend.contour_cost(*arguments, cap))
-                costs.append(_view_cost(sums.reshape(g, n_views, 2, -1), counts.reshape(g, n_views, 2), data.counts,
-                                        cap))
                 found.append(contour.reshape(g, n_views, 2, -1))
-            else:
-                costs.append(self.backend.view_costs(*arguments, data.counts, cap)[keep].reshape(g, n_views, -1))
-            del layers
+                return _view_cost(sums.reshape(g, n_views, 2, -1), counts.reshape(g, n_views, 2), data.counts,
+                                  cap), None
+            found_costs = self.backend.view_costs(*arguments, data.counts, cap, wait=wait)
+            if wait:
+                return found_costs[keep].reshape(g, n_views, -1), None
+            return (lambda: found_costs()[keep].reshape(g, n_views, -1)), layers.overflowed  # not the layers
+
+        costs, found, checks = [], [], []
+        for launch, planned in zip(launches, _planned(plan, launches, ahead=ahead)):
+            cost, overflowed = launch_costs(launch.stop - launch.start, planned, not queued)
+            costs.append(cost)
+            checks.append(overflowed)
+        if queued:  # after the last launch: a launch whose render dropped hits is planned and made again, waiting
+            costs = [launch_costs(launch.stop - launch.start, plan(launch), True)[0]
+                     if overflowed is not None and overflowed() else cost()
+                     for launch, cost, overflowed in zip(launches, costs, checks)]
         self.counters["surrogate_cells"] += len(depths)
         return np.concatenate(costs), np.concatenate(found) if contours else None
 
@@ -758,7 +772,9 @@ FIRST_LAUNCH_CELLS = 64
 def _launches(cells: int, per: int, ahead: bool) -> list[slice]:
     """The cells of each launch of :meth:`ViewComparison.view_costs`: ``per`` at a time; with
     ``ahead`` (plans made while the device renders), a first launch of ``FIRST_LAUNCH_SHARE``
-    of ``min(per, cells)`` where that is at least ``FIRST_LAUNCH_CELLS`` cells."""
+    of ``min(per, cells)`` where that is at least ``FIRST_LAUNCH_CELLS`` cells, and each next one
+    twice the one before, up to ``per``: a launch's plan then takes less time than the render
+    before it (an H200's host: 16 ms for 1,801 cells, against 38 ms of rendering them)."""
     if cells == 0:
         return []
     first = min(per, cells)

@@ -320,6 +320,37 @@ def test_view_costs_planned_ahead_are_those_planned_in_turn(coral_one, truth_mod
         np.testing.assert_array_equal(g, w)
 
 
+def test_queued_launches_read_after_the_last_give_the_same_costs(coral_one, truth_model, backend, monkeypatch):
+    """On a GPU the grid's launches are queued and their costs read after the last
+    (``view_costs(contours=False)``; ``render_planned(wait=False)``): bit for bit the costs of
+    launches waited for one by one. With a one-slot queue of hits every render overflows: Warp
+    then renders each launch again, waiting, once all are queued (OpenCL waits in the render and
+    renders again there), and the costs are still the same."""
+    truth = coral_one.manifest.truth
+    comparison = ViewComparison(coral_one, settings=PoseSettings(launch_bytes=1 << 22), backend=backend).use(
+        truth_model, truth.depth, truth.tilt)
+    depths, tilts = np.meshgrid(truth.depth + np.linspace(-0.02, 0.02, 3), truth.tilt + np.radians([-1.0, 0.0, 1.0]),
+                                indexing="ij")
+    launches = len(range(0, depths.size, comparison.grid_launches()[3]))
+    assert launches > 2
+    monkeypatch.setattr(backend, "is_gpu", False)
+    want = comparison.view_costs(depths.ravel(), tilts.ravel(), (1, 32), 0.03, contours=False)[0]
+    monkeypatch.setattr(backend, "is_gpu", True)
+    waits = []
+    render = comparison._render_planned
+    monkeypatch.setattr(comparison, "_render_planned", lambda plan, wait=True: waits.append(wait) or render(plan, wait))
+    for share in (None, 1e-12):
+        if share is not None:
+            monkeypatch.setattr(type(backend), "hit_queue", property(lambda self: share))
+        waits.clear()
+        got = comparison.view_costs(depths.ravel(), tilts.ravel(), (1, 32), 0.03, contours=False)[0]
+        np.testing.assert_array_equal(got, want)
+        queued = waits.count(False)
+        assert queued >= launches and waits[:queued] == [False] * queued
+        made_again = share is not None and backend.name == "warp"
+        assert waits[queued:] == [True] * (queued if made_again else 0)
+
+
 def test_grid_launches_hold_at_most_the_launch_bytes_and_2_31_values(coral_one, truth_model, opencl):
     """Cells per launch: the layers' 16 B per pixel within ``launch_bytes``, and never past one
     launch's 2^31 values (a render refuses more), however many bytes are allowed."""

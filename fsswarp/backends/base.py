@@ -400,15 +400,19 @@ class Backend(abc.ABC):
                           shared)
 
     def render_planned(self, mesh, sonar: SonarSpec, plan: "RenderPlan", *, gamma: float,
-                       surface_reflection: float) -> "DeviceLayers":
+                       surface_reflection: float, wait: bool = True) -> "DeviceLayers":
         """The device half of ``render_device``: render the views of ``plan`` (``plan_render``
-        of the same mesh and sonar)."""
+        of the same mesh and sonar). With ``wait`` false a GPU backend may only queue the render
+        (Warp CUDA does; OpenCL waits, docs/decisions.md): the layers are then complete unless
+        their ``overflowed`` (``DeviceLayers``), which waits for the render, says that its queue
+        of hits overflowed; render again, waiting, where it does."""
         if plan.rotations.shape[0] == 0:
             return HostLayers(np.zeros((0, 4, plan.count, sonar.beams), np.float32),
                               plan.first if plan.banded else None)
         layers = self._render(mesh, SonarConstants.of(sonar), sonar.beam_widths, plan.rotations, plan.translations,
                               plan.normals, plan.offsets, plan.k_theta, plan.k_phi, float(gamma),
-                              float(surface_reflection), plan.first, plan.count, plan.spans, plan.shared, plan.needed)
+                              float(surface_reflection), plan.first, plan.count, plan.spans, plan.shared, plan.needed,
+                              wait=wait)
         layers.first_rows = plan.first.copy() if plan.banded else None
         return layers
 
@@ -485,7 +489,8 @@ class Backend(abc.ABC):
                 translations: np.ndarray, plane_normals: np.ndarray, plane_offsets: np.ndarray,
                 k_theta: int, k_phi: int, gamma: float, surface_reflection: float,
                 first_rows: np.ndarray, rows: int, spans: np.ndarray,
-                shared: "SharedPoses | None", needed: np.ndarray | None = None) -> "DeviceLayers":
+                shared: "SharedPoses | None", needed: np.ndarray | None = None, *,
+                wait: bool = True) -> "DeviceLayers":
         """Kernel launch of ``render_device`` (the algorithm: fsswarp/rendering.py's docstring);
         beam_widths: (beams,) float32 Δθ_b; first_rows (N,) int32 and rows R: view n keeps
         the bins first_rows[n] <= B < first_rows[n] + R (zeros and bins for full layers),
@@ -495,7 +500,7 @@ class Backend(abc.ABC):
         distinct pose (the same float operations, so the same pixels), or None; needed: None or
         (N, 2, beams) uint8, ``render_device``'s ``beams`` (0/1, C order). Returns the
         (N, 4, R, beams) float32 layers, complete, on the device (the caller sets
-        ``first_rows``)."""
+        ``first_rows``); with ``wait`` false, as ``render_planned`` says."""
 
     # --- frontal contours and their distance to the data's (the (D, β) grid search) ----------
     def contour_cost(self, layers, view_index, thresholds, windows, masks, distances, shifts,
@@ -537,7 +542,7 @@ class Backend(abc.ABC):
         return self._contour_cost(*args)
 
     def view_costs(self, layers, view_index, thresholds, windows, masks, distances, shifts, smoothing,
-                   data_counts, cap: float) -> np.ndarray:
+                   data_counts, cap: float, *, wait: bool = True) -> np.ndarray | Callable[[], np.ndarray]:
         """The grid surrogate's view cost of N synthetic views (fsswarp/compare.py), contours and
         sums left on the device: ``contour_cost``'s (sums, counts) combined per pair n and shift s
         into ``Σ_c (sums[n, c, s] + cap · max(0, m − k)) / max(k, m)``, k = counts[n, c], m =
@@ -545,7 +550,8 @@ class Backend(abc.ABC):
 
         The arguments as ``contour_cost``'s, and data_counts : (V, 2) int >= 0, the data's
         contour points per view and component; cap : > 0 (m), finite. Returns (N, S) float32,
-        the only array read back.
+        the only array read back; with ``wait`` false a function that returns it (a GPU backend
+        may then queue the kernels and read them back when it is called: Warp CUDA does).
         """
         args = self._contour_inputs(layers, view_index, thresholds, windows, masks, distances, shifts, smoothing,
                                     cap)
@@ -557,8 +563,9 @@ class Backend(abc.ABC):
             raise ValueError(f"cap must be a finite distance (m) for view costs, got {cap!r}")
         n_pairs, n_shifts = args[2].shape[0], args[10].shape[0]
         if n_pairs == 0:
-            return np.zeros((0, n_shifts), np.float32)
-        return self._view_costs(*args, np.ascontiguousarray(counts, np.int32))
+            costs = np.zeros((0, n_shifts), np.float32)
+            return costs if wait else lambda: costs
+        return self._view_costs(*args, np.ascontiguousarray(counts, np.int32), wait=wait)
 
     def _contour_inputs(self, layers, view_index, thresholds, windows, masks, distances, shifts, smoothing,
                         cap) -> tuple:
@@ -634,9 +641,10 @@ class Backend(abc.ABC):
     def _view_costs(self, layers: "DeviceLayers", first_rows: np.ndarray, view_index: np.ndarray,
                     thresholds: np.ndarray, windows: np.ndarray, masks: np.ndarray, range_weights: np.ndarray,
                     beam_weights: np.ndarray, distances: "DeviceDistances", cap: float, shifts: np.ndarray,
-                    data_counts: np.ndarray) -> np.ndarray:
+                    data_counts: np.ndarray, *, wait: bool = True) -> np.ndarray | Callable[[], np.ndarray]:
         """Kernel launches of ``view_costs``: ``_contour_cost``'s arguments and data_counts (V, 2)
-        int32. Returns (N, S) float32 costs; contours, sums and counts stay on the device."""
+        int32. Returns (N, S) float32 costs, or with ``wait`` false a function that returns them;
+        contours, sums and counts stay on the device."""
 
     def device_distances(self, distances) -> "DeviceDistances":
         """``contour_cost``'s distance maps, (V, 2, bins, beams) float >= 0, checked and
@@ -781,6 +789,10 @@ class DeviceLayers(abc.ABC):
 
     shape: tuple[int, int, int, int]
     first_rows: np.ndarray | None = None
+    #: None for complete layers; for those of ``Backend.render_planned(wait=False)`` a function
+    #: that waits for the render and says whether its queue of hits overflowed (then the layers
+    #: lack returns); it holds no reference to the layers
+    overflowed: Callable[[], bool] | None = None
 
     @abc.abstractmethod
     def numpy(self) -> np.ndarray:
@@ -956,14 +968,27 @@ def hit_queue_size(threads: int, share: float | None) -> int:
     return 0 if share == 0 else max(1, min(threads, math.ceil(share * threads)))
 
 
-def render_with_room(render_once: Callable[[float | None], tuple[int, int] | None], share: float) -> None:
+def render_with_room(render_once: Callable[[float | None], Callable[[], tuple[int, int]] | None], share: float, *,
+                     wait: bool = True) -> Callable[[], bool] | None:
     """``render_once(share)``: a render through a queue of hits of ``share`` (``hit_queue_size``)
-    that returns, once done, the queue's (count, slots), or None where it queued nothing. Where
-    the count passed the slots (hits were dropped), the render is made again with room for every
-    hit (``render_once(None)``, which cannot overflow)."""
+    that returns a function giving the queue's (count, slots) once the render is done, or None
+    where it queued nothing. Where the count passed the slots (hits were dropped), the render is
+    made again with room for every hit (``render_once(None)``, which cannot overflow). With
+    ``wait`` false nothing is read: returns None or a function that says, once the render is
+    done, whether it dropped hits (``DeviceLayers.overflowed``)."""
     filled = render_once(share)
-    if filled is not None and filled[0] > filled[1]:
+    if filled is None:
+        return None
+
+    def overflowed() -> bool:
+        count, slots = filled()
+        return count > slots
+
+    if not wait:
+        return overflowed
+    if overflowed():
         render_once(None)
+    return None
 
 
 def _needed_beams(beams, n_views: int, n_beams: int) -> np.ndarray | None:

@@ -201,8 +201,8 @@ class OpenCLBackend(Backend):
 
     def _render(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations,
                 plane_normals, plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, rows, spans,
-                shared, needed=None):
-        _check_mesh(mesh)
+                shared, needed=None, *, wait=True):
+        _check_mesh(mesh)  # the render waits either way: OpenCL releases its buffers after the queue finishes
         shape = (rotations.shape[0], 4, rows, sonar.beams)
         size = int(np.prod(shape))
         with self._lock:
@@ -214,7 +214,7 @@ class OpenCLBackend(Backend):
                                             spans, shape, layers_buf, shared=shared, needed=needed,
                                             hit_share=share)[1]
                 self._finish()
-                return None if hits is None else (int(hits[0][0]), hits[1])
+                return None if hits is None else lambda: (int(hits[0][0]), hits[1])
 
             render_with_room(render_once, self.hit_queue)
             layers = OpenCLLayers(self, layers_buf, shape)
@@ -415,7 +415,7 @@ class OpenCLBackend(Backend):
         return contour, sums, counts
 
     def _view_costs(self, layers, first_rows, view_index, thresholds, windows, masks, range_weights,
-                    beam_weights, distances, cap, shifts, data_counts):
+                    beam_weights, distances, cap, shifts, data_counts, *, wait=True):
         n_pairs, n_shifts = view_index.shape[0], shifts.shape[0]
         costs, costs_buf = self._output((n_pairs, n_shifts), np.float32)
         group = min(GROUP, 1 << (n_shifts - 1).bit_length())
@@ -427,7 +427,7 @@ class OpenCLBackend(Backend):
                                    np.int32(n_shifts), costs_buf)
             cl.enqueue_copy(self.queue, costs, costs_buf, is_blocking=False)
             self._finish()
-        return costs
+        return costs if wait else lambda: costs
 
     def _enqueue_contours(self, layers, first_rows, view_index, thresholds, windows, masks, range_weights,
                           beam_weights, distances, cap, shifts) -> tuple[cl.Buffer, cl.Buffer, cl.Buffer]:

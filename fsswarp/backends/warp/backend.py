@@ -202,7 +202,7 @@ class WarpBackend(Backend):
 
     def _render(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations,
                 plane_normals, plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, rows, spans,
-                shared, needed=None):
+                shared, needed=None, *, wait=True):
         mesh = self._check_mesh(mesh)
         shape = (rotations.shape[0], 4, rows, sonar.beams)
         with wp.ScopedDevice(self._device):
@@ -214,11 +214,13 @@ class WarpBackend(Backend):
                 acc.zero_()
                 hits = self._render_into(mesh, sonar, beam_widths, poses, k_theta, k_phi, gamma, surface_reflection,
                                          first, spans, acc, shared=shared, needed=needed, hit_share=share)
-                wp.synchronize_device(self._device)
-                return None if hits is None else (int(hits[0].numpy()[0]), hits[1])
+                return None if hits is None else lambda: (int(hits[0].numpy()[0]), hits[1])  # waits
 
-            render_with_room(render_once, self.hit_queue)
-            return WarpLayers(acc)
+            layers = WarpLayers(acc)
+            layers.overflowed = render_with_room(render_once, self.hit_queue, wait=wait)
+            if wait:
+                wp.synchronize_device(self._device)
+            return layers
 
     def _poses(self, rotations, translations, plane_normals, plane_offsets, *more) -> list[wp.array]:
         """The (N,) views of a render on the device: rotations, translations, plane normals,
@@ -394,7 +396,7 @@ class WarpBackend(Backend):
             return contour.numpy(), sums.numpy(), counts.numpy()
 
     def _view_costs(self, layers, first_rows, view_index, thresholds, windows, masks, range_weights,
-                    beam_weights, distances, cap, shifts, data_counts):
+                    beam_weights, distances, cap, shifts, data_counts, *, wait=True):
         with wp.ScopedDevice(self._device):
             _, sums, counts = self._contour_launch(layers, first_rows, view_index, thresholds, windows, masks,
                                                    range_weights, beam_weights, distances, cap, shifts)
@@ -403,7 +405,7 @@ class WarpBackend(Backend):
                     inputs=[sums, counts, self._constant(view_index, wp.int32), self._constant(data_counts, wp.int32),
                             float(np.float32(cap))],
                     outputs=[costs])
-            return costs.numpy()  # waits for the launches
+            return costs.numpy() if wait else costs.numpy  # numpy waits for the launches
 
     def _contour_launch(self, layers, first_rows, view_index, thresholds, windows, masks, range_weights,
                         beam_weights, distances, cap, shifts) -> tuple[wp.array, wp.array, wp.array]:
