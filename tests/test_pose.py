@@ -310,8 +310,9 @@ def test_view_costs_planned_ahead_are_those_planned_in_turn(coral_one, truth_mod
     original = compare._planned
     ahead = []
     monkeypatch.setattr(compare, "_planned", lambda plan, items, ahead: original(plan, items, ahead=True))
-    monkeypatch.setattr(compare, "FIRST_LAUNCH_CELLS", 1)  # a first launch of one cell, then two at a time
-    assert compare._launches(9, 4, True) == [slice(0, 1), slice(1, 5), slice(5, 9)]
+    monkeypatch.setattr(compare, "FIRST_LAUNCH_CELLS", 1)  # a first launch of one cell, then twice that, up to 4
+    assert compare._launches(9, 4, True) == [slice(0, 1), slice(1, 3), slice(3, 7), slice(7, 9)]
+    assert compare._launches(9, 4, False) == [slice(0, 4), slice(4, 8), slice(8, 9)]
     monkeypatch.setattr(comparison, "plan_pairs", lambda *a, **k: ahead.append(1) or ViewComparison.plan_pairs(
         comparison, *a, **k))
     got = comparison.view_costs(depths.ravel(), tilts.ravel(), (1, 32), 0.03)
