@@ -202,7 +202,7 @@ class OpenCLBackend(Backend):
     def _render(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations,
                 plane_normals, plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, rows, spans,
                 shared, needed=None, *, wait=True):
-        _check_mesh(mesh)  # the render waits either way: OpenCL releases its buffers after the queue finishes
+        _check_mesh(mesh)
         shape = (rotations.shape[0], 4, rows, sonar.beams)
         size = int(np.prod(shape))
         with self._lock:
@@ -216,6 +216,7 @@ class OpenCLBackend(Backend):
                 self._finish()
                 return None if hits is None else lambda: (int(hits[0][0]), hits[1])
 
+            # waits whatever ``wait`` asks: queued OpenCL launches gained nothing (docs/decisions.md)
             render_with_room(render_once, self.hit_queue)
             layers = OpenCLLayers(self, layers_buf, shape)
             self._kept_layers = [(kept, weakref.ref(layers) if kept is layers_buf else holder)
