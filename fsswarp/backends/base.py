@@ -26,11 +26,7 @@ import numpy as np
 
 from ..errors import is_integer, is_number, real_array
 from ..sonar import SonarSpec
-from .constants import CPU_HIT_QUEUE, FIXED_SCALE, GPU_HIT_QUEUE, GPU_ICP_LANES, MAX_DISTANCE
-
-#: Margin (rad) of ``ray_spans`` around the azimuths and elevations a mesh covers; the kernels'
-#: float32 sub-ray angles round by about 1e-7 rad.
-SPAN_MARGIN = 1e-4
+from .constants import CPU_HIT_QUEUE, FIXED_SCALE, GPU_HIT_QUEUE, GPU_ICP_LANES, MAX_DISTANCE, SPAN_MARGIN
 
 
 #: ``SonarConstants``' scalars as one kernel argument: the layout of ``fss_sonar`` (kernels/sonar.h)
@@ -450,8 +446,9 @@ class Backend(abc.ABC):
     def _spans(self, mesh, sonar: SonarSpec, rotations, translations, plane_normals, plane_offsets,
                k_phi: int) -> np.ndarray:
         """The (N, 4) sub-rays each view casts: :func:`ray_spans` on a CPU device; every sub-ray on
-        a GPU, where one that misses costs little and the spans' host work outweighs what they
-        save (measured on an H100, docs/decisions.md)."""
+        a GPU, where the spans' host work outweighed what they save (measured on an H100,
+        docs/decisions.md). Warp's render kernel finds its own spans on the device and packs
+        them (``WarpBackend._ray_chunks``); these then size its queue of hits."""
         if self.is_gpu:
             return np.tile(np.array([[0, sonar.beams, 0, k_phi]], np.int32), (rotations.shape[0], 1))
         return ray_spans(mesh.bounds, sonar, rotations, translations, plane_normals, plane_offsets, k_phi)

@@ -18,6 +18,10 @@ MAX_DISTANCE = 1e6
 #: The Warp kernels' bound on a ray (m): Warp's ``cast_rays`` clamps ``max_distance`` to it, and
 #: the Warp render uses it as "no limit" where the OpenCL render uses ``MAX_DISTANCE``.
 WARP_FAR = 1e30
+#: Margin (rad) of the sub-ray spans (``fsswarp.backends.base.ray_spans``, Warp's
+#: ``view_spans_kernel``) around the azimuths and elevations a mesh covers; the kernels' float32
+#: sub-ray angles round by about 1e-7 rad.
+SPAN_MARGIN = 1e-4
 #: Indices are clamped to ±2^30 before conversion to int32, so far-away points cannot overflow.
 INDEX_LIMIT = 1073741824.0
 #: Fixed-point scale of render's integer accumulator: 2^24 = 1.

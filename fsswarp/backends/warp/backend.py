@@ -19,8 +19,8 @@ from .icp import icp_runs_kernel
 from .pose import contour_cost_kernel, frontal_contour, view_cost_kernel
 from .project import project_points
 from .raycast import cast_rays_kernel
-from .render import (direct_hits_kernel, fixed_to_float, frontal_rays_kernel, hits_kernel, render_kernel,
-                     sub_rays_kernel, triangle_boxes_kernel)
+from .render import (chunk_views_kernel, direct_hits_kernel, fixed_to_float, frontal_rays_kernel, hits_kernel,
+                     render_kernel, sub_rays_kernel, triangle_boxes_kernel, view_spans_kernel)
 from .sonar import kernel_sonar
 
 #: Share of a CUDA device's memory that Warp's memory pool keeps after a synchronize instead of
@@ -29,6 +29,14 @@ from .sonar import kernel_sonar
 #: 190 ms on an H100 (docs/decisions.md). Between launches the pool then holds at most this
 #: share unused, which other processes on the same GPU cannot have meanwhile.
 MEMPOOL_KEEP = 0.25
+#: Sub-rays per chunk of a render launch (``WarpBackend._ray_chunks``): each view's span of
+#: sub-rays is cut into chunks, and a warp's 32 threads take 32 sub-rays of one chunk.
+RAY_CHUNK = 64
+#: Threads of a render launch per multiprocessor of a CUDA device (each takes every such
+#: thread count's sub-ray in turn: no thread is launched for a sub-ray no view casts).
+THREADS_PER_SM = 2048
+#: ... and of a CPU launch (one thread runs it anyway; a few so that each takes several items).
+CPU_THREADS = 1024
 #: ``WarpBackend._constant``: inputs up to this size are kept on the device for reuse ...
 CONSTANT_BYTES = 1 << 18
 #: ... and this many of them (at most 16 MiB).
@@ -234,7 +242,9 @@ class WarpBackend(Backend):
         """Launch the render kernels of the views ``poses`` ((n,) device arrays of ``_poses``) on
         the device's current stream: acc (n, 4, R, beams) int32, zeroed, receives the deposits,
         and layers (n, 4, R, beams) float32, if given, their floats; first_rows (n,) int32 on the
-        device; spans (n, 4) int32 on the host (``Backend._render``); shared, the views' SharedPoses
+        device; spans (n, 4) int32 on the host (``Backend._render``: nothing is cast where they
+        are all empty, and the queue of hits is sized on them; the kernel's own spans are found
+        on the device, ``_ray_chunks``); shared, the views' SharedPoses
         (or None), whose distinct poses' direct legs are cast first; needed, None or the (n, 2,
         beams) uint8 beams read (``Backend._render``); hit_share, the queue of hits
         (``hit_queue_size``; None: room for every hit). Returns without waiting: the queue's count
@@ -248,22 +258,21 @@ class WarpBackend(Backend):
         weight = float(np.float32(1.0 / (k_theta * k_phi)))
         widest, samples = span_extent(spans)
         if widest:  # else no view reaches the mesh: the layers stay zeros
+            widths = np.asarray(beam_widths, np.float32)
             directions = wp.empty((sonar.beams, k_theta, k_phi), dtype=wp.vec3)
             _launch(sub_rays_kernel, dim=directions.shape,
-                    inputs=[self._constant(centres, float),
-                            self._constant(np.asarray(beam_widths, np.float32), float), kernel_sonar(sonar)],
+                    inputs=[self._constant(centres, float), self._constant(widths, float), kernel_sonar(sonar)],
                     outputs=[directions])
             hits = self._direct_hits(mesh, directions, acc.shape[0], shared)
-            dim = (acc.shape[0], widest, k_theta * samples)
-            size = hit_queue_size(dim[0] * dim[1] * dim[2], hit_share)
+            size = hit_queue_size(acc.shape[0] * widest * k_theta * samples, hit_share)
             queue = (wp.zeros(1, dtype=wp.int32), wp.empty(size, dtype=wp.vec4i), wp.empty(size, dtype=float))
             table, masks = (self._constant(sonar.beam_table, float),
                             self._constant(np.ones((1, 1, 1), np.uint8) if needed is None else needed, wp.uint8))
-            _launch(render_kernel, dim=dim,
+            *chunks, threads = self._ray_chunks(mesh, sonar, centres, widths, poses, k_theta, k_phi)
+            _launch(render_kernel, dim=threads,
                     inputs=[mesh.id, mesh.corners, *poses, directions, kernel_sonar(sonar), int(k_theta),
-                            weight, float(gamma), float(surface_reflection), first_rows,
-                            self._constant(np.ascontiguousarray(spans, np.int32), wp.int32), *hits,
-                            int(needed is not None), masks],
+                            weight, float(gamma), float(surface_reflection), first_rows, *chunks, RAY_CHUNK, threads,
+                            *hits, int(needed is not None), masks],
                     outputs=[acc, *queue])
             _launch(hits_kernel, dim=size,
                     inputs=[mesh.id, mesh.corners, *poses, directions, table, kernel_sonar(sonar), weight,
@@ -273,6 +282,34 @@ class WarpBackend(Backend):
         if layers is not None:
             _launch(fixed_to_float, dim=acc.size, inputs=[acc.flatten()], outputs=[layers.flatten()])
         return (queue[0], size) if widest else None
+
+    def _ray_chunks(self, mesh, sonar: SonarConstants, centres: np.ndarray, widths: np.ndarray, poses, k_theta,
+                    k_phi) -> tuple[wp.array, wp.array, wp.array, wp.array, int]:
+        """render_kernel's sub-rays, found on the device: (spans (n, 4) int32, chunks (n,), their
+        exclusive prefix sums (n,), chunk_views (the view of each chunk), the launch's threads).
+        Each view's span holds the sub-rays that can reach the mesh's box directly or by the
+        surface first (``view_spans_kernel``, as ``fsswarp.backends.base.ray_spans``); the
+        others deposit nothing, so the layers are those of every sub-ray, bit for bit."""
+        n = poses[0].shape[0]
+        upper_edges = np.maximum.accumulate(centres + 0.5 * widths)  # nondecreasing, as ray_spans' searches
+        lower_edges = np.minimum.accumulate((centres - 0.5 * widths)[::-1])[::-1]
+        lower, upper = (wp.vec3(*bound.astype(np.float32)) for bound in mesh.bounds)
+        spans, chunks, offsets = (wp.empty(shape, dtype=wp.int32) for shape in ((n, 4), n, n))
+        _launch(view_spans_kernel, dim=n,
+                inputs=[lower, upper, *poses, self._constant(np.ascontiguousarray(upper_edges), float),
+                        self._constant(np.ascontiguousarray(lower_edges), float), float(sonar.half_elevation),
+                        int(k_theta), int(k_phi), RAY_CHUNK],
+                outputs=[spans, chunks])
+        wp.utils.array_scan(chunks, offsets, inclusive=False)
+        most = n * -(-sonar.beams * k_theta * k_phi // RAY_CHUNK)  # every sub-ray of every view
+        chunk_views = wp.empty(most, dtype=wp.int32)
+        _launch(chunk_views_kernel, dim=n, inputs=[chunks, offsets], outputs=[chunk_views])
+        return spans, chunks, offsets, chunk_views, min(most * RAY_CHUNK, self._resident_threads())
+
+    def _resident_threads(self) -> int:
+        """Threads of a launch that takes its items in turn (render_kernel): about
+        as many as the device keeps running at once (one thread runs a CPU launch anyway)."""
+        return int(self._device.sm_count) * THREADS_PER_SM if self._device.is_cuda else CPU_THREADS
 
     def _direct_hits(self, mesh, directions, n_views, shared) -> tuple[wp.array, wp.array, wp.array]:
         """render_kernel's poses, hit_range and hit_face: with ``shared`` (SharedPoses) the direct

@@ -2,7 +2,9 @@
 
 ``render_kernel`` deposits every sub-ray's mirror2 return into a fixed-point (N, 4, R, beams)
 int32 accumulator and queues its hit before the surface, whose object, ghost and mirror returns
-``hits_kernel`` deposits (``Backend.hit_queue``); ``fixed_to_float`` converts the accumulator to
+``hits_kernel`` deposits (``Backend.hit_queue``); its threads take the sub-rays that can reach
+the mesh, found on the device (``view_spans_kernel``) and packed in chunks per view
+(``chunk_views_kernel``), in turn; ``fixed_to_float`` converts the accumulator to
 float32 layers, and ``frontal_rays_kernel`` finds the frontal patch of beams (``Backend.frontal_faces``).
 ``triangle_boxes_kernel`` gathers a mesh's corners and padded boxes for ``Backend.load_mesh``
 (here, so that a synthesis compiles this module alone).
@@ -12,13 +14,15 @@ from __future__ import annotations
 
 import warp as wp
 
-from ..constants import FIXED_SCALE, RAY_EPSILON, WARP_FAR
+from ..constants import FIXED_SCALE, RAY_EPSILON, SPAN_MARGIN, WARP_FAR
 from .raycast import nearest_hit
-from .sonar import MODULE_OPTIONS, KernelSonar, azimuth, beam_coordinate, bin_coordinate, elevation, nearest_index
+from .sonar import (MODULE_OPTIONS, KernelSonar, azimuth, beam_coordinate, bin_coordinate, elevation, nearest_index,
+                    to_view)
 
 _EPS = wp.constant(RAY_EPSILON)
 _FAR = wp.constant(WARP_FAR)
 _FIXED = wp.constant(FIXED_SCALE)
+_MARGIN = wp.constant(SPAN_MARGIN)
 _BOX_PAD = wp.constant(wp.float32(1.0e-6))  # a box's pad per unit of its longest side (load_mesh)
 #: CUDA threads per block of this module's kernels (its option, which every launch follows): the
 #: render kernel of a 64 × 64 pose grid took 107 ms at 128 against 131 ms at Warp's 256 (H200;
@@ -161,37 +165,122 @@ def direct_hits_kernel(mesh: wp.uint64, corners: wp.array(dtype=wp.vec3),
     hit_face[p, b, i, j] = hit.face
 
 
+@wp.func
+def image_span(lower: wp.vec3, upper: wp.vec3, rot: wp.mat33, org: wp.vec3, n: wp.vec3, d: float, mirror: int,
+               beam_upper: wp.array(dtype=float), beam_lower: wp.array(dtype=float), half_elevation: float,
+               k_phi: int):
+    """(first beam, end beam, first sample, end sample) of the sub-rays that can reach the box
+    [lower, upper] (reference frame), or with mirror 1 its mirror image in the surface (n, d),
+    from the view at (rot, org): ``fsswarp.backends.base.ray_spans`` of one view and image, in
+    float32 (inside its margin); an empty span where none reaches."""
+    ahead = int(1)
+    s_lo = float(_FAR)
+    s_hi = float(-_FAR)
+    near = float(_FAR)
+    far = float(0.0)
+    low = float(_FAR)
+    high = float(-_FAR)
+    for k in range(8):
+        c = lower
+        if k % 2 == 1:
+            c = wp.vec3(upper[0], c[1], c[2])
+        if (k // 2) % 2 == 1:
+            c = wp.vec3(c[0], upper[1], c[2])
+        if k // 4 == 1:
+            c = wp.vec3(c[0], c[1], upper[2])
+        p = to_view(c, rot, org)
+        if mirror == 1:
+            p = p - (2.0 * (wp.dot(p, n) - d)) * n
+        if p[1] > 0.0:
+            slope = p[0] / p[1]
+            s_lo = wp.min(s_lo, slope)
+            s_hi = wp.max(s_hi, slope)
+            near = wp.min(near, p[1])
+            far = wp.max(far, wp.sqrt(p[0] * p[0] + p[1] * p[1]))
+        else:
+            ahead = 0
+        low = wp.min(low, p[2])
+        high = wp.max(high, p[2])
+    beams = beam_upper.shape[0]
+    first = int(0)
+    end = int(beams)
+    j_first = int(0)
+    j_end = int(k_phi)
+    if ahead == 1:
+        lo = wp.atan(s_lo) - _MARGIN
+        hi = wp.atan(s_hi) + _MARGIN
+        first = int(0)  # the first beam whose upper edge reaches lo (beam_upper nondecreasing)
+        while first < beams and beam_upper[first] < lo:
+            first += 1
+        end = int(0)  # past the last beam whose lower edge starts below hi (beam_lower nondecreasing)
+        while end < beams and beam_lower[end] <= hi:
+            end += 1
+        down_over = far
+        if low < 0.0:
+            down_over = near
+        up_over = far
+        if high > 0.0:
+            up_over = near
+        down = wp.atan(low / down_over) - _MARGIN
+        up = wp.atan(high / up_over) + _MARGIN
+        step = 2.0 * half_elevation / float(k_phi)
+        j_first = int(wp.clamp(wp.ceil((down + half_elevation) / step - 0.5), 0.0, float(k_phi)))
+        j_end = int(wp.clamp(wp.floor((up + half_elevation) / step - 0.5) + 1.0, 0.0, float(k_phi)))
+    if first >= end or j_first >= j_end:
+        return wp.vec4i(0, 0, 0, 0)
+    return wp.vec4i(first, end, j_first, j_end)
+
+
 @wp.kernel
-def render_kernel(mesh: wp.uint64, corners: wp.array(dtype=wp.vec3), rotations: wp.array(dtype=wp.mat33),
-                  translations: wp.array(dtype=wp.vec3), plane_normals: wp.array(dtype=wp.vec3),
-                  plane_offsets: wp.array(dtype=float), directions: wp.array3d(dtype=wp.vec3),
-                  sonar: KernelSonar, k_theta: int, weight: float, gamma: float,
-                  surface_reflection: float,
-                  first_rows: wp.array(dtype=wp.int32), spans: wp.array2d(dtype=wp.int32),
-                  poses: wp.array(dtype=wp.int32), hit_range: wp.array4d(dtype=float),
-                  hit_face: wp.array4d(dtype=wp.int32), masked: int, needed: wp.array3d(dtype=wp.uint8),
-                  acc: wp.array4d(dtype=wp.int32), hits: wp.array(dtype=wp.int32), hit_items: wp.array(dtype=wp.vec4i),
-                  hit_ranges: wp.array(dtype=float)):
-    """Thread (v, o, k): sub-ray (i, spans[v, 2] + q), (i, q) = divmod(k, J_v), of beam
-    b = spans[v, 0] + o in view v, J_v = spans[v, 3] − spans[v, 2] (none where b >= spans[v, 1]
-    or k >= K_θ J_v); deposits its mirror2 return into acc (N, 4, R, beams), view v's image row
-    B at row B − first_rows[v] when that lies in [0, R), else nowhere, and queues its hit before
-    the surface for hits_kernel, which deposits the object, ghost and mirror returns
-    (kernels/render.cl). Where poses[v] = p >= 0 the direct leg is hit_range and
-    hit_face[p, b, i, j] (direct_hits_kernel), else cast here. With masked 1 a return lands only
-    where its component's beam is needed[v, c, beam] (N, 2, beams) (c 0: object and ghost, 1:
-    mirror and mirror2), and a leg whose returns land nowhere needed is not cast. The queue: a
-    hit counts itself in hits (1,) int32, zeroed, and the count before it, c, is its slot: where
-    c < L it writes (v, b, i K_φ + j, face) to hit_items[c] and r to hit_ranges[c], hit_items
-    (L,) vec4i, hit_ranges (L,) float (the host renders again with a larger queue where the
-    count passes L)."""
-    v, o, k = wp.tid()
-    item = span_item(spans, v, o, k, k_theta)
-    b = item[0]
-    if b < 0:
-        return
-    i = item[1]
-    j = item[2]
+def view_spans_kernel(lower: wp.vec3, upper: wp.vec3, rotations: wp.array(dtype=wp.mat33),
+                      translations: wp.array(dtype=wp.vec3), plane_normals: wp.array(dtype=wp.vec3),
+                      plane_offsets: wp.array(dtype=float), beam_upper: wp.array(dtype=float),
+                      beam_lower: wp.array(dtype=float), half_elevation: float, k_theta: int, k_phi: int,
+                      chunk: int, spans: wp.array2d(dtype=wp.int32), chunks: wp.array(dtype=wp.int32)):
+    """Thread v: view v's span of sub-rays, the hull of those that can reach the mesh's box
+    [lower, upper] directly or by the surface first (image_span), into spans[v] (first beam,
+    end beam, first sample, end sample; zeros: none), and its chunks of ``chunk`` sub-rays,
+    ceil((end − first) K_θ (end − first sample) / chunk), into chunks[v]."""
+    v = wp.tid()
+    rot = rotations[v]
+    org = translations[v]
+    hull = wp.vec4i(0, 0, 0, 0)
+    for mirror in range(2):
+        span = image_span(lower, upper, rot, org, plane_normals[v], plane_offsets[v], mirror, beam_upper,
+                          beam_lower, half_elevation, k_phi)
+        if span[1] > span[0]:
+            if hull[1] > hull[0]:
+                hull = wp.vec4i(wp.min(hull[0], span[0]), wp.max(hull[1], span[1]), wp.min(hull[2], span[2]),
+                                wp.max(hull[3], span[3]))
+            else:
+                hull = span
+    for k in range(4):
+        spans[v, k] = hull[k]
+    chunks[v] = ((hull[1] - hull[0]) * k_theta * (hull[3] - hull[2]) + chunk - 1) // chunk
+
+
+@wp.kernel
+def chunk_views_kernel(chunks: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int32),
+                       chunk_views: wp.array(dtype=wp.int32)):
+    """Thread v: view v owns chunks offsets[v] .. offsets[v] + chunks[v] − 1 (offsets, the
+    chunks' exclusive prefix sum): chunk_views[c] = v for each."""
+    v = wp.tid()
+    start = offsets[v]
+    for q in range(chunks[v]):
+        chunk_views[start + q] = v
+
+
+@wp.func
+def render_sub_ray(mesh: wp.uint64, corners: wp.array(dtype=wp.vec3), rotations: wp.array(dtype=wp.mat33),
+                   translations: wp.array(dtype=wp.vec3), plane_normals: wp.array(dtype=wp.vec3),
+                   plane_offsets: wp.array(dtype=float), directions: wp.array3d(dtype=wp.vec3),
+                   sonar: KernelSonar, weight: float, gamma: float, surface_reflection: float,
+                   first_rows: wp.array(dtype=wp.int32), poses: wp.array(dtype=wp.int32),
+                   hit_range: wp.array4d(dtype=float), hit_face: wp.array4d(dtype=wp.int32), masked: int,
+                   needed: wp.array3d(dtype=wp.uint8), acc: wp.array4d(dtype=wp.int32), hits: wp.array(dtype=wp.int32),
+                   hit_items: wp.array(dtype=wp.vec4i), hit_ranges: wp.array(dtype=float), v: int, b: int, i: int,
+                   j: int):
+    """Sub-ray (i, j) of beam b in view v (render_kernel)."""
     rot = rotations[v]
     org = translations[v]
     n = plane_normals[v]
@@ -236,6 +325,55 @@ def render_kernel(mesh: wp.uint64, corners: wp.array(dtype=wp.vec3), rotations: 
             c2 = -wp.dot(u2, nrm2)
             deposit(acc, v, 3, nearest_index(bin_coordinate(s + r2, sonar)), b,
                     surface_reflection * surface_reflection * wp.pow(c2, gamma), weight, sonar.beams, first)
+
+
+
+
+@wp.kernel
+def render_kernel(mesh: wp.uint64, corners: wp.array(dtype=wp.vec3), rotations: wp.array(dtype=wp.mat33),
+                  translations: wp.array(dtype=wp.vec3), plane_normals: wp.array(dtype=wp.vec3),
+                  plane_offsets: wp.array(dtype=float), directions: wp.array3d(dtype=wp.vec3),
+                  sonar: KernelSonar, k_theta: int, weight: float, gamma: float,
+                  surface_reflection: float,
+                  first_rows: wp.array(dtype=wp.int32), spans: wp.array2d(dtype=wp.int32),
+                  chunks: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int32),
+                  chunk_views: wp.array(dtype=wp.int32), chunk: int, stride: int,
+                  poses: wp.array(dtype=wp.int32), hit_range: wp.array4d(dtype=float),
+                  hit_face: wp.array4d(dtype=wp.int32), masked: int, needed: wp.array3d(dtype=wp.uint8),
+                  acc: wp.array4d(dtype=wp.int32), hits: wp.array(dtype=wp.int32), hit_items: wp.array(dtype=wp.vec4i),
+                  hit_ranges: wp.array(dtype=float)):
+    """Thread t: sub-rays t, t + stride, ... of the launch's chunks (view_spans_kernel,
+    chunk_views_kernel): chunk c of ``chunk`` sub-rays belongs to view v = chunk_views[c], and
+    its sub-ray q is sub-ray (c − offsets[v]) chunk + q of the view's span, in the order (beam,
+    i, j) (none past the span's count). Each deposits its mirror2 return into acc (N, 4, R,
+    beams), view v's image row B at row B − first_rows[v] when that lies in [0, R), else
+    nowhere, and queues its hit before the surface for hits_kernel, which deposits the object,
+    ghost and mirror returns (kernels/render.cl). Where poses[v] = p >= 0 the direct leg is
+    hit_range and hit_face[p, b, i, j] (direct_hits_kernel), else cast here. With masked 1 a
+    return lands only where its component's beam is needed[v, c, beam] (N, 2, beams) (c 0:
+    object and ghost, 1: mirror and mirror2), and a leg whose returns land nowhere needed is not
+    cast. The queue: a hit counts itself in hits (1,) int32, zeroed, and the count before it,
+    c, is its slot: where c < L it writes (v, b, i K_φ + j, face) to hit_items[c] and r to
+    hit_ranges[c], hit_items (L,) vec4i, hit_ranges (L,) float (the host renders again with a
+    larger queue where the count passes L)."""
+    t = wp.tid()
+    last = chunks.shape[0] - 1
+    items = (offsets[last] + chunks[last]) * chunk
+    item = t
+    while item < items:
+        c = item // chunk
+        v = chunk_views[c]
+        local = (c - offsets[v]) * chunk + item - c * chunk
+        samples = spans[v, 3] - spans[v, 2]
+        per_beam = k_theta * samples
+        if local < (spans[v, 1] - spans[v, 0]) * per_beam:
+            o = local // per_beam
+            rest = local - o * per_beam
+            i = rest // samples
+            render_sub_ray(mesh, corners, rotations, translations, plane_normals, plane_offsets, directions, sonar,
+                           weight, gamma, surface_reflection, first_rows, poses, hit_range, hit_face, masked, needed,
+                           acc, hits, hit_items, hit_ranges, v, spans[v, 0] + o, i, spans[v, 2] + rest - i * samples)
+        item += stride
 
 
 @wp.kernel
