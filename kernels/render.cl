@@ -18,8 +18,10 @@
  *   rows          R, rows per band (bins for full layers); 0 <= first_rows[v],
  *                 first_rows[v] + R <= bins (the host validates)
  *   spans         (N, 4) int       view v casts only beams spans[v][0] <= b < spans[v][1] and
- *                 elevation samples spans[v][2] <= j < spans[v][3]
- *                 (fsswarp.backends.base.ray_spans: the others reach nothing)
+ *                 elevation samples spans[v][2] <= j < spans[v][3] (view_spans: the others reach
+ *                 nothing), in chunks of `chunk` sub-rays: view v's chunks[v] chunks are chunks
+ *                 offsets[v] .. offsets[v] + chunks[v] − 1 of the launch, chunk_views[c] the view
+ *                 of chunk c (chunk_offsets, chunk_views)
  *   poses         (N,) int         -1: view v casts its direct leg; p >= 0: it reads it from
  *                 hit_range and hit_tri of pose p (direct_hits, the same float operations)
  *   hit_range, hit_tri  (P, beams, k_theta, k_phi) float and int of direct_hits (unused
@@ -39,9 +41,9 @@
  *                 to hit_items[c] (int4) and r to hit_ranges[c] (the host renders again with a
  *                 larger queue where the count passes hit_size).
  *
- * Work size: 3-D global (k_theta × the most samples J_v = spans[v][3] − spans[v][2], rounded up;
- * the widest beam span; N); work-item (s, o, v): sub-ray i = s / J_v, j = spans[v][2] + s % J_v
- * of beam b = spans[v][0] + o. Items with s >= k_theta J_v or b >= spans[v][1] return at once.
+ * Work size: 1-D, any; work-item t takes the launch's sub-rays t, t + size, ... : sub-ray q of
+ * chunk c is sub-ray (c − offsets[v]) chunk + q of view v's span, in the order (beam, i, j)
+ * (none past the span's count).
  */
 #include "sonar.h"
 #include "bvh.h"
@@ -106,6 +108,131 @@ int fss_span_item(__global const int *spans, int row, int s, int o, int k_theta,
     *i = s / samples;
     *j = spans[4 * row + 2] + s - *i * samples;
     return 1;
+}
+
+/* The span (first beam, end beam, first sample, end sample) of the sub-rays that can reach the
+ * box (box[0..2] lower, box[3..5] upper corner, reference frame), or with mirror 1 its mirror
+ * image in the surface (n, d), from the view (rot, t): fsswarp.backends.base.ray_spans of one
+ * view and image, in float32 (inside its margin FSS_SPAN_MARGIN); zeros where none reaches.
+ * beam_upper, beam_lower (beams,) the beams' edges made monotone as ray_spans' searches. */
+int4 fss_image_span(__global const float *box, __global const float *rot, __global const float *t, float3 n,
+                    float d, int mirror, __global const float *beam_upper, __global const float *beam_lower,
+                    int beams, float half_elevation, int k_phi)
+{
+    int ahead = 1;
+    float s_lo = INFINITY, s_hi = -INFINITY, near = INFINITY, far = 0.0f, low = INFINITY, high = -INFINITY;
+    for (int k = 0; k < 8; ++k) {
+        const float3 c = (float3)(box[(k & 1) ? 3 : 0], box[(k & 2) ? 4 : 1], box[(k & 4) ? 5 : 2]);
+        float3 p = fss_to_view(c, rot, t);
+        if (mirror)
+            p = p - (2.0f * (p.x * n.x + p.y * n.y + p.z * n.z - d)) * n;
+        if (p.y > 0.0f) {
+            const float slope = p.x / p.y;
+            s_lo = fmin(s_lo, slope);
+            s_hi = fmax(s_hi, slope);
+            near = fmin(near, p.y);
+            far = fmax(far, sqrt(p.x * p.x + p.y * p.y));
+        } else {
+            ahead = 0;
+        }
+        low = fmin(low, p.z);
+        high = fmax(high, p.z);
+    }
+    int first = 0, end = beams, j_first = 0, j_end = k_phi;
+    if (ahead) {
+        const float lo = atan(s_lo) - FSS_SPAN_MARGIN;
+        const float hi = atan(s_hi) + FSS_SPAN_MARGIN;
+        while (first < beams && beam_upper[first] < lo)
+            ++first;
+        end = 0;
+        while (end < beams && beam_lower[end] <= hi)
+            ++end;
+        const float down = atan(low / (low < 0.0f ? near : far)) - FSS_SPAN_MARGIN;
+        const float up = atan(high / (high > 0.0f ? near : far)) + FSS_SPAN_MARGIN;
+        const float step = 2.0f * half_elevation / (float)k_phi;
+        j_first = (int)clamp(ceil((down + half_elevation) / step - 0.5f), 0.0f, (float)k_phi);
+        j_end = (int)clamp(floor((up + half_elevation) / step - 0.5f) + 1.0f, 0.0f, (float)k_phi);
+    }
+    if (first >= end || j_first >= j_end)
+        return (int4)(0, 0, 0, 0);
+    return (int4)(first, end, j_first, j_end);
+}
+
+/* view_spans -- the span of each view's sub-rays that can reach the mesh's box directly or by the
+ * surface first (the hull of fss_image_span's two), into spans (N, 4) int, and its chunks of
+ * `chunk` sub-rays, ceil((end − first) k_theta (end − first sample) / chunk), into chunks (N,).
+ * box (6,) float the mesh's box; poses and planes as render_views. Work size: N, rounded up. */
+__kernel void view_spans(__global const float *box,
+                         __global const float *rotations,
+                         __global const float *translations,
+                         __global const float *plane_normals,
+                         __global const float *plane_offsets,
+                         __global const float *beam_upper,
+                         __global const float *beam_lower,
+                         const int beams,
+                         const float half_elevation,
+                         const int k_theta,
+                         const int k_phi,
+                         const int chunk,
+                         const int n_views,
+                         __global int *spans,
+                         __global int *chunks)
+{
+    const int v = (int)get_global_id(0);
+    if (v >= n_views)
+        return;
+    int4 hull = (int4)(0, 0, 0, 0);
+    for (int mirror = 0; mirror < 2; ++mirror) {
+        const int4 span = fss_image_span(box, rotations + 9 * v, translations + 3 * v, vload3(v, plane_normals),
+                                         plane_offsets[v], mirror, beam_upper, beam_lower, beams, half_elevation,
+                                         k_phi);
+        if (span.y > span.x)
+            hull = hull.y > hull.x ? (int4)(min(hull.x, span.x), max(hull.y, span.y), min(hull.z, span.z),
+                                            max(hull.w, span.w)) : span;
+    }
+    vstore4(hull, v, spans);
+    chunks[v] = ((hull.y - hull.x) * k_theta * (hull.w - hull.z) + chunk - 1) / chunk;
+}
+
+/* chunk_offsets -- the exclusive prefix sums of chunks (N,) into offsets (N,), in one work-group
+ * (work size: its local size, partial of that many ints): each item sums a block in turn. */
+__kernel void chunk_offsets(__global const int *chunks, const int n, __global int *offsets, __local int *partial)
+{
+    const int k = (int)get_local_id(0);
+    const int size = (int)get_local_size(0);
+    const int per = (n + size - 1) / size;
+    const int lo = min(n, k * per), hi = min(n, k * per + per);
+    int sum = 0;
+    for (int q = lo; q < hi; ++q)
+        sum += chunks[q];
+    partial[k] = sum;
+    barrier(CLK_LOCAL_MEM_FENCE);
+    if (k == 0) {
+        int run = 0;
+        for (int q = 0; q < size; ++q) {
+            const int here = partial[q];
+            partial[q] = run;
+            run += here;
+        }
+    }
+    barrier(CLK_LOCAL_MEM_FENCE);
+    int run = partial[k];
+    for (int q = lo; q < hi; ++q) {
+        offsets[q] = run;
+        run += chunks[q];
+    }
+}
+
+/* chunk_views -- view v owns chunks offsets[v] .. offsets[v] + chunks[v] − 1: chunk_views[c] = v
+ * for each. Work size: N, rounded up. */
+__kernel void chunk_views(__global const int *chunks, __global const int *offsets, const int n_views,
+                          __global int *chunk_views)
+{
+    const int v = (int)get_global_id(0);
+    if (v >= n_views)
+        return;
+    for (int q = 0; q < chunks[v]; ++q)
+        chunk_views[offsets[v] + q] = v;
 }
 
 /* sub_rays -- step 1 once per render: the view-frame direction of every sub-ray (i, j) of every
@@ -239,41 +366,18 @@ void fss_hit_returns(__global const float4 *nodes, __global const int *children,
         fss_deposit(acc, v, 2, bm, R_s, a_s, weight, sonar, first, rows);
 }
 
-__kernel void render_views(__global const float4 *nodes,
-                           __global const int *children,
-                           __global const float *tris,
-                           __global const float *rotations,
-                           __global const float *translations,
-                           __global const float *plane_normals,
-                           __global const float *plane_offsets,
-                           __global const float *directions,
-                           __global const float *beam_table,
-                           const fss_sonar sonar,
-                           const int k_theta,
-                           const int k_phi,
-                           const float weight,
-                           const float gamma,
-                           const float surface_reflection,
-                           const float epsilon,
-                           const float max_distance,
-                           __global const int *first_rows,
-                           const int rows,
-                           __global const int *spans,
-                           __global const int *poses,
-                           __global const float *hit_range,
-                           __global const int *hit_tri,
-                           const int masked,
-                           __global const uchar *needed,
-                           __global int *acc,
-                           __global int *hits,
-                           __global int4 *hit_items,
-                           __global float *hit_ranges,
-                           const int hit_size)
+/* Sub-ray (i, j) of beam b in view v (render_views; arguments as there). */
+void fss_render_sub_ray(__global const float4 *nodes, __global const int *children, __global const float *tris,
+                        __global const float *rotations, __global const float *translations,
+                        __global const float *plane_normals, __global const float *plane_offsets,
+                        __global const float *directions, __global const float *beam_table, const fss_sonar sonar,
+                        int k_theta, int k_phi, float weight, float gamma, float surface_reflection, float epsilon,
+                        float max_distance, __global const int *first_rows, int rows, __global const int *poses,
+                        __global const float *hit_range, __global const int *hit_tri, int masked,
+                        __global const uchar *needed, __global int *acc, __global int *hits,
+                        __global int4 *hit_items, __global float *hit_ranges, int hit_size, int v, int b, int i,
+                        int j)
 {
-    const int v = (int)get_global_id(2);
-    int b, i, j;
-    if (!fss_span_item(spans, v, (int)get_global_id(0), (int)get_global_id(1), k_theta, &b, &i, &j))
-        return;
     __global const float *rot = rotations + 9 * v;
     const float3 t = vload3(v, translations);
     const float3 n = vload3(v, plane_normals);
@@ -328,6 +432,63 @@ __kernel void render_views(__global const float4 *nodes,
         const float c2 = fabs(fss_dot(u2_ref, fss_tri_normal(tris, tri2)));
         fss_deposit(acc, v, 3, b, s_surf + r2, surface_reflection * surface_reflection * pow(c2, gamma),
                     weight, sonar, first, rows);
+    }
+}
+
+__kernel void render_views(__global const float4 *nodes,
+                           __global const int *children,
+                           __global const float *tris,
+                           __global const float *rotations,
+                           __global const float *translations,
+                           __global const float *plane_normals,
+                           __global const float *plane_offsets,
+                           __global const float *directions,
+                           __global const float *beam_table,
+                           const fss_sonar sonar,
+                           const int k_theta,
+                           const int k_phi,
+                           const float weight,
+                           const float gamma,
+                           const float surface_reflection,
+                           const float epsilon,
+                           const float max_distance,
+                           __global const int *first_rows,
+                           const int rows,
+                           __global const int *spans,
+                           __global const int *chunks,
+                           __global const int *offsets,
+                           __global const int *chunk_views,
+                           const int chunk,
+                           const int n_views,
+                           __global const int *poses,
+                           __global const float *hit_range,
+                           __global const int *hit_tri,
+                           const int masked,
+                           __global const uchar *needed,
+                           __global int *acc,
+                           __global int *hits,
+                           __global int4 *hit_items,
+                           __global float *hit_ranges,
+                           const int hit_size)
+{
+    const int stride = (int)get_global_size(0);
+    const int items = (offsets[n_views - 1] + chunks[n_views - 1]) * chunk;
+    for (int item = (int)get_global_id(0); item < items; item += stride) {
+        const int c = item / chunk;
+        const int v = chunk_views[c];
+        const int local_item = (c - offsets[v]) * chunk + item - c * chunk;
+        const int samples = spans[4 * v + 3] - spans[4 * v + 2];
+        const int per_beam = k_theta * samples;
+        if (local_item >= (spans[4 * v + 1] - spans[4 * v]) * per_beam)
+            continue;
+        const int o = local_item / per_beam;
+        const int rest = local_item - o * per_beam;
+        const int i = rest / samples;
+        fss_render_sub_ray(nodes, children, tris, rotations, translations, plane_normals, plane_offsets, directions,
+                           beam_table, sonar, k_theta, k_phi, weight, gamma, surface_reflection, epsilon,
+                           max_distance, first_rows, rows, poses, hit_range, hit_tri, masked, needed, acc, hits,
+                           hit_items, hit_ranges, hit_size, v, spans[4 * v] + o, i,
+                           spans[4 * v + 2] + rest - i * samples);
     }
 }
 

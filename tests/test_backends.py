@@ -504,10 +504,12 @@ def test_kernel_constants_come_from_python():
 
     for path in kernel_dir().iterdir():
         text = path.read_text(encoding="utf-8")
-        assert "#define FSS_INDEX_LIMIT" not in text and "#define FSS_FIXED" not in text, path.name
+        for name in ("FSS_INDEX_LIMIT", "FSS_FIXED", "FSS_SPAN_MARGIN"):
+            assert f"#define {name}" not in text, (path.name, name)
     defines = dict(option[2:].split("=") for option in BUILD_OPTIONS)
     assert float(defines["FSS_INDEX_LIMIT"].rstrip("f")) == constants.INDEX_LIMIT
     assert float(defines["FSS_FIXED"].rstrip("f")) == constants.FIXED_SCALE
+    assert float(defines["FSS_SPAN_MARGIN"].rstrip("f")) == constants.SPAN_MARGIN
 
 
 def test_beam_widths():

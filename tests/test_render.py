@@ -750,50 +750,64 @@ def test_ray_spans_follow_the_box_angles():
     assert spans([-0.1, -2.2, -0.1], [0.1, -2.0, 0.1]) == (0, sonar.beams, 0, k_phi)
 
 
-def test_warp_device_spans_equal_ray_spans_and_chunk_every_sub_ray(wp_device):
-    """Warp finds the render's spans on the device (``view_spans_kernel``): on coral-one's
-    views over a (D, β) grid, and on the closed-form boxes of the test above, the same spans as
-    ``ray_spans`` (float64 on the host); each view's chunks hold its span's sub-rays, and the
-    chunk table names each chunk's view."""
-    from fsswarp.backends import get_backend
-    from fsswarp.backends.base import SonarConstants, ray_spans
-    from fsswarp.backends.warp.backend import RAY_CHUNK
+def device_chunks(backend, handle, sonar, views, k_theta: int, k_phi: int) -> list[np.ndarray]:
+    """The backend's render chunks of ``views`` (rotations, translations, plane normals and offsets)
+    read back: spans (n, 4), chunks (n,), their offsets (n,) and the chunks' views."""
+    from fsswarp.backends.base import SonarConstants
 
-    backend = get_backend("warp", wp_device)
+    constants, n = SonarConstants.of(sonar), len(views[0])
+    centres, widths = (np.asarray(a, np.float32) for a in (sonar.beam_centres, sonar.beam_widths))
+    if backend.name == "warp":
+        arrays, _ = backend._ray_chunks(handle, constants, centres, widths, backend._poses(*views), n, k_theta, k_phi)
+        return [a.numpy() for a in arrays]
+    import pyopencl as cl
+
+    with backend._lock:
+        buffers, _ = backend._ray_chunks(handle, constants, centres, widths,
+                                         [backend._input(np.ascontiguousarray(a, np.float32)) for a in views], n,
+                                         k_theta, k_phi)
+        out = [np.empty((n, 4), np.int32), np.empty(n, np.int32), np.empty(n, np.int32),
+               np.empty(buffers[3].size // 4, np.int32)]
+        for host, buffer in zip(out, buffers):
+            cl.enqueue_copy(backend.queue, host, buffer)
+        backend._finish()
+    return out
+
+
+def test_device_spans_equal_ray_spans_and_chunk_every_sub_ray(backend):
+    """The render finds its spans on the device (Warp's ``view_spans_kernel``, OpenCL's
+    ``view_spans``): on coral-one's views over a (D, β) grid, and on the closed-form boxes of the
+    test above, the same spans as ``ray_spans`` (float64 on the host); each view's chunks hold
+    its span's sub-rays, their offsets are the chunks' exclusive prefix sums, and the chunk table
+    names each chunk's view."""
+    from fsswarp.backends.base import ray_spans
+    from fsswarp.backends.constants import RAY_CHUNK
+
     manifest = builtin_scene("coral-one")
     rig, sonar = manifest.rig, manifest.sonar
-    sonar_k = SonarConstants.of(sonar)
-    centres = np.asarray(sonar.beam_centres, np.float32)
-    widths = np.asarray(sonar.beam_widths, np.float32)
     _, mesh, *_ = coral_inputs()
     handle = backend.load_mesh(mesh.vertices, mesh.faces)
     poses = []
     for depth in (0.3, 0.43, 0.6):
         for tilt in np.radians([6.0, 10.3, 14.0]):
-            rot, trans = rig.relative_poses(depth, tilt)
             normals, offsets = surface_in_views(rig, depth, tilt)
-            poses.append((rot, trans, normals, offsets))
-    rot, trans, normals, offsets = (np.concatenate(a).astype(np.float32) for a in zip(*poses))
-
-    def device_spans(bounds, *views, k_theta=2, k_phi=64):
-        handle.bounds = np.asarray(bounds, np.float64)
-        spans, chunks, offsets_, table, _ = backend._ray_chunks(handle, sonar_k, centres, widths,
-                                                               backend._poses(*views), k_theta, k_phi)
-        return spans.numpy(), chunks.numpy(), offsets_.numpy(), table.numpy()
-
+            poses.append((*rig.relative_poses(depth, tilt), normals, offsets))
+    views = [np.concatenate(a).astype(np.float32) for a in zip(*poses)]
     bounds = handle.bounds.copy()
-    spans, chunks, starts, table = device_spans(bounds, rot, trans, normals, offsets)
-    np.testing.assert_array_equal(spans, ray_spans(bounds, sonar, rot, trans, normals, offsets, 64))
+    spans, chunks, starts, table = device_chunks(backend, handle, sonar, views, 2, 64)
+    np.testing.assert_array_equal(spans, ray_spans(bounds, sonar, *views, 64))
     assert 0 < np.count_nonzero(spans[:, 1] - spans[:, 0]) and np.any((spans[:, 1] - spans[:, 0]) < sonar.beams)
     counts = (spans[:, 1] - spans[:, 0]) * 2 * (spans[:, 3] - spans[:, 2])
     np.testing.assert_array_equal(chunks, -(-counts // RAY_CHUNK))
     np.testing.assert_array_equal(starts, np.concatenate([[0], np.cumsum(chunks)[:-1]]))
     np.testing.assert_array_equal(table[:chunks.sum()], np.repeat(np.arange(len(chunks)), chunks))
-    level = (np.eye(3, dtype=np.float32)[None], np.zeros((1, 3), np.float32), np.array([[0.0, 0.0, 1.0]], np.float32),
-             np.array([50.0], np.float32))
+    level = [np.eye(3, dtype=np.float32)[None], np.zeros((1, 3), np.float32), np.array([[0.0, 0.0, 1.0]], np.float32),
+             np.array([50.0], np.float32)]
     for box in ([[-0.1, 2.0, -0.1], [0.1, 2.2, 0.1]], [[1.9, 0.9, -0.1], [2.1, 1.1, 0.1]],
                 [[-0.1, -0.1, -0.1], [0.1, 0.1, 0.1]], [[-0.1, -2.2, -0.1], [0.1, -2.0, 0.1]]):
-        np.testing.assert_array_equal(device_spans(box, *level)[0], ray_spans(np.array(box), sonar, *level, 64))
+        handle.bounds = np.array(box, np.float64)
+        np.testing.assert_array_equal(device_chunks(backend, handle, sonar, level, 2, 64)[0],
+                                      ray_spans(handle.bounds, sonar, *level, 64))
 
 
 def test_layers_held_are_never_rendered_over(backend):

@@ -880,10 +880,7 @@ def ray_spans(bounds: np.ndarray, sonar: SonarSpec, rotations: np.ndarray, trans
     slopes = x / y  # tan(azimuth)
     lo = np.where(ahead, np.arctan(slopes.min(axis=1)) - SPAN_MARGIN, -np.inf)
     hi = np.where(ahead, np.arctan(slopes.max(axis=1)) + SPAN_MARGIN, np.inf)
-    centres = np.asarray(sonar.beam_centres, np.float64)
-    half = 0.5 * np.asarray(sonar.beam_widths, np.float64)
-    uppers = np.maximum.accumulate(centres + half)  # nondecreasing: the first beam reaching lo
-    lowers = np.minimum.accumulate((centres - half)[::-1])[::-1]  # the last beam starting below hi
+    uppers, lowers = beam_edges(np.asarray(sonar.beam_centres, np.float64), np.asarray(sonar.beam_widths, np.float64))
     first, end = np.searchsorted(uppers, lo, side="left"), np.searchsorted(lowers, hi, side="right")
     near, far = y.min(axis=1), np.sqrt(x * x + y * y).max(axis=1)  # bounds of ρ per box
     low, high = z.min(axis=1), z.max(axis=1)
@@ -898,6 +895,16 @@ def ray_spans(bounds: np.ndarray, sonar: SonarSpec, rotations: np.ndarray, trans
                       np.where(reached, j_first, most).min(axis=0), np.where(reached, j_end, 0).max(axis=0)], axis=1)
     spans[~reached.any(axis=0)] = 0
     return spans.astype(np.int32)
+
+
+def beam_edges(centres: np.ndarray, widths: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The (beams,) edges of beams ``centres`` ± ``widths``/2 made monotone for the spans'
+    searches: (upper, lower), upper[b] the highest upper edge of beams 0..b (the first beam that
+    reaches an angle), lower[b] the lowest lower edge of beams b.. (past the last beam that
+    starts below one); both nondecreasing, in the inputs' dtype."""
+    upper = np.maximum.accumulate(centres + 0.5 * widths)
+    lower = np.minimum.accumulate((centres - 0.5 * widths)[::-1])[::-1]
+    return upper, np.ascontiguousarray(lower)
 
 
 @dataclass(frozen=True)

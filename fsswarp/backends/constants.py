@@ -40,8 +40,17 @@ GPU_ICP_LANES = 32
 #: OpenCL deposits each hit's returns at once (no queue); Warp, one thread there, keeps it.
 GPU_HIT_QUEUE = 1 / 4
 CPU_HIT_QUEUE = 1 / 2
+#: Sub-rays per chunk of a render launch: each view's span of sub-rays (found on the device,
+#: Warp's ``view_spans_kernel``, OpenCL's ``view_spans``) is cut into chunks, each chunk knows
+#: its view, and a warp's 32 threads take 32 sub-rays of one chunk.
+RAY_CHUNK = 64
+#: Threads of a render launch per multiprocessor (or core) of the device: each takes every such
+#: thread count's sub-ray of the chunks in turn, so none is launched for a sub-ray no view casts.
+RENDER_THREADS_PER_UNIT = 2048
 
 
 def opencl_defines() -> tuple[str, ...]:
-    """``-D`` build options that define ``FSS_INDEX_LIMIT`` and ``FSS_FIXED`` (float literals)."""
-    return (f"-DFSS_INDEX_LIMIT={INDEX_LIMIT!r}f", f"-DFSS_FIXED={FIXED_SCALE!r}f")
+    """``-D`` build options that define ``FSS_INDEX_LIMIT``, ``FSS_FIXED`` and ``FSS_SPAN_MARGIN``
+    (float literals)."""
+    return (f"-DFSS_INDEX_LIMIT={INDEX_LIMIT!r}f", f"-DFSS_FIXED={FIXED_SCALE!r}f",
+            f"-DFSS_SPAN_MARGIN={SPAN_MARGIN!r}f")

@@ -13,10 +13,11 @@ import weakref
 import numpy as np
 import pyopencl as cl
 
-from ..base import (Backend, DeviceLayers, PreparedLaunch, SonarConstants, fixed_floats, hit_queue_size,
-                    render_with_room, span_extent)
+from ..base import (Backend, DeviceLayers, PreparedLaunch, SonarConstants, beam_edges, fixed_floats,
+                    hit_queue_size, render_with_room, span_extent)
 from ..bvh import FlatBVH, build_bvh
-from ..constants import FRONTAL_VISIBLE, GPU_HIT_QUEUE, MAX_DISTANCE, RAY_EPSILON
+from ..constants import (FRONTAL_VISIBLE, GPU_HIT_QUEUE, MAX_DISTANCE, RAY_CHUNK, RAY_EPSILON,
+                         RENDER_THREADS_PER_UNIT)
 from ..runtimes import OpenCLDevice
 from .programs import GROUP, program
 
@@ -24,6 +25,8 @@ from .programs import GROUP, program
 SCRATCH_BYTES = 1 << 30
 #: Most layers buffers a CPU device keeps between renders (``_layers_buffer``).
 KEPT_LAYERS = 2
+#: Work-group size of ``chunk_offsets``, the prefix sums of a render's chunks (at most the device's).
+SCAN_GROUP = 256
 
 
 class OpenCLBackend(Backend):
@@ -49,6 +52,9 @@ class OpenCLBackend(Backend):
         self._sub_rays_kernel = cl.Kernel(program(self.context, "render.cl"), "sub_rays")
         self._fixed_kernel = cl.Kernel(program(self.context, "render.cl"), "fixed_to_float")
         self._hits_kernel = cl.Kernel(program(self.context, "render.cl"), "hit_returns")
+        self._view_spans_kernel = cl.Kernel(program(self.context, "render.cl"), "view_spans")
+        self._chunk_offsets_kernel = cl.Kernel(program(self.context, "render.cl"), "chunk_offsets")
+        self._chunk_views_kernel = cl.Kernel(program(self.context, "render.cl"), "chunk_views")
         self._frontal_rays_kernel = cl.Kernel(program(self.context, "render.cl"), "frontal_rays")
         self._frontal_kernel = cl.Kernel(program(self.context, "pose.cl"), "frontal_contour")
         self._contour_cost_kernel = cl.Kernel(program(self.context, "pose.cl"), "contour_cost")
@@ -264,15 +270,13 @@ class OpenCLBackend(Backend):
         widest, samples = span_extent(spans)
         hits = None
         if widest:  # else no view reaches the mesh: the layers stay zeros
-            sub = k_theta * samples
-            group = min(GROUP, 1 << (sub - 1).bit_length())
             count = sonar.beams * k_theta * k_phi
             directions = self._scratch(12 * count)
             self._sub_rays_kernel(self.queue, (-(-count // GROUP) * GROUP,), None, self._input(centres),
                                   self._input(np.ascontiguousarray(beam_widths, np.float32)), sonar.record(),
                                   np.int32(k_theta), np.int32(k_phi), directions)
             poses, hit_range, hit_tri = self._direct_hits(mesh, sonar, directions, shape[0], k_theta, k_phi, shared)
-            hit_size = hit_queue_size(shape[0] * widest * sub, hit_share)
+            hit_size = hit_queue_size(shape[0] * widest * k_theta * samples, hit_share)
             counts = self._scratch(4)
             queue = (counts, self._scratch(16 * hit_size), self._scratch(4 * hit_size), np.int32(hit_size))
             views = (self._input(rotations), self._input(translations), self._input(plane_normals),
@@ -282,11 +286,11 @@ class OpenCLBackend(Backend):
             masks = (np.int32(needed is not None), self._input(np.ones(1, np.uint8) if needed is None else needed))
             rows, first = np.int32(shape[2]), self._input(first_rows)
             counted = [cl.enqueue_fill_buffer(self.queue, counts, np.int32(0), 0, 4)] if hit_size else []
+            chunks, threads = self._ray_chunks(mesh, sonar, centres, beam_widths, views[:4], shape[0], k_theta, k_phi)
             rendered = self._render_kernel(
-                self.queue, (-(-sub // group) * group, widest, shape[0]), (group, 1, 1),
-                mesh.nodes, mesh.children, mesh.triangles, *views, np.float32(MAX_DISTANCE), first, rows,
-                self._input(np.ascontiguousarray(spans, np.int32)), poses, hit_range, hit_tri, *masks, acc_buf,
-                *queue, wait_for=[zeroed, *counted])
+                self.queue, (threads,), (GROUP,), mesh.nodes, mesh.children, mesh.triangles, *views,
+                np.float32(MAX_DISTANCE), first, rows, *chunks, np.int32(RAY_CHUNK), np.int32(shape[0]), poses,
+                hit_range, hit_tri, *masks, acc_buf, *queue, wait_for=[zeroed, *counted])
             done = rendered
             if hit_size:
                 done = self._hits_kernel(self.queue, (-(-hit_size // GROUP) * GROUP,), None, mesh.nodes,
@@ -301,6 +305,30 @@ class OpenCLBackend(Backend):
             done = self._fixed_kernel(self.queue, (-(-size // GROUP) * GROUP,), None, acc_buf, layers_buf,
                                       np.int32(size))
         return done, hits
+
+    def _ray_chunks(self, mesh, sonar: SonarConstants, centres: np.ndarray, beam_widths, poses, n: int, k_theta: int,
+                    k_phi: int) -> tuple[tuple[cl.Buffer, cl.Buffer, cl.Buffer, cl.Buffer], int]:
+        """render_views' sub-rays, found on the device (enqueued): ((spans (n, 4) int, chunks
+        (n,), their exclusive prefix sums (n,), chunk_views, the view of each chunk), the launch's
+        work-items). Each view's span holds the sub-rays that can reach the mesh's box directly
+        or by the surface first (``view_spans``, as ``fsswarp.backends.base.ray_spans``); the
+        others deposit nothing, so the layers are those of every sub-ray, bit for bit. ``poses``:
+        the views' rotation, translation, plane normal and offset buffers. Call holding ``_lock``."""
+        spans, chunks, offsets = self._scratch(16 * n), self._scratch(4 * n), self._scratch(4 * n)
+        upper, lower = beam_edges(centres, np.asarray(beam_widths, np.float32))
+        self._view_spans_kernel(self.queue, (-(-n // GROUP) * GROUP,), None,
+                                self._input(mesh.bounds.astype(np.float32).ravel()), *poses, self._input(upper),
+                                self._input(lower), np.int32(sonar.beams), np.float32(sonar.half_elevation),
+                                np.int32(k_theta), np.int32(k_phi), np.int32(RAY_CHUNK), np.int32(n), spans, chunks)
+        group = min(SCAN_GROUP, self.cl_device.max_work_group_size)
+        self._chunk_offsets_kernel(self.queue, (group,), (group,), chunks, np.int32(n), offsets,
+                                   cl.LocalMemory(4 * group))
+        most = n * -(-sonar.beams * k_theta * k_phi // RAY_CHUNK)  # every sub-ray of every view
+        chunk_views = self._scratch(4 * most)
+        self._chunk_views_kernel(self.queue, (-(-n // GROUP) * GROUP,), None, chunks, offsets, np.int32(n),
+                                 chunk_views)
+        threads = min(most * RAY_CHUNK, self.cl_device.max_compute_units * RENDER_THREADS_PER_UNIT)
+        return (spans, chunks, offsets, chunk_views), -(-threads // GROUP) * GROUP
 
     def _floats(self, acc_buf: cl.Buffer, shape: tuple[int, ...]) -> np.ndarray:
         """The host float32 array of ``shape`` of the fixed-point layers acc_buf (``OpenCLLayers.numpy``)."""

@@ -10,9 +10,10 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from ..base import (Backend, DeviceLayers, PreparedLaunch, SonarConstants, fixed_floats, hit_queue_size,
-                    render_with_room, span_extent)
-from ..constants import FIXED_SCALE, FRONTAL_VISIBLE, MAX_DISTANCE, RAY_EPSILON, WARP_FAR
+from ..base import (Backend, DeviceLayers, PreparedLaunch, SonarConstants, beam_edges, fixed_floats,
+                    hit_queue_size, render_with_room, span_extent)
+from ..constants import (FIXED_SCALE, FRONTAL_VISIBLE, MAX_DISTANCE, RAY_CHUNK, RAY_EPSILON,
+                         RENDER_THREADS_PER_UNIT, WARP_FAR)
 from ..runtimes import import_warp
 from .carve import carve_grid, carve_points
 from .icp import icp_runs_kernel
@@ -29,13 +30,8 @@ from .sonar import kernel_sonar
 #: 190 ms on an H100 (docs/decisions.md). Between launches the pool then holds at most this
 #: share unused, which other processes on the same GPU cannot have meanwhile.
 MEMPOOL_KEEP = 0.25
-#: Sub-rays per chunk of a render launch (``WarpBackend._ray_chunks``): each view's span of
-#: sub-rays is cut into chunks, and a warp's 32 threads take 32 sub-rays of one chunk.
-RAY_CHUNK = 64
-#: Threads of a render launch per multiprocessor of a CUDA device (each takes every such
-#: thread count's sub-ray in turn: no thread is launched for a sub-ray no view casts).
-THREADS_PER_SM = 2048
-#: ... and of a CPU launch (one thread runs it anyway; a few so that each takes several items).
+#: Threads of a render launch on the CPU (one thread runs a Warp CPU launch anyway; a few, so
+#: that each takes several sub-rays, as on a GPU).
 CPU_THREADS = 1024
 #: ``WarpBackend._constant``: inputs up to this size are kept on the device for reuse ...
 CONSTANT_BYTES = 1 << 18
@@ -268,7 +264,7 @@ class WarpBackend(Backend):
             queue = (wp.zeros(1, dtype=wp.int32), wp.empty(size, dtype=wp.vec4i), wp.empty(size, dtype=float))
             table, masks = (self._constant(sonar.beam_table, float),
                             self._constant(np.ones((1, 1, 1), np.uint8) if needed is None else needed, wp.uint8))
-            *chunks, threads = self._ray_chunks(mesh, sonar, centres, widths, poses, k_theta, k_phi)
+            chunks, threads = self._ray_chunks(mesh, sonar, centres, widths, poses, acc.shape[0], k_theta, k_phi)
             _launch(render_kernel, dim=threads,
                     inputs=[mesh.id, mesh.corners, *poses, directions, kernel_sonar(sonar), int(k_theta),
                             weight, float(gamma), float(surface_reflection), first_rows, *chunks, RAY_CHUNK, threads,
@@ -283,33 +279,30 @@ class WarpBackend(Backend):
             _launch(fixed_to_float, dim=acc.size, inputs=[acc.flatten()], outputs=[layers.flatten()])
         return (queue[0], size) if widest else None
 
-    def _ray_chunks(self, mesh, sonar: SonarConstants, centres: np.ndarray, widths: np.ndarray, poses, k_theta,
-                    k_phi) -> tuple[wp.array, wp.array, wp.array, wp.array, int]:
-        """render_kernel's sub-rays, found on the device: (spans (n, 4) int32, chunks (n,), their
-        exclusive prefix sums (n,), chunk_views (the view of each chunk), the launch's threads).
-        Each view's span holds the sub-rays that can reach the mesh's box directly or by the
-        surface first (``view_spans_kernel``, as ``fsswarp.backends.base.ray_spans``); the
-        others deposit nothing, so the layers are those of every sub-ray, bit for bit."""
-        n = poses[0].shape[0]
-        upper_edges = np.maximum.accumulate(centres + 0.5 * widths)  # nondecreasing, as ray_spans' searches
-        lower_edges = np.minimum.accumulate((centres - 0.5 * widths)[::-1])[::-1]
+    def _ray_chunks(self, mesh, sonar: SonarConstants, centres: np.ndarray, widths: np.ndarray, poses, n: int,
+                    k_theta: int, k_phi: int) -> tuple[tuple[wp.array, wp.array, wp.array, wp.array], int]:
+        """render_kernel's sub-rays, found on the device: ((spans (n, 4) int32, chunks (n,), their
+        exclusive prefix sums (n,), chunk_views, the view of each chunk), the launch's threads),
+        for the n views ``poses`` (``_poses``). Each view's span holds the sub-rays that can
+        reach the mesh's box directly or by the surface first (``view_spans_kernel``, as
+        ``fsswarp.backends.base.ray_spans``); the others deposit nothing, so the layers are those
+        of every sub-ray, bit for bit."""
         lower, upper = (wp.vec3(*bound.astype(np.float32)) for bound in mesh.bounds)
         spans, chunks, offsets = (wp.empty(shape, dtype=wp.int32) for shape in ((n, 4), n, n))
         _launch(view_spans_kernel, dim=n,
-                inputs=[lower, upper, *poses, self._constant(np.ascontiguousarray(upper_edges), float),
-                        self._constant(np.ascontiguousarray(lower_edges), float), float(sonar.half_elevation),
-                        int(k_theta), int(k_phi), RAY_CHUNK],
+                inputs=[lower, upper, *poses, *(self._constant(edges, float) for edges in beam_edges(centres, widths)),
+                        float(sonar.half_elevation), int(k_theta), int(k_phi), RAY_CHUNK],
                 outputs=[spans, chunks])
         wp.utils.array_scan(chunks, offsets, inclusive=False)
         most = n * -(-sonar.beams * k_theta * k_phi // RAY_CHUNK)  # every sub-ray of every view
         chunk_views = wp.empty(most, dtype=wp.int32)
         _launch(chunk_views_kernel, dim=n, inputs=[chunks, offsets], outputs=[chunk_views])
-        return spans, chunks, offsets, chunk_views, min(most * RAY_CHUNK, self._resident_threads())
+        return (spans, chunks, offsets, chunk_views), min(most * RAY_CHUNK, self._resident_threads())
 
     def _resident_threads(self) -> int:
         """Threads of a launch that takes its items in turn (render_kernel): about
         as many as the device keeps running at once (one thread runs a CPU launch anyway)."""
-        return int(self._device.sm_count) * THREADS_PER_SM if self._device.is_cuda else CPU_THREADS
+        return int(self._device.sm_count) * RENDER_THREADS_PER_UNIT if self._device.is_cuda else CPU_THREADS
 
     def _direct_hits(self, mesh, directions, n_views, shared) -> tuple[wp.array, wp.array, wp.array]:
         """render_kernel's poses, hit_range and hit_face: with ``shared`` (SharedPoses) the direct
