@@ -447,8 +447,8 @@ class Backend(abc.ABC):
                k_phi: int) -> np.ndarray:
         """The (N, 4) sub-rays each view casts: :func:`ray_spans` on a CPU device; every sub-ray on
         a GPU, where the spans' host work outweighed what they save (measured on an H100,
-        docs/decisions.md). Warp's render kernel finds its own spans on the device and packs
-        them (``WarpBackend._ray_chunks``); these then size its queue of hits."""
+        docs/decisions.md). The render kernels find their own spans on the device and pack them
+        (``_ray_chunks``); these size the queue of hits and the shared poses' direct legs."""
         if self.is_gpu:
             return np.tile(np.array([[0, sonar.beams, 0, k_phi]], np.int32), (rotations.shape[0], 1))
         return ray_spans(mesh.bounds, sonar, rotations, translations, plane_normals, plane_offsets, k_phi)
