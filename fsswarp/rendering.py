@@ -16,7 +16,7 @@ and as mirror at (beam(θ(P')), bin((r + q)/2)), P' the mirror image of the hit 
 a sub-ray that meets the surface first deposits r_s² · c2^γ as mirror2 after its reflected leg.
 Defaults γ = 1, r_s = 0.9. Deposits are summed in fixed point (2^24 per unit) with integer
 atomics: layers depend neither on the threads' order nor on the sub-rays left out, which reach
-neither the mesh's box nor its mirror (``ray_spans``, found on the device); views that share a pose
+neither the mesh's box nor its mirror (``ray_spans``; a GPU finds them itself); views that share a pose
 cast their direct legs once (``shared_poses``). docs/method.md gives every step.
 :func:`stream_views` renders views in batches, handing each to a consumer on a worker thread.
 
