@@ -368,76 +368,6 @@ void fss_hit_returns(__global const float4 *nodes, __global const int *children,
         fss_deposit(acc, v, 2, bm, R_s, a_s, weight, sonar, first, rows);
 }
 
-/* Sub-ray (i, j) of beam b in view v (render_views; arguments as there). Inline: PoCL rendered
- * 16 views 10% slower with a call per sub-ray. */
-inline void fss_render_sub_ray(__global const float4 *nodes, __global const int *children, __global const float *tris,
-                        __global const float *rotations, __global const float *translations,
-                        __global const float *plane_normals, __global const float *plane_offsets,
-                        __global const float *directions, __global const float *beam_table, const fss_sonar sonar,
-                        int k_theta, int k_phi, float weight, float gamma, float surface_reflection, float epsilon,
-                        float max_distance, __global const int *first_rows, int rows, __global const int *poses,
-                        __global const float *hit_range, __global const int *hit_tri, int masked,
-                        __global const uchar *needed, __global int *acc, __global int *hits,
-                        __global int4 *hit_items, __global float *hit_ranges, int hit_size, int v, int b, int i,
-                        int j)
-{
-    __global const float *rot = rotations + 9 * v;
-    const float3 t = vload3(v, translations);
-    const float3 n = vload3(v, plane_normals);
-    const float d = plane_offsets[v];
-    const int first = first_rows[v];
-
-    /* 1. sub-ray */
-    const float3 u = vload3((b * k_theta + i) * k_phi + j, directions);
-    const float3 u_ref = fss_rotate(rot, u);
-
-    /* 2. direct leg */
-    int tri;
-    float r;
-    const int pose = poses[v];
-    if (pose >= 0) {
-        const int k = ((pose * sonar.beams + b) * k_theta + i) * k_phi + j;
-        r = hit_range[k];
-        tri = hit_tri[k];
-    } else {
-        r = fss_bvh_intersect(nodes, children, tris, t, u_ref, 0.0f, max_distance, &tri);
-    }
-    const float nu = fss_dot(n, u);
-    const float s_surf = nu > 0.0f ? d / nu : INFINITY;
-
-    if (tri >= 0 && r < s_surf) {
-        /* 3. hit: its returns now (hit_size 0), or queued for hit_returns */
-        const int4 item = (int4)(v, b, i * k_phi + j, tri);
-        if (hit_size == 0) {
-            fss_hit_returns(nodes, children, tris, rotations, translations, plane_normals, plane_offsets,
-                            directions, beam_table, sonar, k_theta, k_phi, weight, gamma, surface_reflection,
-                            epsilon, first_rows, rows, masked, needed, item, r, acc);
-        } else {
-            const int slot = atomic_inc(hits);
-            if (slot < hit_size) {
-                hit_items[slot] = item;
-                hit_ranges[slot] = r;
-            }
-        }
-    } else if (s_surf < r && s_surf < INFINITY) {
-        /* 4. surface first: mirror2 */
-        if (!fss_needed(needed, masked, v, 1, b, sonar.beams))
-            return;
-        const float3 Q = s_surf * u;
-        const float3 u2 = u - (2.0f * nu) * n;
-        const float3 u2_ref = fss_rotate(rot, u2);
-        const float3 Q_ref = fss_rotate(rot, Q) + t;
-        int tri2;
-        const float r2 = fss_bvh_intersect(nodes, children, tris, Q_ref, u2_ref, epsilon,
-                                           max_distance, &tri2);
-        if (tri2 < 0)
-            return;
-        const float c2 = fabs(fss_dot(u2_ref, fss_tri_normal(tris, tri2)));
-        fss_deposit(acc, v, 3, b, s_surf + r2, surface_reflection * surface_reflection * pow(c2, gamma),
-                    weight, sonar, first, rows);
-    }
-}
-
 __kernel void render_views(__global const float4 *nodes,
                            __global const int *children,
                            __global const float *tris,
@@ -487,11 +417,63 @@ __kernel void render_views(__global const float4 *nodes,
         const int o = local_item / per_beam;
         const int rest = local_item - o * per_beam;
         const int i = rest / samples;
-        fss_render_sub_ray(nodes, children, tris, rotations, translations, plane_normals, plane_offsets, directions,
-                           beam_table, sonar, k_theta, k_phi, weight, gamma, surface_reflection, epsilon,
-                           max_distance, first_rows, rows, poses, hit_range, hit_tri, masked, needed, acc, hits,
-                           hit_items, hit_ranges, hit_size, v, spans[4 * v] + o, i,
-                           spans[4 * v + 2] + rest - i * samples);
+        const int b = spans[4 * v] + o;
+        const int j = spans[4 * v + 2] + rest - i * samples;
+        __global const float *rot = rotations + 9 * v;
+        const float3 t = vload3(v, translations);
+        const float3 n = vload3(v, plane_normals);
+        const float d = plane_offsets[v];
+        const int first = first_rows[v];
+
+        /* 1. sub-ray */
+        const float3 u = vload3((b * k_theta + i) * k_phi + j, directions);
+        const float3 u_ref = fss_rotate(rot, u);
+
+        /* 2. direct leg */
+        int tri;
+        float r;
+        const int pose = poses[v];
+        if (pose >= 0) {
+            const int k = ((pose * sonar.beams + b) * k_theta + i) * k_phi + j;
+            r = hit_range[k];
+            tri = hit_tri[k];
+        } else {
+            r = fss_bvh_intersect(nodes, children, tris, t, u_ref, 0.0f, max_distance, &tri);
+        }
+        const float nu = fss_dot(n, u);
+        const float s_surf = nu > 0.0f ? d / nu : INFINITY;
+
+        if (tri >= 0 && r < s_surf) {
+            /* 3. hit: its returns now (hit_size 0), or queued for hit_returns */
+            const int4 queued = (int4)(v, b, i * k_phi + j, tri);
+            if (hit_size == 0) {
+                fss_hit_returns(nodes, children, tris, rotations, translations, plane_normals, plane_offsets,
+                                directions, beam_table, sonar, k_theta, k_phi, weight, gamma, surface_reflection,
+                                epsilon, first_rows, rows, masked, needed, queued, r, acc);
+            } else {
+                const int slot = atomic_inc(hits);
+                if (slot < hit_size) {
+                    hit_items[slot] = queued;
+                    hit_ranges[slot] = r;
+                }
+            }
+        } else if (s_surf < r && s_surf < INFINITY) {
+            /* 4. surface first: mirror2 */
+            if (!fss_needed(needed, masked, v, 1, b, sonar.beams))
+                continue;
+            const float3 Q = s_surf * u;
+            const float3 u2 = u - (2.0f * nu) * n;
+            const float3 u2_ref = fss_rotate(rot, u2);
+            const float3 Q_ref = fss_rotate(rot, Q) + t;
+            int tri2;
+            const float r2 = fss_bvh_intersect(nodes, children, tris, Q_ref, u2_ref, epsilon,
+                                               max_distance, &tri2);
+            if (tri2 < 0)
+                continue;
+            const float c2 = fabs(fss_dot(u2_ref, fss_tri_normal(tris, tri2)));
+            fss_deposit(acc, v, 3, b, s_surf + r2, surface_reflection * surface_reflection * pow(c2, gamma),
+                        weight, sonar, first, rows);
+        }
     }
 }
 
