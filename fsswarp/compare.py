@@ -424,7 +424,7 @@ class ViewComparison:
         one, at every candidate shift; and (G, V, 2, beams) synthetic contours, or None with
         ``contours`` false (the costs are then combined on the device, ``Backend.view_costs``,
         and only they are read back). One launch unless the layers would exceed
-        ``settings.launch_bytes``.
+        ``settings.launch_bytes`` or its sub-rays 2^31.
 
         Each pair renders only the band of rows its view's window reads and the beams its masks
         read (:meth:`grid_launches`; ``render_device``'s ``rows`` and ``beams``): the contours
@@ -438,6 +438,7 @@ class ViewComparison:
         data = self.data
         n_views = len(data.views)
         first, rows, read, per = self.grid_launches()
+        per = min(per, max(1, (2**31 - 1) // (n_views * self.sonar.beams * samples[0] * samples[1])))  # sub-rays
         shifts = self.shifts if self.shift is None else [self.shift]
         ahead = self.backend.is_gpu
         launches = _launches(len(depths), per, ahead)

@@ -365,6 +365,31 @@ def test_grid_launches_hold_at_most_the_launch_bytes_and_2_31_values(coral_one, 
         assert (4 * values * (per + 1) > size) if binds == "bytes" else ((per + 1) * values >= 2**31)
 
 
+def test_grid_launches_hold_below_2_31_sub_rays(truth_comparison, monkeypatch):
+    """With many sub-rays per beam the grid's launches hold fewer cells: one launch's views ×
+    beams × K_θ × K_φ stay below 2^31 (a render refuses more), at least one cell a launch."""
+    from fsswarp import compare
+
+    class Planned(Exception):
+        pass
+
+    seen = []
+
+    def launches(cells, per, ahead):
+        seen.append(per)
+        raise Planned
+
+    monkeypatch.setattr(compare, "_launches", launches)
+    truth = truth_comparison.data
+    views = len(truth.views)
+    for samples in ((2, 64), (256, 256)):
+        with pytest.raises(Planned):
+            truth_comparison.view_costs(np.array([0.43, 0.44]), np.array([0.18, 0.18]), samples, 0.03)
+    beams = truth_comparison.sonar.beams
+    assert seen[0] == truth_comparison.grid_launches()[3] and seen[0] * views * beams * 2 * 64 < 2**31
+    assert seen[1] * views * beams * 2**16 < 2**31 <= (seen[1] + 1) * views * beams * 2**16
+
+
 def test_a_gpu_locates_without_the_host_copy(coral_one, truth_model, opencl, monkeypatch):
     """On a GPU, locating scans the predicted views from row 0 and leaves their host copy
     unread until ``predicted`` is read: the same data contours, anchors, shift, layers and

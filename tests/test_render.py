@@ -426,6 +426,22 @@ def test_render_device_rejects_bad_rows_and_beams(backend, name, value):
                               surface_reflection=RS, **{name: value})
 
 
+def test_a_launch_of_2_31_sub_rays_or_more_is_refused(backend):
+    """The render kernels count a launch's sub-rays in int32: a render or a stream of batches
+    that would pass 2^31 of them is refused before any work (one fewer view passes the check)."""
+    sonar, mesh, rot, trans, normals, offsets = coral_inputs()
+    handle = backend.load_mesh(mesh.vertices, mesh.faces)
+    samples = (2**10, 2**10)  # 96 beams: 2^31 / (96 · 2^20) = 21.3 views
+    views = np.arange(22) % len(rot)
+    with pytest.raises(ValueError, match="2\\^31 sub-rays"):
+        backend.plan_render(handle, sonar, rot[views], trans[views], normals[views], offsets[views], samples)
+    with pytest.raises(ValueError, match="2\\^31 sub-rays"):
+        backend.render_batches(handle, sonar, rot[views], trans[views], normals[views], offsets[views], samples,
+                               gamma=GAMMA, surface_reflection=RS, batch=22)
+    backend.plan_render(handle, sonar, rot[views[:21]], trans[views[:21]], normals[views[:21]],
+                        offsets[views[:21]], samples)
+
+
 def beam_masks(n_views: int, beams: int) -> np.ndarray:
     """Seeded (N, 2, beams) beams read: random beams of each component, with one view that reads
     no mirror beam and one that reads every object beam but no mirror beam left of the middle."""

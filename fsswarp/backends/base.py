@@ -388,6 +388,7 @@ class Backend(abc.ABC):
         if n_views * 4 * count * sonar.beams >= 2**31:
             raise ValueError(f"{n_views} views of {count} x {sonar.beams} exceed one launch's "
                              f"2^31 pixels; split the batch")
+        _check_sub_rays(n_views, sonar.beams, k_theta, k_phi)
         spans = shared = None
         if n_views:
             spans = self._spans(mesh, sonar, rot, trans, normals, offsets, k_phi)
@@ -437,6 +438,7 @@ class Backend(abc.ABC):
         if not is_integer(batch) or batch < 1 or batch * 4 * sonar.bins * sonar.beams >= 2**31:
             raise ValueError(f"batch must be an integer >= 1 with batch x 4 x {sonar.bins} x {sonar.beams} "
                              f"< 2^31 pixels, got {batch!r}")
+        _check_sub_rays(min(int(batch), rot.shape[0]), sonar.beams, k_theta, k_phi)
         if rot.shape[0] == 0:
             return (batch for batch in ())
         return self._render_batches(mesh, SonarConstants.of(sonar), sonar.beam_widths, rot, trans, normals,
@@ -994,6 +996,14 @@ def render_with_room(render_once: Callable[[float | None], Callable[[], tuple[in
     if overflowed():
         render_once(None)
     return None
+
+
+def _check_sub_rays(n_views: int, beams: int, k_theta: int, k_phi: int) -> None:
+    """Raise unless one launch's sub-rays, ``n_views`` × ``beams`` × K_θ × K_φ, stay below 2^31
+    (the render kernels count them in int32)."""
+    if n_views * beams * k_theta * k_phi >= 2**31:
+        raise ValueError(f"{n_views} views of {beams} beams x ({k_theta}, {k_phi}) sub-rays exceed one launch's "
+                         f"2^31 sub-rays; split the batch")
 
 
 def _needed_beams(beams, n_views: int, n_beams: int) -> np.ndarray | None:
