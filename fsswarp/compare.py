@@ -438,7 +438,7 @@ class ViewComparison:
         data = self.data
         n_views = len(data.views)
         first, rows, read, per = self.grid_launches()
-        per = min(per, max(1, (2**31 - 1) // (n_views * self.sonar.beams * samples[0] * samples[1])))  # sub-rays
+        per = min(per, max(1, (2**31 - 1) // (n_views * self.sonar.beams * samples[0] * samples[1])))  # < 2^31 sub-rays
         shifts = self.shifts if self.shift is None else [self.shift]
         ahead = self.backend.is_gpu
         launches = _launches(len(depths), per, ahead)

@@ -449,9 +449,9 @@ class Backend(abc.ABC):
                k_phi: int) -> np.ndarray:
         """The (N, 4) sub-rays each view casts: :func:`ray_spans` on a CPU device; every sub-ray on
         a GPU, where the spans' host work outweighed what they save (measured on an H100,
-        docs/decisions.md). The renders pack the sub-rays in spans into chunks (``_ray_chunks``),
-        a GPU finding its own spans on the device; these size the queue of hits and the shared
-        poses' direct legs (and OpenCL on a CPU packs them)."""
+        docs/decisions.md). The renders launch only for the sub-rays in spans, packed in chunks
+        (``_ray_chunks``): a GPU finds its spans on the device, OpenCL on a CPU packs these.
+        These also size the queue of hits and the shared poses' direct legs."""
         if self.is_gpu:
             return np.tile(np.array([[0, sonar.beams, 0, k_phi]], np.int32), (rotations.shape[0], 1))
         return ray_spans(mesh.bounds, sonar, rotations, translations, plane_normals, plane_offsets, k_phi)

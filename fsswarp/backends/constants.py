@@ -19,8 +19,8 @@ MAX_DISTANCE = 1e6
 #: the Warp render uses it as "no limit" where the OpenCL render uses ``MAX_DISTANCE``.
 WARP_FAR = 1e30
 #: Margin (rad) of the sub-ray spans (``fsswarp.backends.base.ray_spans``, Warp's
-#: ``view_spans_kernel``) around the azimuths and elevations a mesh covers; the kernels' float32
-#: sub-ray angles round by about 1e-7 rad.
+#: ``view_spans_kernel``, OpenCL's ``view_spans``) around the azimuths and elevations a mesh
+#: covers; the kernels' float32 sub-ray angles round by about 1e-7 rad.
 SPAN_MARGIN = 1e-4
 #: Indices are clamped to ±2^30 before conversion to int32, so far-away points cannot overflow.
 INDEX_LIMIT = 1073741824.0
@@ -44,8 +44,9 @@ CPU_HIT_QUEUE = 1 / 2
 #: Warp's ``view_spans_kernel``, OpenCL's ``view_spans``) is cut into chunks, each chunk knows
 #: its view, and a warp's 32 threads take 32 sub-rays of one chunk.
 RAY_CHUNK = 64
-#: Threads of a render launch per multiprocessor (or core) of the device: each takes every such
-#: thread count's sub-ray of the chunks in turn, so none is launched for a sub-ray no view casts.
+#: Threads of a GPU's render launch per multiprocessor: each takes every such thread count's
+#: sub-ray of the chunks in turn, so none is launched for a sub-ray no view casts (a CPU device
+#: launches one per sub-ray, docs/decisions.md).
 RENDER_THREADS_PER_UNIT = 2048
 
 
