@@ -406,17 +406,21 @@ class ViewComparison:
         return self.backend.render_planned(self.mesh, self.sonar, plan, gamma=ECHO.gamma,
                                            surface_reflection=ECHO.surface_reflection, wait=wait)
 
-    def grid_launches(self) -> tuple[np.ndarray, int, np.ndarray, int]:
+    def grid_launches(self, samples=None) -> tuple[np.ndarray, int, np.ndarray, int]:
         """How :meth:`view_costs` renders the data views: (first (V,), R, read (V, 2, beams), cells per
         launch): the band of R rows from ``first`` that holds what each view's window reads
         (``rows_read``, the widest view's R, started lower where it would pass the last row), the
-        beams its masks read (``beams_read``), and the most cells whose layers (16 B per pixel of
-        the bands: four int32 layers) fit ``settings.launch_bytes`` and one launch's 2^31 values."""
+        beams its masks read (``beams_read``), and the most cells (at least one) whose layers (16 B
+        per pixel of the bands: four int32 layers) fit ``settings.launch_bytes`` and one launch's
+        2^31 values, and, with ``samples`` (K_θ, K_φ), whose sub-rays stay below 2^31."""
         data, sonar = self.data, self.sonar
         need_lo, need_hi = rows_read(data.windows, len(self.smoothing[0]), sonar.bins)
         rows = int(np.max(need_hi - need_lo))
         values = 4 * rows * sonar.beams * len(data.views)  # a cell's
-        per = max(1, min(self.settings.launch_bytes // (4 * values), (2**31 - 1) // values))
+        bounds = [self.settings.launch_bytes // (4 * values), (2**31 - 1) // values]
+        if samples is not None:
+            bounds.append((2**31 - 1) // (len(data.views) * sonar.beams * samples[0] * samples[1]))
+        per = max(1, min(bounds))
         return np.minimum(need_lo, sonar.bins - rows), rows, beams_read(data.masks, len(self.smoothing[1])), per
 
     def view_costs(self, depths: np.ndarray, tilts: np.ndarray, samples, cap: float, *, contours: bool = True):
@@ -437,8 +441,7 @@ class ViewComparison:
         is made again then, ``Backend.render_planned``)."""
         data = self.data
         n_views = len(data.views)
-        first, rows, read, per = self.grid_launches()
-        per = min(per, max(1, (2**31 - 1) // (n_views * self.sonar.beams * samples[0] * samples[1])))  # < 2^31 sub-rays
+        first, rows, read, per = self.grid_launches(samples)
         shifts = self.shifts if self.shift is None else [self.shift]
         ahead = self.backend.is_gpu
         launches = _launches(len(depths), per, ahead)

@@ -127,7 +127,7 @@ int4 fss_image_span(__global const float *box, __global const float *rot, __glob
         const float3 c = (float3)(box[(k & 1) ? 3 : 0], box[(k & 2) ? 4 : 1], box[(k & 4) ? 5 : 2]);
         float3 p = fss_to_view(c, rot, t);
         if (mirror)
-            p = p - (2.0f * (p.x * n.x + p.y * n.y + p.z * n.z - d)) * n;
+            p = p - (2.0f * (fss_dot(p, n) - d)) * n;
         if (p.y > 0.0f) {
             const float slope = p.x / p.y;
             s_lo = fmin(s_lo, slope);

@@ -386,7 +386,8 @@ def test_grid_launches_hold_below_2_31_sub_rays(truth_comparison, monkeypatch):
         with pytest.raises(Planned):
             truth_comparison.view_costs(np.array([0.43, 0.44]), np.array([0.18, 0.18]), samples, 0.03)
     beams = truth_comparison.sonar.beams
-    assert seen[0] == truth_comparison.grid_launches()[3] and seen[0] * views * beams * 2 * 64 < 2**31
+    assert seen[0] == truth_comparison.grid_launches()[3] == truth_comparison.grid_launches((2, 64))[3]
+    assert seen[0] * views * beams * 2 * 64 < 2**31
     assert seen[1] * views * beams * 2**16 < 2**31 <= (seen[1] + 1) * views * beams * 2**16
 
 

@@ -826,22 +826,23 @@ def test_device_spans_equal_ray_spans_and_chunk_every_sub_ray(backend):
                                       ray_spans(handle.bounds, sonar, *level, 64))
 
 
-def test_opencl_cpu_renders_the_same_with_the_gpus_device_spans(backend_for_label, monkeypatch):
-    """OpenCL on a CPU chunks the host's spans, on a GPU it finds them on the device
-    (``view_spans``) and its work-items take several sub-rays each: forced onto that path, the
-    CPU device renders the same layers bit for bit."""
-    opencl = backend_for_label("opencl-cpu")
+@pytest.mark.parametrize("label", ["warp-cpu", "opencl-cpu"])
+def test_a_cpu_renders_the_same_with_the_gpus_device_spans(backend_for_label, monkeypatch, label):
+    """A CPU device chunks the host's spans; a GPU finds them on the device (``view_spans``) and
+    its threads take several sub-rays each: forced onto that path, the CPU device renders the
+    same layers bit for bit."""
+    cpu = backend_for_label(label)
     sonar, mesh, rot, trans, normals, offsets = coral_inputs()
-    handle = opencl.load_mesh(mesh.vertices, mesh.faces)
+    handle = cpu.load_mesh(mesh.vertices, mesh.faces)
     given = []
-    chunks = opencl._ray_chunks
-    monkeypatch.setattr(opencl, "_ray_chunks", lambda *a, **k: given.append(a[8] if len(a) > 8 else None) or chunks(*a))
+    chunks = cpu._ray_chunks
+    monkeypatch.setattr(cpu, "_ray_chunks", lambda *a, **k: given.append(a[8] if len(a) > 8 else None) or chunks(*a))
 
     def render():
-        return opencl.render(handle, sonar, rot, trans, normals, offsets, SAMPLES, gamma=GAMMA, surface_reflection=RS)
+        return cpu.render(handle, sonar, rot, trans, normals, offsets, SAMPLES, gamma=GAMMA, surface_reflection=RS)
 
     want = render()
-    monkeypatch.setattr(opencl, "is_gpu", True)
+    monkeypatch.setattr(cpu, "is_gpu", True)
     got = render()
     assert given[0] is not None and given[-1] is None  # the host's spans, then the device's
     np.testing.assert_array_equal(got, want)

@@ -26,7 +26,8 @@ import numpy as np
 
 from ..errors import is_integer, is_number, real_array
 from ..sonar import SonarSpec
-from .constants import CPU_HIT_QUEUE, FIXED_SCALE, GPU_HIT_QUEUE, GPU_ICP_LANES, MAX_DISTANCE, SPAN_MARGIN
+from .constants import (CPU_HIT_QUEUE, FIXED_SCALE, GPU_HIT_QUEUE, GPU_ICP_LANES, MAX_DISTANCE, RAY_CHUNK,
+                        SPAN_MARGIN)
 
 
 #: ``SonarConstants``' scalars as one kernel argument: the layout of ``fss_sonar`` (kernels/sonar.h)
@@ -450,8 +451,9 @@ class Backend(abc.ABC):
         """The (N, 4) sub-rays each view casts: :func:`ray_spans` on a CPU device; every sub-ray on
         a GPU, where the spans' host work outweighed what they save (measured on an H100,
         docs/decisions.md). The renders launch only for the sub-rays in spans, packed in chunks
-        (``_ray_chunks``): a GPU finds its spans on the device, OpenCL on a CPU packs these.
-        These also size the queue of hits and the shared poses' direct legs."""
+        (``_ray_chunks``): a GPU finds its spans on the device, a CPU device packs these
+        (:func:`span_chunks`). These also size the queue of hits and the shared poses' direct
+        legs."""
         if self.is_gpu:
             return np.tile(np.array([[0, sonar.beams, 0, k_phi]], np.int32), (rotations.shape[0], 1))
         return ray_spans(mesh.bounds, sonar, rotations, translations, plane_normals, plane_offsets, k_phi)
@@ -908,6 +910,22 @@ def beam_edges(centres: np.ndarray, widths: np.ndarray) -> tuple[np.ndarray, np.
     upper = np.maximum.accumulate(centres + 0.5 * widths)
     lower = np.minimum.accumulate((centres - 0.5 * widths)[::-1])[::-1]
     return upper, np.ascontiguousarray(lower)
+
+
+def span_chunks(spans: np.ndarray, k_theta: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The render's chunks of ``RAY_CHUNK`` sub-rays over (N, 4) spans (the layout of the
+    device's ``view_spans`` kernels): (chunks (N,), their exclusive prefix sums (N,), the view of
+    each chunk), int32; a view's span holds (end − first beam) K_θ (end − first sample) sub-rays."""
+    counts = (spans[:, 1] - spans[:, 0]).astype(np.int64) * k_theta * (spans[:, 3] - spans[:, 2])
+    chunks = -(-counts // RAY_CHUNK)
+    return (chunks.astype(np.int32), (np.cumsum(chunks) - chunks).astype(np.int32),
+            np.repeat(np.arange(len(spans), dtype=np.int32), chunks))
+
+
+def most_chunks(n_views: int, beams: int, k_theta: int, k_phi: int) -> int:
+    """The most chunks of ``RAY_CHUNK`` sub-rays that ``n_views`` views can have (every sub-ray
+    of every view): the size of a render's chunk table found on the device."""
+    return n_views * -(-beams * k_theta * k_phi // RAY_CHUNK)
 
 
 @dataclass(frozen=True)

@@ -579,7 +579,7 @@ def pose_grid(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3,
     pixels = 4 * sonar.bins * sonar.beams
     distance_bytes = data.distances.nbytes
     mesh_bytes = len(model.faces) * TRIANGLE_BYTES
-    first, rows, read, per = problem.grid_launches()  # the bands and beams of view_costs, in its launches
+    first, rows, read, per = problem.grid_launches(settings.samples)  # view_costs' bands, beams and launches
 
     def render_alone(depths, tilts):
         for start in range(0, len(depths), per):

@@ -14,7 +14,7 @@ import numpy as np
 import pyopencl as cl
 
 from ..base import (Backend, DeviceLayers, PreparedLaunch, SonarConstants, beam_edges, fixed_floats,
-                    hit_queue_size, render_with_room, span_extent)
+                    hit_queue_size, most_chunks, render_with_room, span_chunks, span_extent)
 from ..bvh import FlatBVH, build_bvh
 from ..constants import (FRONTAL_VISIBLE, GPU_HIT_QUEUE, MAX_DISTANCE, RAY_CHUNK, RAY_EPSILON,
                          RENDER_THREADS_PER_UNIT)
@@ -317,18 +317,14 @@ class OpenCLBackend(Backend):
         ``fsswarp.backends.base.ray_spans``), and a GPU launches at most
         ``RENDER_THREADS_PER_UNIT`` work-items per compute unit, each taking several sub-rays in
         turn. A CPU device passes the host's ``spans`` (``Backend._spans``, found when the render
-        was planned) and chunks them here, and launches a work-item per sub-ray: on PoCL the
-        three kernels cost a render of 16 views 2.3 ms (15 %), and the 24 × 24 grid ran 1.27×
-        slower with work-items that took several sub-rays. ``poses``: the views' rotation,
-        translation, plane normal and offset buffers. Call holding ``_lock``."""
-        if spans is not None:
-            counts = (spans[:, 1] - spans[:, 0]) * k_theta * (spans[:, 3] - spans[:, 2])
-            chunks = -(-counts.astype(np.int64) // RAY_CHUNK)
-            offsets = np.concatenate([[0], np.cumsum(chunks)[:-1]])
-            table = np.repeat(np.arange(n), chunks)
-            arrays = (spans, chunks, offsets, table if table.size else np.zeros(1))
-            return tuple(self._input(np.ascontiguousarray(a, np.int32)) for a in arrays), \
-                max(GROUP, -(-int(table.size) * RAY_CHUNK // GROUP) * GROUP)
+        was planned), chunked on the host (``span_chunks``), and launches a work-item per sub-ray:
+        on PoCL the three kernels cost a render of 16 views 2.3 ms (15 %), and the 24 × 24 grid
+        ran 1.27× slower with work-items that took several sub-rays. ``poses``: the views'
+        rotation, translation, plane normal and offset buffers. Call holding ``_lock``."""
+        if spans is not None:  # some view reaches the mesh: the table is not empty
+            arrays = (spans, *span_chunks(spans, k_theta))
+            return (tuple(self._input(np.ascontiguousarray(a, np.int32)) for a in arrays),
+                    -(-arrays[3].size * RAY_CHUNK // GROUP) * GROUP)
         spans, chunks, offsets = self._scratch(16 * n), self._scratch(4 * n), self._scratch(4 * n)
         upper, lower = beam_edges(centres, np.asarray(beam_widths, np.float32))
         self._view_spans_kernel(self.queue, (-(-n // GROUP) * GROUP,), None,
@@ -338,7 +334,7 @@ class OpenCLBackend(Backend):
         group = min(SCAN_GROUP, self.cl_device.max_work_group_size)
         self._chunk_offsets_kernel(self.queue, (group,), (group,), chunks, np.int32(n), offsets,
                                    cl.LocalMemory(4 * group))
-        most = n * -(-sonar.beams * k_theta * k_phi // RAY_CHUNK)  # every sub-ray of every view
+        most = most_chunks(n, sonar.beams, k_theta, k_phi)
         chunk_views = self._scratch(4 * most)
         self._chunk_views_kernel(self.queue, (-(-n // GROUP) * GROUP,), None, chunks, offsets, np.int32(n),
                                  chunk_views)

@@ -11,7 +11,7 @@ import numpy as np
 import warp as wp
 
 from ..base import (Backend, DeviceLayers, PreparedLaunch, SonarConstants, beam_edges, fixed_floats,
-                    hit_queue_size, render_with_room, span_extent)
+                    hit_queue_size, most_chunks, render_with_room, span_chunks, span_extent)
 from ..constants import (FIXED_SCALE, FRONTAL_VISIBLE, MAX_DISTANCE, RAY_CHUNK, RAY_EPSILON,
                          RENDER_THREADS_PER_UNIT, WARP_FAR)
 from ..runtimes import import_warp
@@ -30,8 +30,8 @@ from .sonar import kernel_sonar
 #: 190 ms on an H100 (docs/decisions.md). Between launches the pool then holds at most this
 #: share unused, which other processes on the same GPU cannot have meanwhile.
 MEMPOOL_KEEP = 0.25
-#: Threads of a render launch on the CPU (one thread runs a Warp CPU launch anyway; a few, so
-#: that each takes several sub-rays, as on a GPU).
+#: Threads of a render launch that finds its spans on a CPU device (the GPU's path, which the
+#: tests force there): a few, so that each takes several sub-rays, as on a GPU.
 CPU_THREADS = 1024
 #: ``WarpBackend._constant``: inputs up to this size are kept on the device for reuse ...
 CONSTANT_BYTES = 1 << 18
@@ -239,8 +239,8 @@ class WarpBackend(Backend):
         the device's current stream: acc (n, 4, R, beams) int32, zeroed, receives the deposits,
         and layers (n, 4, R, beams) float32, if given, their floats; first_rows (n,) int32 on the
         device; spans (n, 4) int32 on the host (``Backend._render``: nothing is cast where they
-        are all empty, and the queue of hits is sized on them; the kernel's own spans are found
-        on the device, ``_ray_chunks``); shared, the views' SharedPoses
+        are all empty, and the queue of hits is sized on them; a CPU device packs them, a GPU
+        finds its own on the device, ``_ray_chunks``); shared, the views' SharedPoses
         (or None), whose distinct poses' direct legs are cast first; needed, None or the (n, 2,
         beams) uint8 beams read (``Backend._render``); hit_share, the queue of hits
         (``hit_queue_size``; None: room for every hit). Returns without waiting: the queue's count
@@ -264,7 +264,8 @@ class WarpBackend(Backend):
             queue = (wp.zeros(1, dtype=wp.int32), wp.empty(size, dtype=wp.vec4i), wp.empty(size, dtype=float))
             table, masks = (self._constant(sonar.beam_table, float),
                             self._constant(np.ones((1, 1, 1), np.uint8) if needed is None else needed, wp.uint8))
-            chunks, threads = self._ray_chunks(mesh, sonar, centres, widths, poses, acc.shape[0], k_theta, k_phi)
+            chunks, threads = self._ray_chunks(mesh, sonar, centres, widths, poses, acc.shape[0], k_theta, k_phi,
+                                               None if self.is_gpu else spans)
             _launch(render_kernel, dim=threads,
                     inputs=[mesh.id, mesh.corners, *poses, directions, kernel_sonar(sonar), int(k_theta),
                             weight, float(gamma), float(surface_reflection), first_rows, *chunks, RAY_CHUNK, threads,
@@ -280,13 +281,19 @@ class WarpBackend(Backend):
         return (queue[0], size) if widest else None
 
     def _ray_chunks(self, mesh, sonar: SonarConstants, centres: np.ndarray, widths: np.ndarray, poses, n: int,
-                    k_theta: int, k_phi: int) -> tuple[tuple[wp.array, wp.array, wp.array, wp.array], int]:
-        """render_kernel's sub-rays, found on the device: ((spans (n, 4) int32, chunks (n,), their
-        exclusive prefix sums (n,), chunk_views, the view of each chunk), the launch's threads),
-        for the n views ``poses`` (``_poses``). Each view's span holds the sub-rays that can
-        reach the mesh's box directly or by the surface first (``view_spans_kernel``, as
-        ``fsswarp.backends.base.ray_spans``); the others deposit nothing, so the layers are those
-        of every sub-ray, bit for bit."""
+                    k_theta: int, k_phi: int, spans=None) -> tuple[tuple[wp.array, wp.array, wp.array, wp.array], int]:
+        """render_kernel's sub-rays: ((spans (n, 4) int32, chunks (n,), their exclusive prefix
+        sums (n,), chunk_views, the view of each chunk), the launch's threads), for the n views
+        ``poses`` (``_poses``). Each view's span holds the sub-rays that can reach the mesh's box
+        directly or by the surface first; the others deposit nothing, so the layers are those of
+        every sub-ray, bit for bit. Without ``spans`` they are found on the device
+        (``view_spans_kernel``, as ``fsswarp.backends.base.ray_spans``) and the launch's threads
+        each take several in turn; a CPU device passes the host's ``spans`` (found when the render
+        was planned), chunked on the host (``span_chunks``), a thread per sub-ray."""
+        if spans is not None:  # some view reaches the mesh: the table is not empty
+            arrays = (spans, *span_chunks(spans, k_theta))
+            return tuple(self._array(np.ascontiguousarray(a, np.int32), wp.int32) for a in arrays), \
+                int(arrays[3].size) * RAY_CHUNK
         lower, upper = (wp.vec3(*bound.astype(np.float32)) for bound in mesh.bounds)
         spans, chunks, offsets = (wp.empty(shape, dtype=wp.int32) for shape in ((n, 4), n, n))
         _launch(view_spans_kernel, dim=n,
@@ -294,7 +301,7 @@ class WarpBackend(Backend):
                         float(sonar.half_elevation), int(k_theta), int(k_phi), RAY_CHUNK],
                 outputs=[spans, chunks])
         wp.utils.array_scan(chunks, offsets, inclusive=False)
-        most = n * -(-sonar.beams * k_theta * k_phi // RAY_CHUNK)  # every sub-ray of every view
+        most = most_chunks(n, sonar.beams, k_theta, k_phi)
         chunk_views = wp.empty(most, dtype=wp.int32)
         _launch(chunk_views_kernel, dim=n, inputs=[chunks, offsets], outputs=[chunk_views])
         return (spans, chunks, offsets, chunk_views), min(most * RAY_CHUNK, self._resident_threads())
