@@ -6,6 +6,7 @@ import pytest
 import trimesh
 
 from fsswarp.backends import HostLayers, beams_read
+from fsswarp.backends.base import mask_items
 from fsswarp.compare import _gaussian
 from fsswarp.rig import Rig, View
 from fsswarp.sonar import SonarSpec
@@ -245,6 +246,21 @@ def test_beams_read_are_the_beams_the_smoothing_reaches(taps):
         for k in range(-radius, radius + 1):
             want[n, c, min(max(b + k, 0), 39)] = True
     np.testing.assert_array_equal(beams_read(masks, taps), want)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_mask_items_list_each_views_masked_beams_in_order(seed):
+    """mask_items: per view, c · beams + b of every masked (component, beam) in that order, then
+    -1 up to the most of any view (a loop over the masks), at least one column."""
+    masks = np.random.default_rng(seed).random((5, 2, 30)) < 0.3
+    masks[0] = False
+    masks[2] = True
+    want = [[c * 30 + b for c in range(2) for b in range(30) if masks[v, c, b]] for v in range(5)]
+    items = mask_items(masks)
+    assert items.dtype == np.int32 and items.shape == (5, max(map(len, want)))
+    for v in range(5):
+        np.testing.assert_array_equal(items[v], want[v] + [-1] * (items.shape[1] - len(want[v])))
+    assert mask_items(np.zeros((3, 2, 4), bool)).tolist() == [[-1]] * 3
 
 
 def test_layers_of_the_beams_read_give_the_full_layers_results(backend):

@@ -859,6 +859,20 @@ def beams_read(masks, beam_taps: int) -> np.ndarray:
     return read
 
 
+def mask_items(masks: np.ndarray) -> np.ndarray:
+    """The contours each view's ``frontal_contour`` threads find: for (V, 2, beams) bool
+    ``masks``, (V, K) int32 items c · beams + b of the masked (component c, beam b) of each view
+    in that order, padded with -1; K the most of any view (at least 1). A thread per item, not
+    per beam: a view's masks keep 17-42 of 96 beams of each component on coral-one, and a warp
+    of 32 beams then ran mostly idle lanes (bench/notes.md)."""
+    flat = np.asarray(masks, bool).reshape(len(masks), -1)
+    counts = flat.sum(axis=1)
+    items = np.full((len(flat), max(1, int(counts.max(initial=0)))), -1, np.int32)
+    view, item = np.nonzero(flat)
+    items[view, np.arange(len(item)) - np.repeat(np.cumsum(counts) - counts, counts)] = item
+    return items
+
+
 def ray_spans(bounds: np.ndarray, sonar: SonarSpec, rotations: np.ndarray, translations: np.ndarray,
               plane_normals: np.ndarray, plane_offsets: np.ndarray, k_phi: int) -> np.ndarray:
     """(N, 4) int32 spans of the sub-rays that can reach a mesh inside the box ``bounds`` (2, 3)

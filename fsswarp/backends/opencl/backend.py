@@ -14,7 +14,7 @@ import numpy as np
 import pyopencl as cl
 
 from ..base import (Backend, DeviceLayers, PreparedLaunch, SonarConstants, beam_edges, fixed_floats,
-                    hit_queue_size, most_chunks, render_with_room, span_chunks, span_extent)
+                    hit_queue_size, mask_items, most_chunks, render_with_room, span_chunks, span_extent)
 from ..bvh import FlatBVH, build_bvh
 from ..constants import (FRONTAL_VISIBLE, GPU_HIT_QUEUE, MAX_DISTANCE, RAY_CHUNK, RAY_EPSILON,
                          RENDER_THREADS_PER_UNIT)
@@ -484,10 +484,12 @@ class OpenCLBackend(Backend):
         contour_buf = self._scratch(4 * n_pairs * 2 * beams)
         sums_buf = self._scratch(4 * n_pairs * 2 * n_shifts)
         counts_buf = self._scratch(4 * n_pairs * 2)
+        cl.enqueue_fill_buffer(self.queue, contour_buf, np.float32(-1.0), 0, 4 * n_pairs * 2 * beams)
+        items = mask_items(masks)
         self._frontal_kernel(
-            self.queue, (-(-beams // GROUP) * GROUP, 2, n_pairs), (GROUP, 1, 1),
-            stack, np.int32(fixed), index, self._input(thresholds), self._input(windows), self._input(masks),
-            self._input(range_weights), np.int32((range_weights.shape[0] - 1) // 2),
+            self.queue, (-(-items.shape[1] // GROUP) * GROUP, n_pairs), (GROUP, 1),
+            stack, np.int32(fixed), index, self._input(thresholds), self._input(windows), self._input(items),
+            np.int32(items.shape[1]), self._input(range_weights), np.int32((range_weights.shape[0] - 1) // 2),
             self._input(beam_weights), np.int32((beam_weights.shape[0] - 1) // 2), np.int32(bins),
             np.int32(beams), self._input(first_rows), np.int32(layers.shape[2]), contour_buf)
         group = min(GROUP, 1 << (n_shifts - 1).bit_length())

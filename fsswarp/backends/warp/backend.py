@@ -11,7 +11,7 @@ import numpy as np
 import warp as wp
 
 from ..base import (Backend, DeviceLayers, PreparedLaunch, SonarConstants, beam_edges, fixed_floats,
-                    hit_queue_size, most_chunks, render_with_room, span_chunks, span_extent)
+                    hit_queue_size, mask_items, most_chunks, render_with_room, span_chunks, span_extent)
 from ..constants import (FIXED_SCALE, FRONTAL_VISIBLE, MAX_DISTANCE, RAY_CHUNK, RAY_EPSILON,
                          RENDER_THREADS_PER_UNIT, WARP_FAR)
 from ..runtimes import import_warp
@@ -454,11 +454,12 @@ class WarpBackend(Backend):
         else:
             stack, scale = self._array(np.ascontiguousarray(layers.numpy(), np.float32), float), 1.0
         index = self._constant(view_index, wp.int32)
-        contour = wp.empty((n_pairs, 2, beams), dtype=float)
-        _launch(frontal_contour, dim=(n_pairs, 2, beams),
+        contour = wp.full((n_pairs, 2, beams), -1.0, dtype=float)
+        items = mask_items(masks)
+        _launch(frontal_contour, dim=(n_pairs, items.shape[1]),
                 inputs=[stack, scale, self._constant(first_rows, wp.int32), index, self._constant(thresholds, float),
                         self._constant(windows, wp.int32),
-                        self._constant(masks, wp.uint8), self._constant(range_weights, float),
+                        self._constant(items, wp.int32), self._constant(range_weights, float),
                         (range_weights.shape[0] - 1) // 2, self._constant(beam_weights, float),
                         (beam_weights.shape[0] - 1) // 2],
                 outputs=[contour])

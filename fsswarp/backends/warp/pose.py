@@ -35,44 +35,67 @@ def beam_row(layers: wp.array4d(dtype=Any), scale: float, n: int, c: int, bi: in
     return row
 
 
+@wp.func
+def _next_slot(slot: int, taps: int):
+    """The ring's slot after ``slot`` (0 after taps − 1)."""
+    following = slot + 1
+    if following == taps:
+        following = 0
+    return following
+
+
 @wp.kernel
 def frontal_contour(layers: wp.array4d(dtype=Any), scale: float, first_rows: wp.array(dtype=wp.int32),
                     view_index: wp.array(dtype=wp.int32),
                     threshold: wp.array2d(dtype=float), window: wp.array2d(dtype=wp.int32),
-                    mask: wp.array3d(dtype=wp.uint8), w_range: wp.array(dtype=float), r_range: int,
+                    items: wp.array2d(dtype=wp.int32), w_range: wp.array(dtype=float), r_range: int,
                     w_beam: wp.array(dtype=float), r_beam: int, contour: wp.array3d(dtype=float)):
-    """Thread (n, c, b): first threshold crossing of the smoothed component c of pair n in beam b.
+    """Thread (n, k): item k = c · beams + b of pair n's view (``base.mask_items``; -1: none),
+    the first threshold crossing of the smoothed component c of pair n in beam b, into contour
+    (N, 2, beams), whose other entries the host sets to -1.
     layers (N, 4, R, beams) float32 (scale 1) or fixed-point int32 (scale 2^-24): image row B of
     pair n at row B − first_rows[n] (full layers: zeros, R = bins); rows clamp to the image,
     and the host guarantees the band holds every row read.
     Each row's beam smoothing is summed once into a ring of the last 2 r_range + 1 rows
-    (at most RING_TAPS; else afresh per tap): the same sums in the same order."""
-    n, c, b = wp.tid()
+    (at most RING_TAPS; else afresh per tap): the same sums in the same order. Row k lies in
+    slot (k + taps) % taps (k > −taps), stepped to rather than divided for (an integer
+    division per tap: 21% of the kernel's time on an H200)."""
+    n, k = wp.tid()
     v = view_index[n]
+    item = items[v, k]
     bins = threshold.shape[1]
     beams = layers.shape[3]
+    c = item // beams
+    b = item - c * beams
     first = first_rows[n]
     taps = 2 * r_range + 1
     result = float(-1.0)
-    if mask[v, c, b] != wp.uint8(0):
+    if item >= 0:
         lo = window[v, 0]
         hi = window[v, 1]
         ring = Ring()
         cached = taps <= RING_TAPS
-        if cached:  # rows lo − r_range .. lo + r_range − 1; row k in slot (k + taps) % taps (k > −taps)
+        oldest = (lo - r_range + taps) % taps  # the slot of row row_index − r_range
+        if cached:  # rows lo − r_range .. lo + r_range − 1
+            slot = oldest
             for k in range(lo - r_range, lo + r_range):
-                ring[(k + taps) % taps] = beam_row(layers, scale, n, c, wp.clamp(k, 0, bins - 1) - first, b, beams,
-                                                   w_beam, r_beam)
+                ring[slot] = beam_row(layers, scale, n, c, wp.clamp(k, 0, bins - 1) - first, b, beams, w_beam, r_beam)
+                slot = _next_slot(slot, taps)
         previous = float(0.0)
         row_index = int(lo)
         while row_index < hi:
             s = float(0.0)
-            if cached:
-                k = row_index + r_range
-                ring[(k + taps) % taps] = beam_row(layers, scale, n, c, wp.clamp(k, 0, bins - 1) - first, b, beams,
-                                                   w_beam, r_beam)
+            if cached:  # row row_index + r_range takes the slot of row row_index − r_range − 1
+                newest = oldest - 1
+                if newest < 0:
+                    newest = taps - 1
+                ring[newest] = beam_row(layers, scale, n, c, wp.clamp(row_index + r_range, 0, bins - 1) - first, b,
+                                        beams, w_beam, r_beam)
+                slot = oldest
                 for i in range(taps):
-                    s += w_range[i] * ring[(row_index + i - r_range + taps) % taps]
+                    s += w_range[i] * ring[slot]
+                    slot = _next_slot(slot, taps)
+                oldest = _next_slot(oldest, taps)
             else:
                 for i in range(taps):
                     bi = wp.clamp(row_index + i - r_range, 0, bins - 1) - first
@@ -87,7 +110,7 @@ def frontal_contour(layers: wp.array4d(dtype=Any), scale: float, first_rows: wp.
             else:
                 previous = f
                 row_index += 1
-    contour[n, c, b] = result
+        contour[n, c, b] = result
 
 
 for _dtype in (wp.float32, wp.int32):  # float layers from the host, the accumulator on the device
