@@ -52,8 +52,7 @@
  *
  * Work size: frontal_contour 2-D, (n_items rounded up to the work-group size, N); contour_cost
  * 3-D, (S rounded up, 2, N); view_cost 2-D, (S rounded up, N); items past the first
- * dimension's extent return at once. The host
- * validates everything; no checks here.
+ * dimension's extent return at once. The host validates everything; no checks here.
  */
 #include "sonar.h"
 
@@ -121,8 +120,8 @@ __kernel void frontal_contour(__global const int *layers,
     float ring[RING_TAPS];
     int oldest = (lo - rB + taps) % taps; /* the slot of row B - rB */
     if (cached)
-        for (int k = lo - rB, slot = oldest; k < lo + rB; ++k, slot = slot + 1 == taps ? 0 : slot + 1)
-            ring[slot] = beam_row(l0, l1, fixed, clamp(k, 0, bins - 1) - first, b, beams, wb, rb);
+        for (int row = lo - rB, slot = oldest; row < lo + rB; ++row, slot = slot + 1 == taps ? 0 : slot + 1)
+            ring[slot] = beam_row(l0, l1, fixed, clamp(row, 0, bins - 1) - first, b, beams, wb, rb);
     float previous = 0.0f;
     for (int B = lo; B < hi; ++B) {
         float s = 0.0f;

@@ -78,8 +78,9 @@ def frontal_contour(layers: wp.array4d(dtype=Any), scale: float, first_rows: wp.
         oldest = (lo - r_range + taps) % taps  # the slot of row row_index − r_range
         if cached:  # rows lo − r_range .. lo + r_range − 1
             slot = oldest
-            for k in range(lo - r_range, lo + r_range):
-                ring[slot] = beam_row(layers, scale, n, c, wp.clamp(k, 0, bins - 1) - first, b, beams, w_beam, r_beam)
+            for row in range(lo - r_range, lo + r_range):
+                ring[slot] = beam_row(layers, scale, n, c, wp.clamp(row, 0, bins - 1) - first, b, beams, w_beam,
+                                      r_beam)
                 slot = _next_slot(slot, taps)
         previous = float(0.0)
         row_index = int(lo)
