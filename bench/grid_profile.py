@@ -2,6 +2,7 @@
 
     python bench/grid_profile.py [--scene NAME] [--backend B] [--device D] [--seed S]
                                  [--sides N ...] [--launch-mib M ...] [--repeat R] [--kernels]
+                                 [--timeline]
 
 Simulates the scene (noisy, ``--seed``) with every view to optimize, locates its true model at
 the true (D, β) (as ``fsswarp bench``'s pose family does), and times ``ViewComparison.surrogate``
@@ -12,6 +13,9 @@ of the costs (to compare code before and after a change: the same costs, the sam
 pair's costs do not depend on the launch it shares, so every launch size gives the same one).
 ``--kernels`` (Warp on a CUDA device): the GPU time of each kernel and copy over one more call
 (Warp's activity timing); the wall time less the GPU's is host work the GPU waited for.
+``--timeline``: the host's calls in one more call, from its start: each launch's plan
+(``plan_pairs``; on a GPU in the planning thread), render and costs, with the thread that made
+them; a plan that ends after the GPU finished the launch before leaves the GPU idle.
 """
 
 from __future__ import annotations
@@ -42,6 +46,37 @@ def kernel_times(problem, depths, tilts) -> list[tuple[str, int, float]]:
     return sorted(((name, calls, ms) for name, (calls, ms) in totals.items()), key=lambda row: -row[2])
 
 
+def timeline(problem, depths, tilts) -> tuple[float, list[tuple[float, float, str, str]]]:
+    """(the call's seconds, [(start s from the call's start, seconds, thread, call)]) of the
+    host's plan, render and cost calls (``plan_pairs``, ``render_planned``, ``view_costs``) in
+    one ``surrogate`` call, in order of start."""
+    import threading
+    import time
+
+    patches, stamps, start = profiling.Patches(), [], time.perf_counter()
+
+    def stamp(owner, name: str) -> None:
+        original = getattr(owner, name)
+
+        def timed(*args, **kwargs):
+            begin = time.perf_counter()
+            try:
+                return original(*args, **kwargs)
+            finally:
+                stamps.append((begin - start, time.perf_counter() - begin, threading.current_thread().name, name))
+
+        patches.replace(owner, name, timed)
+
+    for owner, name in ((problem, "plan_pairs"), (problem.backend, "render_planned"), (problem.backend, "view_costs")):
+        stamp(owner, name)
+    try:
+        start = time.perf_counter()
+        problem.surrogate(depths, tilts)
+        return time.perf_counter() - start, sorted(stamps)
+    finally:
+        patches.restore()
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     profiling.add_scene_options(parser)
@@ -49,6 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--launch-mib", type=int, nargs="+", default=[4096, 16384])
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--kernels", action="store_true")
+    parser.add_argument("--timeline", action="store_true")
     args = parser.parse_args(argv)
     import numpy as np
 
@@ -72,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
     truth = dataset.manifest.truth
     print(f"{args.scene} (seed {args.seed}), {len(dataset.images)} views, on {backend.name} {backend.device}\n")
     print("| launch | side | cells per launch | median ms | min–max ms | checksum |\n|---|---|---|---|---|---|")
-    kernels = []
+    kernels, timelines = [], []
     for size in args.launch_mib:
         problem = ViewComparison(dataset, settings=PoseSettings(launch_bytes=size << 20), backend=backend).use(
             model, truth.depth, truth.tilt)
@@ -86,6 +122,8 @@ def main(argv: list[str] | None = None) -> int:
                   flush=True)
             if args.kernels and backend.name == "warp" and backend.is_gpu:
                 kernels.append((size, side, kernel_times(problem, depths, tilts)))
+            if args.timeline:
+                timelines.append((size, side, *timeline(problem, depths, tilts)))
     if args.kernels and not kernels:
         print("\n--kernels: the GPU's times need Warp on a CUDA device")
     for size, side, rows in kernels:
@@ -93,6 +131,11 @@ def main(argv: list[str] | None = None) -> int:
               "| kernel or copy | calls | GPU ms |\n|---|---|---|")
         for name, calls, ms in rows:
             print(f"| {name} | {calls} | {ms:.2f} |")
+    for size, side, total, stamps in timelines:
+        print(f"\n{size} MiB, {side} × {side}: one call's host calls, {1e3 * total:.1f} ms\n\n"
+              "| start ms | ms | thread | call |\n|---|---|---|---|")
+        for begin, seconds, thread, name in stamps:
+            print(f"| {1e3 * begin:.1f} | {1e3 * seconds:.1f} | {thread} | {name} |")
     return 0
 
 

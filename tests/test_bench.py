@@ -584,6 +584,24 @@ def test_grid_profile_gives_every_launch_size_the_same_costs(capsys):
     assert "need Warp on a CUDA device" in out
 
 
+def test_grid_profile_timeline_lists_each_launchs_plan_render_and_costs(capsys):
+    """--timeline: one row per host call of one more call, in order of start: every launch of
+    one cell renders what it planned and reads its costs (the located cell reuses the located
+    layers: no plan, no render)."""
+    assert _bench_module("grid_profile").main(["--backend", "opencl", "--sides", "3", "--launch-mib", "4",
+                                                "--repeat", "1", "--timeline"]) == 0
+    out = capsys.readouterr().out
+    assert "4 MiB, 3 × 3: one call's host calls" in out
+    rows = [line.strip("| ").split(" | ") for line in out.splitlines()[out.splitlines().index("| start ms | ms | "
+                                                                                            "thread | call |") + 2:]
+            if line.startswith("| ")]
+    starts = [float(row[0]) for row in rows]
+    calls = [row[3] for row in rows]
+    assert starts == sorted(starts) and all(float(row[1]) >= 0 for row in rows)
+    assert calls.count("view_costs") == 9 and calls.count("plan_pairs") == calls.count("render_planned") >= 8
+    assert [c for c in calls if c != "view_costs"][:2] == ["plan_pairs", "render_planned"]
+
+
 def test_the_stage_table_lists_the_ordered_stages_present_with_their_share():
     table = _bench_module("profiling").stage_table({"total": 0.004, "align": 0.001, "host": 0.003},
                                                    ["total", "render", "align", "host"])
