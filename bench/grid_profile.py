@@ -53,7 +53,7 @@ def timeline(problem, depths, tilts) -> tuple[float, list[tuple[float, float, st
     import threading
     import time
 
-    patches, stamps, start = profiling.Patches(), [], time.perf_counter()
+    patches, stamps, start = profiling.Patches(), [], 0.0
 
     def stamp(owner, name: str) -> None:
         original = getattr(owner, name)

@@ -85,19 +85,23 @@ def stage_table(med: dict[str, float], order: list[str]) -> str:
 
 class Patches:
     """Attributes replaced (:meth:`replace`) until :meth:`restore` puts the originals back, the
-    last replaced first."""
+    last replaced first: an attribute the owner did not hold itself (a method of its class, or
+    inherited) is removed again, so that the owner finds it where it did before."""
 
     def __init__(self):
         self.undo = []
 
     def replace(self, owner, name: str, value) -> None:
         """Set ``owner.name`` to ``value`` until :meth:`restore`."""
-        self.undo.append((owner, name, getattr(owner, name)))
+        self.undo.append((owner, name, getattr(owner, name), name in vars(owner)))
         setattr(owner, name, value)
 
     def restore(self) -> None:
-        for owner, name, original in reversed(self.undo):
-            setattr(owner, name, original)
+        for owner, name, original, held in reversed(self.undo):
+            if held:
+                setattr(owner, name, original)
+            else:
+                delattr(owner, name)
         self.undo.clear()
 
 

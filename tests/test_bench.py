@@ -602,6 +602,28 @@ def test_grid_profile_timeline_lists_each_launchs_plan_render_and_costs(capsys):
     assert [c for c in calls if c != "view_costs"][:2] == ["plan_pairs", "render_planned"]
 
 
+def test_patches_put_back_what_the_owner_held_and_remove_what_it_found_elsewhere():
+    """Patches.restore: an attribute the owner held is set back; one it found on its class (or
+    inherited) is removed, so the instance again finds the class's."""
+
+    class Base:
+        def method(self):
+            return "base"
+
+    class Child(Base):
+        pass
+
+    thing, patches = Child(), _bench_module("profiling").Patches()
+    thing.own = "own"
+    patches.replace(thing, "method", lambda: "patched")
+    patches.replace(Child, "method", lambda self: "child")
+    patches.replace(thing, "own", "patched")
+    assert thing.method() == "patched" and Child().method() == "child" and thing.own == "patched"
+    patches.restore()
+    assert "method" not in vars(thing) and "method" not in vars(Child) and thing.method() == "base"
+    assert thing.own == "own" and patches.undo == []
+
+
 def test_the_stage_table_lists_the_ordered_stages_present_with_their_share():
     table = _bench_module("profiling").stage_table({"total": 0.004, "align": 0.001, "host": 0.003},
                                                    ["total", "render", "align", "host"])
