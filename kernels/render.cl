@@ -98,9 +98,9 @@ inline float fss_dot(float3 a, float3 b)
     return a.x * b.x + a.y * b.y + a.z * b.z;
 }
 
-/* The sub-ray of work-item (s, o) of a launch over the spans (N, 4) (render_views' work size),
- * for its view or pose `row`: 1 with its beam *b, sub-ray *i and elevation sample *j; 0 where
- * the item has none. */
+/* The sub-ray of work-item (s, o) of a launch over the spans (N, 4) (direct_hits' work size),
+ * for its pose `row`: 1 with its beam *b, sub-ray *i and elevation sample *j; 0 where the item
+ * has none. */
 int fss_span_item(__global const int *spans, int row, int s, int o, int k_theta, int *b, int *i, int *j)
 {
     *b = spans[4 * row] + o;

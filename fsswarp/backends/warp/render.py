@@ -134,7 +134,7 @@ def sub_rays_kernel(beam_centres: wp.array(dtype=float), beam_widths: wp.array(d
 
 @wp.func
 def span_item(spans: wp.array2d(dtype=wp.int32), row: int, o: int, k: int, k_theta: int):
-    """(b, i, j) of thread (row, o, k) of a launch over the spans (N, 4) (render_kernel's
+    """(b, i, j) of thread (row, o, k) of a launch over the spans (N, 4) (direct_hits_kernel's
     threads): beam b, sub-ray i, elevation sample j; b = -1 where the thread has none."""
     b = spans[row, 0] + o
     samples = spans[row, 3] - spans[row, 2]
@@ -325,8 +325,6 @@ def render_sub_ray(mesh: wp.uint64, corners: wp.array(dtype=wp.vec3), rotations:
             c2 = -wp.dot(u2, nrm2)
             deposit(acc, v, 3, nearest_index(bin_coordinate(s + r2, sonar)), b,
                     surface_reflection * surface_reflection * wp.pow(c2, gamma), weight, sonar.beams, first)
-
-
 
 
 @wp.kernel
