@@ -375,10 +375,11 @@ class ViewComparison:
     # --- synthesis and the surrogate -------------------------------------------------------
     def view_poses(self, views, depths: np.ndarray, tilts: np.ndarray):
         """(G, V) poses and planes of cells (G,) in the dataset views ``views``."""
-        rot, t = self.rig.relative_poses(depths, tilts)
-        n, d = surface_in_views(self.rig, depths, tilts, poses=(rot, t))
+        poses = (*self.rig.relative_poses(depths, tilts), *surface_in_views(self.rig, depths, tilts))
+        if tuple(views) == tuple(range(poses[0].shape[1])):
+            return poses  # every view, in order
         v = list(views)
-        return rot[:, v], t[:, v], n[:, v], d[:, v]
+        return tuple(a[:, v] for a in poses)
 
     @property
     def prediction_settings(self) -> RenderSettings:

@@ -149,8 +149,9 @@ class Rig:
     def relative_poses(self, depth, tilt):
         """Every view's pose in the reference frame: ``P_ref = R @ P_view + t``.
 
-        ``R_m = (R_ref^W)ᵀ R_m^W`` and ``t_m = (R_ref^W)ᵀ (s_m - s_ref)``; both depend on β, except
-        ``R_m = Ry(ω_m)`` (taken exactly) for views with the reference's heading and tilt offset.
+        ``R_m = (R_ref^W)ᵀ R_m^W`` and ``t_m = (R_ref^W)ᵀ (s_m - s_ref)``; both depend on β alone (the
+        depth D cancels in s_m − s_ref, and is not used), and ``R_m = Ry(ω_m)`` (taken exactly) for
+        views with the reference's heading and tilt offset.
         Returns ``(R, t)``: (*G, V, 3, 3) and (*G, V, 3); read-only for one candidate (``_one``)."""
         return self._one("_relative_poses", depth, tilt)
 
@@ -172,9 +173,9 @@ class Rig:
         return result
 
     def _relative_poses(self, depth, tilt):
-        s_w, s_ref = self._world_positions(depth), self._reference_positions(depth)
-        # the rotations depend on β alone: found once per distinct tilt (the same operations per
-        # tilt, so the same bits as one candidate's), then spread over the candidates
+        # a relative pose depends on β alone (D cancels in s_m − s_ref): found once per distinct
+        # tilt (the same operations per tilt, so the same bits as one candidate's), then spread
+        # over the candidates; a (D, β) grid renders every depth of a tilt from the same poses
         tilts, inverse = np.unique(tilt, return_inverse=True)
         rt = np.swapaxes(self._reference_rotations(tilts), -1, -2)[..., None, :, :]
         rot = rt @ self._world_rotations(tilts)
@@ -184,10 +185,11 @@ class Rig:
         ref = self.views[self.reference]
         level = (heading == ref.heading) & (tilt_offset == ref.tilt_offset)
         rot[..., level, :, :] = rotation_y(roll[level])
+        at_surface = np.zeros(1)  # s_m − s_ref at D = 0: (Δx, Δy, δD_ref − δD_m), (1, V, 3)
+        apart = self._world_positions(at_surface) - self._reference_positions(at_surface)[:, None, :]
+        t = (rt @ apart[..., None])[..., 0]
         inverse = inverse.reshape(-1)
-        rot = rot[inverse].reshape(tilt.shape + rot.shape[1:])
-        rt = rt[inverse].reshape(tilt.shape + rt.shape[1:])
-        return rot, (rt @ (s_w - s_ref[..., None, :])[..., None])[..., 0]
+        return (rot[inverse].reshape(tilt.shape + rot.shape[1:]), t[inverse].reshape(tilt.shape + t.shape[1:]))
 
 
 def with_rolls(rig: Rig, rolls, *, at: str | None = None) -> tuple[Rig, list[str]]:

@@ -25,16 +25,22 @@ def surface_in_reference(rig: Rig, depth, tilt):
     return rot_ref[..., 2, :], -s_ref[..., 2]
 
 
-def surface_in_views(rig: Rig, depth, tilt, *, poses=None):
-    """The surface in every view frame: ``n_m = R_mᵀ n``, ``d_m = d - n·t_m``; ``poses``: the
-    views' ``rig.relative_poses(depth, tilt)``, where the caller has them.
+def surface_in_views(rig: Rig, depth, tilt):
+    """The surface in every view frame: ``n_m = R_mᵀ n``, ``d_m = d - n·t_m``; the normals and
+    n·t_m depend on β alone (as the poses do, ``Rig.relative_poses``): found once per distinct tilt
+    (the same operations, so the same bits as one candidate's), then spread over the candidates.
 
     Returns ``(n, d)`` of shapes (*G, V, 3) and (*G, V)."""
-    n, d = surface_in_reference(rig, depth, tilt)
-    rot, t = rig.relative_poses(depth, tilt) if poses is None else poses
-    n_views = np.einsum("...vij,...i->...vj", rot, n)
-    d_views = d[..., None] - np.einsum("...vi,...i->...v", t, n)
-    return n_views, d_views
+    depth, tilt = np.broadcast_arrays(np.asarray(depth, np.float64), np.asarray(tilt, np.float64))
+    tilts, inverse = np.unique(tilt, return_inverse=True)
+    normal, _ = surface_in_reference(rig, np.zeros(tilts.shape), tilts)
+    rot, t = rig.relative_poses(np.zeros(tilts.shape), tilts)
+    n_views = np.einsum("...vij,...i->...vj", rot, normal)
+    heights = np.einsum("...vi,...i->...v", t, normal)
+    _, d = surface_in_reference(rig, depth, tilt)
+    inverse = inverse.reshape(-1)
+    return (n_views[inverse].reshape(tilt.shape + n_views.shape[1:]),
+            d[..., None] - heights[inverse].reshape(tilt.shape + heights.shape[1:]))
 
 
 def mirror_points(points, normal, offset) -> np.ndarray:

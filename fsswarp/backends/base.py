@@ -977,11 +977,18 @@ def shared_poses(rotations: np.ndarray, translations: np.ndarray, spans: np.ndar
     n = rotations.shape[0]
     rows = np.ascontiguousarray(np.concatenate([rotations.reshape(n, 9), translations], axis=1), np.float32)
     keys = rows.view(np.uint32).astype(np.uint64) @ _POSE_HASH  # (mod 2^64: in any order, the same)
-    _, first, index = np.unique(keys, return_index=True, return_inverse=True)
-    if first.size == n or first.size * sub_rays > SHARED_HITS or not np.array_equal(rows[first][index], rows):
+    order = np.argsort(keys)  # grouped by key; within a pose any order (its rows are the same bits)
+    ordered = keys[order]
+    new_key = np.r_[True, ordered[1:] != ordered[:-1]]
+    starts = np.flatnonzero(new_key)
+    if starts.size == n or starts.size * sub_rays > SHARED_HITS:
         return None
-    reached = np.flatnonzero(spans[:, 1] > spans[:, 0])
-    reached = reached[np.argsort(index[reached], kind="stable")]  # grouped by pose
+    index = np.empty(n, np.int64)
+    index[order] = np.cumsum(new_key) - 1  # the rank of the pose's key
+    first = order[starts]
+    if not np.array_equal(rows[first][index], rows):
+        return None
+    reached = order[spans[order, 1] > spans[order, 0]]  # grouped by pose
     pose = index[reached]
     starts = np.flatnonzero(np.r_[True, pose[1:] != pose[:-1]]) if pose.size else pose
     hull = np.zeros((first.size, 4), np.int64)  # poses none of whose views reach the mesh: zeros
