@@ -98,9 +98,9 @@ inline float fss_dot(float3 a, float3 b)
     return a.x * b.x + a.y * b.y + a.z * b.z;
 }
 
-/* The sub-ray of work-item (s, o) of a launch over the spans (N, 4) (direct_hits' work size),
- * for its pose `row`: 1 with its beam *b, sub-ray *i and elevation sample *j; 0 where the item
- * has none. */
+/* The sub-ray of item (s, o) over the spans (N, 4), for its view or pose `row`: 1 with its beam
+ * *b = first + o, sub-ray *i and elevation sample *j of the s-th sub-ray of that beam; 0 where
+ * the item has none (direct_hits' work-items, render_views' chunked sub-rays). */
 int fss_span_item(__global const int *spans, int row, int s, int o, int k_theta, int *b, int *i, int *j)
 {
     *b = spans[4 * row] + o;
@@ -410,15 +410,11 @@ __kernel void render_views(__global const float4 *nodes,
         const int c = item / chunk;
         const int v = chunk_views[c];
         const int local_item = (c - offsets[v]) * chunk + item - c * chunk;
-        const int samples = spans[4 * v + 3] - spans[4 * v + 2];
-        const int per_beam = k_theta * samples;
-        if (local_item >= (spans[4 * v + 1] - spans[4 * v]) * per_beam)
-            continue;
+        const int per_beam = k_theta * (spans[4 * v + 3] - spans[4 * v + 2]); /* > 0: v owns chunks */
         const int o = local_item / per_beam;
-        const int rest = local_item - o * per_beam;
-        const int i = rest / samples;
-        const int b = spans[4 * v] + o;
-        const int j = spans[4 * v + 2] + rest - i * samples;
+        int b, i, j;
+        if (!fss_span_item(spans, v, local_item - o * per_beam, o, k_theta, &b, &i, &j))
+            continue;
         __global const float *rot = rotations + 9 * v;
         const float3 t = vload3(v, translations);
         const float3 n = vload3(v, plane_normals);

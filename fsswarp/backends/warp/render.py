@@ -134,8 +134,9 @@ def sub_rays_kernel(beam_centres: wp.array(dtype=float), beam_widths: wp.array(d
 
 @wp.func
 def span_item(spans: wp.array2d(dtype=wp.int32), row: int, o: int, k: int, k_theta: int):
-    """(b, i, j) of thread (row, o, k) of a launch over the spans (N, 4) (direct_hits_kernel's
-    threads): beam b, sub-ray i, elevation sample j; b = -1 where the thread has none."""
+    """(b, i, j) of item (row, o, k) over the spans (N, 4): beam b = first + o, sub-ray i and
+    elevation sample j of the k-th sub-ray of that beam (i K_span + j); b = -1 where the item has
+    none (direct_hits_kernel's threads, render_kernel's chunked sub-rays)."""
     b = spans[row, 0] + o
     samples = spans[row, 3] - spans[row, 2]
     if b >= spans[row, 1] or k >= k_theta * samples:
@@ -362,15 +363,13 @@ def render_kernel(mesh: wp.uint64, corners: wp.array(dtype=wp.vec3), rotations: 
         c = item // chunk
         v = chunk_views[c]
         local = (c - offsets[v]) * chunk + item - c * chunk
-        samples = spans[v, 3] - spans[v, 2]
-        per_beam = k_theta * samples
-        if local < (spans[v, 1] - spans[v, 0]) * per_beam:
-            o = local // per_beam
-            rest = local - o * per_beam
-            i = rest // samples
+        per_beam = k_theta * (spans[v, 3] - spans[v, 2])  # > 0: a view owns chunks only where it casts
+        o = local // per_beam
+        sub = span_item(spans, v, o, local - o * per_beam, k_theta)
+        if sub[0] >= 0:
             render_sub_ray(mesh, corners, rotations, translations, plane_normals, plane_offsets, directions, sonar,
                            weight, gamma, surface_reflection, first_rows, poses, hit_range, hit_face, masked, needed,
-                           acc, hits, hit_items, hit_ranges, v, spans[v, 0] + o, i, spans[v, 2] + rest - i * samples)
+                           acc, hits, hit_items, hit_ranges, v, sub[0], sub[1], sub[2])
         item += stride
 
 
