@@ -1,7 +1,7 @@
 """Where a reconstruction's time goes, without a sampling profiler, one command:
 
     python bench/loop_profile.py [--scene NAME] [--backend B] [--device D] [--iterations T]
-                                 [--seed S]
+                                 [--seed S] [--warp]
 
 Simulates the scene (noisy, ``--seed``), reconstructs it once with one iteration (none with
 ``--iterations 0``; to fill the kernel caches), then once with ``--iterations`` while the loop's main functions are wrapped
@@ -9,7 +9,9 @@ to count their calls and sum their wall time (inclusive: a function's time holds
 functions it calls, so the rows overlap). Prints one Markdown table, slowest first: calls,
 seconds, share of the run and milliseconds per call. A sampling profiler (py-spy) slowed the
 H100 run 1.5–3.5 times and so hid where the run waited (bench/notes.md); these wrappers cost
-microseconds per call.
+microseconds per call. ``--warp`` (a Warp backend) also times Warp's own calls (``WARP_CALLS``:
+launches, arrays, copies, waits; the outermost of them in each thread, any thread) in a second
+table: how much of the run is Warp's Python and waiting for the device.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import collections
 import functools
 import importlib.util
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -35,6 +38,8 @@ WRAPPED = (
 )
 BACKEND_METHODS = ("render_planned", "contour_cost", "view_costs", "icp_runs", "frontal_faces", "load_mesh",
                    "device_distances", "carve")
+#: Warp's calls that ``--warp`` times: functions of the ``warp`` module and methods of ``warp.array``.
+WARP_CALLS = (("launch", "empty", "zeros", "copy", "synchronize_device"), ("__init__", "numpy"))
 #: Functions that other modules import by name: those modules get the wrapper too.
 REBOUND = {"estimate_pose": ("fsswarp.reconstruction",), "refine_shape": ("fsswarp.reconstruction",),
            "carve": ("fsswarp.reconstruction",)}
@@ -50,17 +55,26 @@ class CallTimes(profiling.Patches):
     def __init__(self):
         super().__init__()
         self.totals = collections.defaultdict(lambda: [0, 0.0])
+        self._inside = threading.local()  # .depth: outermost-only wrappers entered in this thread
 
-    def wrap(self, owner, name: str, label: str):
-        """Replace ``owner.name`` by a timed wrapper, and return it."""
+    def wrap(self, owner, name: str, label: str, *, outermost: bool = False):
+        """Replace ``owner.name`` by a timed wrapper, and return it. With ``outermost``, a call made
+        inside another outermost-only wrapped call (in the same thread) is not counted."""
         original = getattr(owner, name)
 
         @functools.wraps(original)
         def timed(*args, **kwargs):
+            depth = getattr(self._inside, "depth", 0)
+            if outermost:
+                if depth:
+                    return original(*args, **kwargs)
+                self._inside.depth = 1
             start = time.perf_counter()
             try:
                 return original(*args, **kwargs)
             finally:
+                if outermost:
+                    self._inside.depth = 0
                 entry = self.totals[label]
                 entry[0] += 1
                 entry[1] += time.perf_counter() - start
@@ -68,10 +82,12 @@ class CallTimes(profiling.Patches):
         self.replace(owner, name, timed)
         return timed
 
-    def table(self, total: float) -> str:
-        """Markdown: one row per function, slowest first; shares of ``total`` seconds."""
+    def table(self, total: float, labels=None) -> str:
+        """Markdown: one row per function (of ``labels``, default all), slowest first; shares of
+        ``total`` seconds."""
         lines = ["| function | calls | s | share | ms per call |", "|---|---|---|---|---|"]
-        for label, (calls, seconds) in sorted(self.totals.items(), key=lambda item: -item[1][1]):
+        rows = [(label, entry) for label, entry in self.totals.items() if labels is None or label in labels]
+        for label, (calls, seconds) in sorted(rows, key=lambda item: -item[1][1]):
             lines.append(f"| `{label}` | {calls} | {seconds:.3f} | {100 * seconds / total:.1f}% | "
                          f"{1e3 * seconds / calls:.2f} |")
         return "\n".join(lines)
@@ -96,10 +112,23 @@ def instrument(times: CallTimes, backend) -> None:
             times.wrap(type(backend), name, f"backend.{name}")
 
 
+def instrument_warp(times: CallTimes) -> list[str]:
+    """Wrap ``WARP_CALLS`` (outermost only); returns their labels."""
+    import warp as wp
+
+    functions, methods = WARP_CALLS
+    labels = [f"wp.{name}" for name in functions] + [f"wp.array.{name}" for name in methods]
+    for owner, names, prefix in ((wp, functions, "wp."), (wp.array, methods, "wp.array.")):
+        for name in names:
+            times.wrap(owner, name, prefix + name, outermost=True)
+    return labels
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     profiling.add_scene_options(parser)
     parser.add_argument("--iterations", type=int, default=10)
+    parser.add_argument("--warp", action="store_true", help="also time Warp's own calls (a Warp backend)")
     args = parser.parse_args(argv)
     from fsswarp.errors import check_integer
     from fsswarp.reconstruction import ReconstructSettings, reconstruct
@@ -107,10 +136,14 @@ def main(argv: list[str] | None = None) -> int:
     backend = profiling.scene_backend(args, "loop_profile", lambda: check_integer("--iterations", args.iterations, 0))
     if backend is None:
         return 2
+    if args.warp and backend.name != "warp":
+        print(f"loop_profile: error: --warp needs a Warp backend, got {backend.name}", file=sys.stderr)
+        return 2
     with profiling.simulated(args, backend) as dataset:
         reconstruct(dataset, settings=ReconstructSettings(iterations=min(1, args.iterations)), backend=backend)
         times = CallTimes()
         instrument(times, backend)
+        warp_labels = instrument_warp(times) if args.warp else []
         try:
             start = time.perf_counter()
             result = reconstruct(dataset, settings=ReconstructSettings(iterations=args.iterations), backend=backend)
@@ -119,7 +152,10 @@ def main(argv: list[str] | None = None) -> int:
             times.restore()
     print(f"{args.scene} from the measured start on {backend.name} {backend.device}: {total:.2f} s, "
           f"{result.iterations} iterations\n")
-    print(times.table(total))
+    print(times.table(total, [label for label in times.totals if label not in warp_labels]))
+    if warp_labels:
+        print("\nWarp's own calls (the outermost in each thread; any thread):\n")
+        print(times.table(total, warp_labels))
     return 0
 
 

@@ -504,6 +504,30 @@ def test_loop_profile_call_times_count_time_and_restore():
     assert "| `nap` | 2 |" in times.table(seconds)
 
 
+def test_loop_profile_outermost_calls_count_once_per_thread():
+    """An outermost-only wrapper called inside another (the same thread) is not counted; in
+    another thread it is; plain wrappers count every call."""
+    import threading
+    import types
+
+    times = _bench_module("loop_profile").CallTimes()
+    owner = types.SimpleNamespace()
+    owner.inner = lambda: 1
+    owner.outer = lambda: owner.inner() + owner.inner()
+    owner.plain = lambda: owner.outer()
+    originals = dict(vars(owner))
+    for name, outermost in (("inner", True), ("outer", True), ("plain", False)):
+        times.wrap(owner, name, name, outermost=outermost)
+    assert owner.plain() == 2 and owner.inner() == 1
+    worker = threading.Thread(target=owner.outer)
+    worker.start()
+    worker.join()
+    assert {label: calls for label, (calls, _) in times.totals.items()} == {"plain": 1, "outer": 2, "inner": 1}
+    assert "| `inner` |" not in times.table(1.0, ["outer"])
+    times.restore()
+    assert vars(owner) == originals
+
+
 def test_loop_profile_times_a_reconstruction_and_leaves_fsswarp_as_it_was(capsys):
     import fsswarp.carving
     import fsswarp.compare
@@ -519,8 +543,10 @@ def test_loop_profile_times_a_reconstruction_and_leaves_fsswarp_as_it_was(capsys
     assert "| `backend.render_planned` |" in out  # the render is timed (its method's name is current)
 
 
-def test_loop_profile_bad_options_exit_2():
+def test_loop_profile_bad_options_exit_2(capsys):
     assert _bench_module("loop_profile").main(["--iterations", "-1"]) == 2
+    assert _bench_module("loop_profile").main(["--backend", "opencl", "--warp"]) == 2
+    assert "--warp needs a Warp backend" in capsys.readouterr().err
 
 
 def test_demo_wall_alternates_the_settings_after_a_warm_up(monkeypatch, capsys):
