@@ -39,7 +39,7 @@ from .metrics import view_errors
 from .motion import patch_motions
 from .rendering import RenderSettings, check_mesh
 from .segment import SegmentSettings, memoized, normalized, segment
-from .surface import mirror_points, surface_in_reference, surface_in_views
+from .surface import mirror_points, surface_in_reference, view_planes
 
 #: γ and surface reflection of every synthetic view of a comparison: the renderer's defaults.
 ECHO = RenderSettings()
@@ -375,7 +375,7 @@ class ViewComparison:
     # --- synthesis and the surrogate -------------------------------------------------------
     def view_poses(self, views, depths: np.ndarray, tilts: np.ndarray):
         """(G, V) poses and planes of cells (G,) in the dataset views ``views``."""
-        poses = (*self.rig.relative_poses(depths, tilts), *surface_in_views(self.rig, depths, tilts))
+        poses = view_planes(self.rig, depths, tilts)
         if tuple(views) == tuple(range(poses[0].shape[1])):
             return poses  # every view, in order
         v = list(views)

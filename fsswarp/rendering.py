@@ -39,7 +39,7 @@ import numpy as np
 from .errors import InputError, check_depth_tilt, finite_array, is_integer
 from .rig import Rig
 from .sonar import SonarSpec, to_polar
-from .surface import COMPONENTS, apparent_returns, surface_in_views
+from .surface import COMPONENTS, apparent_returns, view_planes
 
 #: Layers of a rendered view, in array order: the four components, then their sum.
 LAYERS = COMPONENTS + ("total",)
@@ -196,9 +196,7 @@ def rig_poses(rig: Rig, depth: float, tilt: float, names) -> tuple[np.ndarray, .
     the rig's views ``names`` at (depth m, tilt rad): the inputs of ``render_views``."""
     check_depth_tilt(depth, tilt)
     index = [rig.index(name) for name in names]
-    rot, t = rig.relative_poses(depth, tilt)
-    n, d = surface_in_views(rig, depth, tilt)
-    return rot[index], t[index], n[index], d[index]
+    return tuple(a[index] for a in view_planes(rig, depth, tilt))
 
 
 def with_total(layers: np.ndarray) -> np.ndarray:

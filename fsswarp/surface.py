@@ -26,21 +26,34 @@ def surface_in_reference(rig: Rig, depth, tilt):
 
 
 def surface_in_views(rig: Rig, depth, tilt):
-    """The surface in every view frame: ``n_m = R_mᵀ n``, ``d_m = d - n·t_m``; the normals and
-    n·t_m depend on β alone (as the poses do, ``Rig.relative_poses``): found once per distinct tilt
-    (the same operations, so the same bits as one candidate's), then spread over the candidates.
+    """The surface in every view frame: ``n_m = R_mᵀ n``, ``d_m = d - n·t_m``
+    (:func:`view_planes`' last two).
 
     Returns ``(n, d)`` of shapes (*G, V, 3) and (*G, V)."""
+    return view_planes(rig, depth, tilt)[2:]
+
+
+def view_planes(rig: Rig, depth, tilt):
+    """Every view's pose and the surface in its frame for shared ``depth`` (m) and ``tilt``
+    (rad), broadcast to (*G,): ``(R, t, n, d)``, the poses of ``rig.relative_poses`` and the
+    planes ``n_m = R_mᵀ n``, ``d_m = d - n·t_m``. All but d depend on β alone: where the tilts
+    repeat (a (D, β) grid repeats each along D) they are found once per distinct tilt (the same
+    operations, so the same bits as one candidate's), then spread over the candidates.
+
+    Returns arrays of shapes (*G, V, 3, 3), (*G, V, 3), (*G, V, 3) and (*G, V)."""
     depth, tilt = np.broadcast_arrays(np.asarray(depth, np.float64), np.asarray(tilt, np.float64))
     tilts, inverse = np.unique(tilt, return_inverse=True)
-    normal, _ = surface_in_reference(rig, np.zeros(tilts.shape), tilts)
-    rot, t = rig.relative_poses(np.zeros(tilts.shape), tilts)
+    repeated = tilts.size < tilt.size
+    at = (np.zeros(tilts.shape), tilts) if repeated else (depth, tilt)
+    rot, t = rig.relative_poses(*at)
+    normal, _ = surface_in_reference(rig, *at)
     n_views = np.einsum("...vij,...i->...vj", rot, normal)
     heights = np.einsum("...vi,...i->...v", t, normal)
-    _, d = surface_in_reference(rig, depth, tilt)
-    inverse = inverse.reshape(-1)
-    return (n_views[inverse].reshape(tilt.shape + n_views.shape[1:]),
-            d[..., None] - heights[inverse].reshape(tilt.shape + heights.shape[1:]))
+    if repeated:
+        inverse = inverse.reshape(-1)
+        rot, t, n_views, heights = (a[inverse].reshape(tilt.shape + a.shape[1:]) for a in (rot, t, n_views, heights))
+    offset = depth + rig.views[rig.reference].depth_offset  # d = D + δD_ref (surface_in_reference's)
+    return rot, t, n_views, offset[..., None] - heights
 
 
 def mirror_points(points, normal, offset) -> np.ndarray:

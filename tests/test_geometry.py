@@ -12,7 +12,7 @@ from fsswarp.rig import (Rig, View, reference_to_world, rotation_x, rotation_y, 
                          to_view, world_to_reference)
 from fsswarp.sonar import SonarSpec, fan_xy, from_polar, scan_convert, to_polar
 from fsswarp.surface import (apparent_returns, mirror_points, mirror_vectors, surface_in_reference,
-                             surface_in_views)
+                             surface_in_views, view_planes)
 
 finite = dict(allow_nan=False, allow_infinity=False)
 coords = st.floats(-5, 5, **finite)
@@ -232,13 +232,18 @@ def test_one_candidate_is_remembered_read_only_and_equals_the_grid():
 def test_a_grid_that_repeats_its_tilts_equals_each_candidate():
     """A (D, β) grid repeats each tilt along D (its rotations are found once per tilt): every
     cell's world and relative poses and surface equal, bit for bit, those of that candidate
-    alone, in grids of several shapes; the relative poses and the surface normals do not move
-    with the depth at all, even for a view with depth and tilt offsets (the same bits)."""
+    alone, in grids of several shapes (and in one whose tilts all differ); the relative poses
+    and the surface normals do not move with the depth at all, even for a view with depth and
+    tilt offsets (the same bits); ``view_planes`` gives the same poses and planes at once."""
     rig = Rig(paper_rig().views + (View("off", (0.3, 0.1), 0.2, 0.3, depth_offset=0.07, tilt_offset=0.05),))
     depths, tilts = np.meshgrid(np.linspace(0.38, 0.52, 5), np.radians([8.0, 9.5, 11.0, 9.5]), indexing="ij")
-    for d, t in ((depths, tilts), (depths.ravel(), tilts.ravel()), (depths[:, :1], tilts)):
+    for d, t in ((depths, tilts), (depths.ravel(), tilts.ravel()), (depths[:, :1], tilts),
+                 (depths[:, 0], np.radians([8.0, 8.5, 9.0, 9.5, 10.0]))):
         d, t = np.broadcast_arrays(d, t)
         grid = (*rig.relative_poses(d, t), *rig.world_poses(d, t), *surface_in_views(rig, d, t))
+        at_once = view_planes(rig, d, t)
+        for mine, theirs in zip(at_once, grid[:2] + grid[4:]):
+            np.testing.assert_array_equal(mine, theirs)
         if d.ndim == 2:  # depth along the first axis
             for same_tilt in (grid[0], grid[1], grid[4]):
                 np.testing.assert_array_equal(same_tilt, np.broadcast_to(same_tilt[:1], same_tilt.shape))

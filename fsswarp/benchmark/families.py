@@ -170,7 +170,7 @@ def coral_batch(n_views: int):
     translations (N, 3), plane normals (N, 3), plane offsets (N,))."""
     from ..rig import Rig, View, world_to_reference
     from ..scenes import builtin_scene, target_world_mesh
-    from ..surface import surface_in_views
+    from ..surface import view_planes
 
     scene = builtin_scene("coral-one")
     truth, base = scene.truth, scene.rig.views
@@ -179,9 +179,7 @@ def coral_batch(n_views: int):
     rig = Rig(views)
     mesh = target_world_mesh(scene.target)
     mesh.vertices = world_to_reference(mesh.vertices, scene.rig, truth.depth, truth.tilt)
-    rot, t = rig.relative_poses(truth.depth, truth.tilt)
-    n, d = surface_in_views(rig, truth.depth, truth.tilt)
-    return scene.sonar, mesh, rot, t, n, d
+    return (scene.sonar, mesh, *view_planes(rig, truth.depth, truth.tilt))
 
 
 def render_ops(backend, sonar, mesh, rot, t, n, d, samples) -> np.ndarray:
