@@ -189,7 +189,7 @@ class Rig:
         apart = self._world_positions(at_surface) - self._reference_positions(at_surface)[:, None, :]
         t = (rt @ apart[..., None])[..., 0]
         inverse = inverse.reshape(-1)
-        return (rot[inverse].reshape(tilt.shape + rot.shape[1:]), t[inverse].reshape(tilt.shape + t.shape[1:]))
+        return rot[inverse].reshape(tilt.shape + rot.shape[1:]), t[inverse].reshape(tilt.shape + t.shape[1:])
 
 
 def with_rolls(rig: Rig, rolls, *, at: str | None = None) -> tuple[Rig, list[str]]:
