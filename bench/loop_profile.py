@@ -64,9 +64,8 @@ class CallTimes(profiling.Patches):
 
         @functools.wraps(original)
         def timed(*args, **kwargs):
-            depth = getattr(self._inside, "depth", 0)
             if outermost:
-                if depth:
+                if getattr(self._inside, "depth", 0):
                     return original(*args, **kwargs)
                 self._inside.depth = 1
             start = time.perf_counter()
@@ -141,10 +140,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     with profiling.simulated(args, backend) as dataset:
         reconstruct(dataset, settings=ReconstructSettings(iterations=min(1, args.iterations)), backend=backend)
-        times = CallTimes()
-        instrument(times, backend)
-        warp_labels = instrument_warp(times) if args.warp else []
+        times, warp_labels = CallTimes(), []
         try:
+            instrument(times, backend)
+            if args.warp:
+                warp_labels = instrument_warp(times)
             start = time.perf_counter()
             result = reconstruct(dataset, settings=ReconstructSettings(iterations=args.iterations), backend=backend)
             total = time.perf_counter() - start
