@@ -32,7 +32,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .backends import beams_read, rows_read
+from .backends import beams_read, most_launch_views, rows_read
 from .errors import InputError, check_depth_tilt, check_integer, is_finite_number, is_integer, is_number
 from .icp import CONTOUR_TOL, icp_many
 from .metrics import view_errors
@@ -420,7 +420,7 @@ class ViewComparison:
         values = 4 * rows * sonar.beams * len(data.views)  # a cell's
         bounds = [self.settings.launch_bytes // (4 * values), (2**31 - 1) // values]
         if samples is not None:
-            bounds.append((2**31 - 1) // (len(data.views) * sonar.beams * samples[0] * samples[1]))
+            bounds.append(most_launch_views(sonar.beams, *samples) // len(data.views))
         per = max(1, min(bounds))
         return np.minimum(need_lo, sonar.bins - rows), rows, beams_read(data.masks, len(self.smoothing[1])), per
 

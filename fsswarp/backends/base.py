@@ -1037,10 +1037,15 @@ def render_with_room(render_once: Callable[[float | None], Callable[[], tuple[in
     return None
 
 
+def most_launch_views(beams: int, k_theta: int, k_phi: int) -> int:
+    """The most views one render launch holds: their sub-rays, views × ``beams`` × K_θ × K_φ, stay
+    below 2^31 (the render kernels count them in int32)."""
+    return (2**31 - 1) // (beams * k_theta * k_phi)
+
+
 def _check_sub_rays(n_views: int, beams: int, k_theta: int, k_phi: int) -> None:
-    """Raise unless one launch's sub-rays, ``n_views`` × ``beams`` × K_θ × K_φ, stay below 2^31
-    (the render kernels count them in int32)."""
-    if n_views * beams * k_theta * k_phi >= 2**31:
+    """Raise unless ``n_views`` fit one render launch (:func:`most_launch_views`)."""
+    if n_views > most_launch_views(beams, k_theta, k_phi):
         raise ValueError(f"{n_views} views of {beams} beams x ({k_theta}, {k_phi}) sub-rays exceed one launch's "
                          f"2^31 sub-rays; split the batch")
 
