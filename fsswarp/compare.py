@@ -32,7 +32,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .backends import beams_read, most_launch_views, rows_read
+from .backends import beams_read, most_launch_views, most_layer_views, rows_read
 from .errors import InputError, check_depth_tilt, check_integer, is_finite_number, is_integer, is_number
 from .icp import CONTOUR_TOL, icp_many
 from .metrics import view_errors
@@ -418,7 +418,7 @@ class ViewComparison:
         need_lo, need_hi = rows_read(data.windows, len(self.smoothing[0]), sonar.bins)
         rows = int(np.max(need_hi - need_lo))
         values = 4 * rows * sonar.beams * len(data.views)  # a cell's
-        bounds = [self.settings.launch_bytes // (4 * values), (2**31 - 1) // values]
+        bounds = [self.settings.launch_bytes // (4 * values), most_layer_views(rows, sonar.beams) // len(data.views)]
         if samples is not None:
             bounds.append(most_launch_views(sonar.beams, *samples) // len(data.views))
         per = max(1, min(bounds))

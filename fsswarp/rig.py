@@ -152,8 +152,10 @@ class Rig:
         ``R_m = (R_ref^W)ᵀ R_m^W`` and ``t_m = (R_ref^W)ᵀ (s_m - s_ref)``; both depend on β alone (the
         depth D cancels in s_m − s_ref, and is not used), and ``R_m = Ry(ω_m)`` (taken exactly) for
         views with the reference's heading and tilt offset.
-        Returns ``(R, t)``: (*G, V, 3, 3) and (*G, V, 3); read-only for one candidate (``_one``)."""
-        return self._one("_relative_poses", depth, tilt)
+        Returns ``(R, t)``: (*G, V, 3, 3) and (*G, V, 3); read-only for one candidate (``_one``,
+        remembered by its tilt alone)."""
+        depth, tilt = np.broadcast_arrays(np.asarray(depth, np.float64), np.asarray(tilt, np.float64))
+        return self._one("_relative_poses", np.zeros(depth.shape), tilt)
 
     def _one(self, method: str, depth, tilt):
         """The result of the method named ``method`` (``_reference_pose`` or ``_relative_poses``)

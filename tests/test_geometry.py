@@ -225,6 +225,7 @@ def test_one_candidate_is_remembered_read_only_and_equals_the_grid():
             with pytest.raises(ValueError, match="read-only"):
                 rot[..., 0, 0] = 2.0
     assert rig.relative_poses(0.41, 0.15)[0] is not rig.relative_poses(0.41, 0.16)[0]
+    assert rig.relative_poses(0.52, 0.15)[0] is rig.relative_poses(0.41, 0.15)[0]  # by the tilt alone
     grid = rig.relative_poses(depths, tilts)[0]
     assert grid.flags.writeable and grid is not grid_rot  # grids are computed each time
 

@@ -560,10 +560,11 @@ def test_render_batches_stop_early_and_check_inputs_at_once(backend):
     batches.close()
     np.testing.assert_array_equal(backend.render(handle, sonar, rot[:1], trans[:1], normals[:1], offsets[:1], SAMPLES,
                                                  gamma=GAMMA, surface_reflection=RS), first)
-    too_many = 2**31 // (4 * sonar.bins * sonar.beams) + 1
-    for batch in (0, -1, 2.5, too_many):
+    most = (2**31 - 1) // (4 * sonar.bins * sonar.beams)  # the largest batch of < 2^31 pixels
+    for batch in (0, -1, 2.5, most + 1):
         with pytest.raises(ValueError, match="batch"):
             backend.render_batches(*args, gamma=GAMMA, surface_reflection=RS, batch=batch)
+    backend.render_batches(*args, gamma=GAMMA, surface_reflection=RS, batch=most).close()  # checked, not rendered
     with pytest.raises(ValueError, match="samples"):
         backend.render_batches(handle, sonar, rot, trans, normals, offsets, (0, 4), gamma=GAMMA,
                                surface_reflection=RS)

@@ -10,10 +10,10 @@ package when it is first asked for.
 """
 
 from .base import (Backend, DeviceDistances, DeviceLayers, HostLayers, ICPRuns, PreparedLaunch, SonarConstants,
-                   beams_read, most_launch_views, rows_read)
+                   beams_read, most_launch_views, most_layer_views, rows_read)
 from .constants import FRONTAL_VISIBLE, MAX_DISTANCE, RAY_EPSILON
 from .select import BACKEND_NAMES, INSTALL_OPENCL, INSTALL_WARP, describe_backends, get_backend
 
 __all__ = ["Backend", "DeviceLayers", "HostLayers", "DeviceDistances", "ICPRuns", "PreparedLaunch", "SonarConstants",
-           "get_backend", "describe_backends", "beams_read", "most_launch_views", "rows_read", "BACKEND_NAMES",
-           "INSTALL_WARP", "INSTALL_OPENCL", "RAY_EPSILON", "FRONTAL_VISIBLE", "MAX_DISTANCE"]
+           "get_backend", "describe_backends", "beams_read", "most_launch_views", "most_layer_views", "rows_read",
+           "BACKEND_NAMES", "INSTALL_WARP", "INSTALL_OPENCL", "RAY_EPSILON", "FRONTAL_VISIBLE", "MAX_DISTANCE"]

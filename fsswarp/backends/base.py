@@ -386,7 +386,7 @@ class Backend(abc.ABC):
         n_views = rot.shape[0]
         first, count = _row_bands(rows, n_views, sonar.bins)
         needed = _needed_beams(beams, n_views, sonar.beams)
-        if n_views * 4 * count * sonar.beams >= 2**31:
+        if n_views > most_layer_views(count, sonar.beams):
             raise ValueError(f"{n_views} views of {count} x {sonar.beams} exceed one launch's "
                              f"2^31 pixels; split the batch")
         _check_sub_rays(n_views, sonar.beams, k_theta, k_phi)
@@ -436,7 +436,7 @@ class Backend(abc.ABC):
         k_theta, k_phi = (int(k) for k in samples)
         if k_theta < 1 or k_phi < 1:
             raise ValueError(f"samples must be two positive counts, got {tuple(samples)}")
-        if not is_integer(batch) or batch < 1 or batch * 4 * sonar.bins * sonar.beams >= 2**31:
+        if not is_integer(batch) or batch < 1 or batch > most_layer_views(sonar.bins, sonar.beams):
             raise ValueError(f"batch must be an integer >= 1 with batch x 4 x {sonar.bins} x {sonar.beams} "
                              f"< 2^31 pixels, got {batch!r}")
         _check_sub_rays(min(int(batch), rot.shape[0]), sonar.beams, k_theta, k_phi)
@@ -1041,6 +1041,12 @@ def most_launch_views(beams: int, k_theta: int, k_phi: int) -> int:
     """The most views one render launch holds: their sub-rays, views × ``beams`` × K_θ × K_φ, stay
     below 2^31 (the render kernels count them in int32)."""
     return (2**31 - 1) // (beams * k_theta * k_phi)
+
+
+def most_layer_views(rows: int, beams: int) -> int:
+    """The most views whose layers one launch holds: their pixels, views × 4 layers × ``rows`` ×
+    ``beams``, stay below 2^31 (the kernels index them in int32)."""
+    return (2**31 - 1) // (4 * rows * beams)
 
 
 def _check_sub_rays(n_views: int, beams: int, k_theta: int, k_phi: int) -> None:
