@@ -474,8 +474,10 @@ __kernel void render_views(__global const float4 *nodes,
 }
 
 /* hit_returns -- the returns of render_views' queued hits (fss_hit_returns). Arguments as
- * render_views, and its queue: work-item q < min(hits[0], hit_size) takes queued hit q (work
- * size: hit_size, rounded up). */
+ * render_views, and its queue: work-item q takes queued hits q, q + G, ... below min(hits[0],
+ * hit_size), G the work size (hit_size rounded up, at most the work-items the device keeps
+ * running: the queue is sized for the most hits a launch can have, several times those it has,
+ * and a work-item per slot would run for every empty one). */
 __kernel void hit_returns(__global const float4 *nodes,
                           __global const int *children,
                           __global const float *tris,
@@ -502,12 +504,11 @@ __kernel void hit_returns(__global const float4 *nodes,
                           const int hit_size,
                           __global int *acc)
 {
-    const int q = (int)get_global_id(0);
-    if (q >= hit_size || q >= hits[0])
-        return;
-    fss_hit_returns(nodes, children, tris, rotations, translations, plane_normals, plane_offsets, directions,
-                    beam_table, sonar, k_theta, k_phi, weight, gamma, surface_reflection, epsilon, first_rows, rows,
-                    masked, needed, hit_items[q], hit_ranges[q], acc);
+    const int count = min(hits[0], hit_size);
+    for (int q = (int)get_global_id(0); q < count; q += (int)get_global_size(0))
+        fss_hit_returns(nodes, children, tris, rotations, translations, plane_normals, plane_offsets, directions,
+                        beam_table, sonar, k_theta, k_phi, weight, gamma, surface_reflection, epsilon, first_rows,
+                        rows, masked, needed, hit_items[q], hit_ranges[q], acc);
 }
 
 /* frontal_rays -- the elevation rays of the beams whose frontal patch Backend.frontal_faces

@@ -521,6 +521,23 @@ def test_render_with_an_overflowing_hit_queue_gives_the_same_bits(backend, monke
     np.testing.assert_array_equal(forced, own)
 
 
+def test_render_served_by_few_threads_gives_the_same_bits(backend, monkeypatch):
+    """The launches that take their items in turn (the queued hits' returns; on a GPU the render's
+    sub-rays too) give the same layers bit for bit with 64 threads as with the device's own
+    count: each thread then serves many hits (the queue made one slot per sub-ray, so that
+    OpenCL on a CPU queues its hits too)."""
+    sonar, mesh, rot, trans, normals, offsets = coral_inputs()
+    handle = backend.load_mesh(mesh.vertices, mesh.faces)
+    args = (handle, sonar, rot, trans, normals, offsets, SAMPLES)
+    kw = dict(gamma=GAMMA, surface_reflection=RS)
+    monkeypatch.setattr(type(backend), "hit_queue", property(lambda self: None))
+    own = backend.render_device(*args, **kw).numpy()
+    monkeypatch.setattr(type(backend), "_resident_threads", lambda self: 64)
+    few = backend.render_device(*args, **kw).numpy()
+    assert own[:, 0].sum() > 0 and own[:, 1].sum() > 0 and own[:, 2].sum() > 0
+    np.testing.assert_array_equal(few, own)
+
+
 @pytest.mark.parametrize("batch", [1, 3, 4, 8])
 def test_render_batches_equal_render_and_the_oracle(backend, batch):
     """render_batches (pinned staging and a copy stream or queue on a GPU, two slots

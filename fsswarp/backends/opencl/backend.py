@@ -294,7 +294,8 @@ class OpenCLBackend(Backend):
                 hit_range, hit_tri, *masks, acc_buf, *queue, wait_for=[zeroed, *counted])
             done = rendered
             if hit_size:
-                done = self._hits_kernel(self.queue, (-(-hit_size // GROUP) * GROUP,), None, mesh.nodes,
+                served = min(-(-hit_size // GROUP) * GROUP, self._resident_threads())
+                done = self._hits_kernel(self.queue, (served,), None, mesh.nodes,
                                          mesh.children, mesh.triangles, *views, first, rows, *masks, *queue[:3],
                                          queue[3], acc_buf, wait_for=[rendered])
             if hit_size and hit_share is not None:  # else the count cannot pass L: nothing to read
@@ -338,8 +339,12 @@ class OpenCLBackend(Backend):
         chunk_views = self._scratch(4 * most)
         self._chunk_views_kernel(self.queue, (-(-n // GROUP) * GROUP,), None, chunks, offsets, np.int32(n),
                                  chunk_views)
-        threads = min(most * RAY_CHUNK, self.cl_device.max_compute_units * RENDER_THREADS_PER_UNIT)
-        return (spans, chunks, offsets, chunk_views), -(-threads // GROUP) * GROUP
+        return (spans, chunks, offsets, chunk_views), min(-(-most * RAY_CHUNK // GROUP) * GROUP, self._resident_threads())
+
+    def _resident_threads(self) -> int:
+        """Work-items of a launch that takes its items in turn (render_views on a GPU, hit_returns):
+        ``RENDER_THREADS_PER_UNIT`` per compute unit, a multiple of ``GROUP``."""
+        return -(-self.cl_device.max_compute_units * RENDER_THREADS_PER_UNIT // GROUP) * GROUP
 
     def _floats(self, acc_buf: cl.Buffer, shape: tuple[int, ...]) -> np.ndarray:
         """The host float32 array of ``shape`` of the fixed-point layers acc_buf (``OpenCLLayers.numpy``)."""

@@ -271,10 +271,11 @@ class WarpBackend(Backend):
                             weight, float(gamma), float(surface_reflection), first_rows, *chunks, RAY_CHUNK, threads,
                             *hits, int(needed is not None), masks],
                     outputs=[acc, *queue])
-            _launch(hits_kernel, dim=size,
+            served = min(size, self._resident_threads())
+            _launch(hits_kernel, dim=served,
                     inputs=[mesh.id, mesh.corners, *poses, directions, table, kernel_sonar(sonar), weight,
                             float(gamma), float(surface_reflection), first_rows, int(needed is not None), masks,
-                            *queue],
+                            *queue, served],
                     outputs=[acc])
         if layers is not None:
             _launch(fixed_to_float, dim=acc.size, inputs=[acc.flatten()], outputs=[layers.flatten()])
@@ -307,7 +308,7 @@ class WarpBackend(Backend):
         return (spans, chunks, offsets, chunk_views), min(most * RAY_CHUNK, self._resident_threads())
 
     def _resident_threads(self) -> int:
-        """Threads of a launch that takes its items in turn (render_kernel): about
+        """Threads of a launch that takes its items in turn (render_kernel, hits_kernel): about
         as many as the device keeps running at once (one thread runs a CPU launch anyway)."""
         return int(self._device.sm_count) * RENDER_THREADS_PER_UNIT if self._device.is_cuda else CPU_THREADS
 

@@ -373,26 +373,19 @@ def render_kernel(mesh: wp.uint64, corners: wp.array(dtype=wp.vec3), rotations: 
         item += stride
 
 
-@wp.kernel
-def hits_kernel(mesh: wp.uint64, corners: wp.array(dtype=wp.vec3), rotations: wp.array(dtype=wp.mat33),
+@wp.func
+def hit_returns(mesh: wp.uint64, corners: wp.array(dtype=wp.vec3), rotations: wp.array(dtype=wp.mat33),
                 translations: wp.array(dtype=wp.vec3), plane_normals: wp.array(dtype=wp.vec3),
                 plane_offsets: wp.array(dtype=float), directions: wp.array3d(dtype=wp.vec3),
                 beam_table: wp.array2d(dtype=float), sonar: KernelSonar, weight: float, gamma: float,
                 surface_reflection: float, first_rows: wp.array(dtype=wp.int32), masked: int,
-                needed: wp.array3d(dtype=wp.uint8), hits: wp.array(dtype=wp.int32),
-                hit_items: wp.array(dtype=wp.vec4i), hit_ranges: wp.array(dtype=float),
-                acc: wp.array4d(dtype=wp.int32)):
-    """Thread t < min(hits[0], L): render_kernel's queued hit t (step 3 of kernels/render.cl): its
-    object return, then, where both legs of its path via the surface are clear, its ghost and
-    mirror returns, each where it is read."""
-    t = wp.tid()
-    if t >= hits[0]:
-        return
-    item = hit_items[t]
+                needed: wp.array3d(dtype=wp.uint8), item: wp.vec4i, r: float, acc: wp.array4d(dtype=wp.int32)):
+    """The returns of one queued hit, ``item`` (v, b, i K_φ + j, face) at range ``r`` (step 3 of
+    kernels/render.cl): its object return, then, where both legs of its path via the surface
+    are clear, its ghost and mirror returns, each where it is read."""
     v = item[0]
     b = item[1]
     face = item[3]
-    r = hit_ranges[t]
     rot = rotations[v]
     first = first_rows[v]
     k_phi = directions.shape[2]
@@ -434,6 +427,27 @@ def hits_kernel(mesh: wp.uint64, corners: wp.array(dtype=wp.vec3), rotations: wp
                             deposit(acc, v, 1, rb, b, a_s, weight, sonar.beams, first)
                         if want_mirror:
                             deposit(acc, v, 2, rb, mb, a_s, weight, sonar.beams, first)
+
+
+@wp.kernel
+def hits_kernel(mesh: wp.uint64, corners: wp.array(dtype=wp.vec3), rotations: wp.array(dtype=wp.mat33),
+                translations: wp.array(dtype=wp.vec3), plane_normals: wp.array(dtype=wp.vec3),
+                plane_offsets: wp.array(dtype=float), directions: wp.array3d(dtype=wp.vec3),
+                beam_table: wp.array2d(dtype=float), sonar: KernelSonar, weight: float, gamma: float,
+                surface_reflection: float, first_rows: wp.array(dtype=wp.int32), masked: int,
+                needed: wp.array3d(dtype=wp.uint8), hits: wp.array(dtype=wp.int32),
+                hit_items: wp.array(dtype=wp.vec4i), hit_ranges: wp.array(dtype=float), stride: int,
+                acc: wp.array4d(dtype=wp.int32)):
+    """Thread t: render_kernel's queued hits t, t + stride, ... below min(hits[0], L) in turn
+    (``hit_returns``): the queue is sized for the most hits a launch can have, several times
+    those it has, and a thread per slot would launch for every empty one."""
+    count = wp.min(hits[0], hit_items.shape[0])
+    item = wp.tid()
+    while item < count:
+        hit_returns(mesh, corners, rotations, translations, plane_normals, plane_offsets, directions, beam_table,
+                    sonar, weight, gamma, surface_reflection, first_rows, masked, needed, hit_items[item],
+                    hit_ranges[item], acc)
+        item += stride
 
 
 @wp.kernel
