@@ -339,7 +339,8 @@ class OpenCLBackend(Backend):
         chunk_views = self._scratch(4 * most)
         self._chunk_views_kernel(self.queue, (-(-n // GROUP) * GROUP,), None, chunks, offsets, np.int32(n),
                                  chunk_views)
-        return (spans, chunks, offsets, chunk_views), min(-(-most * RAY_CHUNK // GROUP) * GROUP, self._resident_threads())
+        threads = min(-(-most * RAY_CHUNK // GROUP) * GROUP, self._resident_threads())
+        return (spans, chunks, offsets, chunk_views), threads
 
     def _resident_threads(self) -> int:
         """Work-items of a launch that takes its items in turn (render_views on a GPU, hit_returns):
