@@ -36,22 +36,20 @@ def surface_in_views(rig: Rig, depth, tilt):
 def view_planes(rig: Rig, depth, tilt):
     """Every view's pose and the surface in its frame for shared ``depth`` (m) and ``tilt``
     (rad), broadcast to (*G,): ``(R, t, n, d)``, the poses of ``rig.relative_poses`` and the
-    planes ``n_m = R_mᵀ n``, ``d_m = d - n·t_m``. All but d depend on β alone: where the tilts
-    repeat (a (D, β) grid repeats each along D) they are found once per distinct tilt (the same
-    operations, so the same bits as one candidate's), then spread over the candidates.
+    planes ``n_m = R_mᵀ n``, ``d_m = d - n·t_m``. All but d depend on β alone: they are found once
+    per distinct tilt (a (D, β) grid repeats each along D; the same operations, so the same bits
+    as one candidate's), then spread over the candidates.
 
     Returns arrays of shapes (*G, V, 3, 3), (*G, V, 3), (*G, V, 3) and (*G, V)."""
     depth, tilt = np.broadcast_arrays(np.asarray(depth, np.float64), np.asarray(tilt, np.float64))
     tilts, inverse = np.unique(tilt, return_inverse=True)
-    repeated = tilts.size < tilt.size
-    at = (np.zeros(tilts.shape), tilts) if repeated else (depth, tilt)
+    at = (np.zeros(tilts.shape), tilts)
     rot, t = rig.relative_poses(*at)
     normal, _ = surface_in_reference(rig, *at)
     n_views = np.einsum("...vij,...i->...vj", rot, normal)
     heights = np.einsum("...vi,...i->...v", t, normal)
-    if repeated:
-        inverse = inverse.reshape(-1)
-        rot, t, n_views, heights = (a[inverse].reshape(tilt.shape + a.shape[1:]) for a in (rot, t, n_views, heights))
+    inverse = inverse.reshape(-1)
+    rot, t, n_views, heights = (a[inverse].reshape(tilt.shape + a.shape[1:]) for a in (rot, t, n_views, heights))
     offset = depth + rig.views[rig.reference].depth_offset  # d = D + δD_ref (surface_in_reference's)
     return rot, t, n_views, offset[..., None] - heights
 
