@@ -28,13 +28,14 @@ One update at a given (D, β), over the views marked ``optimize``, with a
 from __future__ import annotations
 
 import functools
-import hashlib
 import math
+import threading
 import time
 import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
+import xxhash
 
 from .compare import PoseSettings, PoseWarning, ViewComparison
 from .errors import InputError, check_integer, is_finite_number, is_integer
@@ -323,10 +324,12 @@ class _Update:
 class _Topology:
     """What refinement needs of one (F, 3) face list of ``n`` vertices, which no update changes
     (module docstring, step 6): its unique (E, 2) ``edges``, whether it is ``watertight``, and
-    (on first use) the membrane system's sparsity (``system``). :func:`_topology` remembers
-    them by the faces."""
+    (on first use) the membrane system's sparsity (``system``), whose one solver a membrane
+    holds ``lock`` for while it factors and solves (refinements may run in threads).
+    :func:`_topology` remembers them by the faces."""
 
     def __init__(self, mesh):
+        self.lock = threading.Lock()
         self.edges = np.array(mesh.edges_unique, np.int64)
         self.edges.setflags(write=False)
         self.watertight = is_watertight(mesh)
@@ -359,17 +362,20 @@ class _Topology:
 #: carving share it; setting up its solver takes ~12 ms on coral-one's 9.5k vertices).
 #: Cleared when it reaches 8 entries.
 _TOPOLOGIES: dict[bytes, _Topology] = {}
+_TOPOLOGIES_LOCK = threading.Lock()
 
 
 def _topology(mesh) -> _Topology:
     """The :class:`_Topology` of a trimesh's faces, remembered (``_TOPOLOGIES``)."""
     faces = np.ascontiguousarray(mesh.faces, np.int64)
-    key = hashlib.blake2b(faces, digest_size=16).digest() + len(mesh.vertices).to_bytes(8, "little")
-    if key not in _TOPOLOGIES:
-        if len(_TOPOLOGIES) >= 8:
-            _TOPOLOGIES.clear()
-        _TOPOLOGIES[key] = _Topology(mesh)
-    return _TOPOLOGIES[key]
+    key = xxhash.xxh3_128_digest(faces) + len(mesh.vertices).to_bytes(8, "little")
+    with _TOPOLOGIES_LOCK:  # one topology, and so one solver and one lock, per face list
+        topology = _TOPOLOGIES.get(key)
+        if topology is None:
+            if len(_TOPOLOGIES) >= 8:
+                _TOPOLOGIES.clear()
+            topology = _TOPOLOGIES[key] = _Topology(mesh)
+    return topology
 
 
 class _Membrane:
@@ -382,7 +388,9 @@ class _Membrane:
     rounding of a backward-stable factorization (tests/test_refine.py)."""
 
     def __init__(self, topology: _Topology, smoothing: float):
-        self.solver, self.upper, self.diagonal = topology.system
+        with topology.lock:  # its set-up is made once
+            self.solver, self.upper, self.diagonal = topology.system
+        self.lock = topology.lock
         self.data = smoothing * self.upper.data  # λ L, upper triangle, CSC
 
     def solve(self, weights: np.ndarray, rhs: np.ndarray) -> np.ndarray:
@@ -391,9 +399,11 @@ class _Membrane:
 
         data = self.data.copy()
         data[self.diagonal] += weights
-        self.solver.update(csc_matrix((data, self.upper.indices, self.upper.indptr), shape=self.upper.shape),
-                           upper=True)
-        return np.stack([self.solver.solve(np.ascontiguousarray(rhs[:, k])) for k in range(rhs.shape[1])], axis=1)
+        system = csc_matrix((data, self.upper.indices, self.upper.indptr), shape=self.upper.shape)
+        with self.lock:  # the topology's one solver, factored and solved by one thread at a time
+            self.solver.update(system, upper=True)
+            return np.stack([self.solver.solve(np.ascontiguousarray(rhs[:, k])) for k in range(rhs.shape[1])],
+                            axis=1)
 
 
 def _double_bounce(backend, mesh, directions: np.ndarray, origins: np.ndarray, surface: np.ndarray,

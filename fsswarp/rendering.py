@@ -27,7 +27,6 @@ for figures.
 
 from __future__ import annotations
 
-import hashlib
 import queue
 import threading
 import warnings
@@ -35,6 +34,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+import xxhash
 
 from .errors import InputError, check_depth_tilt, finite_array, is_integer
 from .rig import Rig
@@ -99,12 +99,14 @@ def check_mesh(mesh, *, name: str = "mesh", judge_watertight: bool = True):
 def is_watertight(mesh) -> bool:
     """A trimesh's ``is_watertight``, remembered by the digest of its (Nf, 3) faces (it depends
     on them alone; ``_WATERTIGHT``)."""
-    key = hashlib.blake2b(np.ascontiguousarray(mesh.faces, np.int64), digest_size=16).digest()
-    if key not in _WATERTIGHT:
+    key = xxhash.xxh3_128_digest(np.ascontiguousarray(mesh.faces, np.int64))
+    watertight = _WATERTIGHT.get(key)
+    if watertight is None:  # the value found, not the entry, which another thread may clear
+        watertight = bool(mesh.is_watertight)
         if len(_WATERTIGHT) >= 64:
             _WATERTIGHT.clear()
-        _WATERTIGHT[key] = bool(mesh.is_watertight)
-    return _WATERTIGHT[key]
+        _WATERTIGHT[key] = watertight
+    return watertight
 
 
 def signed_volume(triangles: np.ndarray) -> float:

@@ -24,14 +24,15 @@ by image content, read-only (Memo). Why these thresholds: docs/decisions.md ("Se
 
 from __future__ import annotations
 
-import hashlib
 import math
+import threading
 import warnings
 from collections import OrderedDict
 from dataclasses import dataclass, fields
 from typing import Callable
 
 import numpy as np
+import xxhash
 
 from .errors import InputError, check_integer, is_finite_number
 
@@ -158,22 +159,25 @@ def normalized(image: np.ndarray, settings: SegmentSettings):
 #: Results :func:`memoized` keeps (module docstring, "Memo").
 MEMO_SIZE = 128
 _memo: OrderedDict = OrderedDict()
+_memo_lock = threading.Lock()  # refinements and reconstructions may run in threads
 
 
 def memoized(kind: str, image: np.ndarray, settings, compute: Callable):
     """``compute()`` (an array or a dataclass of arrays), or the result kept for an image of
     the same content and the same ``kind`` and settings; the result's arrays are read-only."""
     image = np.ascontiguousarray(image)
-    key = (kind, hashlib.blake2b(image.tobytes(), digest_size=16).digest(), image.shape, image.dtype.str, settings)
-    if key in _memo:
-        _memo.move_to_end(key)
-        return _memo[key]
+    key = (kind, xxhash.xxh3_128_digest(image), image.shape, image.dtype.str, settings)
+    with _memo_lock:
+        if key in _memo:
+            _memo.move_to_end(key)
+            return _memo[key]
     result = compute()
     for array in [result] if isinstance(result, np.ndarray) else [getattr(result, f.name) for f in fields(result)]:
         array.setflags(write=False)
-    _memo[key] = result
-    if len(_memo) > MEMO_SIZE:
-        _memo.popitem(last=False)
+    with _memo_lock:
+        _memo[key] = result
+        if len(_memo) > MEMO_SIZE:
+            _memo.popitem(last=False)
     return result
 
 

@@ -81,6 +81,53 @@ def test_refinement_matches_one_with_every_membrane_system_solved_afresh(scene, 
     np.testing.assert_allclose(got.ce_after, want.ce_after, rtol=1e-6)
 
 
+def test_shape_steps_in_threads_give_the_meshes_they_give_in_turn(scene, carved):
+    """Two shape steps of one carving (so of one topology and its one membrane solver) at two
+    poses, each with its own comparison on one backend, run in two threads with the
+    interpreter switching threads every microsecond: the same meshes, bit for bit, as in
+    turn. A solver shared without its lock gave other meshes, or the process died."""
+    dataset, truth, depth, tilt, backend = scene
+    settings = RefineSettings(iterations=2)
+    poses = ((depth, tilt), (depth + 0.01, tilt + 0.005))
+    comparisons = [ViewComparison(dataset, backend=backend) for _ in poses]
+    want = [refine_shape(carved, dataset, *pose, settings=settings, comparison=comparison).mesh.vertices
+            for pose, comparison in zip(poses, comparisons)]
+    got = _in_threads([lambda pose=pose, comparison=comparison: refine_shape(
+        carved, dataset, *pose, settings=settings, comparison=comparison).mesh.vertices
+        for pose, comparison in zip(poses, comparisons)])
+    for mine, theirs in zip(got, want):
+        np.testing.assert_array_equal(mine, theirs)
+
+
+def _in_threads(jobs: list) -> list:
+    """The results of the callables ``jobs``, each run in a thread of its own while the
+    interpreter switches threads every microsecond; a job's exception is raised here."""
+    import sys
+    import threading
+
+    results, errors = [None] * len(jobs), []
+
+    def run(k: int) -> None:
+        try:
+            results[k] = jobs[k]()
+        except BaseException as error:  # noqa: BLE001 - handed to the test's thread
+            errors.append(error)
+
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)
+    try:
+        threads = [threading.Thread(target=run, args=(k,)) for k in range(len(jobs))]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+    finally:
+        sys.setswitchinterval(interval)
+    if errors:
+        raise errors[0]
+    return results
+
+
 def test_refinement_does_not_eat_into_the_object(scene):
     """Overshoot votes from echoes beyond the data's last highlight of a beam used to push
     surface that lay too far (a dent) farther still: over 12 updates at the true (D, β) the
@@ -371,6 +418,24 @@ def test_membranes_of_one_topology_share_its_solver_and_each_solves_its_own_syst
                 got = membrane.solve(weights, rhs)
                 np.testing.assert_allclose(got, np.linalg.solve(dense, rhs), rtol=1e-8,
                                            atol=1e-11 * np.abs(rhs).max())
+
+
+def test_membranes_of_one_topology_solve_their_own_systems_from_several_threads():
+    """Eight membranes of one topology (so of its one solver) each solve their own system six
+    times, in eight threads switching every microsecond: each answer is the one solved alone,
+    bit for bit (without the topology's lock a thread solved with another's factors)."""
+    mesh = trimesh.creation.icosphere(subdivisions=4)
+    n = len(mesh.vertices)
+    topology = _topology(mesh)
+    rng = np.random.default_rng(5)
+    systems = [(np.where(rng.random(n) < 0.3, rng.random(n), 0.0) + 1e-9, rng.normal(size=(n, 3))) for _ in range(8)]
+    alone = _Membrane(topology, 4.0)
+    want = [alone.solve(weights, rhs) for weights, rhs in systems]
+    got = _in_threads([lambda weights=weights, rhs=rhs: [_Membrane(topology, 4.0).solve(weights, rhs)
+                                                         for _ in range(6)] for weights, rhs in systems])
+    for answers, answer in zip(got, want):
+        for mine in answers:
+            np.testing.assert_array_equal(mine, answer)
 
 
 def test_topology_is_remembered_by_the_faces_with_the_upper_triangle_of_its_laplacian():

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import abc
 import math
+import threading
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator, NamedTuple
 
@@ -1108,24 +1109,27 @@ def _carve_views(masks, rotations, translations, sonar, voxel_size):
 #: ``_summed_area``'s tables by the digest of their masks (read-only; at most 4 kept): a
 #: carving passes the same masks to its five launches, and every carving of a dataset the same.
 _SUMMED_AREAS: dict[bytes, np.ndarray] = {}
+_SUMMED_AREAS_LOCK = threading.Lock()
 
 
 def _summed_area(feasible: np.ndarray, sonar: SonarSpec) -> np.ndarray:
     """(V, bins + 1, beams + 1) int32 summed-area tables of (V, bins, beams) masks: element
     [v, B, b] counts the nonzero pixels in rows < B and columns < b (read-only, remembered by
-    the masks' digest: hashing takes ~1 ms where the tables took ~6 ms for coral-one's views)."""
-    import hashlib
+    the masks' digest: hashing takes ~0.02 ms where the tables took ~6 ms for coral-one's views)."""
+    import xxhash
 
     masks = np.ascontiguousarray(feasible != 0)
-    key = hashlib.blake2b(masks, digest_size=16).digest() + repr(masks.shape).encode()
-    if key not in _SUMMED_AREAS:
-        if len(_SUMMED_AREAS) >= 4:
-            _SUMMED_AREAS.pop(next(iter(_SUMMED_AREAS)))
+    key = xxhash.xxh3_128_digest(masks) + repr(masks.shape).encode()
+    integral = _SUMMED_AREAS.get(key)
+    if integral is None:  # the table made, not the entry, which another thread may drop
         integral = np.zeros((masks.shape[0], sonar.bins + 1, sonar.beams + 1), np.int32)
         np.cumsum(np.cumsum(masks, axis=1, dtype=np.int32), axis=2, out=integral[:, 1:, 1:])
         integral.setflags(write=False)
-        _SUMMED_AREAS[key] = integral
-    return _SUMMED_AREAS[key]
+        with _SUMMED_AREAS_LOCK:
+            if len(_SUMMED_AREAS) >= 4:
+                _SUMMED_AREAS.pop(next(iter(_SUMMED_AREAS)))
+            _SUMMED_AREAS[key] = integral
+    return integral
 
 
 def _circumradius(size: float) -> float:

@@ -7,6 +7,8 @@ kernel cache, ~/.cache/warp). Device layers are ``WarpLayers``, meshes ``WarpMes
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import warp as wp
 
@@ -101,6 +103,7 @@ class WarpBackend(Backend):
             wp.set_mempool_release_threshold(self._device, MEMPOOL_KEEP)
         self.has_float64 = True
         self._constants: dict[tuple, wp.array] = {}  # _constant's uploads, least recently used first
+        self._constants_lock = threading.Lock()
 
     def _array(self, data: np.ndarray, dtype) -> wp.array:
         return wp.array(data, dtype=dtype, device=self._device)
@@ -114,12 +117,14 @@ class WarpBackend(Backend):
         if data.nbytes > CONSTANT_BYTES:
             return self._array(data, dtype)
         key = (dtype, data.shape, data.dtype.str, data.tobytes())
-        array = self._constants.pop(key, None)
+        with self._constants_lock:  # a backend may serve several threads
+            array = self._constants.pop(key, None)
         if array is None:
             array = self._array(data, dtype)
-            if len(self._constants) >= CONSTANTS:
+        with self._constants_lock:
+            if key not in self._constants and len(self._constants) >= CONSTANTS:
                 self._constants.pop(next(iter(self._constants)))  # the least recently used
-        self._constants[key] = array
+            self._constants[key] = array
         return array
 
     def _arrays(self, *items) -> list[wp.array]:
