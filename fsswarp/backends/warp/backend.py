@@ -39,6 +39,9 @@ CPU_THREADS = 1024
 CONSTANT_BYTES = 1 << 18
 #: ... and this many of them (at most 16 MiB).
 CONSTANTS = 64
+#: Held while a backend of this process loads a mesh (``WarpBackend._load_mesh``): Warp's BVH
+#: builds are not safe in two threads at once.
+_LOAD_LOCK = threading.Lock()
 
 
 class WarpLayers(DeviceLayers):
@@ -158,10 +161,12 @@ class WarpBackend(Backend):
         """The float32 corners and each triangle's box, padded so that boxes of axis-aligned
         triangles have volume (and rounding never loses one) by 1e-6 × (the largest |vertex
         coordinate|, at least 1e-12) + 1e-6 × the box's longest side, made on the device
-        (``triangle_boxes_kernel``, float32 throughout)."""
+        (``triangle_boxes_kernel``, float32 throughout). One load at a time in a process
+        (``_LOAD_LOCK``): BVHs built by two threads at once on an H200 made renders fail with
+        illegal memory accesses in 4 of 5 runs (docs/decisions.md, "Threads")."""
         n_faces = faces.shape[0]
         extent = float(np.max(np.abs(vertices))) if len(vertices) else 1.0
-        with wp.ScopedDevice(self._device):
+        with _LOAD_LOCK, wp.ScopedDevice(self._device):
             corners = wp.empty(3 * n_faces, dtype=wp.vec3)
             lowers, uppers = wp.empty(n_faces, dtype=wp.vec3), wp.empty(n_faces, dtype=wp.vec3)
             _launch(triangle_boxes_kernel, dim=n_faces,
