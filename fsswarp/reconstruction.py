@@ -27,8 +27,10 @@ their means there; CE from the comparison's contours; E_I = (AIE/AIE⁰ + ACE/AC
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
+import threading
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -62,6 +64,8 @@ class ReconstructSettings:
         (pose also finds E_I's contours; refine.iterations: refinement updates per shape step)
     answer_top_level : ``refine.top_level`` of the shape steps at the answer (:func:`_answer_model`):
         double-bounce votes where the pose is settled (docs/decisions.md); 0: none
+    answer_ahead : work the answer's pose out in a thread once the pose step rests, while the
+        loop's last shape steps go on (:class:`_AnswerAhead`; the same answer, sooner)
     """
 
     iterations: int = 10
@@ -72,12 +76,15 @@ class ReconstructSettings:
     refine: RefineSettings = field(default_factory=lambda: RefineSettings(iterations=3))
     render: RenderSettings = field(default_factory=RenderSettings)
     answer_top_level: float = 2.0
+    answer_ahead: bool = True
 
     def __post_init__(self) -> None:
         for name, lowest in (("iterations", 0), ("patience", 1), ("resolution", 16)):
             check_integer(f"--{name}", getattr(self, name), lowest)
         if not (is_finite_number(self.answer_top_level) and 0 <= self.answer_top_level <= 1e6):
             raise InputError("must be a number in [0, 1000000]", field="answer_top_level", value=self.answer_top_level)
+        if not isinstance(self.answer_ahead, bool):
+            raise InputError("must be true or false", field="answer_ahead", value=self.answer_ahead)
 
 
 @dataclass
@@ -159,7 +166,7 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
         ViewComparison(dataset, settings=settings.refine.pose, backend=backend)  # the shape steps
     truth_pose = None if dataset.manifest.truth is None else (dataset.manifest.truth.depth,
                                                               dataset.manifest.truth.tilt)
-    with _TruthMetrics(dataset.truth_mesh(), say) as truth:
+    with _TruthMetrics(dataset.truth_mesh(), say) as truth, contextlib.ExitStack() as closing:
         given = "given" if depth0 is not None or tilt0 is not None else "measured"
         say(f"iteration 0: carving at the {given} D0 = {depth:.4f} m, tilt0 = {math.degrees(tilt):.3f} deg")
         carvings = {}  # each pose is carved once (_carving)
@@ -175,6 +182,7 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
         say(_line(first))
         best, best_pose, misses, stopped = first, (depth, tilt), 0, False
         pose_steps, asked = [], (None,)  # asked: the last pose step's model and start
+        ahead = None  # the answer's pose, worked out in a thread once the pose is settled
         for iteration in range(1, settings.iterations + 1):
             if asked[0] is sighting and asked[1:] == (depth, tilt):
                 pose = pose_steps[-1]  # the same model from the same start: the step would repeat itself
@@ -194,6 +202,9 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
                     "stay")
                 if meshing is not None:  # the answer starts from the best pose's carving: meshed meanwhile
                     _carve_ahead(dataset, *best_pose, settings, backend, carvings)
+                if settings.answer_ahead and ahead is None:  # the pose stays from here on (_AnswerAhead)
+                    ahead = closing.enter_context(_AnswerAhead(dataset, best_pose, prior, settings, backend,
+                                                               carvings))
             for depth_tried, tilt_tried in trials:
                 recarve = (depth_tried, tilt_tried) != (depth, tilt) and _outside(carved_at, pose.posterior)
                 if recarve:  # its mesh is made while the model is refined
@@ -233,14 +244,10 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
             if _out_of_patience(misses, settings, best, iteration, say):
                 stopped = True
                 break
-        if settings.iterations:
-            heights = []  # the surface's height above every model made for the answer
-            posterior = _valley_answer(dataset, comparison, shaping, best_pose, prior, settings, say, heights,
-                                       carvings)
-            tilt = carving_descent(dataset, comparison, posterior.depth, posterior.tilt, settings, say, carvings)
-            if tilt != posterior.tilt:  # a carving there agrees better with the views: start again from it
-                posterior = _valley_answer(dataset, comparison, shaping, (posterior.depth, tilt), prior, settings, say,
-                                           heights, carvings)
+        if ahead is not None and ahead.pose == best_pose:
+            posterior = ahead.result(say)
+        elif settings.iterations:
+            posterior = _answer_pose(dataset, comparison, shaping, best_pose, prior, settings, say, carvings)
         else:
             posterior = _carving_posterior(comparison, carved, best_pose, prior)
         answer = (posterior.depth, posterior.tilt)
@@ -349,6 +356,74 @@ def carving_descent(dataset, comparison: ViewComparison, depth: float, tilt: flo
         f"(E_mu {here * 1000:.2f} mm; {steps} step{'s' * (steps != 1)} of {math.degrees(DESCENT_STEP):g} deg from "
         f"{math.degrees(tilt):.3f} deg)")
     return best
+
+
+def _answer_pose(dataset, comparison: ViewComparison, shaping: ViewComparison, pose: tuple[float, float],
+                 prior: Prior, settings: ReconstructSettings, say, carvings: dict | None = None):
+    """The answer's Posterior from the best ``pose`` (m, rad): :func:`_valley_answer` there,
+    its tilt checked by :func:`carving_descent`, and the valley answer again from a tilt whose
+    carving agrees better with the views."""
+    heights = []  # the surface's height above every model made for the answer
+    posterior = _valley_answer(dataset, comparison, shaping, pose, prior, settings, say, heights, carvings)
+    tilt = carving_descent(dataset, comparison, posterior.depth, posterior.tilt, settings, say, carvings)
+    if tilt != posterior.tilt:  # a carving there agrees better with the views: start again from it
+        posterior = _valley_answer(dataset, comparison, shaping, (posterior.depth, tilt), prior, settings, say,
+                                   heights, carvings)
+    return posterior
+
+
+class _AnswerAhead:
+    """:func:`_answer_pose` from ``pose`` (m, rad) in a thread of its own, with comparisons of its
+    own, while the loop goes on: once a pose step proposes nothing better, the pose and the
+    best pose stay for the rest of the loop (a shape step at the same pose moves neither), and
+    the answer's pose depends on nothing else, so it is the answer the loop's end would find.
+    Its progress lines are kept and said by :meth:`result`, where the loop's end would say them.
+    Leaving it (a context manager) stops the thread at its next line and waits for it.
+    Measured: docs/decisions.md, "Threads"."""
+
+    def __init__(self, dataset, pose: tuple[float, float], prior: Prior, settings: ReconstructSettings, backend,
+                 carvings: dict | None):
+        self.pose, self._lines, self._stop = pose, [], threading.Event()
+        self._outcome: list = []  # (posterior, None) or (None, the exception)
+        self._thread = threading.Thread(target=self._run, args=(dataset, prior, settings, backend, carvings),
+                                        name="fsswarp-answer")
+        self._thread.start()
+
+    def _run(self, dataset, prior, settings, backend, carvings) -> None:
+        try:
+            comparison = ViewComparison(dataset, settings=settings.pose, backend=backend)
+            shaping = comparison if settings.refine.pose == settings.pose else \
+                ViewComparison(dataset, settings=settings.refine.pose, backend=backend)
+            self._outcome.append((_answer_pose(dataset, comparison, shaping, self.pose, prior, settings, self._say,
+                                               carvings), None))
+        except BaseException as error:  # noqa: BLE001 - raised by result(), in the loop's thread
+            self._outcome.append((None, error))
+
+    def _say(self, line: str) -> None:
+        if self._stop.is_set():
+            raise _Stopped
+        self._lines.append(line)
+
+    def result(self, say):
+        """The Posterior (or the exception it raised), once the thread ends; its lines said first."""
+        self._thread.join()
+        posterior, error = self._outcome[0]
+        for line in self._lines:
+            say(line)
+        if error is not None:
+            raise error
+        return posterior
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+class _Stopped(Exception):
+    """Ends an :class:`_AnswerAhead` whose loop has ended without it."""
 
 
 def _valley_answer(dataset, comparison: ViewComparison, shaping: ViewComparison, pose: tuple[float, float],

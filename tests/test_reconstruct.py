@@ -464,6 +464,9 @@ def test_settings_are_validated():
     for bad in (-0.5, math.nan, "2"):
         with pytest.raises(InputError, match="answer_top_level"):
             ReconstructSettings(answer_top_level=bad)
+    for bad in ("yes", 1, None):
+        with pytest.raises(InputError, match="answer_ahead"):
+            ReconstructSettings(answer_ahead=bad)
 
 
 def test_reconstruct_command_writes_model_result_and_figures(coral_one, tmp_path):
@@ -928,3 +931,75 @@ def test_a_resting_pose_step_has_the_best_pose_carved_ahead(coral_one, monkeypat
         with pytest.raises(Reached) as reached:
             reconstruct(coral_one, settings=FAST, backend=get_backend("opencl"))
         assert ahead == [reached.value.args[0]] * expected
+
+
+def _refusing_pose_steps(monkeypatch):
+    """Make every pose step of the loop find nothing better (its real result, not accepted), so
+    that the answer is worked out ahead from the first iteration on."""
+    found = reconstruct_module.estimate_pose
+    monkeypatch.setattr(reconstruct_module, "estimate_pose", lambda *args, **kwargs: dataclasses.replace(
+        found(*args, **kwargs), accepted=False) if "posterior_axes" in kwargs else found(*args, **kwargs))
+
+
+def test_the_answer_worked_out_ahead_in_a_thread_is_the_one_found_at_the_loop_s_end(coral_one, monkeypatch):
+    """Once a pose step finds nothing better, the answer's pose is worked out in a thread while
+    the loop's shape steps go on: the same reconstruction as with the answer found after the
+    loop (result, history, model, and the answer's lines in the same place), the one in a
+    thread of its own, the other in the loop's."""
+    import threading
+
+    from fsswarp.backends import get_backend
+
+    _refusing_pose_steps(monkeypatch)
+    answered = reconstruct_module._answer_pose
+    where = []
+
+    def answer_pose(*args, **kwargs):
+        where.append(threading.current_thread().name)
+        return answered(*args, **kwargs)
+
+    monkeypatch.setattr(reconstruct_module, "_answer_pose", answer_pose)
+    runs = {}
+    for ahead in (False, True):
+        lines = []
+        result = reconstruct(coral_one, settings=dataclasses.replace(FAST, iterations=2, answer_ahead=ahead),
+                             backend=get_backend("opencl"), progress=lines.append)
+        summary = result.summary()
+        del summary["seconds"]
+        runs[ahead] = (json.dumps(summary, sort_keys=True), result.model.vertices, result.model.faces,
+                       [line for line in lines if "against the truth" not in line])  # those come when ready
+    assert where == ["MainThread", "fsswarp-answer"]
+    assert runs[True][0] == runs[False][0] and runs[True][3] == runs[False][3]
+    np.testing.assert_array_equal(runs[True][1], runs[False][1])
+    np.testing.assert_array_equal(runs[True][2], runs[False][2])
+    assert not [thread for thread in threading.enumerate() if thread.name == "fsswarp-answer"]
+
+
+def test_a_loop_that_fails_stops_its_answer_thread(coral_one, monkeypatch):
+    """A loop that raises while the answer is worked out ahead raises its own error, and its
+    answer's thread has ended when ``reconstruct`` returns."""
+    import threading
+
+    from fsswarp.backends import get_backend
+
+    _refusing_pose_steps(monkeypatch)
+    started, calls = threading.Event(), []
+    answered, refined = reconstruct_module._answer_pose, reconstruct_module.refine_shape
+
+    def answer_pose(*args, **kwargs):
+        started.set()
+        return answered(*args, **kwargs)
+
+    def failing_shape_step(*args, **kwargs):
+        calls.append(threading.current_thread().name)
+        if calls.count("MainThread") == 1 or threading.current_thread().name == "fsswarp-answer":
+            return refined(*args, **kwargs)  # the carving's before the loop, and the answer's
+        assert started.wait(60)  # the answer's thread is running
+        raise RuntimeError("a shape step failed")
+
+    monkeypatch.setattr(reconstruct_module, "_answer_pose", answer_pose)
+    monkeypatch.setattr(reconstruct_module, "refine_shape", failing_shape_step)
+    with pytest.raises(RuntimeError, match="a shape step failed"):
+        reconstruct(coral_one, settings=dataclasses.replace(FAST, iterations=2), backend=get_backend("opencl"))
+    assert started.is_set()
+    assert not [thread for thread in threading.enumerate() if thread.name == "fsswarp-answer"]
