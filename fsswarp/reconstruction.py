@@ -161,9 +161,7 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
     start = time.perf_counter()
     # on a many-core host: ready when the loop needs a carving ahead (None: no mesh processes)
     meshing = start_mesh_workers() if settings.iterations else None
-    comparison = ViewComparison(dataset, settings=settings.pose, backend=backend)  # E_I, E_mu, the pose steps
-    shaping = comparison if settings.refine.pose == settings.pose else \
-        ViewComparison(dataset, settings=settings.refine.pose, backend=backend)  # the shape steps
+    comparison, shaping = _comparisons(dataset, settings, backend)
     truth_pose = None if dataset.manifest.truth is None else (dataset.manifest.truth.depth,
                                                               dataset.manifest.truth.tilt)
     with _TruthMetrics(dataset.truth_mesh(), say) as truth, contextlib.ExitStack() as closing:
@@ -267,6 +265,15 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
                                  converged=stopped and all(identified.values()), history=history,
                                  seconds=time.perf_counter() - start, backend=backend.name, device=backend.device,
                                  pose_steps=pose_steps, posterior=posterior, start=start_pose, truth=truth_pose)
+
+
+def _comparisons(dataset, settings: ReconstructSettings, backend) -> tuple[ViewComparison, ViewComparison]:
+    """(comparison, shaping): the ViewComparison of E_I, E_mu and the pose steps, and the shape
+    steps' (the same one unless ``settings.refine.pose`` differs from ``settings.pose``)."""
+    comparison = ViewComparison(dataset, settings=settings.pose, backend=backend)
+    shaping = comparison if settings.refine.pose == settings.pose else \
+        ViewComparison(dataset, settings=settings.refine.pose, backend=backend)
+    return comparison, shaping
 
 
 def _answer_model(kept, dataset, answer: tuple[float, float], iteration: int, settings: ReconstructSettings,
@@ -391,9 +398,7 @@ class _AnswerAhead:
 
     def _run(self, dataset, prior, settings, backend, carvings) -> None:
         try:
-            comparison = ViewComparison(dataset, settings=settings.pose, backend=backend)
-            shaping = comparison if settings.refine.pose == settings.pose else \
-                ViewComparison(dataset, settings=settings.refine.pose, backend=backend)
+            comparison, shaping = _comparisons(dataset, settings, backend)
             self._outcome.append((_answer_pose(dataset, comparison, shaping, self.pose, prior, settings, self._say,
                                                carvings), None))
         except BaseException as error:  # noqa: BLE001 - raised by result(), in the loop's thread
@@ -792,9 +797,7 @@ def reconstruct_shape_only(dataset, *, depth0: float | None = None, tilt0: float
     backend = backend or get_backend()
     say = progress or (lambda line: None)
     start = time.perf_counter()
-    comparison = ViewComparison(dataset, settings=settings.pose, backend=backend)
-    shaping = comparison if settings.refine.pose == settings.pose else \
-        ViewComparison(dataset, settings=settings.refine.pose, backend=backend)
+    comparison, shaping = _comparisons(dataset, settings, backend)
     with warnings.catch_warnings(), _TruthMetrics(dataset.truth_mesh(), say) as truth:
         warnings.filterwarnings("ignore", "view .*: ghost returns reach", RenderWarning)  # beyond the windows on purpose
         say(f"iteration 0: carving at the known D = {known[0]:.4f} m, tilt = {math.degrees(known[1]):.3f} deg "
