@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import xxhash
 
+from .caching import Remembered
 from .compare import PoseSettings, PoseWarning, ViewComparison
 from .errors import InputError, check_integer, is_finite_number, is_integer
 from .motion import image_jacobian, truncated_lstsq
@@ -360,22 +361,15 @@ class _Topology:
 
 #: :class:`_Topology` by the digest of the (F, 3) faces (refinement calls on the models of one
 #: carving share it; setting up its solver takes ~12 ms on coral-one's 9.5k vertices).
-#: Cleared when it reaches 8 entries.
-_TOPOLOGIES: dict[bytes, _Topology] = {}
-_TOPOLOGIES_LOCK = threading.Lock()
+#: The last 8 face lists; one topology, and so one solver and one lock, per face list.
+_TOPOLOGIES = Remembered(8)
 
 
 def _topology(mesh) -> _Topology:
     """The :class:`_Topology` of a trimesh's faces, remembered (``_TOPOLOGIES``)."""
     faces = np.ascontiguousarray(mesh.faces, np.int64)
     key = xxhash.xxh3_128_digest(faces) + len(mesh.vertices).to_bytes(8, "little")
-    with _TOPOLOGIES_LOCK:  # one topology, and so one solver and one lock, per face list
-        topology = _TOPOLOGIES.get(key)
-        if topology is None:
-            if len(_TOPOLOGIES) >= 8:
-                _TOPOLOGIES.clear()
-            topology = _TOPOLOGIES[key] = _Topology(mesh)
-    return topology
+    return _TOPOLOGIES.get(key, lambda: _Topology(mesh))
 
 
 class _Membrane:

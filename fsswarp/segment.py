@@ -25,15 +25,14 @@ by image content, read-only (Memo). Why these thresholds: docs/decisions.md ("Se
 from __future__ import annotations
 
 import math
-import threading
 import warnings
-from collections import OrderedDict
 from dataclasses import dataclass, fields
 from typing import Callable
 
 import numpy as np
 import xxhash
 
+from .caching import Remembered
 from .errors import InputError, check_integer, is_finite_number
 
 
@@ -158,8 +157,7 @@ def normalized(image: np.ndarray, settings: SegmentSettings):
 
 #: Results :func:`memoized` keeps (module docstring, "Memo").
 MEMO_SIZE = 128
-_memo: OrderedDict = OrderedDict()
-_memo_lock = threading.Lock()  # refinements and reconstructions may run in threads
+_memo = Remembered(MEMO_SIZE)
 
 
 def memoized(kind: str, image: np.ndarray, settings, compute: Callable):
@@ -167,18 +165,13 @@ def memoized(kind: str, image: np.ndarray, settings, compute: Callable):
     the same content and the same ``kind`` and settings; the result's arrays are read-only."""
     image = np.ascontiguousarray(image)
     key = (kind, xxhash.xxh3_128_digest(image), image.shape, image.dtype.str, settings)
-    with _memo_lock:
-        if key in _memo:
-            _memo.move_to_end(key)
-            return _memo[key]
-    result = compute()
-    for array in [result] if isinstance(result, np.ndarray) else [getattr(result, f.name) for f in fields(result)]:
-        array.setflags(write=False)
-    with _memo_lock:
-        _memo[key] = result
-        if len(_memo) > MEMO_SIZE:
-            _memo.popitem(last=False)
-    return result
+
+    def read_only():
+        result = compute()
+        for array in [result] if isinstance(result, np.ndarray) else [getattr(result, f.name) for f in fields(result)]:
+            array.setflags(write=False)
+        return result
+    return _memo.get(key, read_only)
 
 
 def from_highlight(highlight, *, dilate_beams: int = 0) -> Segmentation:

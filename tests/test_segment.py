@@ -157,7 +157,7 @@ def test_the_memo_keys_on_content_and_settings_and_keeps_results_read_only(monke
     calls = []
     real = seg._highlight
     monkeypatch.setattr(seg, "_highlight", lambda image, settings: calls.append(1) or real(image, settings))
-    monkeypatch.setattr(seg, "_memo", type(seg._memo)())
+    monkeypatch.setattr(seg, "_memo", type(seg._memo)(seg.MEMO_SIZE))
     rng = np.random.default_rng(3)
     image = rng.exponential(1.0, (64, 24)).astype(np.float32)
     image[30:34, 8:14] += 200.0

@@ -19,12 +19,12 @@ from __future__ import annotations
 
 import abc
 import math
-import threading
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator, NamedTuple
 
 import numpy as np
 
+from ..caching import Remembered
 from ..errors import is_integer, is_number, real_array
 from ..sonar import SonarSpec
 from .constants import (CPU_HIT_QUEUE, FIXED_SCALE, GPU_HIT_QUEUE, GPU_ICP_LANES, MAX_DISTANCE, RAY_CHUNK,
@@ -1106,10 +1106,9 @@ def _carve_views(masks, rotations, translations, sonar, voxel_size):
     return feasible, rot, trans, size
 
 
-#: ``_summed_area``'s tables by the digest of their masks (read-only; at most 4 kept): a
-#: carving passes the same masks to its five launches, and every carving of a dataset the same.
-_SUMMED_AREAS: dict[bytes, np.ndarray] = {}
-_SUMMED_AREAS_LOCK = threading.Lock()
+#: ``_summed_area``'s tables by the digest of their masks (read-only; the last 4): a carving
+#: passes the same masks to its five launches, and every carving of a dataset the same.
+_SUMMED_AREAS = Remembered(4)
 
 
 def _summed_area(feasible: np.ndarray, sonar: SonarSpec) -> np.ndarray:
@@ -1120,16 +1119,13 @@ def _summed_area(feasible: np.ndarray, sonar: SonarSpec) -> np.ndarray:
 
     masks = np.ascontiguousarray(feasible != 0)
     key = xxhash.xxh3_128_digest(masks) + repr(masks.shape).encode()
-    integral = _SUMMED_AREAS.get(key)
-    if integral is None:  # the table made, not the entry, which another thread may drop
+
+    def table() -> np.ndarray:
         integral = np.zeros((masks.shape[0], sonar.bins + 1, sonar.beams + 1), np.int32)
         np.cumsum(np.cumsum(masks, axis=1, dtype=np.int32), axis=2, out=integral[:, 1:, 1:])
         integral.setflags(write=False)
-        with _SUMMED_AREAS_LOCK:
-            if len(_SUMMED_AREAS) >= 4:
-                _SUMMED_AREAS.pop(next(iter(_SUMMED_AREAS)))
-            _SUMMED_AREAS[key] = integral
-    return integral
+        return integral
+    return _SUMMED_AREAS.get(key, table)
 
 
 def _circumradius(size: float) -> float:

@@ -12,6 +12,7 @@ import threading
 import numpy as np
 import warp as wp
 
+from ...caching import Remembered
 from ..base import (Backend, DeviceLayers, PreparedLaunch, SonarConstants, beam_edges, fixed_floats,
                     hit_queue_size, mask_items, most_chunks, render_with_room, span_chunks, span_extent)
 from ..constants import (FIXED_SCALE, FRONTAL_VISIBLE, MAX_DISTANCE, RAY_CHUNK, RAY_EPSILON,
@@ -105,8 +106,7 @@ class WarpBackend(Backend):
         if self.is_gpu and wp.is_mempool_enabled(self._device):
             wp.set_mempool_release_threshold(self._device, MEMPOOL_KEEP)
         self.has_float64 = True
-        self._constants: dict[tuple, wp.array] = {}  # _constant's uploads, least recently used first
-        self._constants_lock = threading.Lock()
+        self._constants = Remembered(CONSTANTS)  # _constant's uploads
 
     def _array(self, data: np.ndarray, dtype) -> wp.array:
         return wp.array(data, dtype=dtype, device=self._device)
@@ -120,15 +120,7 @@ class WarpBackend(Backend):
         if data.nbytes > CONSTANT_BYTES:
             return self._array(data, dtype)
         key = (dtype, data.shape, data.dtype.str, data.tobytes())
-        with self._constants_lock:  # a backend may serve several threads
-            array = self._constants.pop(key, None)
-        if array is None:
-            array = self._array(data, dtype)
-        with self._constants_lock:
-            if key not in self._constants and len(self._constants) >= CONSTANTS:
-                self._constants.pop(next(iter(self._constants)))  # the least recently used
-            self._constants[key] = array
-        return array
+        return self._constants.get(key, lambda: self._array(data, dtype))
 
     def _arrays(self, *items) -> list[wp.array]:
         """``_array`` of each (host array, dtype) pair, the dtypes float32 scalars, vectors or
