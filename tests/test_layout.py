@@ -14,7 +14,7 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "fsswarp"
 
-MODEL = {"errors", "atomic", "system", "processes", "sonar", "rig", "surface", "targets", "dataset", "scenes", "metrics"}
+MODEL = {"errors", "atomic", "caching", "system", "processes", "sonar", "rig", "surface", "targets", "dataset", "scenes", "metrics"}
 PIPELINE = {"aris", "segment", "icp", "motion", "compare", "rendering", "simulation", "carving", "pose", "refine",
             "reconstruction", "enhancement", "didson", "importing", "holoocean"}
 READERS = {"figures", "outputs", "benchmark"}
