@@ -56,7 +56,7 @@ def test_warp_cache_cold_then_render_compiled(caches, tmp_path, wp_device):
     assert not any((tmp_path / "warp").rglob("*.meta")), "info compiled a Warp module"
     child(caches, "-c", SYNTHESIS, "warp", wp_device)
     line = cache_line(child(caches, "-m", "fsswarp", "info"), "warp", wp_device)
-    assert line.startswith("partly warm (render compiled, project, carve, raycast, pose, icp not"), line
+    assert line.startswith("partly warm (render compiled, project, carve, raycast, closest, pose, icp not"), line
     # the check names the module folder Warp wrote: remove it and the module reads cold again
     built = [p.parent for p in (tmp_path / "warp").rglob("*.meta")]
     assert [p.name.rsplit("_", 1)[0] for p in built] == ["wp_fsswarp.backends.warp.render"]

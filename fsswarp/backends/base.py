@@ -89,7 +89,7 @@ class Backend(abc.ABC):
     name : "warp" or "opencl"
     device : the device, e.g. "cpu" or "cuda:0" (Warp), "<platform>: <device name>" (OpenCL)
     is_gpu : whether the device is a GPU
-    has_float64 : whether its kernels can compute in float64 (``icp_runs`` needs it)
+    has_float64 : whether its kernels can compute in float64 (``icp_runs`` and ``surface_distances`` need it)
     device_name : the device's own name (property)
     icp_lanes : threads given to each ICP run (property: ``GPU_ICP_LANES`` on a GPU, else 1)
     hit_queue : the render's queue of hits, its slots per thread of a launch (property:
@@ -236,22 +236,41 @@ class Backend(abc.ABC):
 
 
     # --- ray casting and image synthesis ------------------------------------------------------
-    def load_mesh(self, vertices, faces) -> Any:
+    def load_mesh(self, vertices, faces, *, exact: bool = False) -> Any:
         """Upload a triangle mesh once for many launches; returns an opaque handle.
 
         vertices : (Nv, 3) float, faces : (Nf, 3) int, indices into vertices (Nf >= 1)
         The handle keeps the device copy (Warp: a ``wp.Bvh`` and the triangles' corners; OpenCL:
         a flattened BVH, ``fsswarp.backends.bvh``) and the vertices' box, ``bounds`` (2, 3)
-        float64 (lower, upper)."""
+        float64 (lower, upper). ``exact`` (a device with float64): it also keeps the corners in
+        float64, for :meth:`surface_distances`."""
         verts = real_array("vertices", vertices, ("Nv", 3))
         tris = np.asarray(faces)
         if tris.ndim != 2 or tris.shape[1] != 3 or tris.shape[0] == 0 or tris.dtype.kind not in "iu":
             raise ValueError(f"faces must be a non-empty (Nf, 3) integer array, got {tris.shape} {tris.dtype}")
         if tris.min() < 0 or tris.max() >= verts.shape[0]:
             raise ValueError(f"faces index vertices 0..{verts.shape[0] - 1}, got {tris.min()}..{tris.max()}")
-        handle = self._load_mesh(verts, np.ascontiguousarray(tris, dtype=np.int32))
+        if exact and not self.has_float64:
+            raise ValueError(f"exact meshes need float64, which {self!r} lacks")
+        tris = np.ascontiguousarray(tris, dtype=np.int32)
+        handle = self._load_mesh(verts, tris)
         handle.bounds = np.stack([verts.min(axis=0), verts.max(axis=0)]).astype(np.float64)  # for ray_spans
+        handle.exact = None
+        if exact:
+            corners = real_array("vertices", vertices, ("Nv", 3), np.float64)[tris]
+            handle.exact = self._exact_corners(handle, corners, float(np.abs(corners).max()))
         return handle
+
+    def surface_distances(self, mesh, points) -> np.ndarray:
+        """(N,) float64: the distance from each of ``points`` (N, 3) float to the nearest triangle
+        of ``mesh`` (a handle of ``load_mesh(..., exact=True)``), exact in float64 (the closest
+        point by the triangle's Voronoi regions; kernels/closest.cl)."""
+        pts = real_array("points", points, ("N", 3), np.float64)
+        if getattr(mesh, "exact", None) is None:
+            raise ValueError("mesh must be loaded with load_mesh(..., exact=True)")
+        if pts.shape[0] == 0:
+            return np.zeros(0, np.float64)
+        return self._surface_distances(mesh, pts)
 
     def cast_rays(self, mesh, origins, directions, max_distance: float = MAX_DISTANCE):
         """First hit of every ray: ``(distance, face)``, (R,) float32 and (R,) int32.
@@ -471,6 +490,15 @@ class Backend(abc.ABC):
     @abc.abstractmethod
     def _load_mesh(self, vertices: np.ndarray, faces: np.ndarray) -> Any:
         """Device copy of a clean (Nv, 3) float32 / (Nf, 3) int32 mesh."""
+
+    @abc.abstractmethod
+    def _exact_corners(self, mesh, corners: np.ndarray, size: float) -> Any:
+        """The device copy of ``mesh``'s float64 corners (Nf, 3, 3), faces in ``load_mesh``'s
+        order, as ``_surface_distances`` reads them; ``size``: their largest |coordinate|."""
+
+    @abc.abstractmethod
+    def _surface_distances(self, mesh, points: np.ndarray) -> np.ndarray:
+        """``surface_distances`` of clean (N, 3) float64 points, N >= 1."""
 
     @abc.abstractmethod
     def _prepared_cast(self, mesh, origins: np.ndarray, directions: np.ndarray,

@@ -28,10 +28,11 @@ from pathlib import Path
 from .builds import build_key, driver_cache, driver_identity, records
 from .runtimes import import_warp
 
-#: OpenCL programs that ``OpenCLBackend`` builds (icp.cl only with float64).
+#: OpenCL programs that ``OpenCLBackend`` builds, and those it builds only with float64.
 OPENCL_PROGRAMS = ("project.cl", "carve.cl", "raycast.cl", "render.cl", "pose.cl")
+FLOAT64_PROGRAMS = ("icp.cl", "closest.cl")
 #: Warp modules holding fsswarp's kernels (fsswarp/backends/warp/).
-WARP_MODULES = ("project", "carve", "raycast", "render", "pose", "icp")
+WARP_MODULES = ("project", "carve", "raycast", "closest", "render", "pose", "icp")
 
 
 # --- Warp ------------------------------------------------------------------------------------
@@ -76,7 +77,7 @@ def opencl_cache(found) -> tuple[str, str]:
     from .opencl.programs import BUILD_OPTIONS, kernel_source
 
     try:
-        names = OPENCL_PROGRAMS + (("icp.cl",) if "cl_khr_fp64" in found.device.extensions.split() else ())
+        names = OPENCL_PROGRAMS + (FLOAT64_PROGRAMS if "cl_khr_fp64" in found.device.extensions.split() else ())
         keys = {name: build_key(found.device, BUILD_OPTIONS, kernel_source(name)) for name in names}
         folder, off = driver_cache(found.device)
         if off:

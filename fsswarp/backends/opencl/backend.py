@@ -61,6 +61,8 @@ class OpenCLBackend(Backend):
         self._view_cost_kernel = cl.Kernel(program(self.context, "pose.cl"), "view_cost")
         self.has_float64 = "cl_khr_fp64" in found.device.extensions.split()
         self._icp_kernel = cl.Kernel(program(self.context, "icp.cl"), "icp_runs") if self.has_float64 else None
+        self._distances_kernel = cl.Kernel(program(self.context, "closest.cl"), "surface_distances") \
+            if self.has_float64 else None
         self._lock = threading.Lock()
         self._held = []  # buffers handed to queued kernels, released after the queue finishes (_finish)
         self._kept_layers = []  # (layers buffer, weak reference to its holder) kept on a CPU device (_layers_buffer)
@@ -153,6 +155,24 @@ class OpenCLBackend(Backend):
         bvh = build_bvh(vertices, faces)
         return OpenCLMesh(bvh, self._input(bvh.node_bounds), self._input(bvh.node_children),
                           self._input(bvh.triangles), self._input(bvh.face_index))
+
+    def _exact_corners(self, mesh, corners, size):
+        """The corners in the BVH's leaf order, and the slack of its float32 boxes."""
+        _check_mesh(mesh)
+        buffer = cl.Buffer(self.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
+                           hostbuf=np.ascontiguousarray(corners[mesh.bvh.face_index].reshape(-1, 9)))
+        return buffer, 1.0e-6 * max(size, 1.0e-12)
+
+    def _surface_distances(self, mesh, points):
+        _check_mesh(mesh)
+        corners, slack = mesh.exact
+        distance, distance_buf = self._output((points.shape[0],), np.float64)
+        args = (mesh.nodes, mesh.children, corners, self._input(points), np.int32(points.shape[0]),
+                np.float64(slack), distance_buf)
+        launch = self._prepared(self._distances_kernel, (-(-points.shape[0] // GROUP) * GROUP,), args,
+                                ((distance, distance_buf),))
+        launch()
+        return launch.read()[0]
 
     def _prepared_cast(self, mesh, origins, directions, max_distance):
         _check_mesh(mesh)

@@ -19,6 +19,7 @@ from ..constants import (FIXED_SCALE, FRONTAL_VISIBLE, MAX_DISTANCE, RAY_CHUNK, 
                          RENDER_THREADS_PER_UNIT, WARP_FAR)
 from ..runtimes import import_warp
 from .carve import carve_grid, carve_points
+from .closest import surface_distances_kernel
 from .icp import icp_runs_kernel
 from .pose import contour_cost_kernel, frontal_contour, view_cost_kernel
 from .project import project_points
@@ -167,6 +168,23 @@ class WarpBackend(Backend):
                     outputs=[corners, lowers, uppers])
             bvh = wp.Bvh(lowers, uppers)
         return WarpMesh(bvh, corners, lowers, uppers, self.device)
+
+    def _exact_corners(self, mesh, corners, size):
+        return self._array(corners.reshape(-1, 3), wp.vec3d)
+
+    def _surface_distances(self, mesh, points):
+        """The BVH's search (``closest.py``) from a cube of half-side 1/1024 of the mesh's box
+        diagonal, doubled until it holds the nearest triangle."""
+        mesh = self._check_mesh(mesh)
+        lower, upper = mesh.bounds
+        with wp.ScopedDevice(self._device):
+            distance = wp.empty(points.shape[0], dtype=wp.float64)
+            _launch(surface_distances_kernel, dim=points.shape[0],
+                    inputs=[mesh.id, mesh.exact, wp.vec3d(*lower), wp.vec3d(*upper),
+                            wp.float64(max(float(np.linalg.norm(upper - lower)) / 1024.0, 1.0e-12)),
+                            self._array(points, wp.vec3d)],
+                    outputs=[distance])
+            return distance.numpy()
 
     def _check_mesh(self, mesh) -> "WarpMesh":
         if not isinstance(mesh, WarpMesh):
