@@ -119,22 +119,20 @@ def inside_grid(mesh, origin, step: float, shape) -> np.ndarray:
 
 def surface_distances(a, b, *, samples: int = SAMPLES, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Distances (m) from ``samples`` seeded surface points of ``a`` to the surface of ``b``
-    and from as many points of ``b`` to ``a``: ((samples,), (samples,))."""
+    and from as many points of ``b`` to ``a``: ((samples,), (samples,)); the points are
+    :func:`surface_points` ``(a, samples, [seed, 0])`` and ``(b, samples, [seed, 1])``."""
     _check_mesh("a", a)
     _check_mesh("b", b)
-    return _directed_distances(a, b, samples, [seed, 0]), _directed_distances(b, a, samples, [seed, 1])
+    return (point_mesh_distance(surface_points(a, samples, [seed, 0]), b),
+            point_mesh_distance(surface_points(b, samples, [seed, 1]), a))
 
 
-def _directed_distances(a, b, samples: int, seed: list[int], *, share: tuple[int, int] = (0, 1),
-                        threads: int | None = None) -> np.ndarray:
-    """Distances (m) from points sampled on ``a`` (``samples`` of them, generator seeded with
-    ``seed``) to the surface of ``b``: of the points, share (k, n) keeps run k of n equal runs
-    in order, (0, 1) all of them ((samples,) in all); ``threads``: point_mesh_distance's."""
+def surface_points(mesh, samples: int, seed: list[int]) -> np.ndarray:
+    """(samples, 3) points on ``mesh``'s surface, uniform over its area (trimesh's sampler, its
+    generator seeded with ``seed``)."""
     import trimesh
 
-    points, _ = trimesh.sample.sample_surface(a, samples, seed=np.random.default_rng(seed))
-    k, n = share
-    return point_mesh_distance(points[k * samples // n:(k + 1) * samples // n], b, threads=threads)
+    return trimesh.sample.sample_surface(mesh, samples, seed=np.random.default_rng(seed))[0]
 
 
 def chamfer(a, b, *, samples: int = SAMPLES, seed: int = 0) -> float:
@@ -161,29 +159,17 @@ def compare(estimate, truth, *, samples: int = SAMPLES, seed: int = 0) -> dict:
     """Every metric of an estimate against the truth, for reports (JSON-ready): E_V, the share
     of the true volume inside the estimate, volumes (m³), Chamfer-L1 (m), F-score, precision,
     recall and τ (m), and how volumes and points were obtained."""
-    return combine(truth, [compare_part(estimate, truth, 0, 1, samples=samples, seed=seed)], samples=samples,
-                   seed=seed)
-
-
-def compare_part(estimate, truth, part: int, parts: int, *, samples: int = SAMPLES, seed: int = 0,
-                 threads: int | None = None) -> tuple:
-    """Part ``part`` of ``parts`` of :func:`compare`'s work, so that processes can share one
-    compare: (the volumes of :func:`volumes` in part 0, else None; the distances from run
-    ``part`` of ``parts`` equal runs of the estimate's sampled points to the truth; the same from
-    the truth's points to the estimate). Every point's distance is its own, so the runs of all
-    parts, in order, are :func:`compare`'s; ``threads``: point_mesh_distance's."""
     _check_mesh("estimate", estimate)
     _check_mesh("truth", truth)
-    share = (part, parts)
-    return (volumes(estimate, truth) if part == 0 else None,
-            _directed_distances(estimate, truth, samples, [seed, 0], share=share, threads=threads),
-            _directed_distances(truth, estimate, samples, [seed, 1], share=share, threads=threads))
+    return combine(truth, volumes(estimate, truth), *surface_distances(estimate, truth, samples=samples, seed=seed),
+                   samples=samples, seed=seed)
 
 
-def combine(truth, parts: list, *, samples: int = SAMPLES, seed: int = 0) -> dict:
-    """:func:`compare`'s dict from the results of :func:`compare_part`'s parts, in order."""
-    va, vt, both, method = parts[0][0]
-    d_et, d_te = (np.concatenate([part[k] for part in parts]) for k in (1, 2))
+def combine(truth, volume: tuple, d_et: np.ndarray, d_te: np.ndarray, *, samples: int = SAMPLES,
+            seed: int = 0) -> dict:
+    """:func:`compare`'s dict from :func:`volumes`' tuple and :func:`surface_distances`' two
+    arrays (estimate to truth, truth to estimate), however they were computed."""
+    va, vt, both, method = volume
     tau = default_tau(truth)
     f, precision, recall = _fscore(d_et, d_te, tau)
     union = va + vt - both
@@ -439,11 +425,12 @@ def _check_mesh(name: str, mesh) -> None:
         raise InputError("holds no triangles", field=name, value=0)
 
 
-def compare_meshes(estimate: tuple, truth: tuple, part: int, parts: int, threads: int | None = None) -> tuple:
-    """:func:`compare_part` of two meshes given as (vertices (V, 3), faces (F, 3)) arrays (a
-    truth-metrics worker process's job, fsswarp.reconstruction: arrays pickle in a tenth of the
-    bytes of a trimesh with its caches)."""
+def compare_meshes(estimate: tuple, truth: tuple, *, distances: bool) -> tuple:
+    """(:func:`volumes`' tuple, :func:`surface_distances`' two arrays with ``distances``, else
+    None) of two meshes given as (vertices (V, 3), faces (F, 3)) arrays (a truth-metrics worker
+    process's job, fsswarp.reconstruction: arrays pickle in a tenth of the bytes of a trimesh
+    with its caches)."""
     import trimesh
 
-    return compare_part(trimesh.Trimesh(*estimate, process=False), trimesh.Trimesh(*truth, process=False), part,
-                        parts, threads=threads)
+    estimate, truth = trimesh.Trimesh(*estimate, process=False), trimesh.Trimesh(*truth, process=False)
+    return volumes(estimate, truth), surface_distances(estimate, truth) if distances else None

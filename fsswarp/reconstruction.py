@@ -41,7 +41,8 @@ import numpy as np
 from .carving import CarveSettings, MeshJob, carve, held, start_mesh_workers
 from .errors import InputError, check_depth_tilt, check_integer, is_finite_number
 from .compare import PoseSettings, PoseWarning, ViewComparison
-from .metrics import average_contour_error, average_intensity_error, combine, compare_meshes, image_error
+from .metrics import (SAMPLES, average_contour_error, average_intensity_error, combine, compare_meshes, image_error,
+                      surface_points)
 from .pose import (BOUNDS_FACTOR, Prior, check_start, check_uncertainties, estimate_pose, fit_posterior, model_lever,
                    spans_an_area, valley_posterior)
 from .refine import RefineSettings, refine_shape
@@ -164,7 +165,7 @@ def reconstruct(dataset, *, depth0: float | None = None, tilt0: float | None = N
     comparison, shaping = _comparisons(dataset, settings, backend)
     truth_pose = None if dataset.manifest.truth is None else (dataset.manifest.truth.depth,
                                                               dataset.manifest.truth.tilt)
-    with _TruthMetrics(dataset.truth_mesh(), say) as truth, contextlib.ExitStack() as closing:
+    with _TruthMetrics(dataset.truth_mesh(), say, backend) as truth, contextlib.ExitStack() as closing:
         given = "given" if depth0 is not None or tilt0 is not None else "measured"
         say(f"iteration 0: carving at the {given} D0 = {depth:.4f} m, tilt0 = {math.degrees(tilt):.3f} deg")
         carvings = {}  # each pose is carved once (_carving)
@@ -655,29 +656,41 @@ def _complete(entry: dict, comparison: ViewComparison, model, depth: float, tilt
     return done
 
 
+#: Truth-metric worker processes: the volumes of a compare take ~0.15 s of a GPU host's CPU, and
+#: one process kept up with coral-one's loop there, where four made the loop 0.6–1.2 s slower
+#: (docs/decisions.md, "Truth metrics").
+TRUTH_WORKERS = 1
+
+
 class _TruthMetrics:
     """E_V, Chamfer and F-score of recorded models against the truth mesh (None: no truth, and
-    nothing to do), computed in worker processes (``fsswarp.processes``; each job gets both
-    meshes, ``fsswarp.metrics.compare_meshes``) while the loop goes on. In a thread of the loop's
-    process they held the GIL against it (coral-one 34.4 and 35.2 s on an H100, against 24.2
-    and 24.7 s in a child process; bench/notes.md). ``workers`` processes (default
-    :func:`truth_workers`) start at once; each compare is split into ``workers`` parts
-    (``fsswarp.metrics.compare_part``: equal runs of the sampled points), so that the last
-    model's, which the run waits for at its end, takes a ``workers``-th of its time; each
-    process's distances run on :func:`truth_threads` threads, leaving CPUs to the loop. Where
-    processes cannot start, or one dies (killed, out of memory), one line said and each compare
-    from then on is made in this process, when collected. The values do not depend on where they
-    are computed. ``collect`` writes them into the history entries, in order, and reports each
-    with ``say``. A context manager: leaving it stops the processes."""
+    nothing to do), made while the loop goes on. The surface distances (``fsswarp.metrics``'
+    20,000 seeded points each way) come from ``backend``'s exact search
+    (``Backend.surface_distances``) at the submit, in this thread: ~1 ms for coral-one on an H200
+    and ~35 ms on PoCL here, against ~0.5 s of a CPU with the NumPy search, which as the loop's
+    truth work held coral-one's loop up to 1.8 s on an H200 (docs/decisions.md, "Truth metrics").
+    The volumes (mesh booleans) and, without a backend with float64, the distances too, come
+    from worker processes (``fsswarp.processes``; each job gets both meshes,
+    ``fsswarp.metrics.compare_meshes``): in a thread of the loop's process they held the GIL
+    against it (bench/notes.md). ``workers`` processes (default ``TRUTH_WORKERS``) start at
+    once. Where processes cannot start, or one dies (killed, out of memory), one line said and
+    each job from then on is made in this process, when collected. The values do not depend on
+    where they are made (the backend's distances agree with NumPy's to ~1e-11 relative).
+    ``collect`` writes them into the history entries, in order, and reports each with ``say``.
+    A context manager: leaving it stops the processes."""
 
-    def __init__(self, mesh, say: Callable[[str], None], workers: int | None = None):
+    def __init__(self, mesh, say: Callable[[str], None], backend=None, workers: int | None = None):
         from .processes import WorkerProcesses
 
         self.mesh, self.say, self.processes = mesh, say, None
-        self.workers = truth_workers() if workers is None else workers
-        self.pending = []  # (history entry, the model's (vertices, faces), its parts' futures or None), oldest first
+        self.backend = backend if backend is not None and backend.has_float64 else None
+        self.workers = TRUTH_WORKERS if workers is None else workers
+        self.pending = []  # (history entry, the model's (vertices, faces), its distances or None, pool, future)
         if mesh is not None:
             self.truth = (np.asarray(mesh.vertices), np.asarray(mesh.faces))
+            if self.backend is not None:
+                self.truth_handle = self.backend.load_mesh(*self.truth, exact=True)
+                self.truth_points = surface_points(mesh, SAMPLES, [0, 1])
             try:
                 self.processes = WorkerProcesses(self.workers, lost=self._lost)
             except OSError as error:
@@ -691,15 +704,21 @@ class _TruthMetrics:
             self.processes.close()
 
     def submit(self, entry: dict, model) -> None:
-        """Start the compare of ``model`` against the truth, for ``entry``: each part gets both
-        meshes' vertices and faces. Without processes it is made when collected."""
+        """Start the compare of ``model`` against the truth, for ``entry``: its distances now on
+        the backend, the rest in a process (without processes, when collected)."""
         if self.mesh is None:
             return
         estimate, processes = (np.asarray(model.vertices), np.asarray(model.faces)), self.processes
-        futures = None if processes is None else [
-            processes.submit(compare_meshes, estimate, self.truth, part, self.workers, truth_threads(self.workers))
-            for part in range(self.workers)]
-        self.pending.append((entry, estimate, processes, futures))
+        distances = None
+        if self.backend is not None:
+            if len(estimate[1]) == 0:
+                raise InputError("holds no triangles", field="estimate", value=0)
+            handle = self.backend.load_mesh(*estimate, exact=True)
+            distances = (self.backend.surface_distances(self.truth_handle, surface_points(model, SAMPLES, [0, 0])),
+                         self.backend.surface_distances(handle, self.truth_points))
+        future = None if processes is None else processes.submit(compare_meshes, estimate, self.truth,
+                                                                 distances=distances is None)
+        self.pending.append((entry, estimate, distances, processes, future))
 
     def _lost(self) -> None:
         """A worker process died (``WorkerProcesses``' ``lost``): one line said, and every compare
@@ -709,42 +728,22 @@ class _TruthMetrics:
 
     def collect(self, *, wait: bool) -> None:
         """Fill in the finished entries (all of them, waiting, with ``wait``)."""
-        while self.pending and (wait or _collectable(self.pending[0][3])):
-            entry, estimate, processes, futures = self.pending.pop(0)
-            parts = None if futures is None or None in futures else [processes.outcome(f) for f in futures]
-            if parts is None or None in parts:  # no processes, or one died: made here
-                parts = [compare_meshes(estimate, self.truth, 0, 1)]
-            metrics = combine(self.mesh, parts)
+        while self.pending and (wait or _collectable(self.pending[0][4])):
+            entry, estimate, distances, processes, future = self.pending.pop(0)
+            outcome = None if future is None else processes.outcome(future)
+            if outcome is None:  # no processes, or one died: made here
+                outcome = compare_meshes(estimate, self.truth, distances=distances is None)
+            volume, made = outcome
+            metrics = combine(self.mesh, volume, *(distances if distances is not None else made))
             entry.update(E_V=metrics["E_V"], chamfer_m=metrics["chamfer_m"], fscore=metrics["fscore"])
             self.say(f"iteration {entry['iteration']} against the truth: E_V {entry['E_V']:.3f}, Chamfer "
                      f"{entry['chamfer_m'] * 1e3:.2f} mm, F {entry['fscore']:.3f}")
 
 
-def _collectable(futures) -> bool:
-    """Whether a truth compare's parts (``_TruthMetrics.pending``) can be collected without
-    waiting: all done, or made here (no processes, or one died)."""
-    return futures is None or None in futures or all(future.done() for future in futures)
-
-
-def truth_workers() -> int:
-    """Truth-metric processes that run at once: one per 4 CPUs that this process may use
-    (``fsswarp.system.usable_cpus``), 1 to 4: 1 on a 2-core CPU, where the loop's kernels use
-    both cores; 4 on a 16-core GPU host."""
-    from .system import usable_cpus
-
-    return min(4, max(1, usable_cpus() // 4))
-
-
-def truth_threads(workers: int) -> int:
-    """Threads of each of ``workers`` truth-metric processes: the CPUs this process may use but
-    a quarter of them (rounded down: none of 2 or 3), which the loop keeps, shared out among
-    them, at least 1: 3 on a 16-core host with 4 processes (a thread per CPU in each made 64 for
-    16 CPUs), 2 on a 2-core CPU, where the run's end waits for the last compare (1.3–1.5 s with
-    2 threads, 1.7–2.2 s with 1, coral-one's carving)."""
-    from .system import usable_cpus
-
-    cpus = usable_cpus()
-    return max(1, (cpus - cpus // 4) // workers)
+def _collectable(future) -> bool:
+    """Whether a truth compare's job (``_TruthMetrics.pending``) can be collected without
+    waiting: done, or made here (no processes, or one died)."""
+    return future is None or future.done()
 
 
 def _line(entry: dict) -> str:
@@ -798,7 +797,7 @@ def reconstruct_shape_only(dataset, *, depth0: float | None = None, tilt0: float
     say = progress or (lambda line: None)
     start = time.perf_counter()
     comparison, shaping = _comparisons(dataset, settings, backend)
-    with warnings.catch_warnings(), _TruthMetrics(dataset.truth_mesh(), say) as truth:
+    with warnings.catch_warnings(), _TruthMetrics(dataset.truth_mesh(), say, backend) as truth:
         warnings.filterwarnings("ignore", "view .*: ghost returns reach", RenderWarning)  # beyond the windows on purpose
         say(f"iteration 0: carving at the known D = {known[0]:.4f} m, tilt = {math.degrees(known[1]):.3f} deg "
             f"({NO_POSE_STEP}: no pose step, no ghost or mirror)")

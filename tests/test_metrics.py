@@ -11,7 +11,7 @@ import pytest
 import trimesh
 
 from fsswarp.errors import InputError
-from fsswarp.metrics import (average_contour_error, average_intensity_error, chamfer, combine, compare, compare_part,
+from fsswarp.metrics import (average_contour_error, average_intensity_error, chamfer, combine, compare, compare_meshes,
                              default_tau, fscore, image_error, inside_grid, intensity_error, normalized_errors, point_mesh_distance,
                              pose_error, view_errors, volume_error, volumes)
 from fsswarp.surface import mirror_vectors
@@ -95,15 +95,15 @@ def test_compare_reports_every_metric():
     assert compare(a, b, samples=2000) == report  # seeded
 
 
-def test_a_compare_in_parts_is_the_compare():
-    """Three parts (runs of 666 and 667 of 2,000 points per direction): volumes in part 0
-    alone, and the parts' distances, in order, give ``compare``'s dict bit for bit."""
+def test_a_worker_s_compare_is_the_compare():
+    """``compare_meshes`` of the meshes' arrays (a truth worker's job), combined, is
+    ``compare``'s dict bit for bit; without distances it gives the volumes alone."""
     a, b = sphere(), sphere(R + 0.004, offset=(0.01, 0.0, 0.0))
-    parts = [compare_part(a, b, k, 3, samples=2000, threads=1 + k) for k in range(3)]
-    assert [len(part[1]) for part in parts] == [666, 667, 667] == [len(part[2]) for part in parts]
-    assert parts[0][0] is not None and parts[1][0] is None and parts[2][0] is None
-    assert combine(b, parts, samples=2000) == compare(a, b, samples=2000)
-    assert combine(b, parts[:1] + parts[2:], samples=2000) != compare(a, b, samples=2000)  # every part counts
+    arrays = [(np.asarray(m.vertices), np.asarray(m.faces)) for m in (a, b)]
+    volume, distances = compare_meshes(*arrays, distances=True)
+    assert combine(b, volume, *distances) == compare(a, b)
+    assert compare_meshes(*arrays, distances=False) == (volume, None)
+    assert combine(b, volume, distances[0] + 1e-3, distances[1]) != compare(a, b)  # both arrays count
 
 
 def test_point_mesh_distance_is_exact():
