@@ -666,8 +666,8 @@ class _TruthMetrics:
     """E_V, Chamfer and F-score of recorded models against the truth mesh (None: no truth, and
     nothing to do), made while the loop goes on. The surface distances (``fsswarp.metrics``'
     20,000 seeded points each way) come from ``backend``'s exact search
-    (``Backend.surface_distances``) at the submit, in this thread: ~1 ms for coral-one on an H200
-    and ~35 ms on PoCL here, against ~0.5 s of a CPU with the NumPy search, which as the loop's
+    (``Backend.surface_distances``) at the submit, in this thread: a submit ~30 ms on an H200's
+    host and ~95 ms on PoCL here, against ~0.5 s of a CPU for NumPy's search, which as the loop's
     truth work held coral-one's loop up to 1.8 s on an H200 (docs/decisions.md, "Truth metrics").
     The volumes (mesh booleans) and, without a backend with float64, the distances too, come
     from worker processes (``fsswarp.processes``; each job gets both meshes,
