@@ -30,7 +30,6 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 
 from .errors import InputError, is_number
 from .rendering import LAYERS, RenderSettings, RenderWarning, render
@@ -83,6 +82,8 @@ def enhance_view(image, layers, *, threshold: float = 1e-3, dilate: int = 1, lev
         raise InputError(f"layers must be ({len(LAYERS)}, bins, beams) matching the image",
                          field=name, value=f"image {image.shape}, layers {layers.shape}")
     layer = dict(zip(LAYERS, layers))
+    from scipy import ndimage
+
     cut = threshold * float(layer["total"].max())
     if not cut > 0:
         raise InputError("the model does not project into this view (its synthetic image is empty)",

@@ -26,7 +26,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .errors import is_integer
 
@@ -210,9 +209,11 @@ class _Runs:
         self.converged, self.done = np.zeros(len(self.lengths), bool), np.zeros(len(self.lengths), bool)
 
     @functools.cached_property
-    def tree(self) -> cKDTree:
+    def tree(self) -> "cKDTree":
         """The k-d tree of the host iterations (``_Active``): pair p's targets in the plane
         z = ``lift``·p."""
+        from scipy.spatial import cKDTree
+
         pair = np.repeat(np.arange(len(self.counts)), self.counts)
         return cKDTree(np.column_stack([self.target_x, self.target_y, self.lift * pair]))
 

