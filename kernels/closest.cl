@@ -4,7 +4,7 @@
  *
  * fss_point_triangle: the closest point of a triangle by its Voronoi regions (Ericson,
  * Real-Time Collision Detection, §5.1.5; fsswarp.metrics._point_triangle_distance is the NumPy
- * oracle), a degenerate triangle's distance that of its nearest corner. The search walks the
+ * oracle); where it is not finite (a degenerate triangle), the nearest corner's distance. The search walks the
  * BVH (bvh.h's layout) nearer child first and skips a box farther than the nearest triangle
  * found so far plus slack (the float32 boxes' rounding of the float64 corners).
  *
@@ -24,29 +24,28 @@
 
 double fss_point_triangle(const double3 p, const double3 a, const double3 b, const double3 c)
 {
-    const double3 ab = b - a, ac = c - a, ap = p - a;
-    const double d1 = dot(ab, ap), d2 = dot(ac, ap);
-    if (d1 <= 0.0 && d2 <= 0.0)
-        return length(ap);
-    const double3 bp = p - b;
-    const double d3 = dot(ab, bp), d4 = dot(ac, bp);
-    if (d3 >= 0.0 && d4 <= d3)
-        return length(bp);
-    const double vc = d1 * d4 - d3 * d2;
-    if (vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0)
-        return length(p - (a + ab * (d1 / (d1 - d3))));
-    const double3 cp = p - c;
+    const double3 ab = b - a, ac = c - a, ap = p - a, bp = p - b, cp = p - c;
+    const double d1 = dot(ab, ap), d2 = dot(ac, ap), d3 = dot(ab, bp), d4 = dot(ac, bp);
     const double d5 = dot(ab, cp), d6 = dot(ac, cp);
-    if (d6 >= 0.0 && d5 <= d6)
-        return length(cp);
-    const double vb = d5 * d2 - d1 * d6;
-    if (vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0)
-        return length(p - (a + ac * (d2 / (d2 - d6))));
-    const double va = d3 * d6 - d5 * d4;
-    if (va <= 0.0 && d4 - d3 >= 0.0 && d5 - d6 >= 0.0)
-        return length(p - (b + (c - b) * ((d4 - d3) / ((d4 - d3) + (d5 - d6)))));
-    const double denom = va + vb + vc;
-    const double distance = length(p - (a + ab * (vb / denom) + ac * (vc / denom)));
+    const double va = d3 * d6 - d5 * d4, vb = d5 * d2 - d1 * d6, vc = d1 * d4 - d3 * d2;
+    double3 q;
+    if (d1 <= 0.0 && d2 <= 0.0)
+        q = a;
+    else if (d3 >= 0.0 && d4 <= d3)
+        q = b;
+    else if (vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0)
+        q = a + ab * (d1 / (d1 - d3));
+    else if (d6 >= 0.0 && d5 <= d6)
+        q = c;
+    else if (vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0)
+        q = a + ac * (d2 / (d2 - d6));
+    else if (va <= 0.0 && d4 - d3 >= 0.0 && d5 - d6 >= 0.0)
+        q = b + (c - b) * ((d4 - d3) / ((d4 - d3) + (d5 - d6)));
+    else {
+        const double denom = va + vb + vc;
+        q = a + ab * (vb / denom) + ac * (vc / denom);
+    }
+    const double distance = length(p - q);
     if (isfinite(distance))
         return distance;
     return fmin(fmin(length(ap), length(bp)), length(cp)); /* degenerate: the nearest corner */

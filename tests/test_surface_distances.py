@@ -28,12 +28,15 @@ def brute_force(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> 
 
 
 def awkward_mesh():
-    """A coarse sphere with a fan of slivers, a triangle folded onto a line and one whose
-    corners coincide (the degenerate ones' distances are their nearest corner's), placed."""
+    """A coarse sphere with a fan of slivers, a triangle folded onto a line, one with two
+    corners in one place and one whose corners coincide (the degenerate ones' distances are
+    their nearest corner's), placed."""
     sphere = trimesh.creation.icosphere(subdivisions=1, radius=0.05)
-    vertices = np.vstack([sphere.vertices, [[0.07, 0, 0], [0.08, 0, 0], [0.09, 0, 0], [0.07, 0.02, 1e-7]]])
+    vertices = np.vstack([sphere.vertices, [[0.07, 0, 0], [0.08, 0, 0], [0.09, 0, 0], [0.07, 0.02, 1e-7],
+                                            [0.07, -0.03, 0], [0.09, -0.03, 0.01]]])
     n = len(sphere.vertices)
-    faces = np.vstack([sphere.faces, [[n, n + 1, n + 2], [n, n, n], [n, n + 1, n + 3], [n + 1, n + 2, n + 3]]])
+    faces = np.vstack([sphere.faces, [[n, n + 1, n + 2], [n, n, n], [n, n + 1, n + 3], [n + 1, n + 2, n + 3],
+                                     [n + 4, n + 4, n + 5]]])  # the last one's alone: no neighbour stands in
     return vertices + PLACE, faces
 
 
@@ -42,7 +45,7 @@ def test_distances_are_brute_force_s(backend):
     vertices, faces = awkward_mesh()
     rng = np.random.default_rng(3)
     points = np.vstack([PLACE + rng.normal(0, 0.04, (300, 3)), PLACE + rng.normal(0, 0.5, (50, 3)), vertices,
-                        vertices[faces].mean(axis=1)])
+                        vertices[faces].mean(axis=1), vertices[-1] + rng.normal(0, 0.003, (20, 3))])
     found = backend.surface_distances(backend.load_mesh(vertices, faces, exact=True), points)
     assert found.dtype == np.float64 and found.shape == (len(points),)
     np.testing.assert_allclose(found, brute_force(points, vertices, faces), rtol=RTOL, atol=1e-15)

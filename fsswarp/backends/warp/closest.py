@@ -3,7 +3,7 @@ kernels/closest.cl finds the same minimum by another search).
 
 ``point_triangle_distance`` is the closest point of a triangle by its Voronoi regions (Ericson,
 Real-Time Collision Detection, §5.1.5; ``fsswarp.metrics._point_triangle_distance`` is the
-NumPy oracle), a degenerate triangle's distance that of its nearest corner. The search asks the
+NumPy oracle); where it is not finite (a degenerate triangle), the nearest corner's. The search asks the
 BVH over the triangles' float32 boxes (``WarpMesh``) for the boxes that meet a cube of half-side
 r about the point, starting at ``start`` and doubling r until the nearest triangle found lies
 within r (then no triangle outside the cube can be nearer) or the cube holds the whole mesh.
@@ -21,39 +21,44 @@ wp.set_module_options(MODULE_OPTIONS)
 
 @wp.func
 def point_triangle_distance(p: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d):
-    """Distance from p to triangle (a, b, c) (float64)."""
+    """Distance from p to triangle (a, b, c) (float64): the closest point of the first region
+    that holds p, in Ericson's order; where that is not finite (a degenerate triangle), the
+    nearest corner's."""
     zero = wp.float64(0.0)
     ab = b - a
     ac = c - a
     ap = p - a
+    bp = p - b
+    cp = p - c
     d1 = wp.dot(ab, ap)
     d2 = wp.dot(ac, ap)
-    if d1 <= zero and d2 <= zero:
-        return wp.length(ap)
-    bp = p - b
     d3 = wp.dot(ab, bp)
     d4 = wp.dot(ac, bp)
-    if d3 >= zero and d4 <= d3:
-        return wp.length(bp)
-    vc = d1 * d4 - d3 * d2
-    if vc <= zero and d1 >= zero and d3 <= zero:
-        return wp.length(p - (a + ab * (d1 / (d1 - d3))))
-    cp = p - c
     d5 = wp.dot(ab, cp)
     d6 = wp.dot(ac, cp)
-    if d6 >= zero and d5 <= d6:
-        return wp.length(cp)
-    vb = d5 * d2 - d1 * d6
-    if vb <= zero and d2 >= zero and d6 <= zero:
-        return wp.length(p - (a + ac * (d2 / (d2 - d6))))
     va = d3 * d6 - d5 * d4
-    if va <= zero and d4 - d3 >= zero and d5 - d6 >= zero:
-        return wp.length(p - (b + (c - b) * ((d4 - d3) / ((d4 - d3) + (d5 - d6)))))
-    denom = va + vb + vc
-    distance = wp.length(p - (a + ab * (vb / denom) + ac * (vc / denom)))
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    q = a
+    if d1 <= zero and d2 <= zero:
+        q = a
+    elif d3 >= zero and d4 <= d3:
+        q = b
+    elif vc <= zero and d1 >= zero and d3 <= zero:
+        q = a + ab * (d1 / (d1 - d3))
+    elif d6 >= zero and d5 <= d6:
+        q = c
+    elif vb <= zero and d2 >= zero and d6 <= zero:
+        q = a + ac * (d2 / (d2 - d6))
+    elif va <= zero and d4 - d3 >= zero and d5 - d6 >= zero:
+        q = b + (c - b) * ((d4 - d3) / ((d4 - d3) + (d5 - d6)))
+    else:
+        denom = va + vb + vc
+        q = a + ab * (vb / denom) + ac * (vc / denom)
+    distance = wp.length(p - q)
     if wp.isfinite(distance):
         return distance
-    return wp.min(wp.min(wp.length(ap), wp.length(bp)), wp.length(cp))  # degenerate: the nearest corner
+    return wp.min(wp.min(wp.length(ap), wp.length(bp)), wp.length(cp))
 
 
 @wp.kernel
