@@ -75,6 +75,8 @@ def enhance_view(image, layers, *, threshold: float = 1e-3, dilate: int = 1, lev
     the recorded, speckled ghost; (1, 0.7), segment's smoothing, estimates the noise-free
     one). InputError when the shapes differ or the synthetic object leaves too few
     non-overlapping pixels (fewer than 16) to learn the LUT from."""
+    from scipy import ndimage
+
     check_ghost_sigma(ghost_sigma)
     image = np.asarray(image, np.float64)
     layers = np.asarray(layers, np.float64)
@@ -82,8 +84,6 @@ def enhance_view(image, layers, *, threshold: float = 1e-3, dilate: int = 1, lev
         raise InputError(f"layers must be ({len(LAYERS)}, bins, beams) matching the image",
                          field=name, value=f"image {image.shape}, layers {layers.shape}")
     layer = dict(zip(LAYERS, layers))
-    from scipy import ndimage
-
     cut = threshold * float(layer["total"].max())
     if not cut > 0:
         raise InputError("the model does not project into this view (its synthetic image is empty)",

@@ -87,6 +87,9 @@ def table_mesh(*, top=(0.24, 0.16, 0.02), leg=(0.025, 0.025, 0.14),
     clean; the table is ``top[2] + leg[2] − overlap`` tall. The parts are joined by a boolean
     union (manifold3d, in float64), leaving a deep open concavity between the legs.
     """
+    import manifold3d
+    import trimesh
+
     top_size = _size3("top", top)
     leg_size = _size3("leg", leg)
     if not (is_finite_number(inset) and inset >= 0):
@@ -101,9 +104,6 @@ def table_mesh(*, top=(0.24, 0.16, 0.02), leg=(0.025, 0.025, 0.14),
     leg_x = 0.5 * top_size[0] - inset - 0.5 * leg_size[0]
     leg_y = 0.5 * top_size[1] - inset - 0.5 * leg_size[1]
     leg_z = overlap - 0.5 * leg_size[2]
-    import manifold3d
-    import trimesh
-
     parts = [manifold3d.Manifold.cube(top_size, center=True)
              .translate((0.0, 0.0, 0.5 * top_size[2]))]
     for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1)):
