@@ -45,8 +45,8 @@ def volumes(a, b, *, method: str = "auto", grid: int = GRID) -> tuple[float, flo
     when both are closed 2-manifolds, else voxels); returns the method used."""
     import trimesh
 
-    _check_mesh("a", a)
-    _check_mesh("b", b)
+    require_triangles("a", a)
+    require_triangles("b", b)
     if method not in ("auto", "boolean", "voxels"):
         raise InputError("must be auto, boolean or voxels", field="method", value=method)
     closed = a.is_volume and b.is_volume
@@ -121,8 +121,8 @@ def surface_distances(a, b, *, samples: int = SAMPLES, seed: int = 0) -> tuple[n
     """Distances (m) from ``samples`` seeded surface points of ``a`` to the surface of ``b``
     and from as many points of ``b`` to ``a``: ((samples,), (samples,)); the points are
     :func:`surface_points` ``(a, samples, [seed, 0])`` and ``(b, samples, [seed, 1])``."""
-    _check_mesh("a", a)
-    _check_mesh("b", b)
+    require_triangles("a", a)
+    require_triangles("b", b)
     return (point_mesh_distance(surface_points(a, samples, [seed, 0]), b),
             point_mesh_distance(surface_points(b, samples, [seed, 1]), a))
 
@@ -159,8 +159,8 @@ def compare(estimate, truth, *, samples: int = SAMPLES, seed: int = 0) -> dict:
     """Every metric of an estimate against the truth, for reports (JSON-ready): E_V, the share
     of the true volume inside the estimate, volumes (m³), Chamfer-L1 (m), F-score, precision,
     recall and τ (m), and how volumes and points were obtained."""
-    _check_mesh("estimate", estimate)
-    _check_mesh("truth", truth)
+    require_triangles("estimate", estimate)
+    require_triangles("truth", truth)
     return combine(truth, volumes(estimate, truth), *surface_distances(estimate, truth, samples=samples, seed=seed),
                    samples=samples, seed=seed)
 
@@ -419,7 +419,8 @@ def _fscore(d_et: np.ndarray, d_te: np.ndarray, tau: float) -> tuple[float, floa
     return f, precision, recall
 
 
-def _check_mesh(name: str, mesh) -> None:
+def require_triangles(name: str, mesh) -> None:
+    """InputError naming ``name`` where ``mesh`` (a trimesh) holds no triangles."""
     faces = getattr(mesh, "faces", None)
     if faces is None or len(faces) == 0:
         raise InputError("holds no triangles", field=name, value=0)

@@ -42,7 +42,7 @@ from .carving import CarveSettings, MeshJob, carve, held, start_mesh_workers
 from .errors import InputError, check_depth_tilt, check_integer, is_finite_number
 from .compare import PoseSettings, PoseWarning, ViewComparison
 from .metrics import (SAMPLES, average_contour_error, average_intensity_error, combine, compare_meshes, image_error,
-                      surface_points)
+                      require_triangles, surface_points)
 from .pose import (BOUNDS_FACTOR, Prior, check_start, check_uncertainties, estimate_pose, fit_posterior, model_lever,
                    spans_an_area, valley_posterior)
 from .refine import RefineSettings, refine_shape
@@ -711,8 +711,7 @@ class _TruthMetrics:
         estimate, processes = (np.asarray(model.vertices), np.asarray(model.faces)), self.processes
         distances = None
         if self.backend is not None:
-            if len(estimate[1]) == 0:
-                raise InputError("holds no triangles", field="estimate", value=0)
+            require_triangles("estimate", model)
             handle = self.backend.load_mesh(*estimate, exact=True)
             distances = (self.backend.surface_distances(self.truth_handle, surface_points(model, SAMPLES, [0, 0])),
                          self.backend.surface_distances(handle, self.truth_points))

@@ -258,7 +258,7 @@ class Backend(abc.ABC):
         handle.exact = None
         if exact:
             corners = real_array("vertices", vertices, ("Nv", 3), np.float64)[tris]
-            handle.exact = self._exact_corners(handle, corners, float(np.abs(corners).max()))
+            handle.exact = self._exact_corners(handle, corners)
         return handle
 
     def surface_distances(self, mesh, points) -> np.ndarray:
@@ -492,9 +492,9 @@ class Backend(abc.ABC):
         """Device copy of a clean (Nv, 3) float32 / (Nf, 3) int32 mesh."""
 
     @abc.abstractmethod
-    def _exact_corners(self, mesh, corners: np.ndarray, size: float) -> Any:
+    def _exact_corners(self, mesh, corners: np.ndarray) -> Any:
         """The device copy of ``mesh``'s float64 corners (Nf, 3, 3), faces in ``load_mesh``'s
-        order, as ``_surface_distances`` reads them; ``size``: their largest |coordinate|."""
+        order, as ``_surface_distances`` reads them."""
 
     @abc.abstractmethod
     def _surface_distances(self, mesh, points: np.ndarray) -> np.ndarray:

@@ -156,23 +156,25 @@ class OpenCLBackend(Backend):
         return OpenCLMesh(bvh, self._input(bvh.node_bounds), self._input(bvh.node_children),
                           self._input(bvh.triangles), self._input(bvh.face_index))
 
-    def _exact_corners(self, mesh, corners, size):
-        """The corners in the BVH's leaf order, and the slack of its float32 boxes."""
+    def _exact_corners(self, mesh, corners):
+        """The corners in the BVH's leaf order, and the slack of its float32 boxes (1e-6 of the
+        largest |coordinate|)."""
         _check_mesh(mesh)
         buffer = cl.Buffer(self.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
                            hostbuf=np.ascontiguousarray(corners[mesh.bvh.face_index].reshape(-1, 9)))
-        return buffer, 1.0e-6 * max(size, 1.0e-12)
+        return buffer, 1.0e-6 * max(float(np.abs(corners).max()), 1.0e-12)
 
     def _surface_distances(self, mesh, points):
         _check_mesh(mesh)
         corners, slack = mesh.exact
-        distance, distance_buf = self._output((points.shape[0],), np.float64)
-        args = (mesh.nodes, mesh.children, corners, self._input(points), np.int32(points.shape[0]),
-                np.float64(slack), distance_buf)
-        launch = self._prepared(self._distances_kernel, (-(-points.shape[0] // GROUP) * GROUP,), args,
-                                ((distance, distance_buf),))
-        launch()
-        return launch.read()[0]
+        n_points = points.shape[0]
+        distance, distance_buf = self._output((n_points,), np.float64)
+        with self._lock:
+            self._distances_kernel(self.queue, (-(-n_points // GROUP) * GROUP,), None, mesh.nodes, mesh.children,
+                                   corners, self._input(points), np.int32(n_points), np.float64(slack), distance_buf)
+            cl.enqueue_copy(self.queue, distance, distance_buf, is_blocking=False)
+            self._finish()
+        return distance
 
     def _prepared_cast(self, mesh, origins, directions, max_distance):
         _check_mesh(mesh)

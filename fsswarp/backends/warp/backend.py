@@ -169,7 +169,7 @@ class WarpBackend(Backend):
             bvh = wp.Bvh(lowers, uppers)
         return WarpMesh(bvh, corners, lowers, uppers, self.device)
 
-    def _exact_corners(self, mesh, corners, size):
+    def _exact_corners(self, mesh, corners):
         return self._array(corners.reshape(-1, 3), wp.vec3d)
 
     def _surface_distances(self, mesh, points):
