@@ -33,6 +33,7 @@ import math
 import threading
 import time
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -67,6 +68,8 @@ class ReconstructSettings:
         double-bounce votes where the pose is settled (docs/decisions.md); 0: none
     answer_ahead : work the answer's pose out in a thread once the pose step rests, while the
         loop's last shape steps go on (:class:`_AnswerAhead`; the same answer, sooner)
+    answer_threads : refine the answer's three models side by side in threads
+        (:func:`_answer_model`; the same model, sooner)
     """
 
     iterations: int = 10
@@ -78,14 +81,16 @@ class ReconstructSettings:
     render: RenderSettings = field(default_factory=RenderSettings)
     answer_top_level: float = 2.0
     answer_ahead: bool = True
+    answer_threads: bool = True
 
     def __post_init__(self) -> None:
         for name, lowest in (("iterations", 0), ("patience", 1), ("resolution", 16)):
             check_integer(f"--{name}", getattr(self, name), lowest)
         if not (is_finite_number(self.answer_top_level) and 0 <= self.answer_top_level <= 1e6):
             raise InputError("must be a number in [0, 1000000]", field="answer_top_level", value=self.answer_top_level)
-        if not isinstance(self.answer_ahead, bool):
-            raise InputError("must be true or false", field="answer_ahead", value=self.answer_ahead)
+        for name in ("answer_ahead", "answer_threads"):
+            if not isinstance(getattr(self, name), bool):
+                raise InputError("must be true or false", field=name, value=getattr(self, name))
 
 
 @dataclass
@@ -283,33 +288,44 @@ def _answer_model(kept, dataset, answer: tuple[float, float], iteration: int, se
     models refined there: ``kept``; ``kept`` held to the views carved there
     (``fsswarp.carving.held``: the voxels of that carving inside it, and those that no view sees
     past it: what the views see empty at the answer is empty, what they cannot see follows the
-    carving); and that carving (:func:`_recarved`, as in the loop; ``recarved`` tells whether it
+    carving); and that carving (as :func:`_recarved` in the loop; ``recarved`` tells whether it
     won). Measured (docs/experiments.md): a shape carved at a wrong tilt does not become right by
     refining (coral-two carved 2° off: E_V 0.57 refined, 0.25 held to the carving at the answer),
     and where it lost truth that no view sees, holding it to the voxels inside alone kept the
     loss (coral-one 2° off: E_V 0.355, 0.305 with the unseen voxels). Here refinement takes the
-    double-bounce votes of ``settings.answer_top_level``."""
+    double-bounce votes of ``settings.answer_top_level``. With ``settings.answer_threads`` the
+    kept model is refined in this thread and the others each in a thread with comparisons of its
+    own (``_comparisons``): the same models, entries and lines."""
     settings = dataclasses.replace(settings, refine=dataclasses.replace(settings.refine,
                                                                         top_level=settings.answer_top_level))
-    carving = _carve_voxels(dataset, *answer, settings, shaping.backend, carvings)  # its mesh made meanwhile
+    backend = shaping.backend
+    carving = _carve_voxels(dataset, *answer, settings, backend, carvings)  # its mesh made meanwhile
     rotations, translations = (a[[dataset.rig.index(n) for n in carving.views]]
                                for a in dataset.rig.relative_poses(*answer))
-    holding = held(carving.voxels, kept, rotations, translations, dataset.sonar, shaping.backend)
-    starts = {"the kept model": kept}
+    holding = held(carving.voxels, kept, rotations, translations, dataset.sonar, backend)
+    starts = {"the kept model": lambda: kept}
     if holding.kept:  # else no carved voxel lies inside the kept model; its mesh is made while kept is refined
         starts["the kept model held to the carving there"] = MeshJob(holding, smooth=settings.carve.smooth,
-                                                                     faces=settings.carve.faces)
-    model, entry, said = None, None, []
-    for name, start in starts.items():
-        start = start.result() if isinstance(start, MeshJob) else start
-        trial = refine_shape(start, dataset, *answer, settings=settings.refine, comparison=shaping).mesh
-        trial_entry = dict(_record(iteration, trial, dataset, *answer, settings, comparison, first), recarved=False)
-        said.append(f"{name} E_I {trial_entry['E_I']:.3f}")
-        if entry is None or trial_entry["E_I"] < entry["E_I"]:
-            model, entry, chosen = trial, trial_entry, name
+                                                                     faces=settings.carve.faces).result
+    starts["the carving"] = lambda: _carving(dataset, *answer, settings, backend, carvings)
+
+    def refined(start, comparisons: tuple[ViewComparison, ViewComparison]):
+        trial = refine_shape(start(), dataset, *answer, settings=settings.refine, comparison=comparisons[1]).mesh
+        return trial, _record(iteration, trial, dataset, *answer, settings, comparisons[0], first)
+
+    names, makers = list(starts), list(starts.values())
+    if settings.answer_threads:
+        with ThreadPoolExecutor(len(makers) - 1, thread_name_prefix="fsswarp-answer-model") as pool:
+            later = [pool.submit(refined, make, _comparisons(dataset, settings, backend)) for make in makers[1:]]
+            outcomes = [refined(makers[0], (comparison, shaping))] + [future.result() for future in later]
+    else:
+        outcomes = [refined(make, (comparison, shaping)) for make in makers]
+    (fresh, again), candidates = outcomes[-1], outcomes[:-1]
+    said = [f"{name} E_I {entry['E_I']:.3f}" for name, (_, entry) in zip(names, candidates)]
     say(f"the answer: refined there, {', '.join(said)}")
-    return _recarved(_carving(dataset, *answer, settings, shaping.backend, carvings), model, entry, iteration, dataset,
-                     *answer, settings, comparison, shaping, first, say, f"the answer: {chosen}, refined there")
+    best = min(range(len(candidates)), key=lambda k: candidates[k][1]["E_I"])  # the first of equals
+    model, entry = candidates[best][0], dict(candidates[best][1], recarved=False)
+    return _better_of(model, entry, fresh, again, *answer, comparison, say, f"the answer: {names[best]}, refined there")
 
 
 def _out_of_patience(misses: int, settings: ReconstructSettings, best: dict, iteration: int, say) -> bool:
@@ -559,12 +575,21 @@ def _recarved(carved, trial, entry: dict, iteration: int, dataset, depth: float,
               settings: ReconstructSettings, comparison: ViewComparison, shaping: ViewComparison, first: dict, say,
               why: str):
     """The better, by E_I, of (``trial``, ``entry``) and ``carved``, carved afresh at (depth m,
-    tilt rad), refined there: (model, its entry, ``recarved`` set); ``why`` opens the line said."""
+    tilt rad), refined there (:func:`_better_of`)."""
     fresh = refine_shape(carved, dataset, depth, tilt, settings=settings.refine, comparison=shaping).mesh
     again = _record(iteration, fresh, dataset, depth, tilt, settings, comparison, first)
+    return _better_of(trial, entry, fresh, again, depth, tilt, comparison, say, why)
+
+
+def _better_of(trial, entry: dict, fresh, again: dict, depth: float, tilt: float, comparison: ViewComparison, say,
+               why: str):
+    """(model, its entry, ``recarved`` set): ``fresh``, the fresh carving refined at (depth m,
+    tilt rad), with its entry ``again`` where its E_I is lower, else (``trial``, ``entry``);
+    ``comparison`` is left on that model, and ``why`` opens the line said."""
     say(f"{why}; carved again at D {depth:.4f} m, tilt {math.degrees(tilt):.3f} deg: E_I {again['E_I']:.3f} against "
         f"{entry['E_I']:.3f} for the moved model")
     if again["E_I"] < entry["E_I"]:
+        comparison.use(fresh, depth, tilt)  # where another thread's comparison recorded it
         return fresh, dict(again, recarved=True)
     comparison.use(trial, depth, tilt)  # _record left it on the fresh model
     return trial, entry

@@ -479,8 +479,9 @@ def test_settings_are_validated():
         with pytest.raises(InputError, match="answer_top_level"):
             ReconstructSettings(answer_top_level=bad)
     for bad in ("yes", 1, None):
-        with pytest.raises(InputError, match="answer_ahead"):
-            ReconstructSettings(answer_ahead=bad)
+        for name in ("answer_ahead", "answer_threads"):
+            with pytest.raises(InputError, match=name):
+                ReconstructSettings(**{name: bad})
 
 
 def test_reconstruct_command_writes_model_result_and_figures(coral_one, tmp_path):
@@ -987,6 +988,38 @@ def test_the_answer_worked_out_ahead_in_a_thread_is_the_one_found_at_the_loop_s_
     np.testing.assert_array_equal(runs[True][1], runs[False][1])
     np.testing.assert_array_equal(runs[True][2], runs[False][2])
     assert not [thread for thread in threading.enumerate() if thread.name == "fsswarp-answer"]
+
+
+def test_the_answer_s_models_refined_in_threads_are_those_refined_in_turn(coral_one, monkeypatch):
+    """``ReconstructSettings.answer_threads``: the answer's three models (kept, held, carving)
+    refined side by side, two of them in threads with comparisons of their own, give the
+    reconstruction that refining them in turn gives (result, history, model, lines)."""
+    import threading
+
+    from fsswarp.backends import get_backend
+
+    refined, where = reconstruct_module.refine_shape, []
+
+    def shape_step(*args, **kwargs):
+        where.append(threading.current_thread().name)
+        return refined(*args, **kwargs)
+
+    monkeypatch.setattr(reconstruct_module, "refine_shape", shape_step)
+    runs = {}
+    for threads in (False, True):
+        lines, where[:] = [], []
+        result = reconstruct(coral_one, settings=dataclasses.replace(FAST, iterations=2, answer_threads=threads),
+                             backend=get_backend("opencl"), progress=lines.append)
+        summary = result.summary()
+        del summary["seconds"]
+        runs[threads] = (json.dumps(summary, sort_keys=True), result.model.vertices, result.model.faces,
+                         [line for line in lines if "against the truth" not in line], list(where))
+    assert any(line.startswith("the answer: refined there") for line in runs[True][3])
+    assert sum(name.startswith("fsswarp-answer-model") for name in runs[True][4]) == 2
+    assert not any(name.startswith("fsswarp-answer-model") for name in runs[False][4])
+    assert runs[True][0] == runs[False][0] and runs[True][3] == runs[False][3]
+    np.testing.assert_array_equal(runs[True][1], runs[False][1])
+    np.testing.assert_array_equal(runs[True][2], runs[False][2])
 
 
 def test_a_loop_that_fails_stops_its_answer_thread(coral_one, monkeypatch):
