@@ -12,11 +12,10 @@ from __future__ import annotations
 import json
 import math
 import sys
-import threading
 import warnings
 from collections.abc import Callable
 from contextlib import ExitStack
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import click
@@ -36,7 +35,6 @@ class State:
     backend: str = "auto"
     device: str | None = None
     quiet: bool = False
-    warming: threading.Thread | None = field(default=None, repr=False)  # start_backend's
 
     def echo(self, text: str = "") -> None:
         """Progress and summaries on stdout, unless --quiet."""
@@ -48,25 +46,6 @@ class State:
         from .backends import get_backend
 
         return get_backend(self.backend, self.device)
-
-    def start_backend(self) -> None:
-        """Where a CUDA driver loads and Warp may be asked for, make the backend in a thread
-        from now on (Warp's import and CUDA start: ~1.3 s on GPU hosts, much of it outside
-        Python) while the command imports its modules and checks its input; ``get_backend``
-        then waits for it (``fsswarp.backends.get_backend`` makes each backend once, under a
-        lock). A failure there is left for the command's own ``get_backend`` to raise again,
-        in its turn. On CPU hosts the backend's start is Python's work: nothing to gain."""
-        from .backends.runtimes import cuda_driver_loads
-
-        if self.warming is None and self.backend != "opencl" and cuda_driver_loads():
-            self.warming = threading.Thread(target=self._warm, name="fsswarp-backend")
-            self.warming.start()
-
-    def _warm(self) -> None:
-        try:
-            self.get_backend()
-        except Exception:  # noqa: BLE001 - the command's own get_backend raises it again
-            pass
 
     def start_mesh_workers(self) -> None:
         """Start the processes that mesh carvings (``fsswarp.carving.start_mesh_workers``) now,
@@ -263,7 +242,6 @@ def simulate(state: State, scene_name: str, out: Path, seed: int, samples, no_no
     """Synthesize a dataset of SCENE, a scene file or a built-in scene (coral-one, coral-two,
     table): noisy images plus the noise-free object, ghost, mirror and mirror2 layers and the
     truth model under truth/."""
-    state.start_backend()
     import time
 
     from .figures import draw_here
@@ -323,7 +301,6 @@ def render(state: State, model: Path, dataset_dir: Path, out: Path, depth, tilt,
     """Render synthetic views of the mesh MODEL (in the dataset's reference frame) at the
     dataset's poses or at new rolls: OUT/<view>_{total,object,ghost,mirror,mirror2}.tiff and
     OUT/layers.png (beam-bin and fan images of up to six views)."""
-    state.start_backend()
 
     from .atomic import check_output_folder, output_folder
     from .dataset import deep_water_pose, load_manifest, tiff_bytes
@@ -510,7 +487,6 @@ def carve(state: State, dataset_dir: Path, out: Path, depth, tilt, resolution: i
     """Segment every view and carve the voxels they agree on into a closed mesh (space carving):
     OUT/carved.ply (reference frame), OUT/carve.json (grid, voxels kept, timings, and metrics
     against truth/model.ply when the dataset has one) and OUT/carve.png."""
-    state.start_backend()
     import dataclasses
     import time
 
@@ -580,7 +556,6 @@ def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, pat
     """Reconstruct the object and estimate the sonar's depth and tilt from the dataset DIR
     (carve, then alternate pose and shape steps): OUT/model.ply, OUT/carved.ply,
     OUT/result.json and OUT/figures/."""
-    state.start_backend()
     from .atomic import check_output_folder
     from .dataset import load_dataset
     from .pose import check_start, check_uncertainties
@@ -680,7 +655,6 @@ def pose(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt, l
     the estimate is kept only where the cost falls, with its 95% intervals. OUT/pose.json,
     OUT/pose.png (the grid levels) and OUT/contours.png (per view, the data's contours and
     the model's at the estimate and at the start)."""
-    state.start_backend()
     from .atomic import check_output_folder, output_folder
     from .compare import PoseWarning, view_contours
     from .dataset import load_dataset
@@ -760,7 +734,6 @@ def demo(state: State, scene_name: str, out: Path, seed: int, iterations: int) -
     """Simulate a built-in scene (coral-one, coral-two, table) or a scene file, reconstruct it
     from its noisy images and measured depth and tilt, and remove the ghosts from its views
     with the reconstruction: OUT/dataset, OUT/reconstruction, OUT/enhance, with figures."""
-    state.start_backend()
     import time
 
     from .atomic import check_output_folder, output_folder
@@ -924,7 +897,6 @@ def enhance(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt
     OUT/enhance.png, and the figures of the paper's Figures 10-14, OUT/views_optimized.png and
     OUT/views_heldout.png (data | ghost-free | [initial synthetic |] synthetic of MODEL). Views
     that MODEL does not project into are skipped with a warning; none at all is an error."""
-    state.start_backend()
     from .atomic import check_output_folder
     from .dataset import load_dataset
     from .enhancement import check_ghost_sigma, check_views

@@ -9,7 +9,6 @@ import re
 import signal
 import subprocess
 import sys
-import threading
 from pathlib import Path
 
 import pytest
@@ -169,12 +168,10 @@ def test_reconstruct_and_demo_start_the_mesh_processes_before_the_backend(coral_
     """Spawned before the backend starts, the mesh processes' imports overlap the command's
     input and simulation (``State.start_mesh_workers``); without iterations, which alone mesh
     carvings ahead, none start."""
-    import fsswarp.backends.runtimes as runtimes
     import fsswarp.carving as carving
     import fsswarp.cli as cli
 
     order = []
-    monkeypatch.setattr(runtimes, "cuda_driver_loads", lambda: False)  # no backend thread (its test is below)
     monkeypatch.setenv("FSSWARP_FIGURE_WORKERS", "0")
     monkeypatch.setattr(carving, "start_mesh_workers", lambda: order.append("mesh processes"))
 
@@ -190,41 +187,3 @@ def test_reconstruct_and_demo_start_the_mesh_processes_before_the_backend(coral_
     for command in (["reconstruct", str(coral_one.root)], ["demo", "coral-one"]):
         assert cli.main(["-q", *command, "--out", str(tmp_path / "z"), "--iterations", "0"]) == 2
     assert order == ["backend", "backend"]
-
-
-def test_where_a_cuda_driver_loads_the_backend_is_made_in_a_thread(tmp_path, capsys, monkeypatch):
-    """``State.start_backend``: the backend is made in a thread while the command goes on, the
-    command's own ``get_backend`` gets that one, and a failure there is the command's one-line
-    error (exit 2, no output); OpenCL, or no CUDA driver, starts no thread."""
-    pytest.importorskip("warp")
-    import fsswarp.backends as backends
-    import fsswarp.backends.runtimes as runtimes
-    import fsswarp.cli as cli
-
-    runtimes.import_warp()  # started where no driver loads (its warning hidden) before one is said to load
-    monkeypatch.setattr(runtimes, "cuda_driver_loads", lambda: True)
-    made, callers = backends.get_backend, []
-
-    def recording(*args):
-        callers.append(threading.current_thread().name)
-        return made(*args)
-
-    monkeypatch.setattr(backends, "get_backend", recording)
-    out = tmp_path / "s"
-    assert cli.main(["--backend", "warp", "--device", "cuda:7", "simulate", "coral-one", "--out", str(out)]) == 2
-    for thread in threading.enumerate():
-        if thread.name == "fsswarp-backend":
-            thread.join()
-    error = capsys.readouterr().err
-    assert error.startswith("fsswarp: error: --device = 'cuda:7'") and error.count("\n") == 1
-    assert sorted(callers) == ["MainThread", "fsswarp-backend"] and not out.exists()
-
-    state = cli.State(backend="warp", device="cpu")
-    state.start_backend()
-    state.warming.join()
-    assert callers[2:] == ["fsswarp-backend"] and state.get_backend() is made("warp", "cpu")
-    for state in (cli.State(backend="opencl"), cli.State(backend="warp")):
-        if state.backend == "warp":
-            monkeypatch.setattr(runtimes, "cuda_driver_loads", lambda: False)
-        state.start_backend()
-        assert state.warming is None

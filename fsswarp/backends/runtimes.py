@@ -6,17 +6,13 @@ neither ``warp`` nor ``pyopencl``. select.py chooses among them; each backend st
 from __future__ import annotations
 
 import contextlib
-import ctypes
-import functools
 import os
 import sys
 import tempfile
-import threading
 from dataclasses import dataclass
 from typing import Any
 
 _WARP_STATE: dict[str, Any] = {}
-_WARP_LOCK = threading.Lock()  # one init, whichever thread asks first (cli.State.start_backend)
 
 
 def import_warp():
@@ -25,40 +21,21 @@ def import_warp():
         import warp as wp
     except ImportError as err:
         return None, f"warp-lang is not installed ({err})"
-    with _WARP_LOCK:
-        if "init" not in _WARP_STATE:
-            _WARP_STATE["init"] = _init_warp(wp)
+    if "init" not in _WARP_STATE:
+        _WARP_STATE["init"] = _init_warp(wp)
     return wp, None
 
 
 def _init_warp(wp) -> str:
-    """wp.init() without its banner; returns what the native library printed to stderr where
-    no CUDA driver loads ("Could not find or load the NVIDIA CUDA driver", hidden). Where one
-    loads, that warning cannot come and stderr is left alone: a thread may then start Warp
-    while the command's own thread writes to stderr (``cuda_driver_loads``)."""
+    """wp.init() without its banner; returns what the native library printed to stderr
+    (on a machine without a CUDA driver: "Could not find or load the NVIDIA CUDA driver")."""
     if hasattr(wp, "LOG_WARNING"):  # the banner and "Module ... loaded" lines are LOG_INFO
         wp.config.log_level = max(getattr(wp.config, "log_level", 0), wp.LOG_WARNING)
     else:  # older Warp
         wp.config.quiet = True
-    if cuda_driver_loads():
-        wp.init()
-        return ""
     with _captured_stderr_fd() as captured:
         wp.init()
     return " ".join(line.strip() for line in "".join(captured).splitlines() if line.strip())
-
-
-@functools.cache
-def cuda_driver_loads() -> bool:
-    """Whether the NVIDIA CUDA driver library loads here, by the names Warp's native code tries
-    (libcuda.so, then libcuda.so.1; nvcuda.dll on Windows)."""
-    for name in ("nvcuda.dll",) if sys.platform == "win32" else ("libcuda.so", "libcuda.so.1"):
-        try:
-            ctypes.CDLL(name)
-        except OSError:
-            continue
-        return True
-    return False
 
 
 @contextlib.contextmanager
