@@ -691,9 +691,10 @@ class _TruthMetrics:
     """E_V, Chamfer and F-score of recorded models against the truth mesh (None: no truth, and
     nothing to do), made while the loop goes on. The surface distances (``fsswarp.metrics``'
     20,000 seeded points each way) come from ``backend``'s exact search
-    (``Backend.surface_distances``) at the submit, in this thread: a submit ~30 ms on an H200's
-    host and ~95 ms on PoCL here, against ~0.5 s of a CPU for NumPy's search, which as the loop's
-    truth work held coral-one's loop up to 1.8 s on an H200 (docs/decisions.md, "Truth metrics").
+    (``Backend.surface_distances``), one model after another in a thread of their own: ~30 ms a
+    model on an H200's host and ~95 ms on PoCL here, against ~0.5 s of a CPU for NumPy's search,
+    which as the loop's truth work held coral-one's loop up to 1.8 s on an H200
+    (docs/decisions.md, "Truth metrics").
     The volumes (mesh booleans) and, without a backend with float64, the distances too, come
     from worker processes (``fsswarp.processes``; each job gets both meshes,
     ``fsswarp.metrics.compare_meshes``): in a thread of the loop's process they held the GIL
@@ -707,15 +708,15 @@ class _TruthMetrics:
     def __init__(self, mesh, say: Callable[[str], None], backend=None, workers: int | None = None):
         from .processes import WorkerProcesses
 
-        self.mesh, self.say, self.processes = mesh, say, None
+        self.mesh, self.say, self.processes, self.searching = mesh, say, None, None
         self.backend = backend if backend is not None and backend.has_float64 else None
         self.workers = TRUTH_WORKERS if workers is None else workers
-        self.pending = []  # (history entry, the model's (vertices, faces), its distances or None, pool, future)
+        self.pending = []  # (history entry, the model's (vertices, faces), distances' future or None, pool, future)
         if mesh is not None:
             self.truth = (np.asarray(mesh.vertices), np.asarray(mesh.faces))
-            if self.backend is not None:
-                self.truth_handle = self.backend.load_mesh(*self.truth, exact=True)
-                self.truth_points = surface_points(mesh, SAMPLES, [0, 1])
+            if self.backend is not None:  # the searches, in turn, in a thread of their own
+                self.searching = ThreadPoolExecutor(1, thread_name_prefix="fsswarp-truth")
+                self.truth_side = self.searching.submit(self._truth_side)
             try:
                 self.processes = WorkerProcesses(self.workers, lost=self._lost)
             except OSError as error:
@@ -725,21 +726,33 @@ class _TruthMetrics:
         return self
 
     def __exit__(self, *exc) -> None:
+        if self.searching is not None:
+            self.searching.shutdown(cancel_futures=True)
         if self.processes is not None:
             self.processes.close()
 
+    def _truth_side(self):
+        """The truth's exact-search handle and its seeded surface points (the searches' thread)."""
+        return self.backend.load_mesh(*self.truth, exact=True), surface_points(_mesh(*self.truth), SAMPLES, [0, 1])
+
+    def _distances(self, estimate: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """(truth → estimate, estimate → truth) surface distances on the backend, for the
+        estimate's (vertices, faces) (the searches' thread: meshes of its own, no cache shared)."""
+        truth_handle, truth_points = self.truth_side.result()
+        handle = self.backend.load_mesh(*estimate, exact=True)
+        return (self.backend.surface_distances(truth_handle, surface_points(_mesh(*estimate), SAMPLES, [0, 0])),
+                self.backend.surface_distances(handle, truth_points))
+
     def submit(self, entry: dict, model) -> None:
-        """Start the compare of ``model`` against the truth, for ``entry``: its distances now on
-        the backend, the rest in a process (without processes, when collected)."""
+        """Start the compare of ``model`` against the truth, for ``entry``: its distances on the
+        backend in the searches' thread, the rest in a process (without processes, when collected)."""
         if self.mesh is None:
             return
         estimate, processes = (np.asarray(model.vertices), np.asarray(model.faces)), self.processes
         distances = None
-        if self.backend is not None:
+        if self.searching is not None:
             require_triangles("estimate", model)
-            handle = self.backend.load_mesh(*estimate, exact=True)
-            distances = (self.backend.surface_distances(self.truth_handle, surface_points(model, SAMPLES, [0, 0])),
-                         self.backend.surface_distances(handle, self.truth_points))
+            distances = self.searching.submit(self._distances, estimate)
         future = None if processes is None else processes.submit(compare_meshes, estimate, self.truth,
                                                                  distances=distances is None)
         self.pending.append((entry, estimate, distances, processes, future))
@@ -752,21 +765,28 @@ class _TruthMetrics:
 
     def collect(self, *, wait: bool) -> None:
         """Fill in the finished entries (all of them, waiting, with ``wait``)."""
-        while self.pending and (wait or _collectable(self.pending[0][4])):
+        while self.pending and (wait or all(_collectable(self.pending[0][k]) for k in (2, 4))):
             entry, estimate, distances, processes, future = self.pending.pop(0)
             outcome = None if future is None else processes.outcome(future)
             if outcome is None:  # no processes, or one died: made here
                 outcome = compare_meshes(estimate, self.truth, distances=distances is None)
             volume, made = outcome
-            metrics = combine(self.mesh, volume, *(distances if distances is not None else made))
+            metrics = combine(self.mesh, volume, *(distances.result() if distances is not None else made))
             entry.update(E_V=metrics["E_V"], chamfer_m=metrics["chamfer_m"], fscore=metrics["fscore"])
             self.say(f"iteration {entry['iteration']} against the truth: E_V {entry['E_V']:.3f}, Chamfer "
                      f"{entry['chamfer_m'] * 1e3:.2f} mm, F {entry['fscore']:.3f}")
 
 
+def _mesh(vertices: np.ndarray, faces: np.ndarray):
+    """A trimesh of (vertices, faces), as given."""
+    import trimesh
+
+    return trimesh.Trimesh(vertices, faces, process=False)
+
+
 def _collectable(future) -> bool:
-    """Whether a truth compare's job (``_TruthMetrics.pending``) can be collected without
-    waiting: done, or made here (no processes, or one died)."""
+    """Whether a part of a truth compare (``_TruthMetrics.pending``: its distances' or its
+    process's future) can be collected without waiting: done, or none (made elsewhere or here)."""
     return future is None or future.done()
 
 

@@ -191,12 +191,22 @@ def assert_compare_s(entry: dict, want: dict) -> None:
     assert entry["fscore"] == pytest.approx(want["fscore"], rel=1e-9)
 
 
-def test_truth_metrics_take_their_distances_from_the_backend(backend):
-    """With a backend the distances come from its exact search in this thread and the worker's
-    job is the volumes alone: compare()'s values. A model without triangles is refused at once."""
+def test_truth_metrics_take_their_distances_from_the_backend(backend, monkeypatch):
+    """With a backend the distances come from its exact search, in a thread of their own, and
+    the worker's job is the volumes alone: compare()'s values. A model without triangles is
+    refused at once."""
+    import threading
+
     truth = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
     models = [trimesh.creation.icosphere(subdivisions=2, radius=r) for r in (0.105, 0.09)]
-    entries, jobs = [{"iteration": i} for i in range(len(models))], []
+    entries, jobs, where = [{"iteration": i} for i in range(len(models))], [], []
+    search = backend.surface_distances
+
+    def surface_distances(*args):
+        where.append(threading.current_thread().name)
+        return search(*args)
+
+    monkeypatch.setattr(backend, "surface_distances", surface_distances)
     with reconstruct_module._TruthMetrics(truth, [].append, backend, workers=1) as metrics:
         submit = metrics.processes.submit
         metrics.processes.submit = lambda function, *args, **kwargs: jobs.append(kwargs) or submit(function, *args,
@@ -208,6 +218,7 @@ def test_truth_metrics_take_their_distances_from_the_backend(backend):
         with pytest.raises(InputError, match="holds no triangles"):
             metrics.submit({"iteration": 2}, trimesh.Trimesh())
     assert jobs == [{"distances": False}] * 2
+    assert len(where) == 4 and all(name.startswith("fsswarp-truth") for name in where)
     for entry, model in zip(entries, models):
         assert_compare_s(entry, compare(model, truth))
 
