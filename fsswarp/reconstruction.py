@@ -68,7 +68,7 @@ class ReconstructSettings:
         double-bounce votes where the pose is settled (docs/decisions.md); 0: none
     answer_ahead : work the answer's pose out in a thread once the pose step rests, while the
         loop's last shape steps go on (:class:`_AnswerAhead`; the same answer, sooner)
-    answer_threads : refine the answer's three models side by side in threads
+    answer_threads : on a GPU, refine the answer's three models side by side in threads
         (:func:`_answer_model`; the same model, sooner)
     """
 
@@ -293,9 +293,9 @@ def _answer_model(kept, dataset, answer: tuple[float, float], iteration: int, se
     refining (coral-two carved 2° off: E_V 0.57 refined, 0.25 held to the carving at the answer),
     and where it lost truth that no view sees, holding it to the voxels inside alone kept the
     loss (coral-one 2° off: E_V 0.355, 0.305 with the unseen voxels). Here refinement takes the
-    double-bounce votes of ``settings.answer_top_level``. With ``settings.answer_threads`` the
-    kept model is refined in this thread and the others each in a thread with comparisons of its
-    own (``_comparisons``): the same models, entries and lines."""
+    double-bounce votes of ``settings.answer_top_level``. With ``settings.answer_threads``, on a
+    GPU (:func:`_threads_pay`), the kept model is refined in this thread and the others each in a
+    thread with comparisons of its own (``_comparisons``): the same models, entries and lines."""
     settings = dataclasses.replace(settings, refine=dataclasses.replace(settings.refine,
                                                                         top_level=settings.answer_top_level))
     backend = shaping.backend
@@ -314,7 +314,7 @@ def _answer_model(kept, dataset, answer: tuple[float, float], iteration: int, se
         return trial, _record(iteration, trial, dataset, *answer, settings, comparisons[0], first)
 
     names, makers = list(starts), list(starts.values())
-    if settings.answer_threads:
+    if settings.answer_threads and _threads_pay(backend):
         with ThreadPoolExecutor(len(makers) - 1, thread_name_prefix="fsswarp-answer-model") as pool:
             later = [pool.submit(refined, make, _comparisons(dataset, settings, backend)) for make in makers[1:]]
             outcomes = [refined(makers[0], (comparison, shaping))] + [future.result() for future in later]
@@ -326,6 +326,13 @@ def _answer_model(kept, dataset, answer: tuple[float, float], iteration: int, se
     best = min(range(len(candidates)), key=lambda k: candidates[k][1]["E_I"])  # the first of equals
     model, entry = candidates[best][0], dict(candidates[best][1], recarved=False)
     return _better_of(model, entry, fresh, again, *answer, comparison, say, f"the answer: {names[best]}, refined there")
+
+
+def _threads_pay(backend) -> bool:
+    """Whether shape steps side by side in threads pay on ``backend``: on a GPU, where much of
+    the host's work waits for the device; on a CPU device the kernels keep every core busy
+    already (the answer's models in threads: PoCL here 1.08 times slower, bench/notes.md)."""
+    return bool(backend.is_gpu)
 
 
 def _out_of_patience(misses: int, settings: ReconstructSettings, best: dict, iteration: int, say) -> bool:

@@ -1004,11 +1004,13 @@ def test_the_answer_worked_out_ahead_in_a_thread_is_the_one_found_at_the_loop_s_
 def test_the_answer_s_models_refined_in_threads_are_those_refined_in_turn(coral_one, monkeypatch):
     """``ReconstructSettings.answer_threads``: the answer's three models (kept, held, carving)
     refined side by side, two of them in threads with comparisons of their own, give the
-    reconstruction that refining them in turn gives (result, history, model, lines)."""
+    reconstruction that refining them in turn gives (result, history, model, lines). Threads are
+    taken on GPUs alone (``_threads_pay``), here said to pay on any backend."""
     import threading
 
     from fsswarp.backends import get_backend
 
+    monkeypatch.setattr(reconstruct_module, "_threads_pay", lambda backend: True)
     refined, where = reconstruct_module.refine_shape, []
 
     def shape_step(*args, **kwargs):
