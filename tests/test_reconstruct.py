@@ -809,7 +809,7 @@ def test_the_answer_model_is_the_lowest_image_error_of_the_kept_held_and_fresh_m
         return {"iteration": iteration, "E_I": errors[model]}
 
     class Comparison:
-        backend = None
+        backend = SimpleNamespace(is_gpu=False)  # the three refined in turn (_threads_pay)
 
         def use(self, model, depth, tilt):
             self.on = model
