@@ -510,7 +510,7 @@ def views_figure(rows: dict[str, dict[str, np.ndarray]], sonar: SonarSpec, path:
             with np.errstate(divide="ignore"):
                 db = np.maximum(20.0 * np.log10(np.maximum(np.asarray(image, np.float64), 0) / peak), floor_db)
             shown = draw_fan(ax, db, sonar, limits[label], vmin=floor_db)
-            ax.set_title(f"{label}: {column}" if len(rows) > 1 else column, fontsize=8)
+            ax.set_title(f"{label}: {column}" if len(rows) > 1 else column, fontsize=8, y=1.0)
     bar = fig.colorbar(shown, cax=fig.add_subplot(grid[-1, 1:-1] if columns > 2 else grid[-1, :]),
                        orientation="horizontal")
     bar.set_label("dB below the data's peak", fontsize=7)
@@ -546,18 +546,20 @@ def draw_fan(ax, db: np.ndarray, sonar: SonarSpec, limits: dict, *, vmin: float 
     r_lo, r_hi = float(r[0, 0]), float(r[-1, 0])
     t_lo, t_hi = float(t[0, 0]), float(t[0, -1])
     arc = np.linspace(t_lo, t_hi, 64)
+    grid = []  # the range arcs and azimuth rays, drawn as one collection
     for value in matplotlib.ticker.MaxNLocator(4).tick_values(r_lo, r_hi):
         if r_lo <= value <= r_hi:
-            ax.plot(value * np.sin(arc), value * np.cos(arc), color="white", lw=0.5, alpha=0.45)
+            grid.append(np.column_stack([value * np.sin(arc), value * np.cos(arc)]))
             ax.annotate(f"{value:.2f} m", (value * math.sin(t_hi), value * math.cos(t_hi)), xytext=(3, 0),
                         textcoords="offset points", fontsize=7, va="center", ha="left")
     for value in matplotlib.ticker.MaxNLocator(5).tick_values(math.degrees(t_lo), math.degrees(t_hi)):
         angle = math.radians(value)
         if t_lo <= angle <= t_hi:
-            ax.plot([r_lo * math.sin(angle), r_hi * math.sin(angle)], [r_lo * math.cos(angle), r_hi * math.cos(angle)],
-                    color="white", lw=0.5, alpha=0.45)
+            grid.append([(r * math.sin(angle), r * math.cos(angle)) for r in (r_lo, r_hi)])
             ax.annotate(f"{value:g}°", (r_lo * math.sin(angle), r_lo * math.cos(angle)), xytext=(0, -3),
                         textcoords="offset points", fontsize=7, ha="center", va="top")
+    ax.add_collection(matplotlib.collections.LineCollection(grid, colors="white", linewidths=0.5, alpha=0.45,
+                                                            zorder=2))
     ax.plot(np.r_[r_lo * np.sin(arc), r_hi * np.sin(arc[::-1]), r_lo * math.sin(t_lo)],
             np.r_[r_lo * np.cos(arc), r_hi * np.cos(arc[::-1]), r_lo * math.cos(t_lo)], color="black", lw=0.8)
     ax.set_aspect("equal")

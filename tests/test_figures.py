@@ -274,6 +274,17 @@ def test_a_fan_puts_each_cell_at_its_range_and_azimuth_with_labelled_arcs_and_ra
     assert np.allclose(cell, [first_range * math.sin(theta), first_range * math.cos(theta)], atol=2e-3)
     labels = [t.get_text() for t in ax.texts]
     assert any(re.fullmatch(r"\d\.\d\d m", t) for t in labels) and any(re.fullmatch(r"-?\d+°", t) for t in labels)
+    # one white collection of lines: an arc at each labelled range, a ray at each labelled azimuth
+    grid, = [c for c in ax.collections if isinstance(c, matplotlib.collections.LineCollection)]
+    arcs = [s for s in grid.get_segments() if len(s) > 2]
+    rays = [s for s in grid.get_segments() if len(s) == 2]
+    ranges = sorted(float(t[:-2]) for t in labels if re.fullmatch(r"\d\.\d\d m", t))
+    azimuths = sorted(float(t[:-1]) for t in labels if re.fullmatch(r"-?\d+°", t))
+    assert len(arcs) == len(ranges) and len(rays) == len(azimuths)
+    assert np.allclose(sorted(np.hypot(*a.T).mean() for a in arcs), ranges, atol=5e-3)
+    assert all(np.ptp(np.hypot(*a.T)) < 1e-9 for a in arcs)
+    assert np.allclose(sorted(np.degrees(np.arctan2(*np.asarray(r)[1].T)) for r in rays), azimuths)
+    assert np.allclose(grid.get_colors()[0], [1.0, 1.0, 1.0, 0.45])
     plt.close(fig)
 
 
