@@ -56,13 +56,13 @@ def layers_figure(views: dict[str, np.ndarray], sonar: SonarSpec, path: str | Pa
             db = _decibels(stack[k], peak)
             ax = axes[r, 2 * k]
             shown = ax.imshow(db, origin="lower", aspect="auto", extent=extent_bb, cmap="magma", vmin=-60, vmax=0)
-            ax.set_title(f"{label} {layer}, beam-bin", fontsize=8)
+            ax.set_title(f"{label} {layer}, beam-bin", fontsize=8, y=1.0)
             ax.set_xlabel("azimuth (deg)", fontsize=7)
             ax.set_ylabel("range (m)", fontsize=7)
             fan, extent = scan_convert(db, sonar, fill=np.nan)
             ax = axes[r, 2 * k + 1]
             ax.imshow(fan, extent=extent, cmap="magma", vmin=-60, vmax=0)
-            ax.set_title(f"{label} {layer}, fan", fontsize=8)
+            ax.set_title(f"{label} {layer}, fan", fontsize=8, y=1.0)
             ax.set_xlabel("x (m)", fontsize=7)
             ax.set_ylabel("y (m)", fontsize=7)
             if limits is not None:
@@ -176,7 +176,7 @@ def fan_figure(image: np.ndarray, sonar: SonarSpec, path: str | Path, *, title: 
     ax.set_ylabel("y (m)")
     fig.colorbar(shown, ax=ax, label="dB below peak", shrink=0.8)
     if title:
-        ax.set_title(title, fontsize=9)
+        ax.set_title(title, fontsize=9, y=1.0)
     return save_figure(fig, path)
 
 
@@ -210,16 +210,16 @@ def carve_figure(mesh, path: str | Path, *, truth=None, title: str = "", label: 
         shade = 0.3 + 0.7 * np.abs(normals[order, k])[:, None]
         faces = np.clip(shade * colour, 0, 1)
         ax.add_collection(PolyCollection(triangles[order][:, :, (i, j)], facecolors=faces, edgecolors="none",
-                                         antialiased=False))
+                                         antialiased=False), autolim=False)  # the limits are set below
         if truth is not None:
             ax.add_collection(LineCollection(_outline(truth, k)[:, :, (i, j)], colors=MODEL_COLOURS["truth"],
-                                             linewidths=0.9))
+                                             linewidths=0.9), autolim=False)
         ax.set_xlim(points[:, i].min() - pad, points[:, i].max() + pad)
         ax.set_ylim(points[:, j].min() - pad, points[:, j].max() + pad)
         ax.set_aspect("equal")
         ax.set_xlabel(f"{'xyz'[i]} (m)")
         ax.set_ylabel(f"{'xyz'[j]} (m)")
-        ax.set_title(f"{'xyz'[i]}{'xyz'[j]} projection, seen from +{'xyz'[k]}", fontsize=9)
+        ax.set_title(f"{'xyz'[i]}{'xyz'[j]} projection, seen from +{'xyz'[k]}", fontsize=9, y=1.0)
         ax.tick_params(labelsize=7)
     handles = {f"{label} model (shaded)": matplotlib.patches.Patch(color=colour)}
     if truth is not None:
@@ -274,7 +274,7 @@ def pose_figure(result, path: str | Path, *, truth: tuple[float, float] | None =
         ax.set_xlabel("depth D (m)")
         ax.set_ylabel("tilt β (deg)")
         ax.set_title(f"level {k + 1}: {len(depths)} x {len(tilts)} cells, "
-                     f"{step[0] * 1000:.2f} mm x {step[1]:.3f} deg", fontsize=8)
+                     f"{step[0] * 1000:.2f} mm x {step[1]:.3f} deg", fontsize=8, y=1.0)
         ax.tick_params(labelsize=7)
     _bottom_legend(fig, handles)
     return write_figure(fig, path)
@@ -326,7 +326,7 @@ def contours_figure(images: dict[str, np.ndarray], contours: dict[str, dict], so
             ax.set_xlim(max(azimuth[0], azimuth[beams[0]] - 3.0), min(azimuth[-1], azimuth[beams[-1]] + 3.0))
         mu = ", ".join(f"{label} {m * 1e3:.1f}" if math.isfinite(m) else f"{label} -"
                        for label, m in zip(labels, entry["mu"]))
-        ax.set_title(f"{name}: mu (mm) {mu}", fontsize=7)
+        ax.set_title(f"{name}: mu (mm) {mu}", fontsize=7, y=1.0)
         ax.set_xlabel("azimuth (deg)", fontsize=6)
         ax.set_ylabel("range (m)", fontsize=6)
         ax.tick_params(labelsize=5)
@@ -431,7 +431,7 @@ def enhance_figure(images: dict[str, np.ndarray], results: dict, sonar: SonarSpe
                               interpolation="nearest")
             if label == "data":
                 decibels = drawn
-            ax.set_title(f"{name} {label}", fontsize=8)
+            ax.set_title(f"{name} {label}", fontsize=8, y=1.0)
             if rows.size:
                 ax.set_ylim(max(sonar.range_min, float(sonar.bin_ranges[rows.min()]) - 0.1),
                             min(sonar.range_max, float(sonar.bin_ranges[rows.max()]) + 0.1))
