@@ -11,7 +11,10 @@ alternation, each run in its own process with the tree first on ``PYTHONPATH``. 
 Markdown table: per tree the median and each run's seconds of ``fsswarp.reconstruction`` (the
 process start and the dataset load are not timed), the final D, β, E_I and the model's digest
 (the first 12 hex digits of SHA-256 over its float64 vertices and int64 faces; the trees should
-agree); then AFTER's median over BEFORE's and each round's ratio (``paired``). Timings taken one
+agree); then AFTER's median over BEFORE's and each round's ratio (``paired``). Both trees are
+compiled to bytecode first, as an install is, and where Python may not write bytecode
+(``PYTHONDONTWRITEBYTECODE``) a warning names the imported packages that have none: each run
+would compile them from source (2-3 s of a GPU host's run, bench/notes.md). Timings taken one
 after the other drift with the machine's load; alternating rounds put that drift into both
 columns alike. A run past ``--timeout`` seconds (default 300) is stopped with its processes:
 one line on stderr, exit 1. With ``--demo`` each run is the command ``fsswarp demo SCENE``
@@ -22,6 +25,8 @@ enhancement, figures and report); the digest is then of its ``model.ply``.
 from __future__ import annotations
 
 import argparse
+import compileall
+import importlib.util
 import itertools
 import json
 import os
@@ -132,6 +137,12 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as err:
         print(f"bench/ab_reconstruct.py: error: {err}", file=sys.stderr)
         return 2
+    for tree in trees.values():  # as an install is; Python's own writes may be turned off
+        compileall.compile_dir(tree / "fsswarp", quiet=1)
+    uncompiled = packages_without_bytecode()
+    if uncompiled:
+        print(f"bench/ab_reconstruct.py: warning: Python writes no bytecode here and {', '.join(uncompiled)} have "
+              "none: every run compiles them (python -m compileall on their folders first)", file=sys.stderr)
     with tempfile.TemporaryDirectory() as scratch:
         runs = {name: [] for name in trees}
         try:
@@ -175,6 +186,24 @@ def main(argv: list[str] | None = None) -> int:
     print(f"after / before per round: {' / '.join(f'{r:.2f}' for r in ratios)}; after faster in {faster} of "
           f"{len(ratios)} rounds")
     return 0
+
+
+#: Packages that every run imports: their bytecode is looked for by ``packages_without_bytecode``.
+IMPORTED = ("numpy", "scipy", "trimesh", "networkx", "skimage", "warp", "pyopencl", "matplotlib")
+
+
+def packages_without_bytecode() -> list[str]:
+    """Where Python writes no bytecode (``sys.dont_write_bytecode``): the installed packages of
+    ``IMPORTED`` whose ``__init__`` has no cached bytecode (empty otherwise)."""
+    if not sys.dont_write_bytecode:
+        return []
+    missing = []
+    for name in IMPORTED:
+        spec = importlib.util.find_spec(name)
+        if spec is not None and spec.origin and spec.origin.endswith(".py"):
+            if not Path(importlib.util.cache_from_source(spec.origin)).is_file():
+                missing.append(name)
+    return missing
 
 
 def paired(before: list[float], after: list[float]) -> tuple[list[float], int]:

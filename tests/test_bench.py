@@ -330,6 +330,28 @@ def test_ab_reconstruct_stops_a_run_that_hangs_with_every_process_it_started(tmp
         pytest.fail("the run's child process was left running")
 
 
+def test_ab_reconstruct_names_the_imported_packages_without_bytecode(tmp_path, monkeypatch):
+    """Where Python writes no bytecode, a package whose bytecode was never compiled is named (each
+    run would compile it from source); once compiled, or where Python writes bytecode, none is."""
+    import compileall
+    import sys
+
+    ab = _bench_module("ab_reconstruct")
+    package = tmp_path / "fsswarp_uncompiled"
+    package.mkdir()
+    (package / "__init__.py").write_text("VALUE = 1\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(ab, "IMPORTED", ("fsswarp_uncompiled", "numpy_not_installed_here"))
+    monkeypatch.setattr(sys, "dont_write_bytecode", True)
+    assert ab.packages_without_bytecode() == ["fsswarp_uncompiled"]
+    compileall.compile_dir(package, quiet=1)
+    assert ab.packages_without_bytecode() == []
+    for cached in (package / "__pycache__").iterdir():
+        cached.unlink()
+    monkeypatch.setattr(sys, "dont_write_bytecode", False)
+    assert ab.packages_without_bytecode() == []
+
+
 def test_ab_reconstruct_refuses_a_timeout_of_no_time(capsys, monkeypatch):
     monkeypatch.chdir(Path(__file__).parents[1])
     assert _bench_module("ab_reconstruct").main([".", ".", "--timeout", "0"]) == 2
