@@ -6,7 +6,8 @@
 BEFORE and AFTER are folders that each hold an ``fsswarp`` package (and ``kernels/`` for the
 OpenCL backend), e.g. ``git archive REV fsswarp kernels | tar -x -C DIR``. The scene is
 simulated once (noisy, seed 0) with AFTER; then each tree reconstructs it from the measured
-start once without iterations (to fill the kernel caches) and ``--rounds`` times in
+start once with one iteration (to fill the kernel caches: without iterations the pose and
+shape steps' kernels would be compiled in the first timed round) and ``--rounds`` times in
 alternation, each run in its own process with the tree first on ``PYTHONPATH``. Prints one
 Markdown table: per tree the median and each run's seconds of ``fsswarp.reconstruction`` (the
 process start and the dataset load are not timed), the final D, β, E_I and the model's digest
@@ -163,7 +164,7 @@ def main(argv: list[str] | None = None) -> int:
                     return run_tree(tree, str(data), options.backend, options.device, iterations,
                                     timeout=options.timeout)
             for tree in trees.values():
-                run(tree, "0")
+                run(tree, "1")  # one iteration launches every kernel of the loop
             for _ in range(options.rounds):
                 for name, tree in trees.items():
                     runs[name].append(run(tree, "10"))
