@@ -101,15 +101,32 @@ def start_options(command):
 
 
 @app.command()
+@click.option("--warm-up", "warm", is_flag=True,
+              help="First compile the kernels that the chosen backend's cache lacks (Warp: its modules side by side; "
+                   "OpenCL: its programs, built as the backend is made), so that no later run compiles them.")
 @click.pass_obj
-def info(state: State) -> None:
+def info(state: State, warm: bool) -> None:
     """List the kernel backends and devices found, which one 'auto' picks, how to install what
     is missing, and whether each device's kernel cache holds fsswarp's kernels (warm: no
     compilation on the first run). With --backend/--device, also check that choice."""
-    from .backends import describe_backends
-    from .backends.cache import kernel_cache
+    import time
 
-    chosen = state.get_backend() if state.backend != "auto" or state.device is not None else None
+    from .backends import describe_backends
+    from .backends.cache import kernel_cache, warm_up
+
+    chosen = None
+    if warm or state.backend != "auto" or state.device is not None:
+        start = time.perf_counter()
+        chosen = state.get_backend()
+        if warm:
+            made = time.perf_counter() - start
+            compiled, seconds = warm_up(chosen)
+            if chosen.name == "opencl":
+                click.echo(f"warm-up of opencl on {chosen.device}: its programs built (or loaded from the driver's "
+                           f"cache) as the backend was made, in {made:.1f} s")
+            else:
+                what = f"compiled {', '.join(compiled)}" if compiled else "every module loaded from the cache"
+                click.echo(f"warm-up of {chosen.name} on {chosen.device}: {what} in {seconds:.1f} s")
     rows = describe_backends()
     click.echo(format_backends(rows))
     click.echo("kernel cache (checked without compiling; docs/benchmarks.md):")

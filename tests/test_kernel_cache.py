@@ -64,6 +64,26 @@ def test_warp_cache_cold_then_render_compiled(caches, tmp_path, wp_device):
     assert cache_line(child(caches, "-m", "fsswarp", "info"), "warp", wp_device).startswith("cold"), line
 
 
+def test_warp_warm_up_compiles_every_module_then_finds_them_all(caches, tmp_path, wp_device):
+    """``info --warm-up`` on a fresh cache compiles every module, in the variant that the kernel
+    cache check (and so each launch) looks for; a second warm-up compiles none."""
+    warm = ["--backend", "warp", "--device", wp_device, "info", "--warm-up"]
+    first = child(caches, "-m", "fsswarp", *warm)
+    assert f"warm-up of warp on {wp_device}: compiled project, carve, raycast, closest, render, pose, icp in " in first
+    assert cache_line(first, "warp", wp_device).startswith("warm (all 7 modules compiled for "), first
+    assert len(list((tmp_path / "warp").rglob("*.meta"))) == 7
+    second = child(caches, "-m", "fsswarp", *warm)
+    assert f"warm-up of warp on {wp_device}: every module loaded from the cache in " in second
+
+
+def test_opencl_warm_up_says_its_programs_were_built_with_the_backend(caches):
+    device = backend_for("opencl-cpu").device
+    text = child(caches, "-m", "fsswarp", "--backend", "opencl", "--device", "pocl", "info", "--warm-up")
+    assert f"warm-up of opencl on {device}: its programs built (or loaded from the driver's cache) as the backend " \
+           "was made, in " in text
+    assert cache_line(text, "opencl", device).startswith("warm ("), text
+
+
 def test_pocl_cache_cold_then_warm_then_cold_without_the_driver_cache(caches, tmp_path):
     device = backend_for("opencl-cpu").device
     line = cache_line(child(caches, "-m", "fsswarp", "info"), "opencl", device)

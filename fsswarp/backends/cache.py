@@ -1,4 +1,5 @@
-"""Whether a backend's kernels are in its kernel cache, told without compiling (``fsswarp info``).
+"""Whether a backend's kernels are in its kernel cache, told without compiling (``fsswarp info``),
+and the warm-up that fills it (``fsswarp info --warm-up``, :func:`warm_up`).
 
 - Warp compiles each kernel module, at the first launch of one of its kernels, once per module
   hash, device kind (a CPU target or a CUDA architecture) and Warp version into
@@ -33,6 +34,8 @@ OPENCL_PROGRAMS = ("project.cl", "carve.cl", "raycast.cl", "render.cl", "pose.cl
 FLOAT64_PROGRAMS = ("icp.cl", "closest.cl")
 #: Warp modules holding fsswarp's kernels (fsswarp/backends/warp/).
 WARP_MODULES = ("project", "carve", "raycast", "closest", "render", "pose", "icp")
+#: Threads that compile Warp's modules side by side in :func:`warm_up`.
+WARM_UP_THREADS = 4
 
 
 # --- Warp ------------------------------------------------------------------------------------
@@ -44,21 +47,7 @@ def warp_cache(device: str) -> tuple[str, str]:
     if wp is None:
         return "unknown", why
     try:
-        import importlib
-
-        from warp._src.context import _resolve_launch_block_dim
-
-        target = wp.get_device(device)
-        folder = Path(wp.config.kernel_cache_dir)
-        missing = []
-        for name in WARP_MODULES:
-            module = wp.get_module(importlib.import_module(f"fsswarp.backends.warp.{name}").__name__)
-            block_dim = _resolve_launch_block_dim(target, module.options.get("block_dim"))  # as its launches
-            ident = module.get_module_identifier(block_dim)
-            binary = module._get_compile_output_name(target, block_dim=block_dim)
-            meta = module._get_meta_name(block_dim)
-            if not ((folder / ident / binary).is_file() and (folder / ident / meta).is_file()):
-                missing.append(name)
+        missing, folder = _warp_missing(wp, device)
     except Exception as err:  # noqa: BLE001 - Warp's private cache layout changed: say so
         return "unknown", f"cannot read Warp's cache layout ({' '.join(str(err).split())})"
     compiled = [name for name in WARP_MODULES if name not in missing]
@@ -68,6 +57,55 @@ def warp_cache(device: str) -> tuple[str, str]:
     if missing:  # Warp compiles a module when one of its kernels is first launched
         return "partly warm", f"{', '.join(compiled)} compiled, {', '.join(missing)} not, {where}"
     return "warm", f"all {len(WARP_MODULES)} modules compiled {where}"
+
+
+def _warp_modules(wp) -> dict:
+    """{name: Warp Module} of ``WARP_MODULES`` (their Python modules imported)."""
+    import importlib
+
+    return {name: wp.get_module(importlib.import_module(f"fsswarp.backends.warp.{name}").__name__)
+            for name in WARP_MODULES}
+
+
+def _warp_missing(wp, device: str) -> tuple[list[str], Path]:
+    """(the ``WARP_MODULES`` without a compiled binary and metadata for ``device`` in Warp's
+    kernel cache, the cache folder), each module's variant as its launches use it (the block
+    size that its options name)."""
+    from warp._src.context import _resolve_launch_block_dim
+
+    target = wp.get_device(device)
+    folder = Path(wp.config.kernel_cache_dir)
+    missing = []
+    for name, module in _warp_modules(wp).items():
+        block_dim = _resolve_launch_block_dim(target, module.options.get("block_dim"))  # as its launches
+        ident = module.get_module_identifier(block_dim)
+        binary = module._get_compile_output_name(target, block_dim=block_dim)
+        meta = module._get_meta_name(block_dim)
+        if not ((folder / ident / binary).is_file() and (folder / ident / meta).is_file()):
+            missing.append(name)
+    return missing, folder
+
+
+def warm_up(backend) -> tuple[list[str], float]:
+    """Make ``backend``'s kernels ready now rather than at their first launches: Warp compiles
+    the modules that its cache lacks (and loads the rest) in parallel threads, ``WARM_UP_THREADS``
+    at most, each as its launches use it; an OpenCL backend built its programs when it was made
+    (``OpenCLBackend``), so nothing is left. Returns (the modules that were compiled, seconds)."""
+    import time
+
+    if backend.name != "warp":
+        return [], 0.0
+    wp, _ = import_warp()
+    start = time.perf_counter()
+    try:
+        missing, _ = _warp_missing(wp, backend.device)
+    except Exception:  # noqa: BLE001 - Warp's private cache layout changed: it cannot say what compiles
+        missing = []
+    modules = _warp_modules(wp)
+    for block_dim in sorted({m.options["block_dim"] for m in modules.values()}):  # one variant per module
+        alike = [module for module in modules.values() if module.options["block_dim"] == block_dim]
+        wp.force_load(device=backend.device, modules=alike, block_dim=block_dim, max_workers=WARM_UP_THREADS)
+    return missing, time.perf_counter() - start
 
 
 # --- OpenCL ----------------------------------------------------------------------------------
