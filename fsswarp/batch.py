@@ -11,7 +11,7 @@ is a dead process and the job's exit status 2 means bad input. Outputs under DIR
 - ``<name>/``: the job's folder, exactly as ``fsswarp reconstruct --out`` writes it
 - ``jobs.jsonl``: one JSON line per job outcome: name, status (ok, failed, skipped),
   attempts, seconds (the last attempt's wall time), error (one line or null), node, device
-- ``summary.json``: the totals
+- ``summary.json``: the totals, and the kernel warm-up of each node (:func:`warm_up_nodes`)
 
 A job whose ``DIR/<name>/result.json`` exists is skipped. Ray is imported only inside
 :func:`run_batch` and :func:`run_job` (the optional extra ``fsswarp[batch]``).
@@ -285,7 +285,8 @@ def run_batch(jobs: list[Job], out: str | os.PathLike, *, address: str | None = 
         slots = int(gpus * jobs_per_gpu) if gpus else int(resources.get("CPU", 1))
         threads = max(1, int(resources.get("CPU", 1) // slots)) if gpus else 1
         return _schedule(ray, task, jobs, out, ["-q", *options], retries, slots, threads, quiet,
-                         {"GPU": gpus, "CPU": resources.get("CPU", 0), "jobs_per_gpu": jobs_per_gpu})
+                         {"GPU": gpus, "CPU": resources.get("CPU", 0), "jobs_per_gpu": jobs_per_gpu},
+                         lambda: warm_up_nodes(ray, list(options), gpu_share=1 / jobs_per_gpu if gpus else 0))
     finally:
         ray.shutdown()
 
@@ -329,14 +330,22 @@ def _check_reachable(address: str) -> None:
 
 
 def _schedule(ray, task, jobs: list[Job], out: Path, global_options: list[str], retries: int, slots: int,
-              threads: int, quiet: bool, resources: dict) -> list[Outcome]:
-    """Submit every job not done yet, resubmit the retried ones and record each outcome."""
+              threads: int, quiet: bool, resources: dict, warm_up=lambda: {}) -> list[Outcome]:
+    """Submit every job not done yet (after ``warm_up()``, where any is left: {node: its warm-up's
+    record}, kept in summary.json), resubmit the retried ones and record each outcome."""
     start = time.perf_counter()
     done = {job.name for job in jobs if (out / job.name / DONE_MARKER).is_file()}
     outcomes = [Outcome(job.name, "skipped") for job in jobs if job.name in done]
     todo = [job for job in jobs if job.name not in done]
     attempts = {job.name: 0 for job in todo}
     running: dict = {}
+    warmed = {}
+    if todo:
+        if not quiet:
+            click.echo("warming up the kernels on every node")
+        warmed = warm_up()
+        for node, record in ([] if quiet else warmed.items()):
+            click.echo(f"  {node}: {record['line'] if record['returncode'] == 0 else record['error']}")
 
     def submit(job: Job) -> None:
         attempts[job.name] += 1
@@ -344,7 +353,7 @@ def _schedule(ray, task, jobs: list[Job], out: Path, global_options: list[str], 
         running[ref] = job
 
     def record() -> None:
-        _write_records(out, outcomes, len(jobs), time.perf_counter() - start, resources)
+        _write_records(out, outcomes, len(jobs), time.perf_counter() - start, resources, warmed)
 
     record()
     with _Progress(len(jobs), quiet) as progress:
@@ -382,6 +391,51 @@ def _schedule(ray, task, jobs: list[Job], out: Path, global_options: list[str], 
     return outcomes
 
 
+#: Most seconds that the warm-up of the nodes may take before the jobs start anyway.
+WARM_UP_SECONDS = 600
+
+
+def warm_up_nodes(ray, global_options: list[str], *, gpu_share: float = 0) -> dict[str, dict]:
+    """``fsswarp [global options] info --warm-up`` once on every alive node that can run a job (with
+    ``gpu_share`` > 0: the nodes with a GPU, each task taking that share of one), side by side,
+    before the first job: the jobs are processes of their own, and the first ones on a fresh node
+    would each compile the same kernels (docs/batch.md). Returns {node: :func:`warm_up_node`'s
+    record}; a node whose warm-up fails or passes ``WARM_UP_SECONDS`` gets an error, and its jobs
+    run all the same (compiling as they go)."""
+    from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+    nodes = [n for n in ray.nodes() if n.get("Alive") and (n["Resources"].get("GPU", 0) if gpu_share else True)]
+    task = ray.remote(warm_up_node)
+    refs = {task.options(num_cpus=0, num_gpus=gpu_share, max_retries=0,
+                         scheduling_strategy=NodeAffinitySchedulingStrategy(node["NodeID"], soft=False))
+            .remote(global_options): node.get("NodeManagerHostname", node["NodeID"]) for node in nodes}
+    ready, late = ray.wait(list(refs), num_returns=len(refs), timeout=WARM_UP_SECONDS)
+    found = {}
+    for ref in ready:
+        try:
+            found[refs[ref]] = ray.get(ref)
+        except ray.exceptions.RayError as err:
+            first = next((line.strip() for line in str(err).splitlines() if line.strip()), "")
+            found[refs[ref]] = {"returncode": None, "seconds": None, "line": None, "error": f"Ray: {first}"}
+    for ref in late:
+        ray.cancel(ref, force=True)
+        found[refs[ref]] = {"returncode": None, "seconds": None, "line": None,
+                            "error": f"the warm-up took more than {WARM_UP_SECONDS} s"}
+    return found
+
+
+def warm_up_node(global_options: list[str]) -> dict:
+    """Run ``python -m fsswarp [global options] info --warm-up`` here; returns its ``returncode``,
+    ``seconds``, the ``line`` that says what it compiled, and ``error`` (its last line of stderr,
+    or None). The Ray task of :func:`warm_up_nodes`."""
+    start = time.perf_counter()
+    done = subprocess.run([sys.executable, "-m", "fsswarp", *global_options, "info", "--warm-up"],
+                          stdin=subprocess.DEVNULL, capture_output=True, text=True, check=False)
+    line = next((line for line in done.stdout.splitlines() if line.startswith("warm-up of ")), None)
+    error = None if done.returncode == 0 else (done.stderr.strip().splitlines() or [f"exit {done.returncode}"])[-1]
+    return {"returncode": done.returncode, "seconds": time.perf_counter() - start, "line": line, "error": error}
+
+
 def _cancel(ray, refs: list) -> None:
     """Cancel the running jobs ``refs``: each task stops its job and removes its temporary folder
     (run_job's KeyboardInterrupt); a task still running after 30 s loses its worker."""
@@ -411,12 +465,13 @@ def _counts(outcomes: list[Outcome]) -> dict[str, int]:
     return {status: sum(o.status == status for o in outcomes) for status in ("ok", "failed", "skipped")}
 
 
-def _write_records(out: Path, outcomes: list[Outcome], jobs: int, seconds: float, resources: dict) -> None:
-    """out/jobs.jsonl and out/summary.json, each atomically."""
+def _write_records(out: Path, outcomes: list[Outcome], jobs: int, seconds: float, resources: dict,
+                   warm_up: dict) -> None:
+    """out/jobs.jsonl and out/summary.json (with ``warm_up``, :func:`warm_up_nodes`' records), each atomically."""
     write_text(out / JOBS_FILE, "".join(json.dumps(vars(o)) + "\n" for o in outcomes))
     write_text(out / SUMMARY_FILE, json.dumps({
         "jobs": jobs, **_counts(outcomes), "unfinished": jobs - len(outcomes), "attempts": sum(o.attempts for o in outcomes),
-        "seconds": seconds, "resources": resources}, indent=2))
+        "seconds": seconds, "resources": resources, "warm_up": warm_up}, indent=2))
 
 
 class _Progress:

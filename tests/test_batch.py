@@ -104,6 +104,20 @@ def test_a_missing_dataset_fails_alone_with_its_message(first_batch):
     summary = json.loads((out / "summary.json").read_text())
     assert (summary["jobs"], summary["ok"], summary["failed"], summary["skipped"]) == (4, 3, 1, 0)
     assert "failed  lost" in done.stdout and "wrote" in done.stdout
+
+
+def test_the_kernels_are_warmed_up_on_the_node_before_the_first_job(first_batch):
+    """One warm-up (``fsswarp info --warm-up`` with the jobs' backend) on the one local node, said
+    and kept in summary.json, before any job."""
+    _, out, done = first_batch
+    warm_up = json.loads((out / "summary.json").read_text())["warm_up"]
+    assert len(warm_up) == 1, warm_up
+    (node, record), = warm_up.items()
+    assert record["returncode"] == 0 and record["error"] is None and record["seconds"] > 0, record
+    assert record["line"].startswith("warm-up of opencl on "), record
+    lines = done.stdout.splitlines()
+    assert lines[0] == "warming up the kernels on every node" and lines[1] == f"  {node}: {record['line']}", lines[:3]
+    assert all(not line.startswith(("ok ", "failed ")) for line in lines[:2])
     assert not (out / "lost").exists()
 
 
