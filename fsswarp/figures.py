@@ -6,6 +6,9 @@ fan images with range and azimuth axes (``views_figure``, the report's rows; ``c
 the paper's Figures 10–14, draws its rows so).
 ``FigureDrawer`` draws them in child processes while a command goes on
 (``FSSWARP_FIGURE_WORKERS``; the files are the same byte for byte either way).
+Every axes title is placed at the axes' top (``y=1.0``): left to place itself, matplotlib
+measures the tick labels to lift it over any at the top, which no figure here has (a fifth of a
+row's time, bench/notes.md).
 
 Figures read results; nothing in the pipeline imports this module.
 """
@@ -531,6 +534,7 @@ def draw_fan(ax, db: np.ndarray, sonar: SonarSpec, limits: dict, *, vmin: float 
     (x across, y ahead, true shape), the part within ``limits`` (``_zoom_limits``'s "range" m
     and "azimuth" deg), with range arcs labelled in m and azimuth rays in deg; returns the mesh."""
     import matplotlib
+    from matplotlib.collections import LineCollection
 
     centres = np.asarray(sonar.beam_centres, np.float64)
     ranges = np.asarray(sonar.bin_ranges, np.float64)
@@ -558,8 +562,7 @@ def draw_fan(ax, db: np.ndarray, sonar: SonarSpec, limits: dict, *, vmin: float 
             grid.append([(r * math.sin(angle), r * math.cos(angle)) for r in (r_lo, r_hi)])
             ax.annotate(f"{value:g}°", (r_lo * math.sin(angle), r_lo * math.cos(angle)), xytext=(0, -3),
                         textcoords="offset points", fontsize=7, ha="center", va="top")
-    ax.add_collection(matplotlib.collections.LineCollection(grid, colors="white", linewidths=0.5, alpha=0.45,
-                                                            zorder=2))
+    ax.add_collection(LineCollection(grid, colors="white", linewidths=0.5, alpha=0.45, zorder=2))
     ax.plot(np.r_[r_lo * np.sin(arc), r_hi * np.sin(arc[::-1]), r_lo * math.sin(t_lo)],
             np.r_[r_lo * np.cos(arc), r_hi * np.cos(arc[::-1]), r_lo * math.cos(t_lo)], color="black", lw=0.8)
     ax.set_aspect("equal")
