@@ -1,8 +1,9 @@
 """``fsswarp info``'s kernel-cache lines (fsswarp/backends/cache.py) on the CPU backends: cold
 on fresh cache folders, without compiling anything itself; warm where a synthesis compiled or
 built the kernels; cold again when the driver's cache is gone, even where its folder is made
-anew with the same inode. Every step runs in a child process whose caches all lie in one
-temporary folder (``families.cache_environment``)."""
+anew with the same inode; ``info --warm-up`` compiles every Warp module a fresh cache lacks
+(and says that OpenCL built its programs with the backend). Every step runs in a child process
+whose caches all lie in one temporary folder (``families.cache_environment``)."""
 
 from __future__ import annotations
 
