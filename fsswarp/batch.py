@@ -266,10 +266,13 @@ class Outcome:
 
 
 def run_batch(jobs: list[Job], out: str | os.PathLike, *, address: str | None = None, jobs_per_gpu: int = 1,
-              retries: int = 2, global_options: tuple[str, ...] = (), quiet: bool = False) -> list[Outcome]:
+              retries: int = 2, global_options: tuple[str, ...] = (), quiet: bool = False,
+              warm_up: bool | None = None) -> list[Outcome]:
     """Run ``jobs`` into ``out`` on Ray: the cluster at ``address`` ('auto', HOST:PORT), or a
     local instance started here when None. On a cluster with GPUs each job takes 1/jobs_per_gpu
-    of a GPU; else one CPU, on OpenCL unless ``global_options`` names a backend. A job that
+    of a GPU; else one CPU, on OpenCL unless ``global_options`` names a backend. With
+    ``warm_up`` (default: unless the jobs run on OpenCL, whose programs are built as each job's
+    backend is made) every node first compiles the kernels (:func:`warm_up_nodes`). A job that
     exits 2 fails at once; one killed, crashed or whose worker died is run again, at most
     ``retries`` times. Writes out/jobs.jsonl and out/summary.json after every outcome; returns
     the outcomes (KeyboardInterrupt after the running jobs are cancelled)."""
@@ -284,9 +287,12 @@ def run_batch(jobs: list[Job], out: str | os.PathLike, *, address: str | None = 
         task = ray.remote(run_job).options(num_cpus=1, num_gpus=1 / jobs_per_gpu if gpus else 0, max_retries=0)
         slots = int(gpus * jobs_per_gpu) if gpus else int(resources.get("CPU", 1))
         threads = max(1, int(resources.get("CPU", 1) // slots)) if gpus else 1
+        if warm_up is None:
+            warm_up = warms_up_by_default(options)
         return _schedule(ray, task, jobs, out, ["-q", *options], retries, slots, threads, quiet,
                          {"GPU": gpus, "CPU": resources.get("CPU", 0), "jobs_per_gpu": jobs_per_gpu},
-                         lambda: warm_up_nodes(ray, list(options), gpu_share=1 / jobs_per_gpu if gpus else 0))
+                         (lambda: warm_up_nodes(ray, list(options), gpu_share=1 / jobs_per_gpu if gpus else 0))
+                         if warm_up else None)
     finally:
         ray.shutdown()
 
@@ -330,9 +336,9 @@ def _check_reachable(address: str) -> None:
 
 
 def _schedule(ray, task, jobs: list[Job], out: Path, global_options: list[str], retries: int, slots: int,
-              threads: int, quiet: bool, resources: dict, warm_up=lambda: {}) -> list[Outcome]:
-    """Submit every job not done yet (after ``warm_up()``, where any is left: {node: its warm-up's
-    record}, kept in summary.json), resubmit the retried ones and record each outcome."""
+              threads: int, quiet: bool, resources: dict, warm_up=None) -> list[Outcome]:
+    """Submit every job not done yet (after ``warm_up()``, if given, where any is left: {node: its
+    warm-up's record}, kept in summary.json), resubmit the retried ones and record each outcome."""
     start = time.perf_counter()
     done = {job.name for job in jobs if (out / job.name / DONE_MARKER).is_file()}
     outcomes = [Outcome(job.name, "skipped") for job in jobs if job.name in done]
@@ -340,7 +346,7 @@ def _schedule(ray, task, jobs: list[Job], out: Path, global_options: list[str], 
     attempts = {job.name: 0 for job in todo}
     running: dict = {}
     warmed = {}
-    if todo:
+    if todo and warm_up is not None:
         if not quiet:
             click.echo("warming up the kernels on every node")
         warmed = warm_up()
@@ -389,6 +395,15 @@ def _schedule(ray, task, jobs: list[Job], out: Path, global_options: list[str], 
     progress.say(f"wrote {out}: {counts['ok']} ok, {counts['failed']} failed, {counts['skipped']} skipped; "
                  f"{JOBS_FILE}, {SUMMARY_FILE} ({time.perf_counter() - start:.1f} s)")
     return outcomes
+
+
+def warms_up_by_default(global_options: tuple[str, ...]) -> bool:
+    """Whether a batch whose jobs run with ``global_options`` warms its nodes up unless told:
+    not where they run on OpenCL, which builds every program as a job's backend is made (~3 s
+    on PoCL, once per job), but where Warp would compile its modules one after another at their
+    first launches in each of the first jobs (5.1 s on an H200, docs/batch.md)."""
+    options = list(global_options)
+    return "--backend" not in options or options[options.index("--backend") + 1] != "opencl"
 
 
 #: Most seconds that the warm-up of the nodes may take before the jobs start anyway.

@@ -605,8 +605,11 @@ def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, pat
                    "job per CPU on OpenCL.")
 @click.option("--retries", default=2, show_default=True, type=click.IntRange(min=0),
               help="Runs again of a job that was killed, crashed or lost its worker (bad input is not retried).")
+@click.option("--warm-up/--no-warm-up", "warm_up", default=None,
+              help="Compile the kernels on every node ('fsswarp info --warm-up') before the first job; default: "
+                   "unless the jobs run on OpenCL, which builds its programs as each job starts.")
 @click.pass_obj
-def batch(state: State, jobs_file: Path, out: Path, address, jobs_per_gpu: int, retries: int) -> None:
+def batch(state: State, jobs_file: Path, out: Path, address, jobs_per_gpu: int, retries: int, warm_up) -> None:
     """Run the reconstructions of JOBS.toml on a Ray cluster (or a local Ray instance), one
     'fsswarp reconstruct' per job: OUT/<name>/, OUT/jobs.jsonl (one line per job: ok, failed or
     skipped) and OUT/summary.json. Jobs already done are skipped. Exit 1 if any job failed."""
@@ -616,7 +619,7 @@ def batch(state: State, jobs_file: Path, out: Path, address, jobs_per_gpu: int, 
     selection = [a for k, v in (("--backend", state.backend), ("--device", state.device)) if v not in (None, "auto")
                  for a in (k, v)]
     outcomes = run_batch(jobs, out, address=address, jobs_per_gpu=jobs_per_gpu, retries=retries,
-                         global_options=tuple(selection), quiet=state.quiet)
+                         global_options=tuple(selection), quiet=state.quiet, warm_up=warm_up)
     if any(o.status == "failed" for o in outcomes):
         click.get_current_context().exit(1)
 

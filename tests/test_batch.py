@@ -69,12 +69,13 @@ def snapshot(folder: Path) -> dict[str, tuple[int, bytes]]:
 
 @pytest.fixture(scope="module")
 def first_batch(coral_one, tmp_path_factory, ray_env):
-    """JOBS plus one job whose dataset folder is missing, run once: (JOBS.toml, DIR, process)."""
+    """JOBS plus one job whose dataset folder is missing, run once, the nodes warmed up first (on
+    OpenCL they are not unless asked): (JOBS.toml, DIR, process)."""
     root = tmp_path_factory.mktemp("batch")
     dataset = os.path.relpath(coral_one.root, root)
     jobs_file = write_jobs(root / "JOBS.toml", {**{n: (dataset, o) for n, o in JOBS.items()},
                                                 "lost": ("no-such-dataset", {})})
-    done = fsswarp("batch", jobs_file, "--out", root / "out", env=ray_env)
+    done = fsswarp("batch", jobs_file, "--out", root / "out", "--warm-up", env=ray_env)
     return jobs_file, root / "out", done
 
 
@@ -108,8 +109,8 @@ def test_a_missing_dataset_fails_alone_with_its_message(first_batch):
 
 
 def test_the_kernels_are_warmed_up_on_the_node_before_the_first_job(first_batch):
-    """One warm-up (``fsswarp info --warm-up`` with the jobs' backend) on the one local node, said
-    and kept in summary.json, before any job."""
+    """With --warm-up, one warm-up (``fsswarp info --warm-up`` with the jobs' backend) on the one
+    local node, said and kept in summary.json, before any job."""
     _, out, done = first_batch
     warm_up = json.loads((out / "summary.json").read_text())["warm_up"]
     assert len(warm_up) == 1, warm_up
@@ -121,6 +122,15 @@ def test_the_kernels_are_warmed_up_on_the_node_before_the_first_job(first_batch)
     assert all(not line.startswith(("ok ", "failed ")) for line in lines[:2])
 
 
+@pytest.mark.parametrize("options, warms", [(("--backend", "opencl"), False),
+                                             (("--backend", "opencl", "--device", "pocl"), False),
+                                             (("--backend", "warp", "--device", "cuda"), True), ((), True)])
+def test_a_batch_warms_up_its_nodes_unless_its_jobs_run_on_opencl(options, warms):
+    from fsswarp.batch import warms_up_by_default
+
+    assert warms_up_by_default(options) is warms
+
+
 def test_a_rerun_skips_the_finished_jobs_and_leaves_their_files(first_batch, ray_env):
     jobs_file, out, _ = first_batch
     before = {name: snapshot(out / name) for name in JOBS}
@@ -128,6 +138,8 @@ def test_a_rerun_skips_the_finished_jobs_and_leaves_their_files(first_batch, ray
     assert again.returncode == 1 and again.stderr == "", again.stderr  # the lost dataset is still lost
     assert {n: r["status"] for n, r in records(out).items()} == {**{n: "skipped" for n in JOBS}, "lost": "failed"}
     assert {name: snapshot(out / name) for name in JOBS} == before
+    # on OpenCL, and not asked to, the rerun warmed no node up
+    assert json.loads((out / "summary.json").read_text())["warm_up"] == {} and "warming up" not in again.stdout
 
 
 def reconstruct_process(out: Path) -> int | None:
