@@ -195,18 +195,10 @@ def test_truth_metrics_take_their_distances_from_the_backend(backend, monkeypatc
     """With a backend the distances come from its exact search, in a thread of their own, and
     the worker's job is the volumes alone: compare()'s values. A model without triangles is
     refused at once."""
-    import threading
-
     truth = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
     models = [trimesh.creation.icosphere(subdivisions=2, radius=r) for r in (0.105, 0.09)]
-    entries, jobs, where = [{"iteration": i} for i in range(len(models))], [], []
-    search = backend.surface_distances
-
-    def surface_distances(*args):
-        where.append(threading.current_thread().name)
-        return search(*args)
-
-    monkeypatch.setattr(backend, "surface_distances", surface_distances)
+    entries, jobs = [{"iteration": i} for i in range(len(models))], []
+    where = _thread_names(monkeypatch, backend, "surface_distances")
     with reconstruct_module._TruthMetrics(truth, [].append, backend, workers=1) as metrics:
         submit = metrics.processes.submit
         metrics.processes.submit = lambda function, *args, **kwargs: jobs.append(kwargs) or submit(function, *args,
@@ -959,6 +951,40 @@ def test_a_resting_pose_step_has_the_best_pose_carved_ahead(coral_one, monkeypat
         assert ahead == [reached.value.args[0]] * expected
 
 
+def _thread_names(monkeypatch, owner, name: str) -> list[str]:
+    """Wrap ``owner.name`` so that each call records the name of the thread it runs in; returns
+    the list it records into."""
+    import threading
+
+    original, where = getattr(owner, name), []
+
+    def recorded(*args, **kwargs):
+        where.append(threading.current_thread().name)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(owner, name, recorded)
+    return where
+
+
+def _reconstructed_both_ways(dataset, setting: str, where: list[str]) -> dict:
+    """{False: run, True: run}: ``dataset`` reconstructed (FAST, 2 iterations, OpenCL) with the
+    ReconstructSettings flag ``setting`` off and on; a run is (the summary's JSON without its
+    seconds, the model's vertices, its faces, the lines said but the truth's, which come when
+    ready, and the names that ``where`` (:func:`_thread_names`) gained meanwhile)."""
+    from fsswarp.backends import get_backend
+
+    runs = {}
+    for on in (False, True):
+        lines, start = [], len(where)
+        result = reconstruct(dataset, settings=dataclasses.replace(FAST, iterations=2, **{setting: on}),
+                             backend=get_backend("opencl"), progress=lines.append)
+        summary = result.summary()
+        del summary["seconds"]
+        runs[on] = (json.dumps(summary, sort_keys=True), result.model.vertices, result.model.faces,
+                    [line for line in lines if "against the truth" not in line], where[start:])
+    return runs
+
+
 def _refusing_pose_steps(monkeypatch):
     """Make every pose step of the loop find nothing better (its real result, not accepted), so
     that the answer is worked out ahead from the first iteration on."""
@@ -974,26 +1000,9 @@ def test_the_answer_worked_out_ahead_in_a_thread_is_the_one_found_at_the_loop_s_
     thread of its own, the other in the loop's."""
     import threading
 
-    from fsswarp.backends import get_backend
-
     _refusing_pose_steps(monkeypatch)
-    answered = reconstruct_module._answer_pose
-    where = []
-
-    def answer_pose(*args, **kwargs):
-        where.append(threading.current_thread().name)
-        return answered(*args, **kwargs)
-
-    monkeypatch.setattr(reconstruct_module, "_answer_pose", answer_pose)
-    runs = {}
-    for ahead in (False, True):
-        lines = []
-        result = reconstruct(coral_one, settings=dataclasses.replace(FAST, iterations=2, answer_ahead=ahead),
-                             backend=get_backend("opencl"), progress=lines.append)
-        summary = result.summary()
-        del summary["seconds"]
-        runs[ahead] = (json.dumps(summary, sort_keys=True), result.model.vertices, result.model.faces,
-                       [line for line in lines if "against the truth" not in line])  # those come when ready
+    where = _thread_names(monkeypatch, reconstruct_module, "_answer_pose")
+    runs = _reconstructed_both_ways(coral_one, "answer_ahead", where)
     assert where == ["MainThread", "fsswarp-answer"]
     assert runs[True][0] == runs[False][0] and runs[True][3] == runs[False][3]
     np.testing.assert_array_equal(runs[True][1], runs[False][1])
@@ -1006,27 +1015,9 @@ def test_the_answer_s_models_refined_in_threads_are_those_refined_in_turn(coral_
     refined side by side, two of them in threads with comparisons of their own, give the
     reconstruction that refining them in turn gives (result, history, model, lines). Threads are
     taken on GPUs alone (``_threads_pay``), here said to pay on any backend."""
-    import threading
-
-    from fsswarp.backends import get_backend
-
     monkeypatch.setattr(reconstruct_module, "_threads_pay", lambda backend: True)
-    refined, where = reconstruct_module.refine_shape, []
-
-    def shape_step(*args, **kwargs):
-        where.append(threading.current_thread().name)
-        return refined(*args, **kwargs)
-
-    monkeypatch.setattr(reconstruct_module, "refine_shape", shape_step)
-    runs = {}
-    for threads in (False, True):
-        lines, where[:] = [], []
-        result = reconstruct(coral_one, settings=dataclasses.replace(FAST, iterations=2, answer_threads=threads),
-                             backend=get_backend("opencl"), progress=lines.append)
-        summary = result.summary()
-        del summary["seconds"]
-        runs[threads] = (json.dumps(summary, sort_keys=True), result.model.vertices, result.model.faces,
-                         [line for line in lines if "against the truth" not in line], list(where))
+    where = _thread_names(monkeypatch, reconstruct_module, "refine_shape")
+    runs = _reconstructed_both_ways(coral_one, "answer_threads", where)
     assert any(line.startswith("the answer: refined there") for line in runs[True][3])
     assert sum(name.startswith("fsswarp-answer-model") for name in runs[True][4]) == 2
     assert not any(name.startswith("fsswarp-answer-model") for name in runs[False][4])
