@@ -3,18 +3,21 @@
 A batch is a JOBS.toml file: ``[defaults]`` and one ``[[jobs]]`` table per job (``name``,
 ``dataset``, and options of ``fsswarp reconstruct`` by their long name with '_' for '-').
 :func:`load_jobs` checks the whole file against the reconstruct command's own click options
-before anything runs. :func:`run_batch` runs one Ray task per job; each task runs
-``python -m fsswarp [global options] reconstruct DATASET --out DIR/<name> ...`` as a child
-process (under :func:`supervise`, ``python -m fsswarp.batch``), so a killed or crashed job
-is a dead process and the job's exit status 2 means bad input. Outputs under DIR:
+before anything runs. :func:`run_batch` makes one :class:`JobWorker` Ray actor per slot (a GPU
+share or a CPU); each runs its jobs, ``fsswarp [global options] reconstruct DATASET --out
+DIR/<name> ...``, one after another in a resident process of its own (:class:`Resident`,
+``python -m fsswarp.batch``: :func:`supervise` and :func:`serve`), which keeps its imports,
+backend and kernels from job to job. A killed or crashed job is a dead process, and the job's
+exit status 2 means bad input. Outputs under DIR:
 
 - ``<name>/``: the job's folder, exactly as ``fsswarp reconstruct --out`` writes it
 - ``jobs.jsonl``: one JSON line per job outcome: name, status (ok, failed, skipped),
-  attempts, seconds (the last attempt's wall time), error (one line or null), node, device
+  attempts, seconds (the last attempt's wall time), error (one line or null), node, device,
+  process_jobs (the job's number in its resident process)
 - ``summary.json``: the totals, and the kernel warm-up of each node (:func:`warm_up_nodes`)
 
 A job whose ``DIR/<name>/result.json`` exists is skipped. Ray is imported only inside
-:func:`run_batch` and :func:`run_job` (the optional extra ``fsswarp[batch]``).
+:func:`run_batch` and the actors (the optional extra ``fsswarp[batch]``).
 """
 
 from __future__ import annotations
@@ -164,52 +167,98 @@ def job_environment(threads: int, environment=os.environ) -> dict[str, str]:
     return limits | dict(environment)
 
 
-def run_job(arguments: list[str], out: str, name: str, threads: int) -> dict:
-    """Run ``python -m fsswarp ARGUMENTS`` (one reconstruction into ``out``/``name``, with
-    ``threads`` CPUs: :func:`job_environment`) under :func:`supervise`; returns its ``returncode`` (-N: killed by signal N), ``error`` (one line
-    or None), ``seconds``, ``node`` and ``device`` (the GPUs Ray gave this task, or "cpu"). The
-    Ray task."""
-    import platform
+class Resident:
+    """The resident process of one batch slot, which runs the jobs it is sent one after another
+    in one interpreter (:func:`serve`), so that a job after the first finds the imports, the
+    backend, the loaded kernels and the mesh processes of the ones before (docs/batch.md,
+    "Resident processes"). It runs under :func:`supervise` (``python -m fsswarp.batch``), is
+    started with ``environment`` at the first job, and ends after ``jobs_per_process`` jobs (0:
+    no limit) and after a job that failed other than by bad input, so that the next job starts a
+    fresh one."""
 
-    import ray
+    def __init__(self, environment: dict[str, str], jobs_per_process: int):
+        self.environment, self.limit = environment, jobs_per_process
+        self.process: subprocess.Popen | None = None
+        self.served = 0
 
-    remove_leftovers(Path(out), name)  # of an attempt whose worker died
-    gpus = ray.get_gpu_ids()
-    start = time.perf_counter()
-    # stderr into a file, not a pipe, which a process the job left behind could hold open
-    with tempfile.TemporaryFile("w+", errors="replace") as stderr:
-        job = subprocess.Popen([sys.executable, "-m", "fsswarp.batch", *arguments], stdin=subprocess.DEVNULL,
-                               stdout=subprocess.DEVNULL, stderr=stderr, env=job_environment(threads))
-        try:
-            returncode = _wait(job)
-        except KeyboardInterrupt:  # ray.cancel: stop the job (supervise kills its group), leave nothing behind
-            job.terminate()
-            job.wait()
-            remove_leftovers(Path(out), name)
-            raise
+    def run(self, arguments: list[str]) -> tuple[int, str, int]:
+        """(exit status, stderr, the job's number in its process: 1 in a fresh one) of
+        ``fsswarp ARGUMENTS`` run in the process; the status is 128 + N where signal N killed it."""
+        # stderr into a file, not a pipe, which a process the job left behind could hold open
+        with tempfile.NamedTemporaryFile("w+", errors="replace", prefix="fsswarp-job-", suffix=".txt") as stderr:
+            if self.process is None:
+                self.process = subprocess.Popen([sys.executable, "-m", "fsswarp.batch"], stdin=subprocess.PIPE,
+                                                stdout=subprocess.PIPE, stderr=stderr, env=self.environment,
+                                                text=True)
+                self.served = 0
+            self.served += 1
+            process, served = self.process, self.served
+            try:
+                process.stdin.write(json.dumps({"arguments": arguments, "stderr": stderr.name}) + "\n")
+                process.stdin.flush()
+                reply = process.stdout.readline()
+            except (OSError, ValueError):  # the pipe broke or was closed: the process died or was stopped
+                reply = ""
+            returncode = json.loads(reply)["returncode"] if reply else process.wait()
+            stderr.seek(0)
+            text = stderr.read()
+        if not reply or returncode not in (0, BAD_INPUT) or served == self.limit:
+            self.close()
+        return returncode, text, served
+
+    def close(self) -> None:
+        """End the process: its supervisor kills its group (the job, its figure and mesh processes)."""
+        process, self.process = self.process, None
+        if process is not None:
+            with contextlib.suppress(ProcessLookupError):
+                process.terminate()
+            process.wait()
+            for pipe in (process.stdin, process.stdout):
+                with contextlib.suppress(OSError):
+                    pipe.close()
+
+
+class JobWorker:
+    """One slot of a batch (a share of a GPU, or a CPU), as a Ray actor: it runs the jobs it is
+    given one after another in its :class:`Resident` process, with ``threads`` CPUs
+    (:func:`job_environment`)."""
+
+    def __init__(self, threads: int, jobs_per_process: int):
+        import platform
+
+        import ray
+
+        gpus = ray.get_gpu_ids()
+        self.node, self.device = platform.node(), "gpu " + ",".join(map(str, gpus)) if gpus else "cpu"
+        self.resident = Resident(job_environment(threads), jobs_per_process)
+
+    def run(self, arguments: list[str], out: str, name: str) -> dict:
+        """Run ``fsswarp ARGUMENTS`` (one reconstruction into ``out``/``name``); returns its
+        ``returncode`` (-N: killed by signal N), ``error`` (one line or None), ``seconds``,
+        ``node``, ``device`` (the GPUs Ray gave this actor, or "cpu") and ``process_jobs`` (the
+        job's number in its resident process: 1 where it started a fresh one)."""
+        remove_leftovers(Path(out), name)  # of an attempt whose process died
+        start = time.perf_counter()
+        returncode, stderr, served = self.resident.run(arguments)
         returncode = 128 - returncode if returncode > 128 else returncode
-        stderr.seek(0)
-        error = _error_line(returncode, stderr.read())
-    seconds = time.perf_counter() - start
-    if returncode != 0:
-        remove_leftovers(Path(out), name)
-    return {"returncode": returncode, "error": error, "seconds": seconds, "node": platform.node(),
-            "device": "gpu " + ",".join(map(str, gpus)) if gpus else "cpu"}
+        seconds = time.perf_counter() - start
+        if returncode != 0:
+            remove_leftovers(Path(out), name)
+        return {"returncode": returncode, "error": _error_line(returncode, stderr), "seconds": seconds,
+                "node": self.node, "device": self.device, "process_jobs": served}
+
+    def stop(self) -> None:
+        """End the resident process, and with it the job it runs (Ctrl-C: :func:`_cancel`)."""
+        self.resident.close()
 
 
-def _wait(process: subprocess.Popen) -> int:
-    """``process.wait()`` in short slices: Ray's cancel raises KeyboardInterrupt in the task's
-    thread between two Python instructions, which a blocking wait would never reach."""
-    while True:
-        with contextlib.suppress(subprocess.TimeoutExpired):
-            return process.wait(timeout=0.2)
-
-
-def supervise(arguments: list[str]) -> int:
-    """Run ``python -m fsswarp ARGUMENTS`` as the leader of a new process group and kill that
-    group (the job's figure processes with it) when the job ends, or when this process's parent
-    (the Ray worker) dies (Linux). Returns the job's exit status, 128 + N if signal N killed it."""
-    child = subprocess.Popen([sys.executable, "-m", "fsswarp", *arguments], start_new_session=True)
+def supervise() -> int:
+    """``python -m fsswarp.batch``: run the resident process (``python -m fsswarp.batch --serve``,
+    :func:`serve`, with this process's stdin and stdout) as the leader of a new process group and
+    kill that group, its figure and mesh processes included, when it ends, when this process is
+    terminated, or when this process's parent (the Ray actor) dies (Linux). Returns the
+    resident's exit status, 128 + N if signal N killed it."""
+    child = subprocess.Popen([sys.executable, "-m", "fsswarp.batch", "--serve"], start_new_session=True)
 
     def stop(signum=None, frame=None) -> None:
         with contextlib.suppress(ProcessLookupError):
@@ -226,6 +275,36 @@ def supervise(arguments: list[str]) -> int:
     returncode = child.wait()
     stop()
     return 128 - returncode if returncode < 0 else returncode
+
+
+def serve() -> int:
+    """The resident process: for each JSON line on stdin, ``{"arguments": [...], "stderr":
+    FILE}``, runs ``fsswarp ARGUMENTS`` here with its stderr appended to FILE and its stdout
+    discarded, and answers ``{"returncode": N}`` on stdout. Ends at the end of stdin and after a
+    job that failed other than by bad input (exit 2)."""
+    import traceback
+
+    replies = os.fdopen(os.dup(1), "w")
+    with open(os.devnull, "w") as devnull:
+        os.dup2(devnull.fileno(), 1)
+    from .cli import main
+
+    for line in sys.stdin:
+        request = json.loads(line)
+        with open(request["stderr"], "a") as stderr:
+            os.dup2(stderr.fileno(), 2)
+        try:
+            status = main(request["arguments"])
+        except BaseException:  # an internal error: its traceback, as a process of its own would print
+            traceback.print_exc()
+            status = 1
+        sys.stdout.flush()
+        sys.stderr.flush()
+        replies.write(json.dumps({"returncode": status}) + "\n")
+        replies.flush()
+        if status not in (0, BAD_INPUT):
+            break
+    return 0
 
 
 def _error_line(returncode: int, stderr: str) -> str | None:
@@ -263,19 +342,22 @@ class Outcome:
     error: str | None = None
     node: str | None = None
     device: str | None = None
+    process_jobs: int | None = None
 
 
 def run_batch(jobs: list[Job], out: str | os.PathLike, *, address: str | None = None, jobs_per_gpu: int = 1,
               retries: int = 2, global_options: tuple[str, ...] = (), quiet: bool = False,
-              warm_up: bool | None = None) -> list[Outcome]:
+              warm_up: bool | None = None, jobs_per_process: int = 0) -> list[Outcome]:
     """Run ``jobs`` into ``out`` on Ray: the cluster at ``address`` ('auto', HOST:PORT), or a
-    local instance started here when None. On a cluster with GPUs each job takes 1/jobs_per_gpu
-    of a GPU; else one CPU, on OpenCL unless ``global_options`` names a backend. With
-    ``warm_up`` (default: unless the jobs run on OpenCL, whose programs are built as each job's
-    backend is made) every node first compiles the kernels (:func:`warm_up_nodes`). A job that
-    exits 2 fails at once; one killed, crashed or whose worker died is run again, at most
-    ``retries`` times. Writes out/jobs.jsonl and out/summary.json after every outcome; returns
-    the outcomes (KeyboardInterrupt after the running jobs are cancelled)."""
+    local instance started here when None. One :class:`JobWorker` per slot: on a cluster with
+    GPUs 1/jobs_per_gpu of a GPU each; else one CPU each, on OpenCL unless ``global_options``
+    names a backend. Each runs its jobs in a resident process that serves ``jobs_per_process``
+    jobs (0: no limit). With ``warm_up`` (default: unless the jobs run on OpenCL, whose programs
+    are built as a process's backend is made) every node first compiles the kernels
+    (:func:`warm_up_nodes`). A job that exits 2 fails at once; one killed, crashed or whose
+    worker died is run again, at most ``retries`` times. Writes out/jobs.jsonl and
+    out/summary.json after every outcome; returns the outcomes (KeyboardInterrupt after the
+    running jobs are stopped)."""
     out = check_output_folder(out, marker=JOBS_FILE)
     ray = _start_ray(address)
     try:
@@ -284,13 +366,19 @@ def run_batch(jobs: list[Job], out: str | os.PathLike, *, address: str | None = 
         options = tuple(global_options)
         if not gpus and not any(o in ("--backend", "--device") for o in options):
             options += ("--backend", "opencl")
-        task = ray.remote(run_job).options(num_cpus=1, num_gpus=1 / jobs_per_gpu if gpus else 0, max_retries=0)
         slots = int(gpus * jobs_per_gpu) if gpus else int(resources.get("CPU", 1))
         threads = max(1, int(resources.get("CPU", 1) // slots)) if gpus else 1
+        worker = ray.remote(JobWorker).options(num_cpus=1, num_gpus=1 / jobs_per_gpu if gpus else 0, max_restarts=0,
+                                               max_concurrency=2)  # run, and stop beside it
+
+        def workers(count: int) -> list:
+            return [worker.remote(threads, jobs_per_process) for _ in range(count)]
+
         if warm_up is None:
             warm_up = warms_up_by_default(options)
-        return _schedule(ray, task, jobs, out, ["-q", *options], retries, slots, threads, quiet,
-                         {"GPU": gpus, "CPU": resources.get("CPU", 0), "jobs_per_gpu": jobs_per_gpu},
+        return _schedule(ray, workers, jobs, out, ["-q", *options], retries, slots, quiet,
+                         {"GPU": gpus, "CPU": resources.get("CPU", 0), "jobs_per_gpu": jobs_per_gpu,
+                          "jobs_per_process": jobs_per_process},
                          (lambda: warm_up_nodes(ray, list(options), gpu_share=1 / jobs_per_gpu if gpus else 0))
                          if warm_up else None)
     finally:
@@ -335,16 +423,18 @@ def _check_reachable(address: str) -> None:
                          value=address) from None
 
 
-def _schedule(ray, task, jobs: list[Job], out: Path, global_options: list[str], retries: int, slots: int,
-              threads: int, quiet: bool, resources: dict, warm_up=None) -> list[Outcome]:
-    """Submit every job not done yet (after ``warm_up()``, if given, where any is left: {node: its
-    warm-up's record}, kept in summary.json), resubmit the retried ones and record each outcome."""
+def _schedule(ray, workers, jobs: list[Job], out: Path, global_options: list[str], retries: int, slots: int,
+              quiet: bool, resources: dict, warm_up=None) -> list[Outcome]:
+    """Run every job not done yet on ``workers(n)``'s n JobWorker actors, at most ``slots``, each
+    given its next job when it ends one (after ``warm_up()``, if given, where any is left: {node:
+    its warm-up's record}, kept in summary.json); run the retried ones again and record each
+    outcome. A worker that dies is replaced."""
     start = time.perf_counter()
     done = {job.name for job in jobs if (out / job.name / DONE_MARKER).is_file()}
     outcomes = [Outcome(job.name, "skipped") for job in jobs if job.name in done]
     todo = [job for job in jobs if job.name not in done]
     attempts = {job.name: 0 for job in todo}
-    running: dict = {}
+    running: dict = {}  # ref -> (job, worker)
     warmed = {}
     if todo and warm_up is not None:
         if not quiet:
@@ -352,11 +442,12 @@ def _schedule(ray, task, jobs: list[Job], out: Path, global_options: list[str], 
         warmed = warm_up()
         for node, record in ([] if quiet else warmed.items()):
             click.echo(f"  {node}: {record['line'] if record['returncode'] == 0 else record['error']}")
+    idle = workers(min(slots, len(todo))) if todo else []
 
     def submit(job: Job) -> None:
         attempts[job.name] += 1
-        ref = task.remote([*global_options, *job.arguments(out)], str(out), job.name, threads)
-        running[ref] = job
+        worker = idle.pop()
+        running[worker.run.remote([*global_options, *job.arguments(out)], str(out), job.name)] = (job, worker)
 
     def record() -> None:
         _write_records(out, outcomes, len(jobs), time.perf_counter() - start, resources, warmed)
@@ -366,18 +457,23 @@ def _schedule(ray, task, jobs: list[Job], out: Path, global_options: list[str], 
         for outcome in outcomes:
             progress.finished(outcome)
         try:
-            for job in todo:
-                submit(job)
-            while running:
-                progress.update(running=min(len(running), slots))
+            while todo or running:
+                while todo and idle:
+                    submit(todo.pop(0))
+                progress.update(running=len(running))
                 ready, _ = ray.wait(list(running), num_returns=1, timeout=0.5)
                 for ref in ready:
-                    job = running.pop(ref)
-                    outcome = _outcome(ray, ref, job.name, attempts[job.name])
+                    job, worker = running.pop(ref)
+                    outcome, lost = _outcome(ray, ref, job.name, attempts[job.name])
+                    if lost:
+                        with contextlib.suppress(Exception):
+                            ray.kill(worker)
+                        worker, = workers(1)
+                    idle.append(worker)
                     if outcome.status == "retry" and attempts[job.name] <= retries:
                         progress.say(f"retrying {job.name} (attempt {attempts[job.name] + 1} of {retries + 1}): "
                                      f"{outcome.error}")
-                        submit(job)
+                        todo.insert(0, job)
                         continue
                     if outcome.status == "retry":
                         outcome.status = "failed"
@@ -385,10 +481,10 @@ def _schedule(ray, task, jobs: list[Job], out: Path, global_options: list[str], 
                     progress.finished(outcome)
                     record()
         except KeyboardInterrupt:
-            _cancel(ray, list(running))
+            _cancel(ray, running)
             raise
         finally:
-            for name in {job.name for job in running.values()} | {o.name for o in outcomes if o.status == "failed"}:
+            for name in {job.name for job, _ in running.values()} | {o.name for o in outcomes if o.status == "failed"}:
                 remove_leftovers(out, name)
         progress.update(running=0)
     counts = _counts(outcomes)
@@ -399,9 +495,9 @@ def _schedule(ray, task, jobs: list[Job], out: Path, global_options: list[str], 
 
 def warms_up_by_default(global_options: tuple[str, ...]) -> bool:
     """Whether a batch whose jobs run with ``global_options`` warms its nodes up unless told:
-    not where they run on OpenCL, which builds every program as a job's backend is made (~3 s
-    on PoCL, once per job), but where Warp would compile its modules one after another at their
-    first launches in each of the first jobs (5.1 s on an H200, docs/batch.md)."""
+    not where they run on OpenCL, which builds every program as a resident process's backend is
+    made (~3 s on PoCL), but where Warp would compile its modules one after another at their
+    first launches in the first job of each worker (5.1 s on an H200, docs/batch.md)."""
     options = list(global_options)
     return "--backend" not in options or options[options.index("--backend") + 1] != "opencl"
 
@@ -413,8 +509,8 @@ WARM_UP_SECONDS = 600
 def warm_up_nodes(ray, global_options: list[str], *, gpu_share: float = 0) -> dict[str, dict]:
     """``fsswarp [global options] info --warm-up`` once on every alive node that can run a job (with
     ``gpu_share`` > 0: the nodes with a GPU, each task taking that share of one), side by side,
-    before the first job: the jobs are processes of their own, and the first ones on a fresh node
-    would each compile the same kernels (docs/batch.md). Returns {node: :func:`warm_up_node`'s
+    before the first job: the workers' resident processes are processes of their own, and the
+    first job of each on a fresh node would compile the same kernels (docs/batch.md). Returns {node: :func:`warm_up_node`'s
     record}; a node whose warm-up fails or passes ``WARM_UP_SECONDS`` gets an error, and its jobs
     run all the same (compiling as they go)."""
     from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
@@ -451,28 +547,31 @@ def warm_up_node(global_options: list[str]) -> dict:
     return {"returncode": done.returncode, "seconds": time.perf_counter() - start, "line": line, "error": error}
 
 
-def _cancel(ray, refs: list) -> None:
-    """Cancel the running jobs ``refs``: each task stops its job and removes its temporary folder
-    (run_job's KeyboardInterrupt); a task still running after 30 s loses its worker."""
-    for ref in refs:
+def _cancel(ray, running: dict) -> None:
+    """Stop the running jobs, ``running`` {ref: (job, its JobWorker)}: each worker ends its
+    resident process (the job's process group is killed) and its run removes the job's
+    temporary folder; a worker whose run has not returned 30 s later is killed."""
+    for _, worker in running.values():
         with contextlib.suppress(Exception):
-            ray.cancel(ref)
+            worker.stop.remote()
     with contextlib.suppress(Exception):
-        _, refs = ray.wait(refs, num_returns=len(refs), timeout=30)
-    for ref in refs:
+        ray.wait(list(running), num_returns=len(running), timeout=30)
+    for _, worker in running.values():
         with contextlib.suppress(Exception):
-            ray.cancel(ref, force=True)
+            ray.kill(worker)
 
 
-def _outcome(ray, ref, name: str, attempts: int) -> Outcome:
-    """The outcome of one attempt: ok, failed (bad input) or retry (killed, crashed, the worker died)."""
+def _outcome(ray, ref, name: str, attempts: int) -> tuple[Outcome, bool]:
+    """The outcome of one attempt, ok, failed (bad input) or retry (killed, crashed, the worker
+    died), and whether its worker died."""
     try:
         done = ray.get(ref)
     except ray.exceptions.RayError as err:
         first = next((line.strip() for line in str(err).splitlines() if line.strip()), "")
-        return Outcome(name, "retry", attempts, error=f"Ray: {type(err).__name__}: {first}")
+        return Outcome(name, "retry", attempts, error=f"Ray: {type(err).__name__}: {first}"), True
     status = "ok" if done["returncode"] == 0 else "failed" if done["returncode"] == BAD_INPUT else "retry"
-    return Outcome(name, status, attempts, done["seconds"], done["error"], done["node"], done["device"])
+    return Outcome(name, status, attempts, done["seconds"], done["error"], done["node"], done["device"],
+                   done["process_jobs"]), False
 
 
 def _counts(outcomes: list[Outcome]) -> dict[str, int]:
@@ -539,4 +638,4 @@ class _Progress:
 
 
 if __name__ == "__main__":
-    raise SystemExit(supervise(sys.argv[1:]))
+    raise SystemExit(serve() if sys.argv[1:] == ["--serve"] else supervise())

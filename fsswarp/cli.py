@@ -608,8 +608,12 @@ def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, pat
 @click.option("--warm-up/--no-warm-up", "warm_up", default=None,
               help="Compile the kernels on every node ('fsswarp info --warm-up') before the first job; default: "
                    "unless the jobs run on OpenCL, which builds its programs as each job starts.")
+@click.option("--jobs-per-process", default=0, show_default=True, type=click.IntRange(min=0),
+              help="Jobs that one resident process runs one after another before a fresh one starts (0: no "
+                   "limit; 1: a fresh process per job).")
 @click.pass_obj
-def batch(state: State, jobs_file: Path, out: Path, address, jobs_per_gpu: int, retries: int, warm_up) -> None:
+def batch(state: State, jobs_file: Path, out: Path, address, jobs_per_gpu: int, retries: int, warm_up,
+          jobs_per_process: int) -> None:
     """Run the reconstructions of JOBS.toml on a Ray cluster (or a local Ray instance), one
     'fsswarp reconstruct' per job: OUT/<name>/, OUT/jobs.jsonl (one line per job: ok, failed or
     skipped) and OUT/summary.json. Jobs already done are skipped. Exit 1 if any job failed."""
@@ -619,7 +623,8 @@ def batch(state: State, jobs_file: Path, out: Path, address, jobs_per_gpu: int, 
     selection = [a for k, v in (("--backend", state.backend), ("--device", state.device)) if v not in (None, "auto")
                  for a in (k, v)]
     outcomes = run_batch(jobs, out, address=address, jobs_per_gpu=jobs_per_gpu, retries=retries,
-                         global_options=tuple(selection), quiet=state.quiet, warm_up=warm_up)
+                         global_options=tuple(selection), quiet=state.quiet, warm_up=warm_up,
+                         jobs_per_process=jobs_per_process)
     if any(o.status == "failed" for o in outcomes):
         click.get_current_context().exit(1)
 
