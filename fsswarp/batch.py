@@ -366,7 +366,7 @@ def run_batch(jobs: list[Job], out: str | os.PathLike, *, address: str | None = 
         options = tuple(global_options)
         if not gpus and not any(o in ("--backend", "--device") for o in options):
             options += ("--backend", "opencl")
-        slots = int(gpus * jobs_per_gpu) if gpus else int(resources.get("CPU", 1))
+        slots = max(1, int(gpus * jobs_per_gpu) if gpus else int(resources.get("CPU", 1)))
         threads = max(1, int(resources.get("CPU", 1) // slots)) if gpus else 1
         worker = ray.remote(JobWorker).options(num_cpus=1, num_gpus=1 / jobs_per_gpu if gpus else 0, max_restarts=0,
                                                max_concurrency=2)  # run, and stop beside it

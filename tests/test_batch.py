@@ -297,3 +297,26 @@ def test_a_job_gets_its_share_of_the_cpus_unless_the_user_chose():
     assert job_environment(16, {})["FSSWARP_MESH_WORKERS"] == "3"
     chosen = job_environment(2, {"OMP_NUM_THREADS": "8", "FSSWARP_FIGURE_WORKERS": "0"})
     assert chosen["OMP_NUM_THREADS"] == "8" and chosen["FSSWARP_FIGURE_WORKERS"] == "0"
+
+
+def test_a_resident_process_serves_jobs_up_to_its_limit_and_keeps_going_after_bad_input(tmp_path):
+    """``Resident`` without Ray: the job's number in its process, the limit of jobs per process,
+    and bad input (exit 2, its one line captured) which leaves the process serving."""
+    from fsswarp.batch import Resident, job_environment
+
+    limited = Resident(job_environment(1), 2)
+    try:
+        served = [limited.run(["--help"])[::2] for _ in range(3)]
+    finally:
+        limited.close()
+    assert served == [(0, 1), (0, 2), (0, 1)]
+    resident = Resident(job_environment(1), 0)
+    try:
+        status, stderr, first = resident.run(["check", str(tmp_path / "no-such-folder")])
+        pid = resident.process.pid
+        again = resident.run(["--help"])
+        assert resident.process.pid == pid
+    finally:
+        resident.close()
+    assert (status, first) == (2, 1) and stderr.startswith("fsswarp: error: ") and "no-such-folder" in stderr, stderr
+    assert stderr.count("\n") == 1 and again == (0, "", 2)

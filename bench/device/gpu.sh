@@ -13,6 +13,7 @@
 #   bash bench/device/gpu.sh demo [ARGS]            bench/demo_wall.py (the whole demo) on Warp CUDA
 #   bash bench/device/gpu.sh batch [ARGS]           bench/batch_throughput.py (reconstructions at once) on Warp CUDA
 #   bash bench/device/gpu.sh ray [ARGS]             bench/batch_ray.py (fsswarp batch on a local Ray) on Warp CUDA
+#   bash bench/device/gpu.sh resident [ARGS]        bench/resident_jobs.py (a batch worker's jobs, fresh or resident) on Warp CUDA
 #
 # Records land in $OUT (the device tool brings them back), as under bench/records/: copy
 # $OUT/reconstruction/NAME.json (table) and $OUT/identifiability/NAME.json (study) to the same
@@ -26,7 +27,7 @@ export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}
 out=${OUT:?OUT must name the folder that comes back}
 command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,driver_version --format=csv,noheader
 fail() { echo "bench/device/gpu.sh: error: $1" >&2; exit 2; }
-[ $# -gt 0 ] || fail "name a run: tests, table, study, bench, ab, profile, grid, demo, batch or ray"
+[ $# -gt 0 ] || fail "name a run: tests, table, study, bench, ab, profile, grid, demo, batch, ray or resident"
 what=$1
 shift
 # The staged wheels are installed without byte code and the machine sets PYTHONDONTWRITEBYTECODE, so
@@ -68,6 +69,8 @@ case "$what" in
     python bench/batch_throughput.py "$@" -- --backend warp --device cuda:0 ;;
   ray)
     python bench/batch_ray.py "$@" -- --backend warp --device cuda:0 ;;
+  resident)
+    python bench/resident_jobs.py "$@" -- --backend warp --device cuda:0 ;;
   *)
-    fail "unknown run '$what' (tests, table, study, bench, ab, profile, grid, demo, batch or ray)" ;;
+    fail "unknown run '$what' (tests, table, study, bench, ab, profile, grid, demo, batch, ray or resident)" ;;
 esac
