@@ -6,8 +6,7 @@ A batch is a JOBS.toml file: ``[defaults]`` and one ``[[jobs]]`` table per job (
 before anything runs. :func:`run_batch` makes one :class:`JobWorker` Ray actor per slot (a GPU
 share or a CPU); each runs its jobs, ``fsswarp [global options] reconstruct DATASET --out
 DIR/<name> ...``, one after another in a resident process of its own (:class:`Resident`,
-``python -m fsswarp.batch``: :func:`supervise` and :func:`serve`), which keeps its imports,
-backend and kernels from job to job. A killed or crashed job is a dead process, and the job's
+``python -m fsswarp.resident``), which keeps its imports, backend and kernels from job to job. A killed or crashed job is a dead process, and the job's
 exit status 2 means bad input. Outputs under DIR:
 
 - ``<name>/``: the job's folder, exactly as ``fsswarp reconstruct --out`` writes it
@@ -169,9 +168,10 @@ def job_environment(threads: int, environment=os.environ) -> dict[str, str]:
 
 class Resident:
     """The resident process of one batch slot, which runs the jobs it is sent one after another
-    in one interpreter (:func:`serve`), so that a job after the first finds the imports, the
-    backend, the loaded kernels and the mesh processes of the ones before (docs/batch.md,
-    "Resident processes"). It runs under :func:`supervise` (``python -m fsswarp.batch``), is
+    in one interpreter (``fsswarp.resident.serve``), so that a job after the first finds the
+    imports, the backend, the loaded kernels and the mesh processes of the ones before
+    (docs/batch.md, "Resident processes"). It runs under ``fsswarp.resident.supervise``
+    (``python -m fsswarp.resident``), is
     started with ``environment`` at the first job, and ends after ``jobs_per_process`` jobs (0:
     no limit) and after a job that failed other than by bad input, so that the next job starts a
     fresh one."""
@@ -187,7 +187,7 @@ class Resident:
         # stderr into a file, not a pipe, which a process the job left behind could hold open
         with tempfile.NamedTemporaryFile("w+", errors="replace", prefix="fsswarp-job-", suffix=".txt") as stderr:
             if self.process is None:
-                self.process = subprocess.Popen([sys.executable, "-m", "fsswarp.batch"], stdin=subprocess.PIPE,
+                self.process = subprocess.Popen([sys.executable, "-m", "fsswarp.resident"], stdin=subprocess.PIPE,
                                                 stdout=subprocess.PIPE, stderr=stderr, env=self.environment,
                                                 text=True)
                 self.served = 0
@@ -250,61 +250,6 @@ class JobWorker:
     def stop(self) -> None:
         """End the resident process, and with it the job it runs (Ctrl-C: :func:`_cancel`)."""
         self.resident.close()
-
-
-def supervise() -> int:
-    """``python -m fsswarp.batch``: run the resident process (``python -m fsswarp.batch --serve``,
-    :func:`serve`, with this process's stdin and stdout) as the leader of a new process group and
-    kill that group, its figure and mesh processes included, when it ends, when this process is
-    terminated, or when this process's parent (the Ray actor) dies (Linux). Returns the
-    resident's exit status, 128 + N if signal N killed it."""
-    child = subprocess.Popen([sys.executable, "-m", "fsswarp.batch", "--serve"], start_new_session=True)
-
-    def stop(signum=None, frame=None) -> None:
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(child.pid, signal.SIGKILL)
-
-    signal.signal(signal.SIGTERM, stop)
-    if sys.platform.startswith("linux"):
-        import ctypes
-
-        set_parent_death_signal = 1  # PR_SET_PDEATHSIG: SIGTERM to this process when its parent dies
-        ctypes.CDLL(None, use_errno=True).prctl(set_parent_death_signal, signal.SIGTERM)
-        if os.getppid() == 1:  # the parent died before that
-            stop()
-    returncode = child.wait()
-    stop()
-    return 128 - returncode if returncode < 0 else returncode
-
-
-def serve() -> int:
-    """The resident process: for each JSON line on stdin, ``{"arguments": [...], "stderr":
-    FILE}``, runs ``fsswarp ARGUMENTS`` here with its stderr appended to FILE and its stdout
-    discarded, and answers ``{"returncode": N}`` on stdout. Ends at the end of stdin and after a
-    job that failed other than by bad input (exit 2)."""
-    import traceback
-
-    replies = os.fdopen(os.dup(1), "w")
-    with open(os.devnull, "w") as devnull:
-        os.dup2(devnull.fileno(), 1)
-    from .cli import main
-
-    for line in sys.stdin:
-        request = json.loads(line)
-        with open(request["stderr"], "a") as stderr:
-            os.dup2(stderr.fileno(), 2)
-        try:
-            status = main(request["arguments"])
-        except BaseException:  # an internal error: its traceback, as a process of its own would print
-            traceback.print_exc()
-            status = 1
-        sys.stdout.flush()
-        sys.stderr.flush()
-        replies.write(json.dumps({"returncode": status}) + "\n")
-        replies.flush()
-        if status not in (0, BAD_INPUT):
-            break
-    return 0
 
 
 def _error_line(returncode: int, stderr: str) -> str | None:
@@ -635,7 +580,3 @@ class _Progress:
         self.say(f"{outcome.status:7} {outcome.name}: {detail}")
         if self.bar is not None:
             self.bar.update(self.task, advance=1, description=self._description())
-
-
-if __name__ == "__main__":
-    raise SystemExit(serve() if sys.argv[1:] == ["--serve"] else supervise())

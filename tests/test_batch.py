@@ -153,7 +153,7 @@ def test_a_rerun_skips_the_finished_jobs_and_leaves_their_files(first_batch, ray
 
 
 def job_process(out: Path, env: dict) -> int | None:
-    """The pid of the resident process (``python -m fsswarp.batch --serve``) of the batch run
+    """The pid of the resident process (``python -m fsswarp.resident --serve``) of the batch run
     with ``env`` once it has started the job whose folder is ``out`` (its temporary sibling
     exists), or None."""
     if not any(p.name.startswith(f".{out.name}.") for p in out.parent.glob(".*")):
@@ -162,7 +162,7 @@ def job_process(out: Path, env: dict) -> int | None:
     for pid in filter(str.isdigit, os.listdir("/proc")):
         try:
             command = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
-            if command[-3:] == [b"fsswarp.batch", b"--serve", b""] and \
+            if command[-3:] == [b"fsswarp.resident", b"--serve", b""] and \
                     marker in Path(f"/proc/{pid}/environ").read_bytes().split(b"\0"):
                 return int(pid)
         except OSError:

@@ -18,7 +18,7 @@ MODEL = {"errors", "atomic", "caching", "system", "processes", "sonar", "rig", "
 PIPELINE = {"aris", "segment", "icp", "motion", "compare", "rendering", "simulation", "carving", "pose", "refine",
             "reconstruction", "enhancement", "didson", "importing", "holoocean"}
 READERS = {"figures", "outputs", "benchmark"}
-TOP = {"cli", "__main__", "batch", "report"}
+TOP = {"cli", "__main__", "batch", "report", "resident"}
 #: What each layer may import besides itself.
 ALLOWED = {"model": {"model"}, "backends": {"model", "backends"}, "pipeline": {"model", "backends", "pipeline"},
            "readers": {"model", "backends", "pipeline", "readers"},
