@@ -28,7 +28,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from batch_throughput import agreed
+from batch_throughput import add_run_options, agreed, reference_run
 
 
 def run_batch(dataset: Path, root: Path, jobs: int, iterations: int, per_gpu: int, gpus: int, per_process: int,
@@ -69,10 +69,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--gpus", type=int, nargs="+", default=[1])
     parser.add_argument("--per-process", type=int, nargs="+", default=[0],
                         help="--jobs-per-process of the batch (0: no limit; 1: a process per job)")
-    parser.add_argument("--scene", default="coral-one")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--iterations", type=int, default=10)
-    parser.add_argument("options", nargs="*", help="global fsswarp options, e.g. --backend warp")
+    add_run_options(parser)
     args = parser.parse_args(argv)
     from fsswarp.errors import InputError, check_integer
 
@@ -88,15 +85,11 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     with tempfile.TemporaryDirectory() as folder:
         root = Path(folder)
-        dataset, warm = root / "dataset", root / "warm"
-        for command in (["simulate", args.scene, "--out", str(dataset), "--seed", str(args.seed)],
-                        ["reconstruct", str(dataset), "--out", str(warm), "--iterations", str(args.iterations)]):
-            done = subprocess.run([sys.executable, "-m", "fsswarp", "-q", *args.options, *command],
-                                  capture_output=True, text=True)
-            if done.returncode != 0:
-                print(done.stderr.strip(), file=sys.stderr)
-                return done.returncode
-        reference = json.loads((warm / "result.json").read_text())
+        try:
+            dataset, reference = reference_run(root, args.scene, args.seed, args.iterations, args.options)
+        except RuntimeError as err:
+            print(err, file=sys.stderr)
+            return 1
         for gpus in args.gpus:
             for per_gpu in args.per_gpu:
                 for per_process in args.per_process:

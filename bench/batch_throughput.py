@@ -54,6 +54,30 @@ def agreed(result: dict) -> tuple:
         (entry["depth_m"], entry["tilt_deg"], entry["E_I"]) for entry in result["history"])
 
 
+def add_run_options(parser) -> None:
+    """The options that the batch benchmarks share: ``--scene``, ``--seed``, ``--iterations`` and
+    the global fsswarp options after ``--``."""
+    parser.add_argument("--scene", default="coral-one")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--iterations", type=int, default=10)
+    parser.add_argument("options", nargs="*", help="global fsswarp options, e.g. --backend warp --device cuda:0")
+
+
+def reference_run(root: Path, scene: str, seed: int, iterations: int, options: list[str]) -> tuple[Path, dict]:
+    """(the dataset folder, the reference result.json) of ``scene`` simulated (noisy, ``seed``)
+    into ``root``/dataset and reconstructed once (``iterations``; this also warms the kernel
+    caches) into ``root``/warm, with the global ``options``; RuntimeError with the stderr of a
+    command that fails."""
+    dataset, warm = root / "dataset", root / "warm"
+    for command in (["simulate", scene, "--out", str(dataset), "--seed", str(seed)],
+                    ["reconstruct", str(dataset), "--out", str(warm), "--iterations", str(iterations)]):
+        done = subprocess.run([sys.executable, "-m", "fsswarp", "-q", *options, *command], capture_output=True,
+                              text=True)
+        if done.returncode != 0:
+            raise RuntimeError(done.stderr.strip())
+    return dataset, json.loads((warm / "result.json").read_text())
+
+
 def table_markdown(walls: dict[int, list[float]]) -> str:
     """The Markdown table of the wall times per N (module docstring)."""
     base = statistics.median(walls[min(walls)]) / min(walls)
@@ -70,10 +94,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--jobs", type=int, nargs="+", default=[1, 2, 4, 8])
     parser.add_argument("--rounds", type=int, default=2)
-    parser.add_argument("--scene", default="coral-one")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--iterations", type=int, default=10)
-    parser.add_argument("options", nargs="*", help="global fsswarp options, e.g. --backend warp --device cuda:0")
+    add_run_options(parser)
     args = parser.parse_args(argv)
     from fsswarp.errors import InputError, check_integer
 

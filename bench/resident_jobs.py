@@ -21,13 +21,12 @@ import argparse
 import json
 import os
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-from batch_throughput import agreed
+from batch_throughput import add_run_options, agreed, reference_run
 
 
 def run_jobs(dataset: Path, root: Path, jobs: int, iterations: int, per_process: int, options: list[str],
@@ -59,10 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--jobs", type=int, default=4, help="jobs per worker run (>= 2)")
     parser.add_argument("--rounds", type=int, default=2)
-    parser.add_argument("--scene", default="coral-one")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--iterations", type=int, default=10)
-    parser.add_argument("options", nargs="*", help="global fsswarp options, e.g. --backend warp")
+    add_run_options(parser)
     args = parser.parse_args(argv)
     from fsswarp.errors import InputError, check_integer
 
@@ -75,15 +71,11 @@ def main(argv: list[str] | None = None) -> int:
     fresh, first, later = [], [], []
     with tempfile.TemporaryDirectory() as folder:
         root = Path(folder)
-        dataset, warm = root / "dataset", root / "warm"
-        for command in (["simulate", args.scene, "--out", str(dataset), "--seed", str(args.seed)],
-                        ["reconstruct", str(dataset), "--out", str(warm), "--iterations", str(args.iterations)]):
-            done = subprocess.run([sys.executable, "-m", "fsswarp", "-q", *args.options, *command],
-                                  capture_output=True, text=True)
-            if done.returncode != 0:
-                print(done.stderr.strip(), file=sys.stderr)
-                return done.returncode
-        reference = json.loads((warm / "result.json").read_text())
+        try:
+            dataset, reference = reference_run(root, args.scene, args.seed, args.iterations, args.options)
+        except RuntimeError as err:
+            print(err, file=sys.stderr)
+            return 1
         for r in range(args.rounds):
             for per_process in ((1, 0) if r % 2 == 0 else (0, 1)):
                 run = root / f"round{r}-p{per_process}"
