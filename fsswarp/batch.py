@@ -6,8 +6,9 @@ A batch is a JOBS.toml file: ``[defaults]`` and one ``[[jobs]]`` table per job (
 before anything runs. :func:`run_batch` makes one :class:`JobWorker` Ray actor per slot (a GPU
 share or a CPU); each runs its jobs, ``fsswarp [global options] reconstruct DATASET --out
 DIR/<name> ...``, one after another in a resident process of its own (:class:`Resident`,
-``python -m fsswarp.resident``), which keeps its imports, backend and kernels from job to job. A killed or crashed job is a dead process, and the job's
-exit status 2 means bad input. Outputs under DIR:
+``python -m fsswarp.resident``), which keeps its imports, backend and kernels from job to
+job. A killed or crashed job is a dead process; the job's exit status 2 means bad input.
+Outputs under DIR:
 
 - ``<name>/``: the job's folder, exactly as ``fsswarp reconstruct --out`` writes it
 - ``jobs.jsonl``: one JSON line per job outcome: name, status (ok, failed, skipped),
@@ -171,10 +172,9 @@ class Resident:
     in one interpreter (``fsswarp.resident.serve``), so that a job after the first finds the
     imports, the backend, the loaded kernels and the mesh processes of the ones before
     (docs/batch.md, "Resident processes"). It runs under ``fsswarp.resident.supervise``
-    (``python -m fsswarp.resident``), is
-    started with ``environment`` at the first job, and ends after ``jobs_per_process`` jobs (0:
-    no limit) and after a job that failed other than by bad input, so that the next job starts a
-    fresh one."""
+    (``python -m fsswarp.resident``), is started with ``environment`` at the first job, and
+    ends after ``jobs_per_process`` jobs (0: no limit) and after a job that failed other than
+    by bad input, so that the next job starts a fresh one."""
 
     def __init__(self, environment: dict[str, str], jobs_per_process: int):
         self.environment, self.limit = environment, jobs_per_process
@@ -455,9 +455,9 @@ def warm_up_nodes(ray, global_options: list[str], *, gpu_share: float = 0) -> di
     """``fsswarp [global options] info --warm-up`` once on every alive node that can run a job (with
     ``gpu_share`` > 0: the nodes with a GPU, each task taking that share of one), side by side,
     before the first job: the workers' resident processes are processes of their own, and the
-    first job of each on a fresh node would compile the same kernels (docs/batch.md). Returns {node: :func:`warm_up_node`'s
-    record}; a node whose warm-up fails or passes ``WARM_UP_SECONDS`` gets an error, and its jobs
-    run all the same (compiling as they go)."""
+    first job of each on a fresh node would compile the same kernels (docs/batch.md). Returns
+    {node: :func:`warm_up_node`'s record}; a node whose warm-up fails or passes
+    ``WARM_UP_SECONDS`` gets an error, and its jobs run all the same (compiling as they go)."""
     from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
     nodes = [n for n in ray.nodes() if n.get("Alive") and (n["Resources"].get("GPU", 0) if gpu_share else True)]
