@@ -15,6 +15,9 @@
 #   bash bench/device/gpu.sh ray [ARGS]             bench/batch_ray.py (fsswarp batch on a local Ray) on Warp CUDA
 #   bash bench/device/gpu.sh resident [ARGS]        bench/resident_jobs.py (a batch worker's jobs, fresh or resident) on Warp CUDA
 #
+# `ray` needs Ray, which the machine lacks: its cp312 wheel (79 MB) in two parts under 64 MiB and the
+# wheels the machine lacks (jsonschema, jsonschema-specifications, referencing, rpds-py), each part
+# carried by a call of its own, joined and installed with pip --no-deps --target /tmp/site.
 # Records land in $OUT (the device tool brings them back), as under bench/records/: copy
 # $OUT/reconstruction/NAME.json (table) and $OUT/identifiability/NAME.json (study) to the same
 # folders there and each bench run's $OUT/bench-*/bench.json to bench/records/<machine>.json,
