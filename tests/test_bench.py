@@ -499,7 +499,8 @@ def test_gpu_runner_names_every_run_it_knows_and_refuses_others_with_exit_2(tmp_
     script = (Path(__file__).resolve().parents[1] / "bench" / "device" / "gpu.sh").read_text()
     listed = set(re.findall(r"^#   bash bench/device/gpu\.sh (\w+)", script, re.M))
     handled = set(re.findall(r"^  (\w+)\)$", script, re.M))
-    assert listed == handled == {"tests", "table", "study", "bench", "ab", "profile", "grid", "demo", "batch", "ray"}
+    assert listed == handled == {"tests", "table", "study", "bench", "ab", "profile", "grid", "demo", "batch", "ray",
+                                 "resident"}
     for args, message in ((["nowhere"], "unknown run 'nowhere'"), ([], "name a run"),
                           (["table", "h100"], "table needs NAME and at least one SCENE")):
         done = _gpu_runner(tmp_path, *args)
