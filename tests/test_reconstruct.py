@@ -951,38 +951,22 @@ def test_a_resting_pose_step_has_the_best_pose_carved_ahead(coral_one, monkeypat
         assert ahead == [reached.value.args[0]] * expected
 
 
-def _thread_names(monkeypatch, owner, name: str) -> list[str]:
-    """Wrap ``owner.name`` so that each call records the name of the thread it runs in; returns
-    the list it records into."""
+def _thread_names(monkeypatch, owner, name: str, where: list | None = None) -> list:
+    """Wrap ``owner.name`` so that each call records the name of the thread it runs in, into
+    ``where`` (default a new list) as that name alone, or as (``name``, thread name) where a list
+    was given (several wrapped functions recording into one); returns the list."""
     import threading
 
-    original, where = getattr(owner, name), []
+    original, shared = getattr(owner, name), where is not None
+    where = [] if where is None else where
 
     def recorded(*args, **kwargs):
-        where.append(threading.current_thread().name)
+        thread = threading.current_thread().name
+        where.append((name, thread) if shared else thread)
         return original(*args, **kwargs)
 
     monkeypatch.setattr(owner, name, recorded)
     return where
-
-
-def _reconstructed_both_ways(dataset, setting: str, where: list[str]) -> dict:
-    """{False: run, True: run}: ``dataset`` reconstructed (FAST, 2 iterations, OpenCL) with the
-    ReconstructSettings flag ``setting`` off and on; a run is (the summary's JSON without its
-    seconds, the model's vertices, its faces, the lines said but the truth's, which come when
-    ready, and the names that ``where`` (:func:`_thread_names`) gained meanwhile)."""
-    from fsswarp.backends import get_backend
-
-    runs = {}
-    for on in (False, True):
-        lines, start = [], len(where)
-        result = reconstruct(dataset, settings=dataclasses.replace(FAST, iterations=2, **{setting: on}),
-                             backend=get_backend("opencl"), progress=lines.append)
-        summary = result.summary()
-        del summary["seconds"]
-        runs[on] = (json.dumps(summary, sort_keys=True), result.model.vertices, result.model.faces,
-                    [line for line in lines if "against the truth" not in line], where[start:])
-    return runs
 
 
 def _refusing_pose_steps(monkeypatch):
@@ -993,37 +977,45 @@ def _refusing_pose_steps(monkeypatch):
         found(*args, **kwargs), accepted=False) if "posterior_axes" in kwargs else found(*args, **kwargs))
 
 
-def test_the_answer_worked_out_ahead_in_a_thread_is_the_one_found_at_the_loop_s_end(coral_one, monkeypatch):
-    """Once a pose step finds nothing better, the answer's pose is worked out in a thread while
-    the loop's shape steps go on: the same reconstruction as with the answer found after the
-    loop (result, history, model, and the answer's lines in the same place), the one in a
-    thread of its own, the other in the loop's."""
+def test_the_answer_worked_out_ahead_and_its_models_refined_in_threads_give_the_answer_found_in_turn(
+        coral_one, monkeypatch):
+    """Two ReconstructSettings, both off and both on (two loops, not four):
+    - ``answer_ahead``: once a pose step finds nothing better, the answer's pose is worked out in
+      a thread of its own while the loop's shape steps go on, not at the loop's end;
+    - ``answer_threads``: the answer's three models (kept, held, carving) are refined side by
+      side, two of them in threads with comparisons of their own. Threads are taken on GPUs alone
+      (``_threads_pay``), here said to pay on any backend.
+    Either way the same reconstruction (result, history, model, and the answer's lines in the
+    same place; the truth's lines come when ready and are left out)."""
     import threading
 
+    from fsswarp.backends import get_backend
+
     _refusing_pose_steps(monkeypatch)
-    where = _thread_names(monkeypatch, reconstruct_module, "_answer_pose")
-    runs = _reconstructed_both_ways(coral_one, "answer_ahead", where)
-    assert where == ["MainThread", "fsswarp-answer"]
-    assert runs[True][0] == runs[False][0] and runs[True][3] == runs[False][3]
-    np.testing.assert_array_equal(runs[True][1], runs[False][1])
-    np.testing.assert_array_equal(runs[True][2], runs[False][2])
-    assert not [thread for thread in threading.enumerate() if thread.name == "fsswarp-answer"]
-
-
-def test_the_answer_s_models_refined_in_threads_are_those_refined_in_turn(coral_one, monkeypatch):
-    """``ReconstructSettings.answer_threads``: the answer's three models (kept, held, carving)
-    refined side by side, two of them in threads with comparisons of their own, give the
-    reconstruction that refining them in turn gives (result, history, model, lines). Threads are
-    taken on GPUs alone (``_threads_pay``), here said to pay on any backend."""
     monkeypatch.setattr(reconstruct_module, "_threads_pay", lambda backend: True)
-    where = _thread_names(monkeypatch, reconstruct_module, "refine_shape")
-    runs = _reconstructed_both_ways(coral_one, "answer_threads", where)
+    where: list = []
+    for name in ("_answer_pose", "refine_shape"):
+        _thread_names(monkeypatch, reconstruct_module, name, where)
+    runs = {}
+    for on in (False, True):
+        lines, start = [], len(where)
+        result = reconstruct(coral_one, settings=dataclasses.replace(FAST, iterations=2, answer_ahead=on,
+                                                                     answer_threads=on),
+                             backend=get_backend("opencl"), progress=lines.append)
+        summary = result.summary()
+        del summary["seconds"]
+        runs[on] = (json.dumps(summary, sort_keys=True), result.model.vertices, result.model.faces,
+                    [line for line in lines if "against the truth" not in line], where[start:])
+    poses = {on: [thread for name, thread in runs[on][4] if name == "_answer_pose"] for on in runs}
+    models = {on: [thread for name, thread in runs[on][4] if name == "refine_shape"] for on in runs}
+    assert poses == {False: ["MainThread"], True: ["fsswarp-answer"]}
     assert any(line.startswith("the answer: refined there") for line in runs[True][3])
-    assert sum(name.startswith("fsswarp-answer-model") for name in runs[True][4]) == 2
-    assert not any(name.startswith("fsswarp-answer-model") for name in runs[False][4])
+    assert sum(name.startswith("fsswarp-answer-model") for name in models[True]) == 2
+    assert not any(name.startswith("fsswarp-answer-model") for name in models[False])
     assert runs[True][0] == runs[False][0] and runs[True][3] == runs[False][3]
     np.testing.assert_array_equal(runs[True][1], runs[False][1])
     np.testing.assert_array_equal(runs[True][2], runs[False][2])
+    assert not [thread for thread in threading.enumerate() if thread.name.startswith("fsswarp-answer")]
 
 
 def test_a_loop_that_fails_stops_its_answer_thread(coral_one, monkeypatch):
