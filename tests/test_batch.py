@@ -144,12 +144,14 @@ def test_a_batch_warms_up_its_nodes_unless_its_jobs_run_on_opencl(options, warms
 def test_a_rerun_skips_the_finished_jobs_and_leaves_their_files(first_batch, ray_env):
     jobs_file, out, _ = first_batch
     before = {name: snapshot(out / name) for name in JOBS}
-    again = fsswarp("batch", jobs_file, "--out", out, env=ray_env)
+    again = fsswarp("batch", jobs_file, "--out", out, "--jobs-per-process", 1, env=ray_env)
     assert again.returncode == 1 and again.stderr == "", again.stderr  # the lost dataset is still lost
     assert {n: r["status"] for n, r in records(out).items()} == {**{n: "skipped" for n in JOBS}, "lost": "failed"}
     assert {name: snapshot(out / name) for name in JOBS} == before
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["resources"]["jobs_per_process"] == 1 and records(out)["lost"]["process_jobs"] == 1
     # on OpenCL, and not asked to, the rerun warmed no node up
-    assert json.loads((out / "summary.json").read_text())["warm_up"] == {} and "warming up" not in again.stdout
+    assert summary["warm_up"] == {} and "warming up" not in again.stdout
 
 
 def job_process(out: Path, env: dict) -> int | None:
