@@ -607,7 +607,7 @@ def reconstruct(state: State, dataset_dir: Path, out: Path, iterations: int, pat
               help="Runs again of a job that was killed, crashed or lost its worker (bad input is not retried).")
 @click.option("--warm-up/--no-warm-up", "warm_up", default=None,
               help="Compile the kernels on every node ('fsswarp info --warm-up') before the first job; default: "
-                   "unless the jobs run on OpenCL, which builds its programs as each job starts.")
+                   "unless the jobs run on OpenCL, which builds its programs as each worker's process starts.")
 @click.option("--jobs-per-process", default=0, show_default=True, type=click.IntRange(min=0),
               help="Jobs that one resident process runs one after another before a fresh one starts (0: no "
                    "limit; 1: a fresh process per job).")
