@@ -384,14 +384,15 @@ def exercise(data: bytes, *, dataset: bool) -> str:
 
 
 @pytest.mark.slow
-def test_fuzz_100k_mutated_recordings_from_memory():
-    """100,000 mutated copies of three small recordings (v3 48 beams, v4 96 beams, v4 48 beams
+def test_fuzz_40k_mutated_recordings_from_memory():
+    """40,000 mutated copies of three small recordings (v3 48 beams, v4 96 beams, v4 48 beams
     low frequency reversed): each is read, or refused with a one-line InputError; every 25th
-    also goes through the whole import into a Dataset."""
+    also goes through the whole import into a Dataset. (100,000 until the suite neared CI's 15
+    minutes: 27 s of it on the 2-core CPU.)"""
     rng = random.Random(35)
     outcomes = {"error": 0, "read": 0}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DidsonWarning)
-        for i in range(100_000):
+        for i in range(40_000):
             outcomes[exercise(mutate(rng, BASES[i % 3]), dataset=i % 25 == 0)] += 1
-    assert outcomes["error"] > 10_000 and outcomes["read"] > 10_000, outcomes
+    assert outcomes["error"] > 4_000 and outcomes["read"] > 4_000, outcomes
