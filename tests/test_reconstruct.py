@@ -951,18 +951,15 @@ def test_a_resting_pose_step_has_the_best_pose_carved_ahead(coral_one, monkeypat
         assert ahead == [reached.value.args[0]] * expected
 
 
-def _thread_names(monkeypatch, owner, name: str, where: list | None = None) -> list:
-    """Wrap ``owner.name`` so that each call records the name of the thread it runs in, into
-    ``where`` (default a new list) as that name alone, or as (``name``, thread name) where a list
-    was given (several wrapped functions recording into one); returns the list."""
+def _thread_names(monkeypatch, owner, name: str) -> list[str]:
+    """Wrap ``owner.name`` so that each call records the name of the thread it runs in; returns
+    the list it records into."""
     import threading
 
-    original, shared = getattr(owner, name), where is not None
-    where = [] if where is None else where
+    original, where = getattr(owner, name), []
 
     def recorded(*args, **kwargs):
-        thread = threading.current_thread().name
-        where.append((name, thread) if shared else thread)
+        where.append(threading.current_thread().name)
         return original(*args, **kwargs)
 
     monkeypatch.setattr(owner, name, recorded)
@@ -993,21 +990,19 @@ def test_the_answer_worked_out_ahead_and_its_models_refined_in_threads_give_the_
 
     _refusing_pose_steps(monkeypatch)
     monkeypatch.setattr(reconstruct_module, "_threads_pay", lambda backend: True)
-    where: list = []
-    for name in ("_answer_pose", "refine_shape"):
-        _thread_names(monkeypatch, reconstruct_module, name, where)
-    runs = {}
+    pose_threads = _thread_names(monkeypatch, reconstruct_module, "_answer_pose")
+    model_threads = _thread_names(monkeypatch, reconstruct_module, "refine_shape")
+    runs, poses, models = {}, {}, {}
     for on in (False, True):
-        lines, start = [], len(where)
+        lines, seen = [], (len(pose_threads), len(model_threads))
         result = reconstruct(coral_one, settings=dataclasses.replace(FAST, iterations=2, answer_ahead=on,
                                                                      answer_threads=on),
                              backend=get_backend("opencl"), progress=lines.append)
         summary = result.summary()
         del summary["seconds"]
         runs[on] = (json.dumps(summary, sort_keys=True), result.model.vertices, result.model.faces,
-                    [line for line in lines if "against the truth" not in line], where[start:])
-    poses = {on: [thread for name, thread in runs[on][4] if name == "_answer_pose"] for on in runs}
-    models = {on: [thread for name, thread in runs[on][4] if name == "refine_shape"] for on in runs}
+                    [line for line in lines if "against the truth" not in line])
+        poses[on], models[on] = pose_threads[seen[0]:], model_threads[seen[1]:]
     assert poses == {False: ["MainThread"], True: ["fsswarp-answer"]}
     assert any(line.startswith("the answer: refined there") for line in runs[True][3])
     assert sum(name.startswith("fsswarp-answer-model") for name in models[True]) == 2
