@@ -87,9 +87,9 @@ def main(argv: list[str] | None = None) -> int:
         root = Path(folder)
         try:
             dataset, reference = reference_run(root, args.scene, args.seed, args.iterations, args.options)
-        except RuntimeError as err:
-            print(err, file=sys.stderr)
-            return 1
+        except subprocess.CalledProcessError as failed:
+            print(failed.stderr.strip(), file=sys.stderr)
+            return failed.returncode
         for gpus in args.gpus:
             for per_gpu in args.per_gpu:
                 for per_process in args.per_process:

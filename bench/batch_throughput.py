@@ -66,15 +66,14 @@ def add_run_options(parser) -> None:
 def reference_run(root: Path, scene: str, seed: int, iterations: int, options: list[str]) -> tuple[Path, dict]:
     """(the dataset folder, the reference result.json) of ``scene`` simulated (noisy, ``seed``)
     into ``root``/dataset and reconstructed once (``iterations``; this also warms the kernel
-    caches) into ``root``/warm, with the global ``options``; RuntimeError with the stderr of a
-    command that fails."""
+    caches) into ``root``/warm, with the global ``options``; CalledProcessError (its returncode
+    and stderr) where a command fails."""
     dataset, warm = root / "dataset", root / "warm"
     for command in (["simulate", scene, "--out", str(dataset), "--seed", str(seed)],
                     ["reconstruct", str(dataset), "--out", str(warm), "--iterations", str(iterations)]):
         done = subprocess.run([sys.executable, "-m", "fsswarp", "-q", *options, *command], capture_output=True,
                               text=True)
-        if done.returncode != 0:
-            raise RuntimeError(done.stderr.strip())
+        done.check_returncode()
     return dataset, json.loads((warm / "result.json").read_text())
 
 

@@ -21,6 +21,7 @@ import argparse
 import json
 import os
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -73,9 +74,9 @@ def main(argv: list[str] | None = None) -> int:
         root = Path(folder)
         try:
             dataset, reference = reference_run(root, args.scene, args.seed, args.iterations, args.options)
-        except RuntimeError as err:
-            print(err, file=sys.stderr)
-            return 1
+        except subprocess.CalledProcessError as failed:
+            print(failed.stderr.strip(), file=sys.stderr)
+            return failed.returncode
         for r in range(args.rounds):
             for per_process in ((1, 0) if r % 2 == 0 else (0, 1)):
                 run = root / f"round{r}-p{per_process}"
