@@ -210,8 +210,7 @@ class Resident:
         """End the process: its supervisor kills its group (the job, its figure and mesh processes)."""
         process, self.process = self.process, None
         if process is not None:
-            with contextlib.suppress(ProcessLookupError):
-                process.terminate()
+            process.terminate()  # a no-op where it has ended
             process.wait()
             for pipe in (process.stdin, process.stdout):
                 with contextlib.suppress(OSError):
@@ -387,7 +386,7 @@ def _schedule(ray, workers, jobs: list[Job], out: Path, global_options: list[str
         warmed = warm_up()
         for node, record in ([] if quiet else warmed.items()):
             click.echo(f"  {node}: {record['line'] if record['returncode'] == 0 else record['error']}")
-    idle = workers(min(slots, len(todo))) if todo else []
+    idle = workers(min(slots, len(todo)))
 
     def submit(job: Job) -> None:
         attempts[job.name] += 1
