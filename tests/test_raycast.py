@@ -141,6 +141,33 @@ def test_watertight_on_vertices_and_edges(backend):
     np.testing.assert_allclose(dist, expected, atol=1e-5, rtol=0)
 
 
+def test_nearest_of_many_stacked_sheets(backend):
+    """60 square sheets stacked along +y in shuffled face order, every ray crossing all of them:
+    the first hit is the nearest sheet's, from origins before, between and past the sheets (a
+    walk that skips a subtree it must enter, or keeps a farther hit, lands on another sheet)."""
+    rng = np.random.default_rng(11)
+    ys = 2.0 + 0.01 * np.arange(60)
+    square = np.array([[-0.5, 0.0, -0.5], [0.5, 0.0, -0.5], [0.5, 0.0, 0.5], [-0.5, 0.0, 0.5]])
+    vertices = np.concatenate([square + [0.1, y, -0.2] for y in ys])
+    faces = np.concatenate([[[4 * k, 4 * k + 1, 4 * k + 2], [4 * k, 4 * k + 2, 4 * k + 3]] for k in range(60)])
+    faces = faces[rng.permutation(len(faces))]
+    handle = backend.load_mesh(vertices, faces)
+    starts = 2.005 + 0.01 * rng.integers(-10, 70, size=500)  # midway between sheets
+    origins = np.column_stack([rng.uniform(-0.2, 0.4, 500), starts, rng.uniform(-0.5, 0.1, 500)])
+    dirs = np.column_stack([rng.uniform(-0.05, 0.05, 500), np.ones(500), rng.uniform(-0.05, 0.05, 500)])
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    dist, face = backend.cast_rays(handle, origins, dirs)
+    ahead = ys[None, :] > starts[:, None]
+    nearest = np.where(ahead.any(axis=1), np.where(ahead, ys[None, :], np.inf).min(axis=1), np.inf)
+    want = (nearest - starts) / dirs[:, 1]
+    np.testing.assert_array_equal(np.isfinite(dist), np.isfinite(want))
+    hit = np.isfinite(want)
+    assert 300 < hit.sum() < 500
+    np.testing.assert_allclose(dist[hit], want[hit], atol=1e-5, rtol=0)
+    sheet = vertices[faces[face[hit], 0], 1]
+    np.testing.assert_array_equal(sheet, nearest[hit])
+
+
 def test_misses_give_inf_and_minus_one(backend):
     sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.2)
     handle = backend.load_mesh(sphere.vertices + [0, 2, 0], sphere.faces)
