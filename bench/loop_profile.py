@@ -1,7 +1,7 @@
 """Where a reconstruction's time goes, without a sampling profiler, one command:
 
     python bench/loop_profile.py [--scene NAME] [--backend B] [--device D] [--iterations T]
-                                 [--seed S] [--warp]
+                                 [--seed S] [--warp | --main]
 
 Simulates the scene (noisy, ``--seed``), reconstructs it once with one iteration (none with
 ``--iterations 0``; to fill the kernel caches), then once with ``--iterations`` while the loop's main functions are wrapped
@@ -11,7 +11,10 @@ seconds, share of the run and milliseconds per call. A sampling profiler (py-spy
 H100 run 1.5–3.5 times and so hid where the run waited (bench/notes.md); these wrappers cost
 microseconds per call. ``--warp`` (a Warp backend) also times Warp's own calls (``WARP_CALLS``:
 launches, arrays, copies, waits; the outermost of them in each thread, any thread) in a second
-table: how much of the run is Warp's Python and waiting for the device.
+table: how much of the run is Warp's Python and waiting for the device. ``--main`` times the main
+thread alone, each call only where no wrapped call encloses it: the rows then partition the
+main thread's run (plus a row for the rest: the loop's own code between them), the path that
+sets the wall time while the helper threads (the answer ahead, the planning) keep up with it.
 """
 
 from __future__ import annotations
@@ -52,10 +55,11 @@ _spec.loader.exec_module(profiling)
 class CallTimes(profiling.Patches):
     """Calls and inclusive wall seconds per wrapped function (``totals``: label -> [calls, s])."""
 
-    def __init__(self):
+    def __init__(self, main_only: bool = False):
         super().__init__()
         self.totals = collections.defaultdict(lambda: [0, 0.0])
         self._inside = threading.local()  # .depth: outermost-only wrappers entered in this thread
+        self.main_only = main_only  # count the main thread's calls alone
 
     def wrap(self, owner, name: str, label: str, *, outermost: bool = False):
         """Replace ``owner.name`` by a timed wrapper, and return it. With ``outermost``, a call made
@@ -64,6 +68,8 @@ class CallTimes(profiling.Patches):
 
         @functools.wraps(original)
         def timed(*args, **kwargs):
+            if self.main_only and threading.current_thread() is not threading.main_thread():
+                return original(*args, **kwargs)
             if outermost:
                 if getattr(self._inside, "depth", 0):
                     return original(*args, **kwargs)
@@ -92,8 +98,9 @@ class CallTimes(profiling.Patches):
         return "\n".join(lines)
 
 
-def instrument(times: CallTimes, backend) -> None:
-    """Wrap ``WRAPPED`` (and rebind the names in ``REBOUND``) and ``backend``'s ``BACKEND_METHODS``."""
+def instrument(times: CallTimes, backend, *, outermost: bool = False) -> None:
+    """Wrap ``WRAPPED`` (and rebind the names in ``REBOUND``) and ``backend``'s ``BACKEND_METHODS``
+    (``outermost``: each call counted only outside the other wrapped calls)."""
     import importlib
 
     wrapped = {}
@@ -102,13 +109,13 @@ def instrument(times: CallTimes, backend) -> None:
         owner = getattr(module, owner_name) if owner_name else module
         for name in names:
             label = f"{owner_name}.{name}" if owner_name else name
-            wrapped[label] = times.wrap(owner, name, label)
+            wrapped[label] = times.wrap(owner, name, label, outermost=outermost)
     for name, modules in REBOUND.items():
         for module_name in modules:
             times.replace(importlib.import_module(module_name), name, wrapped[name])
     for name in BACKEND_METHODS:
         if hasattr(type(backend), name):
-            times.wrap(type(backend), name, f"backend.{name}")
+            times.wrap(type(backend), name, f"backend.{name}", outermost=outermost)
 
 
 def instrument_warp(times: CallTimes) -> list[str]:
@@ -127,7 +134,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     profiling.add_scene_options(parser)
     parser.add_argument("--iterations", type=int, default=10)
-    parser.add_argument("--warp", action="store_true", help="also time Warp's own calls (a Warp backend)")
+    modes = parser.add_mutually_exclusive_group()
+    modes.add_argument("--warp", action="store_true", help="also time Warp's own calls (a Warp backend)")
+    modes.add_argument("--main", action="store_true", help="the main thread's calls, outermost only")
     args = parser.parse_args(argv)
     from fsswarp.errors import check_integer
     from fsswarp.reconstruction import ReconstructSettings, reconstruct
@@ -140,9 +149,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     with profiling.simulated(args, backend) as dataset:
         reconstruct(dataset, settings=ReconstructSettings(iterations=min(1, args.iterations)), backend=backend)
-        times, warp_labels = CallTimes(), []
+        times, warp_labels = CallTimes(main_only=args.main), []
         try:
-            instrument(times, backend)
+            instrument(times, backend, outermost=args.main)
             if args.warp:
                 warp_labels = instrument_warp(times)
             start = time.perf_counter()
@@ -152,6 +161,8 @@ def main(argv: list[str] | None = None) -> int:
             times.restore()
     print(f"{args.scene} from the measured start on {backend.name} {backend.device}: {total:.2f} s, "
           f"{result.iterations} iterations\n")
+    if args.main:
+        times.totals["(the rest of the main thread)"] = [1, total - sum(s for _, s in times.totals.values())]
     print(times.table(total, [label for label in times.totals if label not in warp_labels]))
     if warp_labels:
         print("\nWarp's own calls (the outermost in each thread; any thread):\n")
