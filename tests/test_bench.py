@@ -566,6 +566,22 @@ def test_loop_profile_times_a_reconstruction_and_leaves_fsswarp_as_it_was(capsys
     assert "| `backend.render_planned` |" in out  # the render is timed (its method's name is current)
 
 
+def test_loop_profile_main_partitions_the_main_thread(capsys):
+    """``--main``: each call only where no wrapped call encloses it, so the rows (with the rest of
+    the main thread) add up to the run's seconds and the calls inside ``carve`` are not counted."""
+    import re
+
+    assert _bench_module("loop_profile").main(["--backend", "opencl", "--iterations", "0", "--main"]) == 0
+    out = capsys.readouterr().out
+    total = float(re.search(r": ([0-9.]+) s, 0 iterations", out).group(1))
+    rows = dict(re.findall(r"^\| `([^`]+)` \| \d+ \| ([0-9.-]+) \|", out, flags=re.MULTILINE))
+    assert "carve" in rows and "(the rest of the main thread)" in rows and "backend.carve" not in rows
+    assert sum(float(seconds) for seconds in rows.values()) == pytest.approx(total, abs=0.002 * len(rows))
+    with pytest.raises(SystemExit) as exited:
+        _bench_module("loop_profile").main(["--warp", "--main"])
+    assert exited.value.code == 2
+
+
 def test_loop_profile_bad_options_exit_2(capsys):
     assert _bench_module("loop_profile").main(["--iterations", "-1"]) == 2
     assert _bench_module("loop_profile").main(["--backend", "opencl", "--warp"]) == 2
