@@ -85,11 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     with tempfile.TemporaryDirectory() as folder:
         root = Path(folder)
-        try:
-            dataset, reference = reference_run(root, args.scene, args.seed, args.iterations, args.options)
-        except subprocess.CalledProcessError as failed:
-            print(failed.stderr.strip(), file=sys.stderr)
-            return failed.returncode
+        dataset, reference = reference_run(root, args.scene, args.seed, args.iterations, args.options)
         for gpus in args.gpus:
             for per_gpu in args.per_gpu:
                 for per_process in args.per_process:

@@ -66,14 +66,16 @@ def add_run_options(parser) -> None:
 def reference_run(root: Path, scene: str, seed: int, iterations: int, options: list[str]) -> tuple[Path, dict]:
     """(the dataset folder, the reference result.json) of ``scene`` simulated (noisy, ``seed``)
     into ``root``/dataset and reconstructed once (``iterations``; this also warms the kernel
-    caches) into ``root``/warm, with the global ``options``; CalledProcessError (its returncode
-    and stderr) where a command fails."""
+    caches) into ``root``/warm, with the global ``options``. Where a command fails, its stderr
+    goes to stderr and SystemExit ends the benchmark with its status."""
     dataset, warm = root / "dataset", root / "warm"
     for command in (["simulate", scene, "--out", str(dataset), "--seed", str(seed)],
                     ["reconstruct", str(dataset), "--out", str(warm), "--iterations", str(iterations)]):
         done = subprocess.run([sys.executable, "-m", "fsswarp", "-q", *options, *command], capture_output=True,
                               text=True)
-        done.check_returncode()
+        if done.returncode:
+            print(done.stderr.strip(), file=sys.stderr)
+            raise SystemExit(done.returncode)
     return dataset, json.loads((warm / "result.json").read_text())
 
 

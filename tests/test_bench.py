@@ -615,6 +615,15 @@ def test_batch_throughput_runs_commands_at_once_and_they_agree(coral_one, tmp_pa
         batch.run_batch(tmp_path / "nowhere", [tmp_path / "c"], 0, ["--backend", "opencl"])
 
 
+def test_reference_run_failing_exits_with_the_command_s_status(tmp_path, capsys):
+    """bench/batch_throughput.py's reference_run (batch_ray.py's and resident_jobs.py's first
+    step): a command that fails ends the benchmark with its status and its stderr."""
+    with pytest.raises(SystemExit) as stopped:
+        _bench_module("batch_throughput").reference_run(tmp_path, "coral-one", 0, 0, ["--backend", "nonsense"])
+    assert stopped.value.code == 2
+    assert "'nonsense' is not one of" in capsys.readouterr().err
+
+
 def test_batch_throughput_table_reports_seconds_per_reconstruction():
     text = _bench_module("batch_throughput").table_markdown({1: [10.0, 12.0], 4: [20.0, 22.0, 30.0]})
     assert "| 1 | 11.0 s (10.0–12.0) | 2 | 11.00 s | 1.00 |" in text

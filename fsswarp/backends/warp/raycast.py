@@ -187,9 +187,5 @@ def cast_rays_kernel(mesh: wp.uint64, corners: wp.array(dtype=wp.vec3), origins:
     """Thread i: nearest hit of ray i within max_distance (inf and -1 if none)."""
     i = wp.tid()
     hit = nearest_hit(mesh, corners, origins[i], directions[i], max_distance)
-    if hit.face >= 0:
-        distance_out[i] = hit.t
-        face_out[i] = hit.face
-    else:
-        distance_out[i] = wp.inf
-        face_out[i] = -1
+    distance_out[i] = hit.t
+    face_out[i] = hit.face
