@@ -44,15 +44,17 @@ int best_face = -1;
 int stack[64];
 float stack_t[64];
 int count = 0;
-int node = *tree.root;
-float t_box = 0.0f;
-{
-    const wp::BVHPackedNodeHalf lo = wp::bvh_load_node(tree.node_lowers, node);
-    const wp::BVHPackedNodeHalf hi = wp::bvh_load_node(tree.node_uppers, node);
-    if (!(wp::intersect_ray_aabb(org, rcp, wp::vec3(lo.x, lo.y, lo.z), wp::vec3(hi.x, hi.y, hi.z), t_box)
-          && !(t_box >= best * 1.000001f)))
-        node = -1;
-}
+// whether a box entered at t can hold a hit that wins
+auto ahead = [&](float t) { return !(t >= best * 1.000001f); };
+// whether the box of node `index` is hit ahead, and where the ray enters it (entry)
+auto box_ahead = [&](int index, float& entry) {
+    const wp::BVHPackedNodeHalf lo = wp::bvh_load_node(tree.node_lowers, index);
+    const wp::BVHPackedNodeHalf hi = wp::bvh_load_node(tree.node_uppers, index);
+    return wp::intersect_ray_aabb(org, rcp, wp::vec3(lo.x, lo.y, lo.z), wp::vec3(hi.x, hi.y, hi.z), entry)
+           && ahead(entry);
+};
+float t_root = 0.0f;
+int node = box_ahead(*tree.root, t_root) ? *tree.root : -1;
 while (node >= 0) {
     const wp::BVHPackedNodeHalf lo = wp::bvh_load_node(tree.node_lowers, node);
     const wp::BVHPackedNodeHalf hi = wp::bvh_load_node(tree.node_uppers, node);
@@ -94,15 +96,9 @@ while (node >= 0) {
         }
     } else {
         const int left = (int)lo.i, right = (int)hi.i;
-        const wp::BVHPackedNodeHalf l0 = wp::bvh_load_node(tree.node_lowers, left);
-        const wp::BVHPackedNodeHalf l1 = wp::bvh_load_node(tree.node_uppers, left);
-        const wp::BVHPackedNodeHalf r0 = wp::bvh_load_node(tree.node_lowers, right);
-        const wp::BVHPackedNodeHalf r1 = wp::bvh_load_node(tree.node_uppers, right);
         float tl = 0.0f, tr = 0.0f;
-        const bool hl = wp::intersect_ray_aabb(org, rcp, wp::vec3(l0.x, l0.y, l0.z), wp::vec3(l1.x, l1.y, l1.z), tl)
-                        && !(tl >= best * 1.000001f);
-        const bool hr = wp::intersect_ray_aabb(org, rcp, wp::vec3(r0.x, r0.y, r0.z), wp::vec3(r1.x, r1.y, r1.z), tr)
-                        && !(tr >= best * 1.000001f);
+        const bool hl = box_ahead(left, tl);
+        const bool hr = box_ahead(right, tr);
         if (hl && hr) {
             const bool left_first = tl <= tr;
             if (count < 64) {
@@ -121,7 +117,7 @@ while (node >= 0) {
     node = -1;
     while (count > 0) {
         --count;
-        if (!(stack_t[count] >= best * 1.000001f)) {
+        if (ahead(stack_t[count])) {
             node = stack[count];
             break;
         }
