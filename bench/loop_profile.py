@@ -1,7 +1,7 @@
 """Where a reconstruction's time goes, without a sampling profiler, one command:
 
     python bench/loop_profile.py [--scene NAME] [--backend B] [--device D] [--iterations T]
-                                 [--seed S] [--warp | --main]
+                                 [--seed S] [--warp | --main] [--fresh]
 
 Simulates the scene (noisy, ``--seed``), reconstructs it once with one iteration (none with
 ``--iterations 0``; to fill the kernel caches), then once with ``--iterations`` while the loop's main functions are wrapped
@@ -15,15 +15,21 @@ table: how much of the run is Warp's Python and waiting for the device. ``--main
 thread alone, each call only where no wrapped call encloses it: the rows then partition the
 main thread's run (plus a row for the rest: the loop's own code between them), the path that
 sets the wall time while the helper threads (the answer ahead, the planning) keep up with it.
+``--fresh`` times the process's first reconstruction, as a fresh ``fsswarp reconstruct`` runs it:
+the scene simulated by a ``fsswarp simulate`` child process and loaded from its folder, no
+warm-up run; it also lists the packages that the run imported first.
 """
 
 from __future__ import annotations
 
 import argparse
 import collections
+import contextlib
 import functools
 import importlib.util
+import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -98,6 +104,25 @@ class CallTimes(profiling.Patches):
         return "\n".join(lines)
 
 
+@contextlib.contextmanager
+def simulated_apart(args: argparse.Namespace):
+    """The dataset of the scene options' scene and seed, simulated on their backend by a
+    ``fsswarp simulate`` child process into a temporary folder and loaded from it (``--fresh``:
+    this process then has computed nothing of it yet)."""
+    from fsswarp.dataset import load_dataset
+
+    with tempfile.TemporaryDirectory() as folder:
+        out = Path(folder) / args.scene
+        options = [*(["--backend", args.backend] if args.backend else []),
+                   *(["--device", args.device] if args.device else [])]
+        done = subprocess.run([sys.executable, "-m", "fsswarp", "-q", *options, "simulate", args.scene, "--out",
+                               str(out), "--seed", str(args.seed)], capture_output=True, text=True)
+        if done.returncode:
+            print(done.stderr.strip(), file=sys.stderr)
+            raise SystemExit(done.returncode)
+        yield load_dataset(out)
+
+
 def instrument(times: CallTimes, backend, *, outermost: bool = False) -> None:
     """Wrap ``WRAPPED`` (and rebind the names in ``REBOUND``) and ``backend``'s ``BACKEND_METHODS``
     (``outermost``: each call counted only outside the other wrapped calls)."""
@@ -137,6 +162,8 @@ def main(argv: list[str] | None = None) -> int:
     modes = parser.add_mutually_exclusive_group()
     modes.add_argument("--warp", action="store_true", help="also time Warp's own calls (a Warp backend)")
     modes.add_argument("--main", action="store_true", help="the main thread's calls, outermost only")
+    parser.add_argument("--fresh", action="store_true",
+                        help="time the process's first reconstruction (the scene simulated by a child process)")
     args = parser.parse_args(argv)
     from fsswarp.errors import check_integer
     from fsswarp.reconstruction import ReconstructSettings, reconstruct
@@ -147,9 +174,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.warp and backend.name != "warp":
         print(f"loop_profile: error: --warp needs a Warp backend, got {backend.name}", file=sys.stderr)
         return 2
-    with profiling.simulated(args, backend) as dataset:
-        reconstruct(dataset, settings=ReconstructSettings(iterations=min(1, args.iterations)), backend=backend)
+    with (simulated_apart(args) if args.fresh else profiling.simulated(args, backend)) as dataset:
+        if not args.fresh:
+            reconstruct(dataset, settings=ReconstructSettings(iterations=min(1, args.iterations)), backend=backend)
         times, warp_labels = CallTimes(main_only=args.main), []
+        imported = set(sys.modules)
         try:
             instrument(times, backend, outermost=args.main)
             if args.warp:
@@ -159,8 +188,12 @@ def main(argv: list[str] | None = None) -> int:
             total = time.perf_counter() - start
         finally:
             times.restore()
-    print(f"{args.scene} from the measured start on {backend.name} {backend.device}: {total:.2f} s, "
+        imported = sorted({name.split(".")[0] for name in set(sys.modules) - imported if not name.startswith("_")})
+    start_kind = "the process's first reconstruction" if args.fresh else "the measured start"
+    print(f"{args.scene} from {start_kind} on {backend.name} {backend.device}: {total:.2f} s, "
           f"{result.iterations} iterations\n")
+    if args.fresh:
+        print(f"packages with modules first imported during the run: {', '.join(imported) or 'none'}\n")
     if args.main:
         times.totals["(the rest of the main thread)"] = [1, total - sum(s for _, s in times.totals.values())]
     print(times.table(total, [label for label in times.totals if label not in warp_labels]))

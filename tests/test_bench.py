@@ -582,6 +582,39 @@ def test_loop_profile_main_partitions_the_main_thread(capsys):
     assert exited.value.code == 2
 
 
+def test_loop_profile_fresh_times_the_process_s_first_reconstruction(coral_one, monkeypatch, capsys):
+    """``--fresh``: the scene comes from a ``fsswarp simulate`` child process (here a stand-in
+    that copies a simulated folder), and the timed reconstruction is the only one (no warm-up
+    run); a child that fails ends the script with its status and stderr."""
+    import shutil
+    import subprocess
+
+    import fsswarp.reconstruction
+
+    loop_profile = _bench_module("loop_profile")
+    commands, runs, original = [], [], fsswarp.reconstruction.reconstruct
+
+    def simulate(command, **kwargs):
+        commands.append(command)
+        shutil.copytree(coral_one.root, command[command.index("--out") + 1])
+        return subprocess.CompletedProcess(command, 0, "", "")
+
+    monkeypatch.setattr(loop_profile.subprocess, "run", simulate)
+    monkeypatch.setattr(fsswarp.reconstruction, "reconstruct", lambda *a, **k: runs.append(k) or original(*a, **k))
+    assert loop_profile.main(["--backend", "opencl", "--iterations", "0", "--fresh", "--seed", "3"]) == 0
+    assert len(runs) == 1 and len(commands) == 1
+    assert commands[0][1:] == ["-m", "fsswarp", "-q", "--backend", "opencl", "simulate", "coral-one", "--out",
+                               commands[0][9], "--seed", "3"]
+    out = capsys.readouterr().out
+    assert "from the process's first reconstruction on opencl" in out
+    assert "packages with modules first imported during the run: " in out and "| `carve` | 1 |" in out
+    monkeypatch.setattr(loop_profile.subprocess, "run", lambda command, **kwargs: subprocess.CompletedProcess(
+        command, 2, "", "fsswarp: error: no such scene"))
+    with pytest.raises(SystemExit) as exited:
+        loop_profile.main(["--backend", "opencl", "--iterations", "0", "--fresh"])
+    assert exited.value.code == 2 and "no such scene" in capsys.readouterr().err
+
+
 def test_loop_profile_bad_options_exit_2(capsys):
     assert _bench_module("loop_profile").main(["--iterations", "-1"]) == 2
     assert _bench_module("loop_profile").main(["--backend", "opencl", "--warp"]) == 2
