@@ -19,6 +19,7 @@ per reconstruction (wall / N) and the throughput relative to N = 1.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
 import statistics
@@ -27,6 +28,10 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+_spec = importlib.util.spec_from_file_location("bench_profiling", Path(__file__).resolve().parent / "profiling.py")
+profiling = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(profiling)
 
 #: The values of result.json that every command of a batch must agree on.
 AGREED = ("depth_m", "tilt_deg", "best_iteration")
@@ -69,13 +74,8 @@ def reference_run(root: Path, scene: str, seed: int, iterations: int, options: l
     caches) into ``root``/warm, with the global ``options``. Where a command fails, its stderr
     goes to stderr and SystemExit ends the benchmark with its status."""
     dataset, warm = root / "dataset", root / "warm"
-    for command in (["simulate", scene, "--out", str(dataset), "--seed", str(seed)],
-                    ["reconstruct", str(dataset), "--out", str(warm), "--iterations", str(iterations)]):
-        done = subprocess.run([sys.executable, "-m", "fsswarp", "-q", *options, *command], capture_output=True,
-                              text=True)
-        if done.returncode:
-            print(done.stderr.strip(), file=sys.stderr)
-            raise SystemExit(done.returncode)
+    profiling.run_fsswarp(*options, "simulate", scene, "--out", str(dataset), "--seed", str(seed))
+    profiling.run_fsswarp(*options, "reconstruct", str(dataset), "--out", str(warm), "--iterations", str(iterations))
     return dataset, json.loads((warm / "result.json").read_text())
 
 
@@ -111,11 +111,8 @@ def main(argv: list[str] | None = None) -> int:
     walls: dict[int, list[float]] = {n: [] for n in args.jobs}
     with tempfile.TemporaryDirectory() as folder:
         root = Path(folder)
-        done = subprocess.run([sys.executable, "-m", "fsswarp", "-q", *args.options, "simulate", args.scene, "--out",
-                               str(root / "dataset"), "--seed", str(args.seed)], capture_output=True, text=True)
-        if done.returncode != 0:
-            print(done.stderr.strip(), file=sys.stderr)
-            return done.returncode
+        profiling.run_fsswarp(*args.options, "simulate", args.scene, "--out", str(root / "dataset"), "--seed",
+                              str(args.seed))
         _, (reference,) = run_batch(root / "dataset", [root / "warm"], args.iterations, args.options)
         for round_ in range(args.rounds):
             for jobs in args.jobs:

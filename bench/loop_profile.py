@@ -24,12 +24,9 @@ from __future__ import annotations
 
 import argparse
 import collections
-import contextlib
 import functools
 import importlib.util
-import subprocess
 import sys
-import tempfile
 import threading
 import time
 from pathlib import Path
@@ -104,25 +101,6 @@ class CallTimes(profiling.Patches):
         return "\n".join(lines)
 
 
-@contextlib.contextmanager
-def simulated_apart(args: argparse.Namespace):
-    """The dataset of the scene options' scene and seed, simulated on their backend by a
-    ``fsswarp simulate`` child process into a temporary folder and loaded from it (``--fresh``:
-    this process then has computed nothing of it yet)."""
-    from fsswarp.dataset import load_dataset
-
-    with tempfile.TemporaryDirectory() as folder:
-        out = Path(folder) / args.scene
-        options = [*(["--backend", args.backend] if args.backend else []),
-                   *(["--device", args.device] if args.device else [])]
-        done = subprocess.run([sys.executable, "-m", "fsswarp", "-q", *options, "simulate", args.scene, "--out",
-                               str(out), "--seed", str(args.seed)], capture_output=True, text=True)
-        if done.returncode:
-            print(done.stderr.strip(), file=sys.stderr)
-            raise SystemExit(done.returncode)
-        yield load_dataset(out)
-
-
 def instrument(times: CallTimes, backend, *, outermost: bool = False) -> None:
     """Wrap ``WRAPPED`` (and rebind the names in ``REBOUND``) and ``backend``'s ``BACKEND_METHODS``
     (``outermost``: each call counted only outside the other wrapped calls)."""
@@ -174,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.warp and backend.name != "warp":
         print(f"loop_profile: error: --warp needs a Warp backend, got {backend.name}", file=sys.stderr)
         return 2
-    with (simulated_apart(args) if args.fresh else profiling.simulated(args, backend)) as dataset:
+    with (profiling.simulated_apart(args) if args.fresh else profiling.simulated(args, backend)) as dataset:
         if not args.fresh:
             reconstruct(dataset, settings=ReconstructSettings(iterations=min(1, args.iterations)), backend=backend)
         times, warp_labels = CallTimes(main_only=args.main), []

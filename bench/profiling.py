@@ -1,7 +1,8 @@
 """Pieces shared by the profile scripts of bench/ (exact_profile, refine_profile, mesh_profile,
-loop_profile): their scene options, checked, with the backend they name and the scene simulated
-into a temporary folder, functions replaced until restored (timed stages), the
-CPU's name for a record, and per-stage medians and their Markdown table."""
+loop_profile) and the batch benchmarks: their scene options, checked, with the backend they name
+and the scene simulated into a temporary folder (in this process or a child's), an fsswarp
+command run to its end, functions replaced until restored (timed stages), the CPU's name for a
+record, and per-stage medians and their Markdown table."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import contextlib
 import functools
 import hashlib
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -49,6 +51,30 @@ def simulated(args: argparse.Namespace, backend):
 
     with tempfile.TemporaryDirectory() as folder:
         yield simulate(args.scene, Path(folder) / args.scene, seed=args.seed, backend=backend)
+
+
+def run_fsswarp(*arguments: str) -> None:
+    """Run ``python -m fsswarp -q ARGUMENTS`` (global options first) in a child process; where it
+    fails, its stderr goes to stderr and SystemExit ends the benchmark with its status."""
+    done = subprocess.run([sys.executable, "-m", "fsswarp", "-q", *arguments], capture_output=True, text=True)
+    if done.returncode:
+        print(done.stderr.strip(), file=sys.stderr)
+        raise SystemExit(done.returncode)
+
+
+@contextlib.contextmanager
+def simulated_apart(args: argparse.Namespace):
+    """The dataset of the scene options' scene and seed, simulated on their backend by a
+    ``fsswarp simulate`` child process into a temporary folder and loaded from it (this process
+    then has computed nothing of it yet)."""
+    from fsswarp.dataset import load_dataset
+
+    with tempfile.TemporaryDirectory() as folder:
+        out = Path(folder) / args.scene
+        run_fsswarp(*(["--backend", args.backend] if args.backend else []),
+                    *(["--device", args.device] if args.device else []),
+                    "simulate", args.scene, "--out", str(out), "--seed", str(args.seed))
+        yield load_dataset(out)
 
 
 def mesh_digest(mesh) -> str:

@@ -35,6 +35,7 @@ def pytest_sessionstart(session):
 
     compileall.compile_dir(Path(fsswarp.__file__).parent, quiet=1)
 
+
 #: Labels of the ``backend`` fixture: "<backend>-<device kind>".
 BACKEND_LABELS = [
     pytest.param("warp-cpu", id="warp-cpu"),

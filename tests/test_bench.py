@@ -599,7 +599,7 @@ def test_loop_profile_fresh_times_the_process_s_first_reconstruction(coral_one, 
         shutil.copytree(coral_one.root, command[command.index("--out") + 1])
         return subprocess.CompletedProcess(command, 0, "", "")
 
-    monkeypatch.setattr(loop_profile.subprocess, "run", simulate)
+    monkeypatch.setattr(subprocess, "run", simulate)
     monkeypatch.setattr(fsswarp.reconstruction, "reconstruct", lambda *a, **k: runs.append(k) or original(*a, **k))
     assert loop_profile.main(["--backend", "opencl", "--iterations", "0", "--fresh", "--seed", "3"]) == 0
     assert len(runs) == 1 and len(commands) == 1
@@ -608,7 +608,7 @@ def test_loop_profile_fresh_times_the_process_s_first_reconstruction(coral_one, 
     out = capsys.readouterr().out
     assert "from the process's first reconstruction on opencl" in out
     assert "packages with modules first imported during the run: " in out and "| `carve` | 1 |" in out
-    monkeypatch.setattr(loop_profile.subprocess, "run", lambda command, **kwargs: subprocess.CompletedProcess(
+    monkeypatch.setattr(subprocess, "run", lambda command, **kwargs: subprocess.CompletedProcess(
         command, 2, "", "fsswarp: error: no such scene"))
     with pytest.raises(SystemExit) as exited:
         loop_profile.main(["--backend", "opencl", "--iterations", "0", "--fresh"])
