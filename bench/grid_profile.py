@@ -2,7 +2,7 @@
 
     python bench/grid_profile.py [--scene NAME] [--backend B] [--device D] [--seed S]
                                  [--sides N ...] [--launch-mib M ...] [--repeat R] [--kernels]
-                                 [--timeline]
+                                 [--timeline] [--gaps]
 
 Simulates the scene (noisy, ``--seed``) with every view to optimize, locates its true model at
 the true (D, β) (as ``fsswarp bench``'s pose family does), and times ``ViewComparison.surrogate``
@@ -16,6 +16,11 @@ pair's costs do not depend on the launch it shares, so every launch size gives t
 ``--timeline``: the host's calls in one more call, from its start: each launch's plan
 (``plan_pairs``; on a GPU in the planning thread), render and costs, with the thread that made
 them; a plan that ends after the GPU finished the launch before leaves the GPU idle.
+``--gaps`` (Warp on a CUDA device): one more call with a timing event recorded on the stream
+before and after each of fsswarp's kernel launches: when the GPU began the call's first kernel,
+the kernels' own time, the time between them (copies, zeroing and waiting for the host), the
+part of that the GPU spent waiting for the host to issue the next launch, and the call's end
+after the last kernel, with each launch where the GPU waited for the host.
 """
 
 from __future__ import annotations
@@ -77,6 +82,67 @@ def timeline(problem, depths, tilts) -> tuple[float, list[tuple[float, float, st
         patches.restore()
 
 
+def gaps(problem, depths, tilts) -> tuple[float, list[tuple[str, float, float, float]]]:
+    """(the call's seconds, [(kernel, host issue s, GPU start s, GPU end s)]) of one ``surrogate``
+    call, times from the call's start, for each launch of ``fsswarp.backends.warp.backend._launch``
+    (a timing event recorded on the stream before and after it; the first event, recorded at the
+    call's start on an idle GPU, aligns the GPU's clock with the host's)."""
+    import time
+
+    import warp as wp
+
+    from fsswarp.backends.warp import backend as warp_backend
+
+    patches, marks, device = profiling.Patches(), [], problem.backend.device
+    original = warp_backend._launch
+
+    def marked(kernel, dim, **kwargs):
+        before, after = wp.Event(device, enable_timing=True), wp.Event(device, enable_timing=True)
+        issued = time.perf_counter()
+        wp.record_event(before)
+        original(kernel, dim, **kwargs)
+        wp.record_event(after)
+        marks.append((kernel.key, issued, before, after))
+
+    wp.synchronize()
+    origin = wp.Event(device, enable_timing=True)
+    patches.replace(warp_backend, "_launch", marked)
+    try:
+        start = time.perf_counter()
+        wp.record_event(origin)
+        problem.surrogate(depths, tilts)
+        total = time.perf_counter() - start
+    finally:
+        patches.restore()
+    wp.synchronize()
+    return total, [(name, issued - start, 1e-3 * wp.get_event_elapsed_time(origin, before),
+                    1e-3 * wp.get_event_elapsed_time(origin, after)) for name, issued, before, after in marks]
+
+
+def gap_summary(total: float, marks: list[tuple[str, float, float, float]]) -> str:
+    """Markdown lines of :func:`gaps`' marks: the GPU's first start, its kernels' own time, the
+    time between kernels and the part of it waited for the host, the end after the last kernel,
+    and each launch that the GPU waited for (more than 0.1 ms)."""
+    if not marks:
+        return "no kernel launched"
+    own = sum(end - begin for _, _, begin, end in marks)
+    between = waited = 0.0
+    rows = []
+    for (_, _, _, previous), (name, issued, begin, end) in zip(marks, marks[1:]):
+        between += max(begin - previous, 0.0)
+        wait = min(max(issued - previous, 0.0), max(begin - previous, 0.0))
+        waited += wait
+        if wait > 1e-4:
+            rows.append(f"| {name} | {1e3 * issued:.2f} | {1e3 * begin:.2f} | {1e3 * wait:.2f} |")
+    lines = [f"call {1e3 * total:.1f} ms: the first kernel began at {1e3 * marks[0][2]:.2f} ms; "
+             f"{len(marks)} kernels {1e3 * own:.1f} ms; between them {1e3 * between:.1f} ms, of which the GPU "
+             f"waited for the host {1e3 * waited:.1f} ms; the call ended {1e3 * (total - marks[-1][3]):.2f} ms "
+             "after the last kernel"]
+    if rows:
+        lines += ["", "| kernel the GPU waited for | issued ms | began ms | waited ms |", "|---|---|---|---|", *rows]
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     profiling.add_scene_options(parser)
@@ -85,6 +151,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--kernels", action="store_true")
     parser.add_argument("--timeline", action="store_true")
+    parser.add_argument("--gaps", action="store_true")
     args = parser.parse_args(argv)
     import numpy as np
 
@@ -108,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     truth = dataset.manifest.truth
     print(f"{args.scene} (seed {args.seed}), {len(dataset.images)} views, on {backend.name} {backend.device}\n")
     print("| launch | side | cells per launch | median ms | min–max ms | checksum |\n|---|---|---|---|---|---|")
-    kernels, timelines = [], []
+    kernels, timelines, gapped = [], [], []
     for size in args.launch_mib:
         problem = ViewComparison(dataset, settings=PoseSettings(launch_bytes=size << 20), backend=backend).use(
             model, truth.depth, truth.tilt)
@@ -122,15 +189,21 @@ def main(argv: list[str] | None = None) -> int:
                   flush=True)
             if args.kernels and backend.name == "warp" and backend.is_gpu:
                 kernels.append((size, side, kernel_times(problem, depths, tilts)))
+            if args.gaps and backend.name == "warp" and backend.is_gpu:
+                gapped.append((size, side, *gaps(problem, depths, tilts)))
             if args.timeline:
                 timelines.append((size, side, *timeline(problem, depths, tilts)))
     if args.kernels and not kernels:
         print("\n--kernels: the GPU's times need Warp on a CUDA device")
+    if args.gaps and not gapped:
+        print("\n--gaps: the GPU's times need Warp on a CUDA device")
     for size, side, rows in kernels:
         print(f"\n{size} MiB, {side} × {side}: GPU {sum(ms for _, _, ms in rows):.1f} ms\n\n"
               "| kernel or copy | calls | GPU ms |\n|---|---|---|")
         for name, calls, ms in rows:
             print(f"| {name} | {calls} | {ms:.2f} |")
+    for size, side, total, marks in gapped:
+        print(f"\n{size} MiB, {side} × {side}: the GPU's gaps in one call\n\n{gap_summary(total, marks)}")
     for size, side, total, stamps in timelines:
         print(f"\n{size} MiB, {side} × {side}: one call's host calls, {1e3 * total:.1f} ms\n\n"
               "| start ms | ms | thread | call |\n|---|---|---|---|")
