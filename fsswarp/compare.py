@@ -387,13 +387,15 @@ class ViewComparison:
         surface reflection."""
         return replace(ECHO, samples=tuple(self.settings.exact_samples))
 
-    def render_pairs(self, views, depths: np.ndarray, tilts: np.ndarray, samples, rows=None, beams=None):
+    def render_pairs(self, views, depths: np.ndarray, tilts: np.ndarray, samples, rows=None, beams=None,
+                     components: bool = False):
         """DeviceLayers (G·V, 4, bins, beams) of cells (G,) in the dataset views ``views``, or
-        bands of rows and the beams read: ``rows`` and ``beams`` as ``Backend.render_device``
-        takes them."""
-        return self._render_planned(self.plan_pairs(views, depths, tilts, samples, rows, beams))
+        bands of rows, the beams read and the components' sums: ``rows``, ``beams`` and
+        ``components`` as ``Backend.render_device`` takes them."""
+        return self._render_planned(self.plan_pairs(views, depths, tilts, samples, rows, beams, components))
 
-    def plan_pairs(self, views, depths: np.ndarray, tilts: np.ndarray, samples, rows=None, beams=None):
+    def plan_pairs(self, views, depths: np.ndarray, tilts: np.ndarray, samples, rows=None, beams=None,
+                   components: bool = False):
         """The host half of :meth:`render_pairs` (``Backend.plan_render``): a RenderPlan, made
         without the device (thread-safe)."""
         rot, t, n, d = self.view_poses(views, depths, tilts)
@@ -401,7 +403,8 @@ class ViewComparison:
             raise InputError("the sonar must lie below the surface in every view", field="depth",
                              value=float(np.min(depths)))
         return self.backend.plan_render(self.mesh, self.sonar, rot.reshape(-1, 3, 3), t.reshape(-1, 3),
-                                        n.reshape(-1, 3), d.reshape(-1), samples, rows=rows, beams=beams)
+                                        n.reshape(-1, 3), d.reshape(-1), samples, rows=rows, beams=beams,
+                                        components=components)
 
     def _render_planned(self, plan, wait: bool = True):
         return self.backend.render_planned(self.mesh, self.sonar, plan, gamma=ECHO.gamma,
@@ -411,14 +414,15 @@ class ViewComparison:
         """How :meth:`view_costs` renders the data views: (first (V,), R, read (V, 2, beams), cells per
         launch): the band of R rows from ``first`` that holds what each view's window reads
         (``rows_read``, the widest view's R, started lower where it would pass the last row), the
-        beams its masks read (``beams_read``), and the most cells (at least one) whose layers (16 B
-        per pixel of the bands: four int32 layers) fit ``settings.launch_bytes`` and one launch's
-        2^31 values, and, with ``samples`` (K_θ, K_φ), whose sub-rays stay below 2^31."""
+        beams its masks read (``beams_read``), and the most cells (at least one) whose layers (8 B
+        per pixel of the bands: the two components' int32 sums) fit ``settings.launch_bytes`` and
+        one launch's 2^31 values, and, with ``samples`` (K_θ, K_φ), whose sub-rays stay below 2^31."""
         data, sonar = self.data, self.sonar
         need_lo, need_hi = rows_read(data.windows, len(self.smoothing[0]), sonar.bins)
         rows = int(np.max(need_hi - need_lo))
-        values = 4 * rows * sonar.beams * len(data.views)  # a cell's
-        bounds = [self.settings.launch_bytes // (4 * values), most_layer_views(rows, sonar.beams) // len(data.views)]
+        values = 2 * rows * sonar.beams * len(data.views)  # a cell's
+        bounds = [self.settings.launch_bytes // (4 * values),
+                  most_layer_views(rows, sonar.beams, 2) // len(data.views)]
         if samples is not None:
             bounds.append(most_launch_views(sonar.beams, *samples) // len(data.views))
         per = max(1, min(bounds))
@@ -432,8 +436,9 @@ class ViewComparison:
         ``settings.launch_bytes`` or its sub-rays 2^31.
 
         Each pair renders only the band of rows its view's window reads and the beams its masks
-        read (:meth:`grid_launches`; ``render_device``'s ``rows`` and ``beams``): the contours
-        and costs are those of full layers, bit for bit. One cell at the located estimate with
+        read, into the two components' sums (:meth:`grid_launches`; ``render_device``'s ``rows``,
+        ``beams`` and ``components``): the contours and costs are those of full layers, bit for
+        bit. One cell at the located estimate with
         the exact samples reads the layers rendered there, on the device (``_located_index``; no
         render: the same pixels). On a GPU the host work of each launch after the first
         (:meth:`plan_pairs`) is done in a thread while the launch before it runs, and the first
@@ -454,7 +459,7 @@ class ViewComparison:
                     and tuple(samples) == tuple(self.settings.exact_samples):
                 return None  # the located layers
             return self.plan_pairs(data.views, cell_d, cell_t, samples, rows=(np.tile(first, len(cell_d)), rows),
-                                   beams=np.tile(read, (len(cell_d), 1, 1)))
+                                   beams=read, components=True)
 
         def launch_costs(g: int, planned, wait: bool):
             """(the launch's costs (g, V, S), or with ``wait`` false a function that returns them;
@@ -769,8 +774,9 @@ def _gaussian(sigma: float) -> np.ndarray:
 
 
 #: With launches planned ahead, the first launch holds this share of a full one (at least
-#: ``FIRST_LAUNCH_CELLS`` cells), so that the device starts while the next is planned.
-FIRST_LAUNCH_SHARE = 0.25
+#: ``FIRST_LAUNCH_CELLS`` cells), so that the device starts while the next is planned: 450 of
+#: the 3,603 cells of coral-one's 4 GiB launches, whose plan takes ~4 ms on an H200's host.
+FIRST_LAUNCH_SHARE = 0.125
 FIRST_LAUNCH_CELLS = 64
 
 

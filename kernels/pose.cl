@@ -3,17 +3,19 @@
  *
  * Purpose: N rendered views ("pairs": one grid cell and one data view each, from
  * render_views) are compared with V data views. Component c of pair n is the sum of two
- * layers: c = 0 object + ghost (layers 0, 1), c = 1 mirror + double-bounce mirror (layers 2, 3).
+ * layers: c = 0 object + ghost (layers 0, 1), c = 1 mirror + double-bounce mirror (layers 2, 3);
+ * or, with planes 2, plane c of the components' sums. Fixed-point layers are summed as
+ * integers before their conversion, so both give the same values.
  *
  * frontal_contour, work-item (k, n) = (item, pair), v = view_index[n]: item k of view v,
  *   items[v][k] = c · beams + b (-1: none; the masked beams of each component, host's
  *   fsswarp.backends.base.mask_items), finds contour[n][c][b]; the host sets every other entry
  *   to -1 (the beams that mask[v][c] leaves out). The component is smoothed with the
  *   separable weights (wB: 2 rB + 1 taps along range, wb: 2 rb + 1 taps across beams; indices
- *   clamped to the image, scipy's "nearest" border):
- *     row_i = Σ_j wb[j] · (L[n][2c][B_i][b_j] + L[n][2c+1][B_i][b_j]),  s(B) = Σ_i wB[i] · row_i
+ *   clamped to the image, scipy's "nearest" border), C[n][c] the component:
+ *     row_i = Σ_j wb[j] · C[n][c][B_i][b_j],  s(B) = Σ_i wB[i] · row_i
  *   with B_i = clamp(B + i − rB), b_j = clamp(b + j − rb), sums in index order (each row_i is
- *   summed once per row, kept in a ring of 2 rB + 1 rows up to RING_TAPS); L[n][l][B] is
+ *   summed once per row, kept in a ring of 2 rB + 1 rows up to RING_TAPS); C[n][c][B] is
  *   image row B of pair n, stored at row B − first_rows[n] of its band. The first row B
  *   of the window lo <= B < hi (window[v]) where f(B) = s(B) − threshold[v][B] > 0 gives the
  *   crossing: lo when B == lo, else (B − 1) + f(B − 1) / (f(B − 1) − f(B)) (fractional row,
@@ -32,10 +34,11 @@
  * band [first_rows[n], first_rows[n] + rows), so results equal those of full layers bit for bit.
  *
  * Arguments:
- *   layers       (N, 4, rows, beams) float32 (fixed 0) or render_views' fixed-point int
+ *   layers       (N, P, rows, beams) float32 (fixed 0) or render_views' fixed-point int
  *                accumulator (fixed 1; 2^24 = 1, read as fixed_to_float converts it), in a
  *                buffer read as int: band n holds image rows first_rows[n] ..
- *                first_rows[n] + rows − 1 (full layers: first_rows 0, rows = bins)
+ *                first_rows[n] + rows − 1 (full layers: first_rows 0, rows = bins); P = planes,
+ *                4 (the layers) or 2 (the components' sums)
  *   first_rows   (N,) int;  rows  R, the rows of every band
  *   view_index   (N,) int        data view of each pair
  *   threshold    (V, bins) float  detection threshold of each data view and row
@@ -60,20 +63,24 @@
  * smoothing sums every tap's row afresh. Either way the same sums in the same order. */
 #define RING_TAPS 33
 
-/* Value k of a layer plane: fixed-point (fixed 1, as fixed_to_float converts it) or float32 bits. */
-inline float layer_value(__global const int *plane, const size_t k, const int fixed)
+/* Value k of a component: planes l0 + l1 (two 1) or l0 alone (two 0), fixed-point (fixed 1,
+ * summed as integers, then as fixed_to_float converts it) or float32 bits. */
+inline float component_value(__global const int *l0, __global const int *l1, const int two, const size_t k,
+                             const int fixed)
 {
-    return fixed ? (float)plane[k] * (1.0f / FSS_FIXED) : as_float(plane[k]);
+    if (fixed)
+        return (float)(two ? l0[k] + l1[k] : l0[k]) * (1.0f / FSS_FIXED);
+    return two ? as_float(l0[k]) + as_float(l1[k]) : as_float(l0[k]);
 }
 
-/* Component planes l0 + l1 in band row Bi smoothed across the beams at beam b. */
-static float beam_row(__global const int *l0, __global const int *l1, const int fixed, const int Bi, const int b,
-                      const int beams, __global const float *wb, const int rb)
+/* The component (l0, l1, two) in band row Bi smoothed across the beams at beam b. */
+static float beam_row(__global const int *l0, __global const int *l1, const int two, const int fixed, const int Bi,
+                      const int b, const int beams, __global const float *wb, const int rb)
 {
     float row = 0.0f;
     for (int j = 0; j <= 2 * rb; ++j) {
         const size_t k = (size_t)Bi * beams + clamp(b + j - rb, 0, beams - 1);
-        row += wb[j] * (layer_value(l0, k, fixed) + layer_value(l1, k, fixed));
+        row += wb[j] * component_value(l0, l1, two, k, fixed);
     }
     return row;
 }
@@ -93,6 +100,7 @@ __kernel void frontal_contour(__global const int *layers,
                               const int beams,
                               __global const int *first_rows,
                               const int rows,
+                              const int planes,
                               __global float *contour)
 {
     const int k = get_global_id(0);
@@ -108,8 +116,9 @@ __kernel void frontal_contour(__global const int *layers,
     __global float *out = contour + ((size_t)n * 2 + c) * beams + b;
     const size_t plane = (size_t)rows * beams;
     const int first = first_rows[n];
-    __global const int *l0 = layers + ((size_t)n * 4 + 2 * c) * plane;
-    __global const int *l1 = l0 + plane;
+    const int two = planes == 4;
+    __global const int *l0 = layers + ((size_t)n * planes + c * (planes / 2)) * plane;
+    __global const int *l1 = l0 + plane; /* read where two */
     __global const float *thr = threshold + (size_t)v * bins;
     const int lo = window[2 * v];
     const int hi = window[2 * v + 1];
@@ -121,19 +130,21 @@ __kernel void frontal_contour(__global const int *layers,
     int oldest = (lo - rB + taps) % taps; /* the slot of row B - rB */
     if (cached)
         for (int row = lo - rB, slot = oldest; row < lo + rB; ++row, slot = slot + 1 == taps ? 0 : slot + 1)
-            ring[slot] = beam_row(l0, l1, fixed, clamp(row, 0, bins - 1) - first, b, beams, wb, rb);
+            ring[slot] = beam_row(l0, l1, two, fixed, clamp(row, 0, bins - 1) - first, b, beams, wb, rb);
     float previous = 0.0f;
     for (int B = lo; B < hi; ++B) {
         float s = 0.0f;
         if (cached) { /* row B + rB takes the slot of row B - rB - 1 */
-            ring[oldest == 0 ? taps - 1 : oldest - 1] = beam_row(l0, l1, fixed, clamp(B + rB, 0, bins - 1) - first,
-                                                                 b, beams, wb, rb);
+            ring[oldest == 0 ? taps - 1 : oldest - 1] = beam_row(l0, l1, two, fixed,
+                                                                 clamp(B + rB, 0, bins - 1) - first, b, beams, wb,
+                                                                 rb);
             for (int i = 0, slot = oldest; i < taps; ++i, slot = slot + 1 == taps ? 0 : slot + 1)
                 s += wB[i] * ring[slot];
             oldest = oldest + 1 == taps ? 0 : oldest + 1;
         } else {
             for (int i = 0; i < taps; ++i)
-                s += wB[i] * beam_row(l0, l1, fixed, clamp(B + i - rB, 0, bins - 1) - first, b, beams, wb, rb);
+                s += wB[i] * beam_row(l0, l1, two, fixed, clamp(B + i - rB, 0, bins - 1) - first, b, beams, wb,
+                                      rb);
         }
         const float f = s - thr[B];
         if (f > 0.0f) {

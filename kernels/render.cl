@@ -17,6 +17,7 @@
  *   first_rows    (N,) int        first image row of each view's band (0 for full layers)
  *   rows          R, rows per band (bins for full layers); 0 <= first_rows[v],
  *                 first_rows[v] + R <= bins (the host validates)
+ *   planes        P: 4, the layers; 2, the components' sums (layer l lands in plane l P / 4)
  *   spans         (N, 4) int       view v casts only beams spans[v][0] <= b < spans[v][1] and
  *                 elevation samples spans[v][2] <= j < spans[v][3] (view_spans on a GPU, the
  *                 host's ray_spans on a CPU: the others reach nothing), in chunks of `chunk`
@@ -27,12 +28,13 @@
  *                 hit_range and hit_tri of pose p (direct_hits, the same float operations)
  *   hit_range, hit_tri  (P, beams, k_theta, k_phi) float and int of direct_hits (unused
  *                 where every poses[v] is -1)
- *   masked, needed  masked 0: every pixel; 1: needed (N, 2, beams) uchar, the beams read of
- *                 each component (0: object + ghost, layers 0-1; 1: mirror + mirror2, layers
- *                 2-3): a return is deposited only where its component's beam is needed (the
- *                 other pixels stay zero), and a leg whose returns land nowhere needed is not cast
- *   acc           (N, 4, R, beams) int  fixed-point accumulator (2^24 = 1), zeroed by the host:
- *                 a return of view v at image row B lands in acc[v][layer][B − first_rows[v]]
+ *   masked, needed  masked 0: every pixel; M >= 1: needed (M, 2, beams) uchar, the beams read
+ *                 of each component (0: object + ghost, layers 0-1; 1: mirror + mirror2, layers
+ *                 2-3), view v's at row v % M: a return is deposited only where its component's
+ *                 beam is needed (the other pixels stay zero), and a leg whose returns land
+ *                 nowhere needed is not cast
+ *   acc           (N, P, R, beams) int  fixed-point accumulator (2^24 = 1), zeroed by the host:
+ *                 a return of view v at image row B lands in acc[v][layer P / 4][B − first_rows[v]]
  *                 when that lies in [0, R) (and its beam in the image), else it is dropped.
  *                 Integer atomics: a pixel's value does not depend on which pixels are kept.
  *   hits, hit_items, hit_ranges, hit_size  the queue of the hits before the surface (hit_returns
@@ -55,22 +57,23 @@
 #error "build with -DFSS_FIXED=... (fsswarp.backends.constants.opencl_defines)"
 #endif
 
-/* Add the return at (range, beam) to view v's band: first image row `first`, R = rows. */
+/* Add the return at (range, beam) to view v's band: first image row `first`, R = rows, in plane
+ * layer P / 4 of P = planes. */
 void fss_deposit(__global int *acc, int v, int layer, int beam, float range, float amplitude,
-                 float weight, fss_sonar sonar, int first, int rows)
+                 float weight, fss_sonar sonar, int first, int rows, int planes)
 {
     const int bin = fss_nearest_index(fss_bin_coordinate(range, sonar)) - first;
     if (beam < 0 || beam >= sonar.beams || bin < 0 || bin >= rows)
         return;
     const int value = (int)(amplitude * weight * FSS_FIXED + 0.5f);
     if (value != 0)
-        atomic_add(acc + ((v * 4 + layer) * rows + bin) * sonar.beams + beam, value);
+        atomic_add(acc + ((v * planes + layer * planes / 4) * rows + bin) * sonar.beams + beam, value);
 }
 
 /* Whether view v's component c is read at `beam` (render_views' masked and needed). */
 inline int fss_needed(__global const uchar *needed, int masked, int v, int c, int beam, int beams)
 {
-    return !masked || (beam >= 0 && beam < beams && needed[(v * 2 + c) * beams + beam] != 0);
+    return !masked || (beam >= 0 && beam < beams && needed[((v % masked) * 2 + c) * beams + beam] != 0);
 }
 
 /* R q (view-frame direction to reference frame). */
@@ -306,7 +309,8 @@ void fss_hit_returns(__global const float4 *nodes, __global const int *children,
                      __global const float *directions, __global const float *beam_table, const fss_sonar sonar,
                      const int k_theta, const int k_phi, const float weight, const float gamma,
                      const float surface_reflection, const float epsilon, __global const int *first_rows,
-                     const int rows, const int masked, __global const uchar *needed, const int4 item, const float r,
+                     const int rows, const int planes, const int masked, __global const uchar *needed,
+                     const int4 item, const float r,
                      __global int *acc)
 {
     const int v = item.x;
@@ -326,7 +330,7 @@ void fss_hit_returns(__global const float4 *nodes, __global const int *children,
     const float c = -un;
     const int want_object = fss_needed(needed, masked, v, 0, b, sonar.beams);
     if (want_object)
-        fss_deposit(acc, v, 0, b, r, pow(c, gamma), weight, sonar, first, rows);
+        fss_deposit(acc, v, 0, b, r, pow(c, gamma), weight, sonar, first, rows, planes);
     /* the path via the surface: Q on the surface, between the mirror sonar O2 and P */
     const float3 P = r * u;
     const float3 O2 = (2.0f * d) * n;
@@ -363,9 +367,9 @@ void fss_hit_returns(__global const float4 *nodes, __global const int *children,
     const float a_s = surface_reflection * pow(c * c_in, 0.5f * gamma);
     const float R_s = (r + q_len) * 0.5f;
     if (want_object)
-        fss_deposit(acc, v, 1, b, R_s, a_s, weight, sonar, first, rows);
+        fss_deposit(acc, v, 1, b, R_s, a_s, weight, sonar, first, rows, planes);
     if (want_mirror)
-        fss_deposit(acc, v, 2, bm, R_s, a_s, weight, sonar, first, rows);
+        fss_deposit(acc, v, 2, bm, R_s, a_s, weight, sonar, first, rows, planes);
 }
 
 __kernel void render_views(__global const float4 *nodes,
@@ -387,6 +391,7 @@ __kernel void render_views(__global const float4 *nodes,
                            const float max_distance,
                            __global const int *first_rows,
                            const int rows,
+                           const int planes,
                            __global const int *spans,
                            __global const int *chunks,
                            __global const int *offsets,
@@ -445,7 +450,7 @@ __kernel void render_views(__global const float4 *nodes,
             if (hit_size == 0) {
                 fss_hit_returns(nodes, children, tris, rotations, translations, plane_normals, plane_offsets,
                                 directions, beam_table, sonar, k_theta, k_phi, weight, gamma, surface_reflection,
-                                epsilon, first_rows, rows, masked, needed, queued, r, acc);
+                                epsilon, first_rows, rows, planes, masked, needed, queued, r, acc);
             } else {
                 const int slot = atomic_inc(hits);
                 if (slot < hit_size) {
@@ -468,7 +473,7 @@ __kernel void render_views(__global const float4 *nodes,
                 continue;
             const float c2 = fabs(fss_dot(u2_ref, fss_tri_normal(tris, tri2)));
             fss_deposit(acc, v, 3, b, s_surf + r2, surface_reflection * surface_reflection * pow(c2, gamma),
-                        weight, sonar, first, rows);
+                        weight, sonar, first, rows, planes);
         }
     }
 }
@@ -496,6 +501,7 @@ __kernel void hit_returns(__global const float4 *nodes,
                           const float epsilon,
                           __global const int *first_rows,
                           const int rows,
+                          const int planes,
                           const int masked,
                           __global const uchar *needed,
                           __global const int *hits,
@@ -508,7 +514,7 @@ __kernel void hit_returns(__global const float4 *nodes,
     for (int q = (int)get_global_id(0); q < count; q += (int)get_global_size(0))
         fss_hit_returns(nodes, children, tris, rotations, translations, plane_normals, plane_offsets, directions,
                         beam_table, sonar, k_theta, k_phi, weight, gamma, surface_reflection, epsilon, first_rows,
-                        rows, masked, needed, hit_items[q], hit_ranges[q], acc);
+                        rows, planes, masked, needed, hit_items[q], hit_ranges[q], acc);
 }
 
 /* frontal_rays -- the elevation rays of the beams whose frontal patch Backend.frontal_faces

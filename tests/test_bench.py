@@ -682,23 +682,38 @@ def test_the_profile_scripts_refuse_bad_options_with_exit_2(script, options, cap
 def test_grid_profile_gives_every_launch_size_the_same_costs(capsys):
     """The grid in launches of one cell and in one launch: one table row each, the same checksum
     of the costs (a pair's costs do not depend on its launch), no kernel table off CUDA."""
-    assert _bench_module("grid_profile").main(["--backend", "opencl", "--sides", "3", "--launch-mib", "4", "4096",
-                                                "--repeat", "1", "--kernels"]) == 0
+    assert _bench_module("grid_profile").main(["--backend", "opencl", "--sides", "3", "--launch-mib", "2", "4096",
+                                                "--repeat", "1", "--kernels", "--gaps"]) == 0
     out = capsys.readouterr().out
     rows = [line.split(" | ") for line in out.splitlines() if line.startswith("| ") and "MiB" in line]
-    assert [row[0] for row in rows] == ["| 4 MiB", "| 4096 MiB"] and [row[2] for row in rows] == ["1", "1801"]
+    assert [row[0] for row in rows] == ["| 2 MiB", "| 4096 MiB"] and [row[2] for row in rows] == ["1", "3603"]
     assert rows[0][5] == rows[1][5] and float(rows[0][5].rstrip(" |")) > 0
-    assert "need Warp on a CUDA device" in out
+    assert "--kernels: the GPU's times need Warp on a CUDA device" in out
+    assert "--gaps: the GPU's times need Warp on a CUDA device" in out
+
+
+def test_grid_profile_gaps_sum_the_kernels_and_the_gpus_waits_for_the_host():
+    """--gaps' summary of (kernel, issued, GPU start, GPU end) marks, in s from the call's start:
+    the kernels' own time, the time between them and the part of it before the host issued the
+    next kernel, each kernel that waited, and the call's end after the last (by hand: 3 + 4 +
+    7.5 ms of kernels; 1 + 2.5 ms between; kernel c issued 2 ms after b ended)."""
+    summary = _bench_module("grid_profile").gap_summary
+    text = summary(0.0215, [("a", 0.001, 0.002, 0.005), ("b", 0.003, 0.006, 0.010), ("c", 0.012, 0.0125, 0.020)])
+    assert text.splitlines()[0] == ("call 21.5 ms: the first kernel began at 2.00 ms; 3 kernels 14.5 ms; between them "
+                                    "3.5 ms, of which the GPU waited for the host 2.0 ms; the call ended 1.50 ms after "
+                                    "the last kernel")
+    assert "| c | 12.00 | 12.50 | 2.00 |" in text and "| b |" not in text
+    assert summary(0.01, []) == "no kernel launched"
 
 
 def test_grid_profile_timeline_lists_each_launchs_plan_render_and_costs(capsys):
     """--timeline: one row per host call of one more call, in order of start: every launch of
     one cell renders what it planned and reads its costs (the located cell reuses the located
     layers: no plan, no render)."""
-    assert _bench_module("grid_profile").main(["--backend", "opencl", "--sides", "3", "--launch-mib", "4",
+    assert _bench_module("grid_profile").main(["--backend", "opencl", "--sides", "3", "--launch-mib", "2",
                                                 "--repeat", "1", "--timeline"]) == 0
     out = capsys.readouterr().out
-    assert "4 MiB, 3 × 3: one call's host calls" in out
+    assert "2 MiB, 3 × 3: one call's host calls" in out
     rows = [line.strip("| ").split(" | ") for line in out.splitlines()[out.splitlines().index("| start ms | ms | "
                                                                                             "thread | call |") + 2:]
             if line.startswith("| ")]

@@ -179,14 +179,19 @@ def test_warp_and_opencl_agree_on_rendered_views(backend_for_label):
     out = {}
     for b in (warp, opencl):
         handle = b.load_mesh(mesh.vertices, mesh.faces)
-        for rows in (None, (first, count)):
-            layers = b.render_device(handle, sonar, *poses, (1, 32), gamma=1.0, surface_reflection=0.9, rows=rows)
+        for rows, components in ((None, False), ((first, count), False), ((first, count), True)):
+            layers = b.render_device(handle, sonar, *poses, (1, 32), gamma=1.0, surface_reflection=0.9, rows=rows,
+                                     components=components)
             args = (layers, view_index, thresholds, windows, masks, distances, [0.0, 0.5],
                     (_gaussian(1.0), _gaussian(0.7)))
-            out[b.name, rows is None] = b.contour_cost(*args)
-            out[b.name, "view costs", rows is None] = b.view_costs(*args, data_counts, 0.04)
-        for a, f in zip(out[b.name, False], out[b.name, True]):  # banded layers: bit for bit the full ones'
+            key = rows is None if not components else "components"
+            out[b.name, key] = b.contour_cost(*args)
+            out[b.name, "view costs", key] = b.view_costs(*args, data_counts, 0.04)
+        # banded layers and the components' sums: bit for bit the full layers' results
+        for a, f, c in zip(out[b.name, False], out[b.name, True], out[b.name, "components"]):
             np.testing.assert_array_equal(a, f)
+            np.testing.assert_array_equal(c, f)
+        np.testing.assert_array_equal(out[b.name, "view costs", "components"], out[b.name, "view costs", True])
     for full in (True, False):
         (c_w, s_w, n_w), (c_o, s_o, n_o) = out["warp", full], out["opencl", full]
         assert (c_w[:, 0] >= 0).sum() >= 60 and (c_w[:, 1] >= 0).sum() >= 60  # object and mirror contours
@@ -264,10 +269,10 @@ def test_mask_items_list_each_views_masked_beams_in_order(seed):
 
 
 def test_layers_of_the_beams_read_give_the_full_layers_results(backend):
-    """Pairs rendered with only the beams their masks read (``beams_read``, as
-    ViewComparison.view_costs renders them), full or in bands: contours, sums, counts and view
-    costs bit for bit those of every beam rendered, with masks that leave out a side, a component
-    and a view's mirror."""
+    """Pairs rendered with only the beams their masks read (``beams_read``; per pair, or once for
+    the views of each cell, as ViewComparison.view_costs renders them), full or in bands, as four
+    layers or the components' sums: contours, sums, counts and view costs bit for bit those of
+    every beam rendered, with masks that leave out a side, a component and a view's mirror."""
     sonar, mesh, poses, thresholds, windows = sphere_views()
     masks = np.zeros((5, 2, sonar.beams), bool)
     masks[:, 0, 16:36] = True  # the object's contour lies at beams 19-44, the mirror's at 23-40
@@ -277,21 +282,25 @@ def test_layers_of_the_beams_read_give_the_full_layers_results(backend):
     distances = np.random.default_rng(0).uniform(0, 0.05, (5, 2, sonar.bins, sonar.beams))
     view_index = np.tile(np.arange(5), 3)
     smoothing = (_gaussian(1.0), _gaussian(2.0))
-    read = beams_read(masks, len(smoothing[1]))[view_index]
+    per_view = beams_read(masks, len(smoothing[1]))  # pair n = 5 g + v reads row v: n % 5
+    read = per_view[view_index]
     handle = backend.load_mesh(mesh.vertices, mesh.faces)
     for rows in (None, tight_bands(view_index, windows, (len(smoothing[0]) - 1) // 2, sonar.bins)):
         results = []
-        for beams in (None, read):
+        for beams, components in ((None, False), (read, False), (per_view, False), (per_view, True), (None, True)):
             layers = backend.render_device(handle, sonar, *poses, (1, 32), gamma=1.0, surface_reflection=0.9,
-                                           rows=rows, beams=beams)
+                                           rows=rows, beams=beams, components=components)
+            assert layers.shape[1] == (2 if components else 4)
             args = (layers, view_index, thresholds, windows, masks, distances, [0.0, 0.5], smoothing)
             results.append((*backend.contour_cost(*args), backend.view_costs(*args, np.full((5, 2), 20), 0.04)))
             if beams is not None:
-                assert 0 < layers.numpy().sum() < full_sum
-            full_sum = layers.numpy().sum()
+                assert 0 < layers.numpy().sum() < 0.99 * full_sum
+            else:
+                full_sum = layers.numpy().sum()
         assert (results[0][0][:, 0] >= 0).sum() >= 40 and (results[0][0][:, 1] >= 0).sum() >= 20
-        for every, only_read in zip(*results):
-            np.testing.assert_array_equal(only_read, every)
+        for result in results[1:]:
+            for every, other in zip(results[0], result):
+                np.testing.assert_array_equal(other, every)
 
 
 def tight_bands(view_index, windows, radius, bins):

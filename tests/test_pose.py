@@ -301,7 +301,7 @@ def test_view_costs_planned_ahead_are_those_planned_in_turn(coral_one, truth_mod
     import fsswarp.compare as compare
 
     truth = coral_one.manifest.truth
-    comparison = ViewComparison(coral_one, settings=PoseSettings(launch_bytes=1 << 22), backend=opencl).use(
+    comparison = ViewComparison(coral_one, settings=PoseSettings(launch_bytes=1 << 21), backend=opencl).use(
         truth_model, truth.depth, truth.tilt)
     depths, tilts = np.meshgrid(truth.depth + np.linspace(-0.02, 0.02, 3), truth.tilt + np.radians([-1.0, 0.0, 1.0]),
                                 indexing="ij")
@@ -310,6 +310,7 @@ def test_view_costs_planned_ahead_are_those_planned_in_turn(coral_one, truth_mod
     original = compare._planned
     ahead = []
     monkeypatch.setattr(compare, "_planned", lambda plan, items, ahead: original(plan, items, ahead=True))
+    monkeypatch.setattr(compare, "FIRST_LAUNCH_SHARE", 0.25)
     monkeypatch.setattr(compare, "FIRST_LAUNCH_CELLS", 1)  # a first launch of one cell, then twice that, up to 4
     assert compare._launches(9, 4, True) == [slice(0, 1), slice(1, 3), slice(3, 7), slice(7, 9)]
     assert compare._launches(9, 4, False) == [slice(0, 4), slice(4, 8), slice(8, 9)]
@@ -328,7 +329,7 @@ def test_queued_launches_read_after_the_last_give_the_same_costs(coral_one, trut
     then renders each launch again, waiting, once all are queued (OpenCL waits in the render and
     renders again there), and the costs are still the same."""
     truth = coral_one.manifest.truth
-    comparison = ViewComparison(coral_one, settings=PoseSettings(launch_bytes=1 << 22), backend=backend).use(
+    comparison = ViewComparison(coral_one, settings=PoseSettings(launch_bytes=1 << 21), backend=backend).use(
         truth_model, truth.depth, truth.tilt)
     depths, tilts = np.meshgrid(truth.depth + np.linspace(-0.02, 0.02, 3), truth.tilt + np.radians([-1.0, 0.0, 1.0]),
                                 indexing="ij")
@@ -353,14 +354,14 @@ def test_queued_launches_read_after_the_last_give_the_same_costs(coral_one, trut
 
 
 def test_grid_launches_hold_at_most_the_launch_bytes_and_2_31_values(coral_one, truth_model, opencl):
-    """Cells per launch: the layers' 16 B per pixel within ``launch_bytes``, and never past one
-    launch's 2^31 values (a render refuses more), however many bytes are allowed."""
+    """Cells per launch: the components' sums' 8 B per pixel within ``launch_bytes``, and never
+    past one launch's 2^31 values (a render refuses more), however many bytes are allowed."""
     truth = coral_one.manifest.truth
     for size, binds in ((1 << 30, "bytes"), (1 << 40, "values")):
         comparison = ViewComparison(coral_one, settings=PoseSettings(launch_bytes=size), backend=opencl).use(
             truth_model, truth.depth, truth.tilt)
         _, rows, _, per = comparison.grid_launches()
-        values = 4 * rows * coral_one.sonar.beams * len(comparison.data.views)
+        values = 2 * rows * coral_one.sonar.beams * len(comparison.data.views)
         assert 4 * values * per <= size and per * values < 2**31
         assert (4 * values * (per + 1) > size) if binds == "bytes" else ((per + 1) * values >= 2**31)
 

@@ -415,10 +415,12 @@ def test_render_device_bands_equal_full_rows(backend, count, first):
     ("beams", np.ones((2, 2, 96), np.uint8)),  # not bools
     ("beams", np.ones((2, 2, 95), bool)),
     ("beams", np.ones((2, 4, 96), bool)),
-    ("beams", np.ones((1, 2, 96), bool)),
+    ("beams", np.ones((3, 2, 96), bool)),  # three rows for two views
+    ("beams", np.ones((0, 2, 96), bool)),
     ("beams", [[True]]),
+    ("components", 1),
 ])
-def test_render_device_rejects_bad_rows_and_beams(backend, name, value):
+def test_render_device_rejects_bad_rows_beams_and_components(backend, name, value):
     sonar, mesh, rot, trans, normals, offsets = coral_inputs()
     handle = backend.load_mesh(mesh.vertices, mesh.faces)
     with pytest.raises(ValueError, match=name):
@@ -468,6 +470,31 @@ def test_render_device_beams_read_keep_the_full_pixels(backend, rows):
     for layer in range(4):
         assert 0 < read[:, layer].sum() < full[:, layer].sum()
     assert read[0, 2:].sum() == 0 and full[0, 2:].sum() > 0  # no mirror beam read: none rendered
+
+
+@pytest.mark.parametrize("rows", [None, (np.array([200, 230, 0, 252]), 260)])
+def test_render_device_components_are_the_sums_of_the_layers(backend, rows):
+    """render_device(components=True): (N, 2, R, beams), plane c the sum of layers 2c and 2c + 1
+    (object + ghost, mirror + mirror2; summed in the fixed point, so within a float32 rounding of
+    the layers' floats summed), with every beam, and with the beams read given once for the two
+    views of each cell (M = 2 rows for N = 4 views: view n reads row n % 2), which renders the
+    pixels of the same beams given per view, bit for bit."""
+    sonar, mesh, rot, trans, normals, offsets = coral_inputs()
+    handle = backend.load_mesh(mesh.vertices, mesh.faces)
+    args = (handle, sonar, rot, trans, normals, offsets, SAMPLES)
+    kw = dict(gamma=GAMMA, surface_reflection=RS, rows=rows)
+    masks = beam_masks(2, sonar.beams)
+    every = backend.render_device(*args, **kw).numpy()
+    tiled = backend.render_device(*args, **kw, beams=np.tile(masks, (2, 1, 1))).numpy()
+    np.testing.assert_array_equal(backend.render_device(*args, **kw, beams=masks).numpy(), tiled)
+    for beams, layers in ((None, every), (masks, tiled)):
+        sums = backend.render_device(*args, **kw, beams=beams, components=True)
+        assert sums.shape == (4, 2, every.shape[2], sonar.beams)
+        got = sums.numpy()
+        np.testing.assert_allclose(got, layers[:, 0::2] + layers[:, 1::2], rtol=1e-6, atol=0)
+        for c in range(2):  # both layers of each component hold echoes
+            assert layers[:, 2 * c].sum() > 0 and layers[:, 2 * c + 1].sum() > 0
+    assert 0 < tiled.sum() < 0.9 * every.sum()
 
 
 @pytest.mark.parametrize("masked", [False, True], ids=["every beam", "beams read"])

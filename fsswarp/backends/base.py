@@ -366,7 +366,7 @@ class Backend(abc.ABC):
 
     def render_device(self, mesh, sonar: SonarSpec, rotations, translations, plane_normals,
                       plane_offsets, samples: tuple[int, int], *, gamma: float,
-                      surface_reflection: float, rows=None, beams=None) -> "DeviceLayers":
+                      surface_reflection: float, rows=None, beams=None, components: bool = False) -> "DeviceLayers":
         """``render`` with the layers left on the device (for kernels that consume them there,
         and for timing the synthesis without the read-back). Returns once the layers are
         complete; ``.numpy()`` copies them to the host.
@@ -384,17 +384,24 @@ class Backend(abc.ABC):
             (N, 4, R, beams).
         beams : None (default), every beam; or (N, 2, beams) bools, the beams that will be read
             of each view's two components (0: the object and ghost layers, 1: the mirror and
-            mirror2 layers). A component's pixels at a beam not read stay zero, and the legs
-            whose returns land only there are not cast (the pose grid passes its views' masks,
-            :func:`beams_read`); every other pixel equals, bit for bit, the same pixel of the
-            full layers.
+            mirror2 layers); or (M, 2, beams) with M dividing N, view n's at row n % M (a batch
+            of cells × M views, cell by cell: each cell's views read the same beams). A
+            component's pixels at a beam not read stay zero, and the legs whose returns land
+            only there are not cast (the pose grid passes its views' masks, :func:`beams_read`);
+            every other pixel equals, bit for bit, the same pixel of the full layers.
+        components : False (default), the four layers; True, the two components' sums
+            (``COMPONENTS`` of fsswarp.surface: object + ghost, mirror + mirror2), (N, 2, R,
+            beams), half the memory: what ``contour_cost`` reads. Each pixel is, in the
+            accumulator's fixed point, exactly the sum of the two layers' pixels, so the
+            contours and costs are those of the four layers, bit for bit.
         """
         return self.render_planned(mesh, sonar, self.plan_render(mesh, sonar, rotations, translations, plane_normals,
-                                                                 plane_offsets, samples, rows=rows, beams=beams),
+                                                                 plane_offsets, samples, rows=rows, beams=beams,
+                                                                 components=components),
                                    gamma=gamma, surface_reflection=surface_reflection)
 
     def plan_render(self, mesh, sonar: SonarSpec, rotations, translations, plane_normals, plane_offsets,
-                    samples: tuple[int, int], *, rows=None, beams=None) -> "RenderPlan":
+                    samples: tuple[int, int], *, rows=None, beams=None, components: bool = False) -> "RenderPlan":
         """The host half of ``render_device`` (arguments as there): the inputs checked and made
         clean, the bands, the beams read, the sub-ray spans and the shared poses, without the
         device. Thread-safe: a caller may plan its next launch while this one renders
@@ -406,8 +413,11 @@ class Backend(abc.ABC):
         n_views = rot.shape[0]
         first, count = _row_bands(rows, n_views, sonar.bins)
         needed = _needed_beams(beams, n_views, sonar.beams)
-        if n_views > most_layer_views(count, sonar.beams):
-            raise ValueError(f"{n_views} views of {count} x {sonar.beams} exceed one launch's "
+        if not isinstance(components, (bool, np.bool_)):
+            raise ValueError(f"components must be True or False, got {components!r}")
+        planes = 2 if components else 4
+        if n_views > most_layer_views(count, sonar.beams, planes):
+            raise ValueError(f"{n_views} views of {planes} x {count} x {sonar.beams} exceed one launch's "
                              f"2^31 pixels; split the batch")
         _check_sub_rays(n_views, sonar.beams, k_theta, k_phi)
         spans = shared = None
@@ -415,7 +425,7 @@ class Backend(abc.ABC):
             spans = self._spans(mesh, sonar, rot, trans, normals, offsets, k_phi)
             shared = shared_poses(rot, trans, spans, sonar.beams * k_theta * k_phi)
         return RenderPlan(rot, trans, normals, offsets, k_theta, k_phi, first, count, rows is not None, needed, spans,
-                          shared)
+                          shared, planes)
 
     def render_planned(self, mesh, sonar: SonarSpec, plan: "RenderPlan", *, gamma: float,
                        surface_reflection: float, wait: bool = True) -> "DeviceLayers":
@@ -425,12 +435,12 @@ class Backend(abc.ABC):
         their ``overflowed`` (``DeviceLayers``), which waits for the render, says that its queue
         of hits overflowed; render again, waiting, where it does."""
         if plan.rotations.shape[0] == 0:
-            return HostLayers(np.zeros((0, 4, plan.count, sonar.beams), np.float32),
+            return HostLayers(np.zeros((0, plan.planes, plan.count, sonar.beams), np.float32),
                               plan.first if plan.banded else None)
         layers = self._render(mesh, SonarConstants.of(sonar), sonar.beam_widths, plan.rotations, plan.translations,
                               plan.normals, plan.offsets, plan.k_theta, plan.k_phi, float(gamma),
                               float(surface_reflection), plan.first, plan.count, plan.spans, plan.shared, plan.needed,
-                              wait=wait)
+                              plan.planes, wait=wait)
         layers.first_rows = plan.first.copy() if plan.banded else None
         return layers
 
@@ -520,7 +530,7 @@ class Backend(abc.ABC):
                 translations: np.ndarray, plane_normals: np.ndarray, plane_offsets: np.ndarray,
                 k_theta: int, k_phi: int, gamma: float, surface_reflection: float,
                 first_rows: np.ndarray, rows: int, spans: np.ndarray,
-                shared: "SharedPoses | None", needed: np.ndarray | None = None, *,
+                shared: "SharedPoses | None", needed: np.ndarray | None = None, planes: int = 4, *,
                 wait: bool = True) -> "DeviceLayers":
         """Kernel launch of ``render_device`` (the algorithm: fsswarp/rendering.py's docstring);
         beam_widths: (beams,) float32 Δθ_b; first_rows (N,) int32 and rows R: view n keeps
@@ -529,9 +539,10 @@ class Backend(abc.ABC):
         beams spans[n, 0] <= b < spans[n, 1] with spans[n, 2] <= j < spans[n, 3] (the others
         reach nothing); shared (:func:`shared_poses`): views whose direct legs are cast once per
         distinct pose (the same float operations, so the same pixels), or None; needed: None or
-        (N, 2, beams) uint8, ``render_device``'s ``beams`` (0/1, C order). Returns the
-        (N, 4, R, beams) float32 layers, complete, on the device (the caller sets
-        ``first_rows``); with ``wait`` false, as ``render_planned`` says."""
+        (M, 2, beams) uint8, M dividing N, ``render_device``'s ``beams`` (0/1, C order; view n's
+        at row n % M); planes: 4, the layers, or 2, the components' sums (``render_device``'s
+        ``components``). Returns the (N, planes, R, beams) float32 layers, complete, on the
+        device (the caller sets ``first_rows``); with ``wait`` false, as ``render_planned`` says."""
 
     # --- frontal contours and their distance to the data's (the (D, β) grid search) ----------
     def contour_cost(self, layers, view_index, thresholds, windows, masks, distances, shifts,
@@ -540,8 +551,9 @@ class Backend(abc.ABC):
         (the grid surrogate of fsswarp/compare.py; kernels/pose.cl states the rule exactly).
 
         layers : (N, 4, bins, beams) float32, a ``DeviceLayers`` of this backend's
-            ``render_device`` (read where it lies) or a host array (full layers); or banded
-            layers, a ``DeviceLayers`` of shape (N, 4, R, beams) whose ``first_rows`` (N,)
+            ``render_device`` (read where it lies) or a host array (full layers), or (N, 2, bins,
+            beams), the components' sums (``render_device(..., components=True)``); or banded
+            layers, a ``DeviceLayers`` of shape (N, 4 or 2, R, beams) whose ``first_rows`` (N,)
             places row k of pair n at image row first_rows[n] + k (``render_device(...,
             rows=...)``; ``HostLayers(array, first_rows)`` on the host). The band of pair n
             must hold every row its window reads, [max(lo − rB, 0), min(hi + rB, bins)) of
@@ -633,18 +645,18 @@ class Backend(abc.ABC):
         if len(smoothing) != 2 or any(w.shape[0] % 2 == 0 for w in weights):
             raise ValueError("smoothing must be two 1-D weight arrays of odd lengths")
         if not isinstance(layers, DeviceLayers):
-            layers = HostLayers(real_array("layers", layers, ("N", 4, bins, beams)))
+            layers = HostLayers(real_array("layers", layers, ("N", "P", bins, beams)))
         first = getattr(layers, "first_rows", None)
         shape = tuple(layers.shape)
         if first is None:
-            if shape != (index.shape[0], 4, bins, beams):
-                raise ValueError(f"layers must have shape (N, 4, bins, beams) = ({index.shape[0]}, 4, {bins}, "
-                                 f"{beams}), got {shape}")
+            if len(shape) != 4 or shape[1] not in (4, 2) or shape[::2] != (index.shape[0], bins) or shape[3] != beams:
+                raise ValueError(f"layers must have shape (N, 4 or 2, bins, beams) = ({index.shape[0]}, 4 or 2, "
+                                 f"{bins}, {beams}), got {shape}")
             first = np.zeros(index.shape[0], np.int32)
         else:
-            if len(shape) != 4 or shape[0] != index.shape[0] or shape[1] != 4 or shape[3] != beams:
-                raise ValueError(f"banded layers must have shape (N, 4, R, beams) = ({index.shape[0]}, 4, R, "
-                                 f"{beams}), got {shape}")
+            if len(shape) != 4 or shape[0] != index.shape[0] or shape[1] not in (4, 2) or shape[3] != beams:
+                raise ValueError(f"banded layers must have shape (N, 4 or 2, R, beams) = ({index.shape[0]}, 4 or 2, "
+                                 f"R, {beams}), got {shape}")
             first, _ = _row_bands((first, shape[2]), index.shape[0], bins)
             need_lo, need_hi = rows_read(win[index], weights[0].shape[0], bins)
             bad = np.flatnonzero((first > need_lo) | (first + shape[2] < need_hi))
@@ -662,7 +674,7 @@ class Backend(abc.ABC):
                       range_weights: np.ndarray, beam_weights: np.ndarray, distances: "DeviceDistances",
                       cap: float, shifts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Kernel launches of ``contour_cost``: layers a DeviceLayers of this backend or any
-        other (read back with ``.numpy()``), (N, 4, R, beams), with first_rows (N,) int32 the
+        other (read back with ``.numpy()``), (N, 4 or 2, R, beams), with first_rows (N,) int32 the
         image row of each pair's row 0 (zeros and R = bins for full layers; every band holds
         the rows its window reads), distances this backend's, clean C-contiguous int32 /
         float32 / uint8 arrays, N >= 1.
@@ -761,8 +773,9 @@ class RenderPlan(NamedTuple):
     """``Backend.plan_render``'s host work for one render: clean float32 ``rotations`` (N, 3, 3),
     ``translations`` (N, 3), ``normals`` (N, 3), ``offsets`` (N,); the samples ``k_theta``,
     ``k_phi``; the bands' ``first`` rows (N,) and row ``count`` (``banded``: whether bands
-    were asked for); the beams read, ``needed`` (N, 2, beams) uint8 or None; the ``spans``
-    (N, 4) and the ``shared`` poses (SharedPoses or None; both None for N = 0)."""
+    were asked for); the beams read, ``needed`` (M, 2, beams) uint8 (view n's at row n % M)
+    or None; the ``spans`` (N, 4) and the ``shared`` poses (SharedPoses or None; both None
+    for N = 0); ``planes``, 4 layers or 2 components' sums."""
 
     rotations: np.ndarray
     translations: np.ndarray
@@ -776,6 +789,7 @@ class RenderPlan(NamedTuple):
     needed: np.ndarray | None
     spans: np.ndarray | None
     shared: "SharedPoses | None"
+    planes: int
 
 
 class PreparedLaunch:
@@ -812,7 +826,8 @@ class ICPRuns(NamedTuple):
 
 class DeviceLayers(abc.ABC):
     """Rendered layers in a backend's device memory; ``shape`` = (N, 4, bins, beams) float32,
-    or (N, 4, R, beams) for a band of rows per view (``render_device(..., rows=...)``).
+    or (N, 4, R, beams) for a band of rows per view (``render_device(..., rows=...)``), or 2 in
+    place of 4 for the components' sums (``render_device(..., components=True)``).
 
     first_rows : None for full layers; for banded ones the (N,) int array of the image row
         that each view's row 0 holds (row k of view n is image row first_rows[n] + k).
@@ -830,7 +845,7 @@ class DeviceLayers(abc.ABC):
         """A host copy of ``shape`` float32 (for banded layers the band as it is)."""
 
     def rows(self, start: int, stop: int) -> np.ndarray:
-        """A host copy of rows [start, stop) of every layer, (N, 4, stop − start, beams) float32:
+        """A host copy of rows [start, stop) of every layer, (N, P, stop − start, beams) float32:
         ``numpy()[:, :, start:stop]``, the same values, without copying the other rows."""
         return self.numpy()[:, :, start:stop]
 
@@ -1072,10 +1087,11 @@ def most_launch_views(beams: int, k_theta: int, k_phi: int) -> int:
     return (2**31 - 1) // (beams * k_theta * k_phi)
 
 
-def most_layer_views(rows: int, beams: int) -> int:
-    """The most views whose layers one launch holds: their pixels, views × 4 layers × ``rows`` ×
-    ``beams``, stay below 2^31 (the kernels index them in int32)."""
-    return (2**31 - 1) // (4 * rows * beams)
+def most_layer_views(rows: int, beams: int, planes: int = 4) -> int:
+    """The most views whose layers one launch holds: their pixels, views × ``planes`` (4 layers,
+    or 2 components' sums) × ``rows`` × ``beams``, stay below 2^31 (the kernels index them in
+    int32)."""
+    return (2**31 - 1) // (planes * rows * beams)
 
 
 def _check_sub_rays(n_views: int, beams: int, k_theta: int, k_phi: int) -> None:
@@ -1086,13 +1102,15 @@ def _check_sub_rays(n_views: int, beams: int, k_theta: int, k_phi: int) -> None:
 
 
 def _needed_beams(beams, n_views: int, n_beams: int) -> np.ndarray | None:
-    """``render_device``'s ``beams`` as (N, 2, beams) uint8 0/1 (C order), None for every beam, or raise."""
+    """``render_device``'s ``beams`` as (M, 2, beams) uint8 0/1 (C order), M dividing N, None for
+    every beam, or raise."""
     if beams is None:
         return None
     beams = np.asarray(beams)
-    if beams.dtype != bool or beams.shape != (n_views, 2, n_beams):
-        raise ValueError(f"beams must be None or a ({n_views}, 2, {n_beams}) bool array, got {beams.dtype} "
-                         f"{beams.shape}")
+    if beams.dtype != bool or beams.ndim != 3 or beams.shape[1:] != (2, n_beams) or beams.shape[0] < 1 \
+            or n_views % beams.shape[0]:
+        raise ValueError(f"beams must be None or an (M, 2, {n_beams}) bool array with M dividing the {n_views} "
+                         f"views, got {beams.dtype} {beams.shape}")
     return np.ascontiguousarray(beams, np.uint8)
 
 

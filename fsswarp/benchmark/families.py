@@ -552,9 +552,10 @@ def pose_grid(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3,
               launch_bytes: int | None = None, progress: Progress | None = None) -> list[dict]:
     """The (D, β) grid surrogate over side² cells × 16 views (``sides``): "end to end"
     (``ViewComparison.surrogate``: render + view costs per launch, costs read back), its
-    "render alone" (``render_pairs`` of the same bands of rows in the same launches, layers
-    dropped) and "resident" (``Backend.view_costs`` alone on layers already rendered, where
-    they fit in one launch of ``launch_bytes``: default 16 GiB on a GPU, 2 GiB on a CPU)."""
+    "render alone" (``render_pairs`` of the same bands of rows, beams and components' sums in
+    the same launches, layers dropped) and "resident" (``Backend.view_costs`` alone on the
+    components' sums already rendered, where they fit in one launch of ``launch_bytes``: default
+    16 GiB on a GPU, 2 GiB on a CPU)."""
     from ..compare import PoseSettings, ViewComparison
 
     launch_bytes = launch_bytes or (16 << 30 if backend.is_gpu else 2 << 30)
@@ -574,7 +575,8 @@ def pose_grid(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3,
     rot, t, n, d = problem.view_poses(data.views, np.array([truth.depth]), np.array([truth.tilt]))
     per_pair = render_ops(backend, sonar, model, rot.reshape(-1, 3, 3), t.reshape(-1, 3), n.reshape(-1, 3),
                           d.reshape(-1), settings.samples)
-    pixels = 4 * sonar.bins * sonar.beams
+    pixels = 4 * sonar.bins * sonar.beams  # of the four layers, whose contour work CONTOUR_OPS counts
+    summed = 2 * sonar.bins * sonar.beams  # of the components' sums the grid renders
     distance_bytes = data.distances.nbytes
     mesh_bytes = len(model.faces) * TRIANGLE_BYTES
     first, rows, read, per = problem.grid_launches(settings.samples)  # view_costs' bands, beams and launches
@@ -583,7 +585,7 @@ def pose_grid(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3,
         for start in range(0, len(depths), per):
             cell_d, cell_t = depths[start:start + per], tilts[start:start + per]
             problem.render_pairs(data.views, cell_d, cell_t, settings.samples,
-                                 rows=(np.tile(first, len(cell_d)), rows), beams=np.tile(read, (len(cell_d), 1, 1)))
+                                 rows=(np.tile(first, len(cell_d)), rows), beams=read, components=True)
 
     def run_point(side):
         depths, tilts = grid_cells(truth, side)
@@ -599,22 +601,22 @@ def pose_grid(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3,
         say(progress, out[-1])
         timing = measure(lambda: render_alone(depths.ravel(), tilts.ravel()), repeat, budget=budget)
         out.append(timed_record(bases["render alone"], side * side, timing, pairs, "cell-views", size=size,
-                                limit=physical_limit(profile, bytes_moved=mesh_bytes + pairs * 16 * rows * sonar.beams,
+                                limit=physical_limit(profile, bytes_moved=mesh_bytes + pairs * 8 * rows * sonar.beams,
                                                      ops=side * side * float(per_pair.sum()))))
         say(progress, out[-1])
-        if pairs * 4 * pixels > launch_bytes or pairs * pixels >= 2**31:  # int32 layers
+        if pairs * 4 * summed > launch_bytes or pairs * summed >= 2**31:  # int32 sums
             out.append(skipped_record(bases["resident"], side * side, 0.0, budget,
                                       reason=f"layers of {pairs} pairs exceed one launch ({launch_bytes >> 20} MB "
                                              "or 2^31 values)"))
             return out
-        layers = problem.render_pairs(data.views, depths.ravel(), tilts.ravel(), settings.samples)
+        layers = problem.render_pairs(data.views, depths.ravel(), tilts.ravel(), settings.samples, components=True)
         index = np.tile(np.arange(views), side * side)
         uploaded = backend.device_distances(data.distances)
         timing = measure(lambda: backend.view_costs(layers, index, data.threshold, data.windows, data.masks, uploaded,
                                                     shifts, problem.smoothing, data.counts, settings.cap),
                          repeat, budget=budget)
         out.append(timed_record(bases["resident"], side * side, timing, pairs, "cell-views", size=size,
-                                limit=physical_limit(profile, bytes_moved=pairs * pixels * 4 + distance_bytes
+                                limit=physical_limit(profile, bytes_moved=pairs * summed * 4 + distance_bytes
                                                      + cost_bytes, ops=pairs * pixels * CONTOUR_OPS)))
         say(progress, out[-1])
         return out

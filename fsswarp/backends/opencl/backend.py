@@ -229,9 +229,9 @@ class OpenCLBackend(Backend):
 
     def _render(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations,
                 plane_normals, plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, rows, spans,
-                shared, needed=None, *, wait=True):
+                shared, needed=None, planes=4, *, wait=True):
         _check_mesh(mesh)
-        shape = (rotations.shape[0], 4, rows, sonar.beams)
+        shape = (rotations.shape[0], planes, rows, sonar.beams)
         size = int(np.prod(shape))
         with self._lock:
             layers_buf = self._layers_buffer(4 * size)
@@ -274,10 +274,11 @@ class OpenCLBackend(Backend):
                         layers_buf=None, wait_for=None, shared=None, needed=None, hit_share=None):
         """Enqueue the zeroing of acc_buf and the render kernels of the views given (clean
         float32 (n, ...) arrays, their (n, 4) ray spans; ``shared``, their SharedPoses or None,
-        first casts the direct legs of the distinct poses; ``needed``, None or the (n, 2, beams)
+        first casts the direct legs of the distinct poses; ``needed``, None or the (M, 2, beams)
         uint8 beams read, ``Backend._render``) into acc_buf, the fixed-point int32 layers of
-        ``shape`` (n, 4, R, beams), and with layers_buf their floats (``fixed_to_float``), after
-        the events ``wait_for``; ``hit_share``, the queue of hits (``hit_queue_size``; None: room
+        ``shape`` (n, P, R, beams) (P: 4 layers or 2 components' sums), and with layers_buf
+        their floats (``fixed_to_float``), after the events ``wait_for``; ``hit_share``, the
+        queue of hits (``hit_queue_size``; None: room
         for every hit; 0: none, each hit's returns at once). Returns the last kernel's event and,
         where anything was cast through a queue with a ``hit_share``, the queue's count (1,)
         int32 (read) and its slots L (a count above L: the queue overflowed and acc_buf lacks
@@ -305,20 +306,21 @@ class OpenCLBackend(Backend):
                      self._input(plane_offsets), directions, self._input(sonar.beam_table), sonar.record(),
                      np.int32(k_theta), np.int32(k_phi), np.float32(1.0 / (k_theta * k_phi)), np.float32(gamma),
                      np.float32(surface_reflection), np.float32(RAY_EPSILON))
-            masks = (np.int32(needed is not None), self._input(np.ones(1, np.uint8) if needed is None else needed))
-            rows, first = np.int32(shape[2]), self._input(first_rows)
+            masks = (np.int32(0 if needed is None else needed.shape[0]),
+                     self._input(np.ones(1, np.uint8) if needed is None else needed))
+            rows, first = (np.int32(shape[2]), np.int32(shape[1])), self._input(first_rows)  # R, P
             counted = [cl.enqueue_fill_buffer(self.queue, counts, np.int32(0), 0, 4)] if hit_size else []
             chunks, threads = self._ray_chunks(mesh, sonar, centres, beam_widths, views[:4], shape[0], k_theta, k_phi,
                                                None if self.is_gpu else spans)
             rendered = self._render_kernel(
                 self.queue, (threads,), (GROUP,), mesh.nodes, mesh.children, mesh.triangles, *views,
-                np.float32(MAX_DISTANCE), first, rows, *chunks, np.int32(RAY_CHUNK), np.int32(shape[0]), poses,
+                np.float32(MAX_DISTANCE), first, *rows, *chunks, np.int32(RAY_CHUNK), np.int32(shape[0]), poses,
                 hit_range, hit_tri, *masks, acc_buf, *queue, wait_for=[zeroed, *counted])
             done = rendered
             if hit_size:
                 served = min(-(-hit_size // GROUP) * GROUP, self._resident_threads())
                 done = self._hits_kernel(self.queue, (served,), None, mesh.nodes,
-                                         mesh.children, mesh.triangles, *views, first, rows, *masks, *queue[:3],
+                                         mesh.children, mesh.triangles, *views, first, *rows, *masks, *queue[:3],
                                          queue[3], acc_buf, wait_for=[rendered])
             if hit_size and hit_share is not None:  # else the count cannot pass L: nothing to read
                 hits = (np.empty(1, np.int32), hit_size)
@@ -383,7 +385,7 @@ class OpenCLBackend(Backend):
         return host
 
     def _rows(self, acc_buf: cl.Buffer, shape: tuple[int, int, int, int], start: int, stop: int) -> np.ndarray:
-        """Rows [start, stop) of every layer of the (N, 4, bins, beams) int32 buffer acc_buf, in one
+        """Rows [start, stop) of every plane of the (N, P, bins, beams) int32 buffer acc_buf, in one
         rectangular read (``OpenCLLayers.rows``)."""
         n, layers, bins, beams = shape
         host = np.empty((n, layers, stop - start, beams), np.int32)
@@ -519,7 +521,8 @@ class OpenCLBackend(Backend):
             stack, np.int32(fixed), index, self._input(thresholds), self._input(windows), self._input(items),
             np.int32(items.shape[1]), self._input(range_weights), np.int32((range_weights.shape[0] - 1) // 2),
             self._input(beam_weights), np.int32((beam_weights.shape[0] - 1) // 2), np.int32(bins),
-            np.int32(beams), self._input(first_rows), np.int32(layers.shape[2]), contour_buf)
+            np.int32(beams), self._input(first_rows), np.int32(layers.shape[2]), np.int32(layers.shape[1]),
+            contour_buf)
         group = min(GROUP, 1 << (n_shifts - 1).bit_length())
         self._contour_cost_kernel(
             self.queue, (-(-n_shifts // group) * group, 2, n_pairs), (group, 1, 1),
@@ -564,7 +567,7 @@ def _read(host, copied, start, count, slot) -> tuple[int, np.ndarray]:
 class OpenCLLayers(DeviceLayers):
     """Rendered layers of ``backend`` as the render's fixed-point accumulator, an OpenCL buffer
     (``.buffer``) of (N, 4, bins, beams) int32 (2^24 = 1), or (N, 4, R, beams) for bands of rows
-    (``first_rows``): the contour kernels read it as it is, and ``numpy`` converts it on the
+    (``first_rows``), 2 in place of 4 for the components' sums: the contour kernels read it as it is, and ``numpy`` converts it on the
     device first (``fixed_to_float``: the floats a render to float layers gives)."""
 
     def __init__(self, backend: OpenCLBackend, buffer: cl.Buffer, shape: tuple[int, int, int, int]):

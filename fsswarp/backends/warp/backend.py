@@ -48,7 +48,8 @@ _LOAD_LOCK = threading.Lock()
 
 class WarpLayers(DeviceLayers):
     """Rendered layers as the render's fixed-point accumulator, a (N, 4, bins, beams) int32
-    ``wp.array`` (``.array``; 2^24 = 1), or (N, 4, R, beams) for bands of rows (``first_rows``):
+    ``wp.array`` (``.array``; 2^24 = 1), or (N, 4, R, beams) for bands of rows (``first_rows``),
+    2 in place of 4 for the components' sums:
     the contour kernels read it as it is, and ``numpy`` converts it on the device first
     (``fixed_to_float``: the floats a render to float layers gives)."""
 
@@ -226,9 +227,9 @@ class WarpBackend(Backend):
 
     def _render(self, mesh, sonar: SonarConstants, beam_widths, rotations, translations,
                 plane_normals, plane_offsets, k_theta, k_phi, gamma, surface_reflection, first_rows, rows, spans,
-                shared, needed=None, *, wait=True):
+                shared, needed=None, planes=4, *, wait=True):
         mesh = self._check_mesh(mesh)
-        shape = (rotations.shape[0], 4, rows, sonar.beams)
+        shape = (rotations.shape[0], planes, rows, sonar.beams)
         with wp.ScopedDevice(self._device):
             poses = self._poses(rotations, translations, plane_normals, plane_offsets)
             acc = wp.empty(shape, dtype=wp.int32)
@@ -256,12 +257,13 @@ class WarpBackend(Backend):
                      surface_reflection, first_rows, spans, acc, layers=None, shared=None, needed=None,
                      hit_share=None) -> tuple[wp.array, int] | None:
         """Launch the render kernels of the views ``poses`` ((n,) device arrays of ``_poses``) on
-        the device's current stream: acc (n, 4, R, beams) int32, zeroed, receives the deposits,
-        and layers (n, 4, R, beams) float32, if given, their floats; first_rows (n,) int32 on the
+        the device's current stream: acc (n, P, R, beams) int32 (P: 4 layers or 2 components'
+        sums), zeroed, receives the deposits, and layers of its shape float32, if given, their
+        floats; first_rows (n,) int32 on the
         device; spans (n, 4) int32 on the host (``Backend._render``: nothing is cast where they
         are all empty, and the queue of hits is sized on them; a CPU device packs them, a GPU
         finds its own on the device, ``_ray_chunks``); shared, the views' SharedPoses
-        (or None), whose distinct poses' direct legs are cast first; needed, None or the (n, 2,
+        (or None), whose distinct poses' direct legs are cast first; needed, None or the (M, 2,
         beams) uint8 beams read (``Backend._render``); hit_share, the queue of hits
         (``hit_queue_size``; None: room for every hit). Returns without waiting: the queue's count
         (1,) int32 on the device and its slots L (a count above L: the queue overflowed and acc

@@ -1,7 +1,8 @@
 """Warp kernels of ``Backend.contour_cost``: frontal contours and their distances to the data's.
 
 kernels/pose.cl documents the rule. ``frontal_contour`` reads float32 layers or the render's
-fixed-point accumulator (int32, ``scale`` 2^-24: the same floats as ``fixed_to_float``'s) and
+fixed-point accumulator (int32, ``scale`` 2^-24: the same floats as ``fixed_to_float``'s), four
+layers or the two components' sums, and
 writes (N, 2, beams) float32 rows (-1: none); ``contour_cost_kernel`` (N, 2, S) float32 sums and
 (N, 2) int32 counts; ``view_cost_kernel`` (N, S) float32 view costs from them.
 """
@@ -26,12 +27,16 @@ Ring = wp.types.vector(length=RING_TAPS, dtype=float)
 @wp.func
 def beam_row(layers: wp.array4d(dtype=Any), scale: float, n: int, c: int, bi: int, b: int, beams: int,
              w_beam: wp.array(dtype=float), r_beam: int):
-    """Component c of pair n in band row bi smoothed across the beams at beam b (each value
-    float(layers[...]) · scale: exact, scale 1 or a power of two)."""
+    """Component c of pair n in band row bi smoothed across the beams at beam b: the sum of
+    layers 2c and 2c + 1 (four layers) or plane c (the components' sums), summed in the layers'
+    type, times ``scale`` (1, or the power of two of the fixed point: exact)."""
     row = float(0.0)
     for j in range(2 * r_beam + 1):
         bj = wp.clamp(b + j - r_beam, 0, beams - 1)
-        row += w_beam[j] * (float(layers[n, 2 * c, bi, bj]) * scale + float(layers[n, 2 * c + 1, bi, bj]) * scale)
+        value = layers[n, c, bi, bj]
+        if layers.shape[1] == 4:
+            value = layers[n, 2 * c, bi, bj] + layers[n, 2 * c + 1, bi, bj]
+        row += w_beam[j] * (float(value) * scale)
     return row
 
 
@@ -53,7 +58,7 @@ def frontal_contour(layers: wp.array4d(dtype=Any), scale: float, first_rows: wp.
     """Thread (n, k): item k = c · beams + b of pair n's view (``base.mask_items``; -1: none),
     the first threshold crossing of the smoothed component c of pair n in beam b, into contour
     (N, 2, beams), whose other entries the host sets to -1.
-    layers (N, 4, R, beams) float32 (scale 1) or fixed-point int32 (scale 2^-24): image row B of
+    layers (N, 4 or 2, R, beams) float32 (scale 1) or fixed-point int32 (scale 2^-24): image row B of
     pair n at row B − first_rows[n] (full layers: zeros, R = bins); rows clamp to the image,
     and the host guarantees the band holds every row read.
     Each row's beam smoothing is summed once into a ring of the last 2 r_range + 1 rows

@@ -1,7 +1,7 @@
 """Warp kernels of image synthesis (kernels/render.cl; fsswarp/rendering.py documents the algorithm).
 
 ``render_kernel`` deposits every sub-ray's mirror2 return into a fixed-point (N, 4, R, beams)
-int32 accumulator and queues its hit before the surface, whose object, ghost and mirror returns
+int32 accumulator (or (N, 2, R, beams), the components' sums) and queues its hit before the surface, whose object, ghost and mirror returns
 ``hits_kernel`` deposits (``Backend.hit_queue``); its threads take the sub-rays that can reach
 the mesh, found on the device (``view_spans_kernel``) and packed in chunks per view
 (``chunk_views_kernel``), in turn; ``fixed_to_float`` converts the accumulator to
@@ -53,21 +53,23 @@ def facing_normal(corners: wp.array(dtype=wp.vec3), face: int, r: wp.mat33, u: w
 @wp.func
 def deposit(acc: wp.array4d(dtype=wp.int32), v: int, layer: int, bin_index: int, beam: int,
             amplitude: float, weight: float, beams: int, first: int):
-    """Add int(amplitude · weight · 2^24 + 0.5) at (v, layer, bin − first, beam) if inside view
-    v's band of rows (acc.shape[2] rows from image row ``first``) and the image's beams."""
+    """Add int(amplitude · weight · 2^24 + 0.5) at (v, layer P / 4, bin − first, beam), P =
+    acc.shape[1] (4 layers, or 2 components' sums), if inside view v's band of rows (acc.shape[2]
+    rows from image row ``first``) and the image's beams."""
     row = bin_index - first
     if row >= 0 and row < acc.shape[2] and beam >= 0 and beam < beams:
-        wp.atomic_add(acc, v, layer, row, beam, int(amplitude * weight * _FIXED + 0.5))
+        wp.atomic_add(acc, v, layer * acc.shape[1] // 4, row, beam, int(amplitude * weight * _FIXED + 0.5))
 
 
 @wp.func
 def needed_at(needed: wp.array3d(dtype=wp.uint8), masked: int, v: int, c: int, beam: int):
-    """Whether view v's component c is read at ``beam`` (render_kernel's masked and needed)."""
+    """Whether view v's component c is read at ``beam`` (render_kernel's masked and needed: view
+    v's beams at row v % M of the (M, 2, beams) needed)."""
     if masked == 0:
         return True
     if beam < 0 or beam >= needed.shape[2]:
         return False
-    return needed[v, c, beam] != wp.uint8(0)
+    return needed[v % needed.shape[0], c, beam] != wp.uint8(0)
 
 
 @wp.kernel
@@ -344,12 +346,13 @@ def render_kernel(mesh: wp.uint64, corners: wp.array(dtype=wp.vec3), rotations: 
     """Thread t: sub-rays t, t + stride, ... of the launch's chunks (view_spans_kernel,
     chunk_views_kernel): chunk c of ``chunk`` sub-rays belongs to view v = chunk_views[c], and
     its sub-ray q is sub-ray (c − offsets[v]) chunk + q of the view's span, in the order (beam,
-    i, j) (none past the span's count). Each deposits its mirror2 return into acc (N, 4, R,
-    beams), view v's image row B at row B − first_rows[v] when that lies in [0, R), else
+    i, j) (none past the span's count). Each deposits its mirror2 return into acc (N, P, R,
+    beams) (P: 4 layers or 2 components' sums, ``deposit``), view v's image row B at row B −
+    first_rows[v] when that lies in [0, R), else
     nowhere, and queues its hit before the surface for hits_kernel, which deposits the object,
     ghost and mirror returns (kernels/render.cl). Where poses[v] = p >= 0 the direct leg is
     hit_range and hit_face[p, b, i, j] (direct_hits_kernel), else cast here. With masked 1 a
-    return lands only where its component's beam is needed[v, c, beam] (N, 2, beams) (c 0:
+    return lands only where its component's beam is needed[v % M, c, beam] (M, 2, beams) (c 0:
     object and ghost, 1: mirror and mirror2), and a leg whose returns land nowhere needed is not
     cast. The queue: a hit counts itself in hits (1,) int32, zeroed, and the count before it,
     c, is its slot: where c < L it writes (v, b, i K_φ + j, face) to hit_items[c] and r to
