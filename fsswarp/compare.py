@@ -397,14 +397,17 @@ class ViewComparison:
     def plan_pairs(self, views, depths: np.ndarray, tilts: np.ndarray, samples, rows=None, beams=None,
                    components: bool = False):
         """The host half of :meth:`render_pairs` (``Backend.plan_render``): a RenderPlan, made
-        without the device (thread-safe)."""
+        without the device (thread-safe). A pair's pose depends on its cell's tilt alone
+        (``view_planes``): the pairs of one tilt and view are one pose group."""
         rot, t, n, d = self.view_poses(views, depths, tilts)
         if np.any(d <= 0):
             raise InputError("the sonar must lie below the surface in every view", field="depth",
                              value=float(np.min(depths)))
+        tilt_index = np.unique(np.asarray(tilts, np.float64).reshape(-1), return_inverse=True)[1].reshape(-1)
+        groups = tilt_index[:, None] * d.shape[-1] + np.arange(d.shape[-1])
         return self.backend.plan_render(self.mesh, self.sonar, rot.reshape(-1, 3, 3), t.reshape(-1, 3),
                                         n.reshape(-1, 3), d.reshape(-1), samples, rows=rows, beams=beams,
-                                        components=components)
+                                        components=components, pose_groups=groups.reshape(-1))
 
     def _render_planned(self, plan, wait: bool = True):
         return self.backend.render_planned(self.mesh, self.sonar, plan, gamma=ECHO.gamma,

@@ -899,3 +899,24 @@ def test_box_edges_name_the_edges_the_estimate_lies_on(coral_one, estimate):
     corner = dataclasses.replace(last, best=(float(first.depths[-1]), float(first.tilts[0]) + 1e-6))
     assert dataclasses.replace(result, levels=result.levels[:-1] + (corner,)).box_edges() == ("highest depth",
                                                                                               "lowest tilt")
+
+
+def test_grid_plans_group_the_pairs_by_tilt_and_view(truth_comparison, monkeypatch):
+    """plan_pairs hands the render its pairs' pose groups (a tilt and a view): one group per
+    tilt and view of the cells, every pair of a group the same pose bit for bit (so the shared
+    poses are hashed once per group, not once per pair)."""
+    from fsswarp.backends import base
+
+    seen = []
+    original = base.shared_poses
+    monkeypatch.setattr(base, "shared_poses", lambda *args: seen.append(args) or original(*args))
+    truth = truth_comparison.data
+    depths, tilts = np.meshgrid([0.42, 0.43, 0.44], np.radians([10.0, 10.5]), indexing="ij")
+    truth_comparison.plan_pairs(truth.views, depths.ravel(), tilts.ravel(), (1, 8))
+    rotations, translations, _, _, groups = seen[-1]
+    views = len(truth.views)
+    assert groups.shape == (6 * views,) and len(np.unique(groups)) == 2 * views
+    rows = np.concatenate([rotations.reshape(-1, 9), translations], axis=1)
+    for group in np.unique(groups):
+        members = rows[groups == group]
+        assert len(members) == 3 and (members == members[0]).all()

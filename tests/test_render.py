@@ -419,13 +419,15 @@ def test_render_device_bands_equal_full_rows(backend, count, first):
     ("beams", np.ones((0, 2, 96), bool)),
     ("beams", [[True]]),
     ("components", 1),
+    ("pose_groups", np.array([0, -1])),
+    ("pose_groups", np.array([0.0, 1.0])),
+    ("pose_groups", np.array([0, 1, 2])),
 ])
-def test_render_device_rejects_bad_rows_beams_and_components(backend, name, value):
+def test_plan_render_rejects_bad_rows_beams_components_and_groups(backend, name, value):
     sonar, mesh, rot, trans, normals, offsets = coral_inputs()
     handle = backend.load_mesh(mesh.vertices, mesh.faces)
     with pytest.raises(ValueError, match=name):
-        backend.render_device(handle, sonar, rot[:2], trans[:2], normals[:2], offsets[:2], SAMPLES, gamma=GAMMA,
-                              surface_reflection=RS, **{name: value})
+        backend.plan_render(handle, sonar, rot[:2], trans[:2], normals[:2], offsets[:2], SAMPLES, **{name: value})
 
 
 def test_a_launch_of_2_31_sub_rays_or_more_is_refused(backend):
@@ -772,6 +774,33 @@ def test_shared_poses_span_the_hull_of_their_views_that_reach():
     hull = {tuple(map(tuple, shared.rotations[p].astype(int))): tuple(shared.spans[p]) for p in range(shared.count)}
     assert hull == {tuple(map(tuple, a.astype(int))): (0, 5, 1, 6), tuple(map(tuple, b.astype(int))): (1, 2, 0, 1),
                     tuple(map(tuple, c.astype(int))): (0, 0, 0, 0)}
+
+
+@pytest.mark.parametrize("uniform", [False, True], ids=["own spans", "the same spans"])
+def test_shared_poses_of_known_groups_are_those_found_alone(uniform):
+    """``groups`` (views the caller knows to share a pose: hashed once per group) give the same
+    poses, index and hulls as hashing every view: groups that hold one pose each, a pose split
+    over two groups (both of them merged), and a wrong grouping (two poses in one group: every
+    view hashed then); with every view's spans the same (a GPU's) and with views' own."""
+    from fsswarp.backends.base import shared_poses
+
+    rng = np.random.default_rng(5)
+    poses = rng.random((4, 12)).astype(np.float32)
+    which = np.array([0, 1, 2, 0, 1, 3, 2, 0, 0, 3, 1, 2])
+    rot, trans = poses[which, :9].reshape(-1, 3, 3), poses[which, 9:]
+    spans = np.tile(np.array([[1, 9, 0, 4]], np.int32), (12, 1))
+    if not uniform:
+        spans = np.sort(rng.integers(0, 12, (12, 4)), axis=1)[:, [0, 2, 1, 3]].astype(np.int32)
+        spans[4] = 0  # reaches nothing
+    alone = shared_poses(rot, trans, spans, 8)
+    assert alone.count == 4
+    split = np.where(np.arange(12) < 6, which, which + 4)  # each pose in two groups
+    wrong = np.where(which == 3, 0, which)  # poses 0 and 3 in one group
+    for groups in (which, split, wrong, which * 7 + 2):
+        got = shared_poses(rot, trans, spans, 8, groups)
+        for name in ("index", "rotations", "translations", "spans"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(alone, name))
+    np.testing.assert_array_equal(alone.rotations[alone.index], rot)
 
 
 def test_shared_poses_check_their_hash(monkeypatch):

@@ -401,11 +401,14 @@ class Backend(abc.ABC):
                                    gamma=gamma, surface_reflection=surface_reflection)
 
     def plan_render(self, mesh, sonar: SonarSpec, rotations, translations, plane_normals, plane_offsets,
-                    samples: tuple[int, int], *, rows=None, beams=None, components: bool = False) -> "RenderPlan":
+                    samples: tuple[int, int], *, rows=None, beams=None, components: bool = False,
+                    pose_groups=None) -> "RenderPlan":
         """The host half of ``render_device`` (arguments as there): the inputs checked and made
         clean, the bands, the beams read, the sub-ray spans and the shared poses, without the
         device. Thread-safe: a caller may plan its next launch while this one renders
-        (``fsswarp.compare.ViewComparison.view_costs``)."""
+        (``fsswarp.compare.ViewComparison.view_costs``). ``pose_groups``: None, or (N,) ints >= 0
+        that give views of one pose, where the caller knows them (:func:`shared_poses`' groups:
+        checked, and the same plan as without them)."""
         rot, trans, normals, offsets = _view_planes(rotations, translations, plane_normals, plane_offsets)
         k_theta, k_phi = (int(k) for k in samples)
         if k_theta < 1 or k_phi < 1:
@@ -423,7 +426,8 @@ class Backend(abc.ABC):
         spans = shared = None
         if n_views:
             spans = self._spans(mesh, sonar, rot, trans, normals, offsets, k_phi)
-            shared = shared_poses(rot, trans, spans, sonar.beams * k_theta * k_phi)
+            shared = shared_poses(rot, trans, spans, sonar.beams * k_theta * k_phi,
+                                  _pose_groups(pose_groups, n_views))
         return RenderPlan(rot, trans, normals, offsets, k_theta, k_phi, first, count, rows is not None, needed, spans,
                           shared, planes)
 
@@ -1011,34 +1015,51 @@ _POSE_HASH = np.random.default_rng(20261126).integers(1, 2**63, size=12, dtype=n
 
 
 def shared_poses(rotations: np.ndarray, translations: np.ndarray, spans: np.ndarray,
-                 sub_rays: int) -> SharedPoses | None:
+                 sub_rays: int, groups: np.ndarray | None = None) -> SharedPoses | None:
     """The views among (N, 3, 3) rotations and (N, 3) translations (float32) that share a pose
     bit for bit, whose direct legs (the first hit along each sub-ray, which the surface does not
     change) a render casts once per pose: on a (D, β) grid the depth never moves a pose, and
     views at the reference's position keep theirs at every tilt. None where every pose differs,
     or where the P poses' ``sub_rays`` hits each would pass ``SHARED_HITS``. Poses are told
-    apart by a 64-bit hash of their bits, checked exactly (a collision: None)."""
+    apart by a 64-bit hash of their bits, checked exactly (a collision: None). ``groups``: None,
+    or (N,) ints >= 0 that the caller knows to give views of one pose (a (D, β) grid: the tilt
+    and the view); the hash then runs over one view of each group (a launch of 1,800 cells of
+    16 views hashes 1,024 poses, not 28,800), and the grouping is checked bit for bit (where it
+    fails, every view is hashed)."""
     n = rotations.shape[0]
     rows = np.ascontiguousarray(np.concatenate([rotations.reshape(n, 9), translations], axis=1), np.float32)
-    keys = rows.view(np.uint32).astype(np.uint64) @ _POSE_HASH  # (mod 2^64: in any order, the same)
+    hashed, of = np.arange(n), None  # the views hashed, and each view's row among them
+    if groups is not None:
+        last = np.full(int(groups.max()) + 1, -1, np.int64)
+        last[groups] = np.arange(n)  # one view of each group
+        present = last >= 0
+        if np.array_equal(rows[last[groups]], rows):
+            hashed, of = last[present], (np.cumsum(present) - 1)[groups]
+    keys = rows[hashed].view(np.uint32).astype(np.uint64) @ _POSE_HASH  # (mod 2^64: in any order, the same)
     order = np.argsort(keys)  # grouped by key; within a pose any order (its rows are the same bits)
     ordered = keys[order]
     new_key = np.r_[True, ordered[1:] != ordered[:-1]]
     starts = np.flatnonzero(new_key)
     if starts.size == n or starts.size * sub_rays > SHARED_HITS:
         return None
-    index = np.empty(n, np.int64)
+    index = np.empty(hashed.size, np.int64)
     index[order] = np.cumsum(new_key) - 1  # the rank of the pose's key
-    first = order[starts]
-    if not np.array_equal(rows[first][index], rows):
+    first = hashed[order[starts]]
+    if not np.array_equal(rows[first][index], rows[hashed]):
         return None
-    reached = order[spans[order, 1] > spans[order, 0]]  # grouped by pose
-    pose = index[reached]
-    starts = np.flatnonzero(np.r_[True, pose[1:] != pose[:-1]]) if pose.size else pose
+    if of is not None:
+        index = index[of]
     hull = np.zeros((first.size, 4), np.int64)  # poses none of whose views reach the mesh: zeros
-    for k, combine in enumerate((np.minimum, np.maximum, np.minimum, np.maximum)):
-        if pose.size:
-            hull[pose[starts], k] = combine.reduceat(spans[reached, k], starts)
+    if np.all(spans == spans[0]):  # every view casts the same sub-rays (a GPU's: all of them)
+        hull[:] = spans[0] if spans[0, 1] > spans[0, 0] else 0
+    else:
+        grouped = np.argsort(index, kind="stable")
+        reached = grouped[spans[grouped, 1] > spans[grouped, 0]]  # grouped by pose
+        pose = index[reached]
+        starts = np.flatnonzero(np.r_[True, pose[1:] != pose[:-1]]) if pose.size else pose
+        for k, combine in enumerate((np.minimum, np.maximum, np.minimum, np.maximum)):
+            if pose.size:
+                hull[pose[starts], k] = combine.reduceat(spans[reached, k], starts)
     return SharedPoses(index.astype(np.int32).reshape(n), np.ascontiguousarray(rows[first, :9].reshape(-1, 3, 3)),
                        np.ascontiguousarray(rows[first, 9:]), hull.astype(np.int32))
 
@@ -1112,6 +1133,16 @@ def _needed_beams(beams, n_views: int, n_beams: int) -> np.ndarray | None:
         raise ValueError(f"beams must be None or an (M, 2, {n_beams}) bool array with M dividing the {n_views} "
                          f"views, got {beams.dtype} {beams.shape}")
     return np.ascontiguousarray(beams, np.uint8)
+
+
+def _pose_groups(groups, n_views: int) -> np.ndarray | None:
+    """``plan_render``'s ``pose_groups`` as (N,) int64, or None, or raise."""
+    if groups is None:
+        return None
+    groups = np.asarray(groups)
+    if groups.dtype.kind not in "iu" or groups.shape != (n_views,) or (groups.size and groups.min() < 0):
+        raise ValueError(f"pose_groups must be None or ({n_views},) integers >= 0, got {groups.dtype} {groups.shape}")
+    return groups.astype(np.int64, copy=False)
 
 
 def _row_bands(rows, n_views: int, bins: int) -> tuple[np.ndarray, int]:
