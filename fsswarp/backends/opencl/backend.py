@@ -278,8 +278,8 @@ class OpenCLBackend(Backend):
         uint8 beams read, ``Backend._render``) into acc_buf, the fixed-point int32 layers of
         ``shape`` (n, P, R, beams) (P: 4 layers or 2 components' sums), and with layers_buf
         their floats (``fixed_to_float``), after the events ``wait_for``; ``hit_share``, the
-        queue of hits (``hit_queue_size``; None: room
-        for every hit; 0: none, each hit's returns at once). Returns the last kernel's event and,
+        queue of hits (``hit_queue_size``; None: room for every hit; 0: none, each hit's
+        returns at once). Returns the last kernel's event and,
         where anything was cast through a queue with a ``hit_share``, the queue's count (1,)
         int32 (read) and its slots L (a count above L: the queue overflowed and acc_buf lacks
         returns), else None. Call holding ``_lock``."""
@@ -567,8 +567,9 @@ def _read(host, copied, start, count, slot) -> tuple[int, np.ndarray]:
 class OpenCLLayers(DeviceLayers):
     """Rendered layers of ``backend`` as the render's fixed-point accumulator, an OpenCL buffer
     (``.buffer``) of (N, 4, bins, beams) int32 (2^24 = 1), or (N, 4, R, beams) for bands of rows
-    (``first_rows``), 2 in place of 4 for the components' sums: the contour kernels read it as it is, and ``numpy`` converts it on the
-    device first (``fixed_to_float``: the floats a render to float layers gives)."""
+    (``first_rows``), 2 in place of 4 for the components' sums: the contour kernels read it as it
+    is, and ``numpy`` converts it on the device first (``fixed_to_float``: the floats a render to
+    float layers gives)."""
 
     def __init__(self, backend: OpenCLBackend, buffer: cl.Buffer, shape: tuple[int, int, int, int]):
         self.backend = backend

@@ -1,8 +1,9 @@
 """Warp kernels of image synthesis (kernels/render.cl; fsswarp/rendering.py documents the algorithm).
 
 ``render_kernel`` deposits every sub-ray's mirror2 return into a fixed-point (N, 4, R, beams)
-int32 accumulator (or (N, 2, R, beams), the components' sums) and queues its hit before the surface, whose object, ghost and mirror returns
-``hits_kernel`` deposits (``Backend.hit_queue``); its threads take the sub-rays that can reach
+int32 accumulator (or (N, 2, R, beams), the components' sums) and queues its hit before the
+surface, whose object, ghost and mirror returns ``hits_kernel`` deposits
+(``Backend.hit_queue``); its threads take the sub-rays that can reach
 the mesh, found on the device (``view_spans_kernel``) and packed in chunks per view
 (``chunk_views_kernel``), in turn; ``fixed_to_float`` converts the accumulator to
 float32 layers, and ``frontal_rays_kernel`` finds the frontal patch of beams (``Backend.frontal_faces``).
