@@ -33,9 +33,10 @@ def beam_row(layers: wp.array4d(dtype=Any), scale: float, n: int, c: int, bi: in
     row = float(0.0)
     for j in range(2 * r_beam + 1):
         bj = wp.clamp(b + j - r_beam, 0, beams - 1)
-        value = layers[n, c, bi, bj]
         if layers.shape[1] == 4:
             value = layers[n, 2 * c, bi, bj] + layers[n, 2 * c + 1, bi, bj]
+        else:
+            value = layers[n, c, bi, bj]
         row += w_beam[j] * (float(value) * scale)
     return row
 
