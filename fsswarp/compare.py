@@ -450,7 +450,8 @@ class ViewComparison:
         is made again then, ``Backend.render_planned``)."""
         data = self.data
         n_views = len(data.views)
-        first, rows, read, per = self.grid_launches(samples)
+        layout = self.grid_launches(samples)
+        per = layout[3]
         shifts = self.shifts if self.shift is None else [self.shift]
         ahead = self.backend.is_gpu
         launches = _launches(len(depths), per, ahead)
@@ -461,8 +462,7 @@ class ViewComparison:
             if len(cell_d) == 1 and (float(cell_d[0]), float(cell_t[0])) == self.estimate \
                     and tuple(samples) == tuple(self.settings.exact_samples):
                 return None  # the located layers
-            return self.plan_pairs(data.views, cell_d, cell_t, samples, rows=(np.tile(first, len(cell_d)), rows),
-                                   beams=read, components=True)
+            return self.plan_pairs(data.views, cell_d, cell_t, samples, **grid_render_options(layout, len(cell_d)))
 
         def launch_costs(g: int, planned, wait: bool):
             """(the launch's costs (g, V, S), or with ``wait`` false a function that returns them;
@@ -781,6 +781,15 @@ def _gaussian(sigma: float) -> np.ndarray:
 #: the 3,603 cells of coral-one's 4 GiB launches, whose plan takes ~4 ms on an H200's host.
 FIRST_LAUNCH_SHARE = 0.125
 FIRST_LAUNCH_CELLS = 64
+
+
+def grid_render_options(layout: tuple, cells: int) -> dict:
+    """The ``rows``, ``beams`` and ``components`` of ``ViewComparison.render_pairs`` (and
+    ``plan_pairs``) with which :meth:`ViewComparison.view_costs` renders ``cells`` cells of every
+    data view, from its ``grid_launches()`` ``layout`` (first, R, read, per): each pair's band of R
+    rows from its view's first row, the beams its contours read, the components' sums."""
+    first, rows, read, _ = layout
+    return dict(rows=(np.tile(first, cells), rows), beams=read, components=True)
 
 
 def _launches(cells: int, per: int, ahead: bool) -> list[slice]:

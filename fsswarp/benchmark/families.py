@@ -556,7 +556,7 @@ def pose_grid(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3,
     the same launches, layers dropped) and "resident" (``Backend.view_costs`` alone on the
     components' sums already rendered, where they fit in one launch of ``launch_bytes``: default
     16 GiB on a GPU, 2 GiB on a CPU)."""
-    from ..compare import PoseSettings, ViewComparison
+    from ..compare import PoseSettings, ViewComparison, grid_render_options
 
     launch_bytes = launch_bytes or (16 << 30 if backend.is_gpu else 2 << 30)
     profile = profiles[profile_key(backend)]
@@ -579,13 +579,14 @@ def pose_grid(backend, sides: Sequence[int], *, profiles: dict, repeat: int = 3,
     summed = 2 * sonar.bins * sonar.beams  # of the components' sums the grid renders
     distance_bytes = data.distances.nbytes
     mesh_bytes = len(model.faces) * TRIANGLE_BYTES
-    first, rows, read, per = problem.grid_launches(settings.samples)  # view_costs' bands, beams and launches
+    layout = problem.grid_launches(settings.samples)  # view_costs' bands, beams and launches
+    _, rows, _, per = layout
 
     def render_alone(depths, tilts):
         for start in range(0, len(depths), per):
             cell_d, cell_t = depths[start:start + per], tilts[start:start + per]
             problem.render_pairs(data.views, cell_d, cell_t, settings.samples,
-                                 rows=(np.tile(first, len(cell_d)), rows), beams=read, components=True)
+                                 **grid_render_options(layout, len(cell_d)))
 
     def run_point(side):
         depths, tilts = grid_cells(truth, side)
