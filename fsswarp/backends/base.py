@@ -653,7 +653,8 @@ class Backend(abc.ABC):
         first = getattr(layers, "first_rows", None)
         shape = tuple(layers.shape)
         if first is None:
-            if len(shape) != 4 or shape[1] not in (4, 2) or shape[::2] != (index.shape[0], bins) or shape[3] != beams:
+            if len(shape) != 4 or shape[0] != index.shape[0] or shape[1] not in (4, 2) or shape[2] != bins \
+                    or shape[3] != beams:
                 raise ValueError(f"layers must have shape (N, 4 or 2, bins, beams) = ({index.shape[0]}, 4 or 2, "
                                  f"{bins}, {beams}), got {shape}")
             first = np.zeros(index.shape[0], np.int32)

@@ -308,19 +308,19 @@ class OpenCLBackend(Backend):
                      np.float32(surface_reflection), np.float32(RAY_EPSILON))
             masks = (np.int32(0 if needed is None else needed.shape[0]),
                      self._input(np.ones(1, np.uint8) if needed is None else needed))
-            rows, first = (np.int32(shape[2]), np.int32(shape[1])), self._input(first_rows)  # R, P
+            band, first = (np.int32(shape[2]), np.int32(shape[1])), self._input(first_rows)  # rows R, planes P
             counted = [cl.enqueue_fill_buffer(self.queue, counts, np.int32(0), 0, 4)] if hit_size else []
             chunks, threads = self._ray_chunks(mesh, sonar, centres, beam_widths, views[:4], shape[0], k_theta, k_phi,
                                                None if self.is_gpu else spans)
             rendered = self._render_kernel(
                 self.queue, (threads,), (GROUP,), mesh.nodes, mesh.children, mesh.triangles, *views,
-                np.float32(MAX_DISTANCE), first, *rows, *chunks, np.int32(RAY_CHUNK), np.int32(shape[0]), poses,
+                np.float32(MAX_DISTANCE), first, *band, *chunks, np.int32(RAY_CHUNK), np.int32(shape[0]), poses,
                 hit_range, hit_tri, *masks, acc_buf, *queue, wait_for=[zeroed, *counted])
             done = rendered
             if hit_size:
                 served = min(-(-hit_size // GROUP) * GROUP, self._resident_threads())
                 done = self._hits_kernel(self.queue, (served,), None, mesh.nodes,
-                                         mesh.children, mesh.triangles, *views, first, *rows, *masks, *queue[:3],
+                                         mesh.children, mesh.triangles, *views, first, *band, *masks, *queue[:3],
                                          queue[3], acc_buf, wait_for=[rendered])
             if hit_size and hit_share is not None:  # else the count cannot pass L: nothing to read
                 hits = (np.empty(1, np.int32), hit_size)
