@@ -93,3 +93,16 @@ def coral_one(tmp_path_factory):
     rows = [r for r in _rows() if r["backend"] == "opencl" and r["kind"] == "cpu" and r["available"]]
     backend = get_backend("opencl", rows[0]["index"]) if rows else get_backend()
     return simulate("coral-one", tmp_path_factory.mktemp("carve") / "coral-one", seed=1, backend=backend)
+
+
+@pytest.fixture(scope="session")
+def coral_south(tmp_path_factory):
+    """coral-one seen from its south position alone (8 views, 5 of them optimized; seed 1, as
+    ``coral_one``): for the tests of commands' plumbing, whose runs then take about half as long."""
+    from fsswarp.scenes import builtin_scene
+    from fsswarp.simulation import simulate
+
+    rows = [r for r in _rows() if r["backend"] == "opencl" and r["kind"] == "cpu" and r["available"]]
+    backend = get_backend("opencl", rows[0]["index"]) if rows else get_backend()
+    return simulate(builtin_scene("coral-one", positions="S"), tmp_path_factory.mktemp("carve") / "coral-south",
+                    seed=1, backend=backend)

@@ -68,22 +68,22 @@ def snapshot(folder: Path) -> dict[str, tuple[int, bytes]]:
 
 
 @pytest.fixture(scope="module")
-def first_batch(coral_one, tmp_path_factory, ray_env):
+def first_batch(coral_south, tmp_path_factory, ray_env):
     """JOBS plus one job whose dataset folder is missing, run once, the nodes warmed up first (on
     OpenCL they are not unless asked): (JOBS.toml, DIR, process)."""
     root = tmp_path_factory.mktemp("batch")
-    dataset = os.path.relpath(coral_one.root, root)
+    dataset = os.path.relpath(coral_south.root, root)
     jobs_file = write_jobs(root / "JOBS.toml", {**{n: (dataset, o) for n, o in JOBS.items()},
                                                 "lost": ("no-such-dataset", {})})
     done = fsswarp("batch", jobs_file, "--out", root / "out", "--warm-up", env=ray_env)
     return jobs_file, root / "out", done
 
 
-def test_each_job_writes_what_reconstruct_alone_writes(first_batch, coral_one, tmp_path):
+def test_each_job_writes_what_reconstruct_alone_writes(first_batch, coral_south, tmp_path):
     _, out, done = first_batch
     for name, overrides in JOBS.items():
         options = [a for k, v in {**DEFAULTS, **overrides}.items() for a in (f"--{k}", v)]
-        alone = fsswarp("-q", "reconstruct", coral_one.root, "--out", tmp_path / name, *options)
+        alone = fsswarp("-q", "reconstruct", coral_south.root, "--out", tmp_path / name, *options)
         assert alone.returncode == 0, alone.stderr
         assert sorted(snapshot(out / name)) == sorted(snapshot(tmp_path / name))
         assert result(out / name) == result(tmp_path / name), name
@@ -214,11 +214,11 @@ def when_started(out: Path, env: dict, act, timeout: float = 120.0) -> threading
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the Ray worker through /proc")
 @pytest.mark.parametrize("target, reason", [("worker", "Ray: ActorDiedError"), ("job", "killed by SIGKILL")])
-def test_a_killed_worker_or_job_is_retried_and_the_job_ends_ok(first_batch, coral_one, tmp_path, ray_env, target,
+def test_a_killed_worker_or_job_is_retried_and_the_job_ends_ok(first_batch, coral_south, tmp_path, ray_env, target,
                                                                 reason):
     """SIGKILL to the Ray actor running the job (its resident process dies with it: the
     supervisor between them kills the resident's group), or to the resident process alone."""
-    jobs_file = write_jobs(tmp_path / "JOBS.toml", {"plain": (str(coral_one.root), JOBS["plain"])})
+    jobs_file = write_jobs(tmp_path / "JOBS.toml", {"plain": (str(coral_south.root), JOBS["plain"])})
     out = tmp_path / "out"
     killed = []
 
@@ -241,8 +241,8 @@ def test_a_killed_worker_or_job_is_retried_and_the_job_ends_ok(first_batch, cora
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the job's process through /proc")
-def test_ctrl_c_stops_the_batch_and_leaves_no_half_written_folder(coral_one, tmp_path, ray_env):
-    jobs_file = write_jobs(tmp_path / "JOBS.toml", {"plain": (str(coral_one.root), JOBS["plain"])})
+def test_ctrl_c_stops_the_batch_and_leaves_no_half_written_folder(coral_south, tmp_path, ray_env):
+    jobs_file = write_jobs(tmp_path / "JOBS.toml", {"plain": (str(coral_south.root), JOBS["plain"])})
     out = tmp_path / "out"
     env = dict(ray_env, FSSWARP_TEST_RUN=f"ctrl-c-{os.getpid()}")
     driver = subprocess.Popen([sys.executable, "-m", "fsswarp", "--backend", "opencl", "batch", str(jobs_file),

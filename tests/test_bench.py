@@ -292,7 +292,7 @@ def test_paper_table_bad_options_exit_2(args, tmp_path):
     assert code == 2 and not list(tmp_path.iterdir())
 
 
-def test_ab_reconstruct_runs_each_tree_from_its_own_package(coral_one, tmp_path):
+def test_ab_reconstruct_runs_each_tree_from_its_own_package(coral_south, tmp_path):
     """bench/ab_reconstruct.py times a tree's own code: the run imports fsswarp from that tree,
     not from the working folder or the installed package."""
     import shutil
@@ -301,7 +301,7 @@ def test_ab_reconstruct_runs_each_tree_from_its_own_package(coral_one, tmp_path)
     tree = tmp_path / "tree"
     for name in ("fsswarp", "kernels"):
         shutil.copytree(repo / name, tree / name, ignore=shutil.ignore_patterns("__pycache__"))
-    found = _bench_module("ab_reconstruct").run_tree(tree, str(coral_one.root), "auto", "", "0")
+    found = _bench_module("ab_reconstruct").run_tree(tree, str(coral_south.root), "auto", "", "0")
     assert Path(found["package"]) == tree / "fsswarp" and found["E_I"] == 1.0 and found["seconds"] > 0
     assert len(found["model"]) == 12 and int(found["model"], 16) >= 0  # the model's digest, to compare trees
 
@@ -636,11 +636,11 @@ def test_demo_wall_alternates_the_settings_after_a_warm_up(monkeypatch, capsys):
     assert "figures in figure processes: median 21.0 s (20.0-22.0)" in out and out.rstrip().endswith("ratio 0.66")
 
 
-def test_batch_throughput_runs_commands_at_once_and_they_agree(coral_one, tmp_path):
+def test_batch_throughput_runs_commands_at_once_and_they_agree(coral_south, tmp_path):
     """bench/batch_throughput.py: two reconstructions started together both write result.json,
     with the same values (determinism), and the wall time covers both."""
     batch = _bench_module("batch_throughput")
-    wall, results = batch.run_batch(coral_one.root, [tmp_path / "a", tmp_path / "b"], 0, ["--backend", "opencl"])
+    wall, results = batch.run_batch(coral_south.root, [tmp_path / "a", tmp_path / "b"], 0, ["--backend", "opencl"])
     assert wall > 0 and len(results) == 2
     assert batch.agreed(results[0]) == batch.agreed(results[1])
     assert results[0]["history"][0]["E_I"] == 1.0 and results[0]["best_iteration"] == 0

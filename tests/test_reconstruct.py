@@ -487,8 +487,8 @@ def test_settings_are_validated():
                 ReconstructSettings(**{name: bad})
 
 
-def test_reconstruct_command_writes_model_result_and_figures(coral_one, tmp_path):
-    done = run_cli("reconstruct", str(coral_one.root), "--out", str(tmp_path / "r"), "--iterations", "0",
+def test_reconstruct_command_writes_model_result_and_figures(coral_south, tmp_path):
+    done = run_cli("reconstruct", str(coral_south.root), "--out", str(tmp_path / "r"), "--iterations", "0",
                    "--resolution", "48")
     assert done.returncode == 0, done.stderr
     names = sorted(p.relative_to(tmp_path / "r").as_posix() for p in (tmp_path / "r").rglob("*") if p.is_file())
@@ -499,9 +499,9 @@ def test_reconstruct_command_writes_model_result_and_figures(coral_one, tmp_path
     assert trimesh.load_mesh(tmp_path / "r" / "model.ply").is_watertight
 
 
-def test_reconstruct_starts_from_a_given_depth_and_tilt(coral_one, tmp_path):
+def test_reconstruct_starts_from_a_given_depth_and_tilt(coral_south, tmp_path):
     """--depth/--tilt replace the measured D0/β0 as the start (the paper table's 2° runs)."""
-    done = run_cli("reconstruct", str(coral_one.root), "--out", str(tmp_path / "r"), "--iterations", "0",
+    done = run_cli("reconstruct", str(coral_south.root), "--out", str(tmp_path / "r"), "--iterations", "0",
                    "--resolution", "32", "--depth", "0.435", "--tilt", "11.9")
     assert done.returncode == 0, done.stderr
     result = json.loads((tmp_path / "r" / "result.json").read_text())
@@ -565,7 +565,13 @@ def test_an_unreadable_truth_model_is_named_before_the_work(coral_one, tmp_path,
     assert not (tmp_path / "out").exists() and "iteration" not in done.stdout and "carving" not in done.stdout
 
 
-def test_demo_simulates_and_reconstructs(tmp_path):
+def test_the_demo_simulates_reconstructs_and_draws_its_figures_while_it_goes_on(tmp_path, monkeypatch, capsys):
+    """The command writes its three folders (the dataset passes ``check``). Run again over its own
+    output, in this process, it replaces it silently; the reconstruction's figures and report
+    are finished when the demo ends, not before the enhancement starts (their figures are drawn
+    meanwhile); the enhancement's figures, the slowest, are queued before the report's views; an
+    error after them leaves no output and no temporary folder. (Three demos in one test: each
+    takes ~10 s on CI's machine.)"""
     out = tmp_path / "demo"
     done = run_cli("demo", "coral-one", "--out", str(out), "--iterations", "0")
     assert done.returncode == 0, done.stderr
@@ -576,15 +582,8 @@ def test_demo_simulates_and_reconstructs(tmp_path):
         assert (out / name).is_file(), name
     assert run_cli("check", str(out / "dataset")).returncode == 0
     assert json.loads((out / "enhance" / "enhance.json").read_text())["dataset"] == str(out / "dataset")
-    again = run_cli("--quiet", "demo", "coral-one", "--out", str(out), "--iterations", "0")
-    assert again.returncode == 0 and again.stdout == ""  # replaces its own earlier output, silently
+    first_model = (out / "reconstruction" / "model.ply").stat().st_mtime_ns
 
-
-def test_the_demo_draws_its_figures_while_it_goes_on_and_finishes_its_folders_at_the_end(tmp_path, monkeypatch):
-    """The reconstruction's figures and report are finished when the demo ends, not before the
-    enhancement starts (their figures are drawn meanwhile); the enhancement's figures, the
-    slowest, are queued before the report's views; an error after them leaves no output and no
-    temporary folder."""
     import fsswarp.cli as cli
     from fsswarp.processes import WorkerProcesses
 
@@ -609,8 +608,10 @@ def test_the_demo_draws_its_figures_while_it_goes_on_and_finishes_its_folders_at
 
     monkeypatch.setattr(cli, "run_enhancement", watched)
     fail = False
-    out = tmp_path / "demo"
+    capsys.readouterr()
     assert cli.main(["-q", "--backend", "opencl", "demo", "coral-one", "--out", str(out), "--iterations", "0"]) == 0
+    assert capsys.readouterr().out == ""  # replaced its own earlier output, silently
+    assert (out / "reconstruction" / "model.ply").stat().st_mtime_ns != first_model
     assert seen == [[True, False]]  # written, its page not yet
     last_enhancement = max(i for i, name in enumerate(queued) if name in ("enhance_figure", "comparison_figure"))
     assert queued.index("carve_figure") < last_enhancement < queued.index("views_figure")

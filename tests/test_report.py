@@ -23,10 +23,10 @@ def run_cli(*args):
 
 
 @pytest.fixture(scope="module")
-def reconstruction(coral_one, tmp_path_factory):
+def reconstruction(coral_south, tmp_path_factory):
     """One low-resolution reconstruction of coral-one, written by the command line: (folder, stdout)."""
     out = tmp_path_factory.mktemp("report") / "rec"
-    done = run_cli("reconstruct", str(coral_one.root), "--out", str(out), "--iterations", "0", "--resolution", "32")
+    done = run_cli("reconstruct", str(coral_south.root), "--out", str(out), "--iterations", "0", "--resolution", "32")
     assert done.returncode == 0, done.stderr
     return out, done.stdout
 
@@ -63,7 +63,7 @@ def drop_fusion_keys(result: dict) -> None:
 
 
 @pytest.fixture(scope="module")
-def variants(reconstruction, coral_one, tmp_path_factory):
+def variants(reconstruction, coral_south, tmp_path_factory):
     """The reconstruction's own page, and pages of copies with the fusion keys (written by
     ``fsswarp report OUT --dataset DIR``) and without them (by ``fsswarp.report.report``):
     {name: folder}."""
@@ -73,15 +73,15 @@ def variants(reconstruction, coral_one, tmp_path_factory):
     folder, _ = reconstruction
     root = tmp_path_factory.mktemp("variants")
     target = copy_with(folder, root / "with", add_fusion_keys)
-    done = run_cli("report", str(target), "--dataset", str(coral_one.root))
+    done = run_cli("report", str(target), "--dataset", str(coral_south.root))
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == f"wrote {target / 'report.html'}"
     bare = copy_with(folder, root / "without", drop_fusion_keys)
-    assert report(bare, dataset_dir=coral_one.root, backend=get_backend("opencl")) == bare / "report.html"
+    assert report(bare, dataset_dir=coral_south.root, backend=get_backend("opencl")) == bare / "report.html"
     return {"written by reconstruct": folder, "with the fusion keys": target, "without them": bare}
 
 
-def test_a_page_finished_later_is_the_page_written_at_once(reconstruction, coral_one, tmp_path):
+def test_a_page_finished_later_is_the_page_written_at_once(reconstruction, coral_south, tmp_path):
     """``write_report(later=stack)`` writes nothing until the stack closes, then the page that
     ``write_report`` writes at once (all but "how it was made": times and folder); an error
     before the stack closes writes no page."""
@@ -95,15 +95,15 @@ def test_a_page_finished_later_is_the_page_written_at_once(reconstruction, coral
     backend = get_backend("opencl")
     now, later_folder, failing = (copy_with(folder, tmp_path / name, lambda result: None)
                                   for name in ("now", "later", "failing"))
-    write_report(now, dataset=coral_one, backend=backend, name="coral-one")
+    write_report(now, dataset=coral_south, backend=backend, name="coral-one")
     drawer = FigureDrawer(2)
     try:
         with ExitStack() as later:
-            page = write_report(later_folder, dataset=coral_one, backend=backend, name="coral-one", drawer=drawer,
+            page = write_report(later_folder, dataset=coral_south, backend=backend, name="coral-one", drawer=drawer,
                                 later=later)
             assert page == later_folder / "report.html" and not page.exists()
         with pytest.raises(RuntimeError, match="stop"), ExitStack() as later:
-            write_report(failing, dataset=coral_one, backend=backend, name="coral-one", drawer=drawer, later=later)
+            write_report(failing, dataset=coral_south, backend=backend, name="coral-one", drawer=drawer, later=later)
             raise RuntimeError("stop")
     finally:
         drawer.close()
@@ -186,10 +186,10 @@ def expected_text(number: dict, files: dict) -> str:
 
 
 @pytest.mark.parametrize("name", ["written by reconstruct", "with the fusion keys", "without them"])
-def test_every_number_shown_is_the_file_s_rounded_as_declared(variants, coral_one, name):
+def test_every_number_shown_is_the_file_s_rounded_as_declared(variants, coral_south, name):
     folder = variants[name]
     numbers = Elements((folder / "report.html").read_text()).numbers
-    files = sources(folder, coral_one.root)
+    files = sources(folder, coral_south.root)
     for number in numbers:
         assert number["text"] == expected_text(number, files), number
     shown = {(n["data-key"], n["data-format"], n["data-scale"]) for n in numbers}
@@ -215,20 +215,20 @@ def test_every_number_shown_is_the_file_s_rounded_as_declared(variants, coral_on
 
 # --- user mistakes ---------------------------------------------------------------------------
 
-def test_a_folder_that_is_no_output_is_refused_and_nothing_is_written(coral_one, tmp_path):
+def test_a_folder_that_is_no_output_is_refused_and_nothing_is_written(coral_south, tmp_path):
     (tmp_path / "mine").mkdir()
     (tmp_path / "mine" / "notes.txt").write_text("keep")
     for folder, needle in ((tmp_path / "mine", "is neither a reconstruction output"),
-                           (coral_one.root, "is neither a reconstruction output"),
+                           (coral_south.root, "is neither a reconstruction output"),
                            (tmp_path / "nowhere", "no such folder"),
                            (tmp_path / "mine" / "notes.txt", "is not a folder")):
-        before = sorted(p.name for p in tmp_path.rglob("*")) + sorted(p.name for p in coral_one.root.iterdir())
+        before = sorted(p.name for p in tmp_path.rglob("*")) + sorted(p.name for p in coral_south.root.iterdir())
         done = run_cli("report", str(folder))
         assert done.returncode == 2, done.stderr
         lines = done.stderr.strip().splitlines()
         assert len(lines) == 1 and needle in lines[0] and folder.name in lines[0], lines
         assert done.stdout == ""
-        assert sorted(p.name for p in tmp_path.rglob("*")) + sorted(p.name for p in coral_one.root.iterdir()) == before
+        assert sorted(p.name for p in tmp_path.rglob("*")) + sorted(p.name for p in coral_south.root.iterdir()) == before
 
 
 @pytest.mark.parametrize("change, needle", [
@@ -249,13 +249,13 @@ def test_a_broken_or_unplaced_reconstruction_is_one_line(reconstruction, tmp_pat
 # --- a batch ------------------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
-def batch_folder(reconstruction, coral_one, tmp_path_factory):
+def batch_folder(reconstruction, coral_south, tmp_path_factory):
     """A batch folder as fsswarp batch writes it: job "a" with its page, job "c" without one
     (its result.json names its dataset), job "b" failed. ``fsswarp report DIR`` has run."""
     folder = tmp_path_factory.mktemp("batch") / "runs"
     folder.mkdir()
     shutil.copytree(reconstruction[0], folder / "a")
-    copy_with(reconstruction[0], folder / "c", lambda r: r.update(dataset=str(coral_one.root)))
+    copy_with(reconstruction[0], folder / "c", lambda r: r.update(dataset=str(coral_south.root)))
     jobs = [{"name": "a", "status": "ok", "attempts": 1, "seconds": 31.25, "error": None, "node": "n1", "device": "cpu"},
             {"name": "b", "status": "failed", "attempts": 1, "seconds": 0.5, "error": "dataset.toml: no such file",
              "node": "n1", "device": "cpu"},
@@ -341,7 +341,7 @@ def coloured_pixels(png: bytes) -> dict[str, int]:
 
 
 @pytest.mark.parametrize("name", ["written by reconstruct", "with the fusion keys", "without them"])
-def test_the_page_in_a_browser(browser, variants, coral_one, name):
+def test_the_page_in_a_browser(browser, variants, coral_south, name):
     folder = variants[name]
     page, seen = open_page(browser, folder / "report.html")
     # a selector, not wait_for_function: its polling evaluates a string, which the page's CSP forbids
@@ -357,7 +357,7 @@ def test_the_page_in_a_browser(browser, variants, coral_one, name):
     hidden = coloured_pixels(page.locator("#viewer").screenshot())
     assert hidden["orange"] < pixels["orange"] / 50 and hidden["blue"] > 2000, hidden
     assert page.eval_on_selector("#viewer", "c => c.dataset.meshesDrawn") == "2"
-    files = sources(folder, coral_one.root)
+    files = sources(folder, coral_south.root)
     shown = page.eval_on_selector_all("data.num", """all => all.map(e => ({"data-source": e.dataset.source,
         "data-key": e.dataset.key, "data-scale": e.dataset.scale, "data-format": e.dataset.format,
         "text": e.textContent}))""")
