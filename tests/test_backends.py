@@ -640,3 +640,44 @@ def test_probe_reports_a_build_failure_in_one_line(monkeypatch):
     monkeypatch.setattr(cl, "Program", Failing)
     reason = select._probe(_fake_devices("broken")[0])
     assert reason == "cannot build an OpenCL kernel: error: unknown target CPU 'generic'"
+
+
+@pytest.mark.gpu
+def test_warp_uploads_through_the_page_locked_ring_arrive_whole(backend_for_label):
+    """A CUDA backend's uploads go through a ring of page-locked memory (``_Staging``). Behind a
+    kernel that keeps the stream busy, 300 uploads of every staged dtype, ~12 times the ring in
+    all, each write their bytes only where the copies queued before have ended: every array
+    arrives bit for bit. A dtype that is not staged (uint8) still arrives through ``_array``."""
+    import warp as wp
+
+    from fsswarp.backends.warp.backend import _Staging
+
+    @wp.kernel
+    def spin(steps: int, out: wp.array(dtype=float)):
+        x = float(0.0)
+        for i in range(steps):
+            x = wp.sin(x + 1.0)
+        out[0] = x
+
+    backend = backend_for_label("warp-cuda")
+    staging = _Staging(backend._device, 1 << 16, smallest=1)
+    busy = wp.zeros(1, dtype=float, device=backend._device)
+    wp.launch(spin, dim=1, inputs=[200_000], outputs=[busy], device=backend._device)
+    rng = np.random.default_rng(5)
+    kinds = [(float, lambda n: rng.normal(size=n).astype(np.float32)),
+             (wp.int32, lambda n: rng.integers(-2**31, 2**31 - 1, n, dtype=np.int64).astype(np.int32)),
+             (wp.vec3, lambda n: rng.normal(size=(n, 3))),  # float64 data, converted as wp.array does
+             (wp.mat33, lambda n: rng.normal(size=(n // 4 + 1, 3, 3)).astype(np.float32)),
+             (wp.float64, lambda n: rng.normal(size=n))]
+    made = []
+    for i in range(300):
+        dtype, draw = kinds[i % len(kinds)]
+        data = draw(int(rng.integers(1, 800)))
+        made.append((staging.upload(data, dtype), wp.array(data, dtype=dtype, device="cpu").numpy()))
+    assert all(array is not None for array, _ in made) and staging.pending
+    for array, want in made:
+        np.testing.assert_array_equal(array.numpy(), want)
+    assert staging.upload(np.zeros(5, np.uint8), wp.uint8) is None
+    assert _Staging(backend._device, 1 << 16).upload(np.zeros(5, np.float32), float) is None  # small: pageable
+    np.testing.assert_array_equal(backend._array(np.arange(5, dtype=np.uint8), wp.uint8).numpy(), np.arange(5))
+

@@ -64,7 +64,7 @@ def test_every_family_gives_consistent_records(label, carve_scene):
     backend = backend_for(label)
     peer = families.NUMPY
     profiles = harness.probe_machine([backend, peer], quick=True)["profiles"]
-    common = dict(profiles=profiles, repeat=2, budget=30.0)
+    common = dict(profiles=profiles, repeat=1, budget=30.0)
     records = (families.raycast(backend, (1,), rays=2048, **common)
                + families.synthesis(backend, (1, 2), samples=(1, 4), streamed=(3,), batch=2, first_run=True,
                                     **common)

@@ -7,6 +7,7 @@ kernel cache, ~/.cache/warp). Device layers are ``WarpLayers``, meshes ``WarpMes
 
 from __future__ import annotations
 
+import collections
 import threading
 
 import numpy as np
@@ -41,6 +42,11 @@ CPU_THREADS = 1024
 CONSTANT_BYTES = 1 << 18
 #: ... and this many of them (at most 16 MiB).
 CONSTANTS = 64
+#: Page-locked host memory (bytes) through which a GPU backend's uploads go (``_Staging``); an
+#: upload of more than a quarter of it, or under ``STAGED_MIN`` bytes, is copied from pageable
+#: memory, as before (a small copy returns at once; the ring's bookkeeping costs ~30 µs).
+STAGING_BYTES = 32 << 20
+STAGED_MIN = 64 << 10
 #: Held while a backend of this process loads a mesh (``WarpBackend._load_mesh``): Warp's BVH
 #: builds are not safe in two threads at once.
 _LOAD_LOCK = threading.Lock()
@@ -95,6 +101,59 @@ def _launch(kernel, dim, **kwargs) -> None:
     wp.launch(kernel, dim=dim, block_dim=kernel.module.options["block_dim"], **kwargs)
 
 
+class _Staging:
+    """A ring of page-locked host memory for one CUDA device's uploads: an upload copies its bytes
+    into the ring and queues an asynchronous copy on the device's current stream, so the host
+    never waits for the stream to drain, as a copy from pageable memory can (the pose grid planned
+    its next launch's uploads while the last one rendered; docs/decisions.md). A region is written
+    again only after the copy that read it has ended (an event recorded after each copy).
+    Thread-safe: the answer's thread uploads beside the loop's."""
+
+    #: The dtypes staged: the NumPy dtype each converts its host data to first (as ``wp.array``
+    #: does); a vector or matrix of float32 takes the trailing axes of its data.
+    SCALARS = {wp.float32: np.float32, float: np.float32, wp.int32: np.int32, wp.float64: np.float64}
+
+    def __init__(self, device, size: int, smallest: int = STAGED_MIN):
+        self.device, self.size, self.smallest = device, int(size), max(int(smallest), 1)
+        self.buffer = self.host = None  # allocated at the first upload staged
+        self.head = 0
+        self.pending = collections.deque()  # (start, stop, event) of the copies not yet known to have ended
+        self.lock = threading.Lock()
+
+    def upload(self, data, dtype) -> wp.array | None:
+        """``data`` (a NumPy array) as a new array of ``dtype`` on the device, its copy queued;
+        None where it is not staged (another type, or too large): the caller copies it itself."""
+        scalar = self.SCALARS.get(dtype) or (np.float32 if getattr(dtype, "_wp_scalar_type_", None) is wp.float32
+                                              else None)
+        if scalar is None or not isinstance(data, np.ndarray):
+            return None
+        host = np.ascontiguousarray(data, scalar)
+        inner = () if dtype in self.SCALARS else tuple(dtype._shape_)
+        shape = host.shape[:host.ndim - len(inner)]
+        if not shape or host.shape[len(shape):] != inner or not self.smallest <= host.nbytes <= self.size // 4:
+            return None
+        size = host.nbytes
+        with self.lock:
+            if self.buffer is None:
+                self.buffer = wp.empty(self.size, dtype=wp.uint8, device="cpu", pinned=True)
+                self.host = self.buffer.numpy()
+            start = tail = -(-self.head // 16) * 16  # aligned for every dtype
+            if start + size > self.size:  # wrapped: the tail [tail, end) is left, after its copies
+                start = 0
+            stop = start + size
+            # the regions ahead of the head, in the ring's order, hold the oldest copies
+            while self.pending and ((self.pending[0][0] < stop and start < self.pending[0][1])
+                                    or (start == 0 < tail <= self.pending[0][0])):
+                wp.synchronize_event(self.pending.popleft()[2])
+            self.head = stop
+            self.host[start:stop] = host.reshape(-1).view(np.uint8)
+            source = wp.array(ptr=self.buffer.ptr + start, dtype=dtype, shape=shape, device="cpu", pinned=True)
+            target = wp.empty(shape, dtype=dtype, device=self.device)
+            wp.copy(target, source)
+            self.pending.append((start, stop, wp.get_stream(self.device).record_event()))
+        return target
+
+
 class WarpBackend(Backend):
     """Warp on one device ("cpu", "cuda:N"). Create through ``get_backend("warp", device)``."""
 
@@ -109,9 +168,11 @@ class WarpBackend(Backend):
             wp.set_mempool_release_threshold(self._device, MEMPOOL_KEEP)
         self.has_float64 = True
         self._constants = Remembered(CONSTANTS)  # _constant's uploads
+        self._staging = _Staging(self._device, STAGING_BYTES) if self.is_gpu else None
 
     def _array(self, data: np.ndarray, dtype) -> wp.array:
-        return wp.array(data, dtype=dtype, device=self._device)
+        staged = None if self._staging is None else self._staging.upload(data, dtype)
+        return wp.array(data, dtype=dtype, device=self._device) if staged is None else staged
 
     def _constant(self, data: np.ndarray, dtype) -> wp.array:
         """``_array`` of a kernel input that no kernel writes, reused while the same bytes come
