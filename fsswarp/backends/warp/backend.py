@@ -44,7 +44,8 @@ CONSTANT_BYTES = 1 << 18
 CONSTANTS = 64
 #: Page-locked host memory (bytes) through which a GPU backend's uploads go (``_Staging``); an
 #: upload of more than a quarter of it, or under ``STAGED_MIN`` bytes, is copied from pageable
-#: memory, as before (a small copy returns at once; the ring's bookkeeping costs ~30 µs).
+#: memory, as before: the ring's bookkeeping in Python cost the 64 × 64 pose grid's start more than
+#: staging its small uploads saved (docs/decisions.md).
 STAGING_BYTES = 32 << 20
 STAGED_MIN = 64 << 10
 #: Held while a backend of this process loads a mesh (``WarpBackend._load_mesh``): Warp's BVH
