@@ -1078,6 +1078,25 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
     print(f"fsswarp: warning: {' '.join(str(message).split())}", file=sys.stderr)
 
 
+def run() -> None:
+    """The ``fsswarp`` command (console script and ``python -m fsswarp``): :func:`main`, then the
+    process's end. Its other threads are joined and its exit handlers run (child processes
+    stopped), and then it ends at once, without the interpreter's teardown, which took 0.3–0.5 s
+    of a command on a GPU host (docs/decisions.md); with a profiler or tracer attached, which
+    writes its results at the teardown, it ends as usual."""
+    import atexit
+    import threading
+
+    from .processes import exit_now
+
+    status = main()
+    if sys.gettrace() is not None or sys.getprofile() is not None:
+        sys.exit(status)
+    threading._shutdown()  # the interpreter's own first steps at its end: idle pools told to stop, threads joined
+    atexit._run_exitfuncs()
+    exit_now(status)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; returns the exit status."""
     try:

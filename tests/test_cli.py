@@ -187,3 +187,33 @@ def test_reconstruct_and_demo_start_the_mesh_processes_before_the_backend(coral_
     for command in (["reconstruct", str(coral_one.root)], ["demo", "coral-one"]):
         assert cli.main(["-q", *command, "--out", str(tmp_path / "z"), "--iterations", "0"]) == 2
     assert order == ["backend", "backend"]
+
+
+END_SCRIPT = """
+import atexit, concurrent.futures, sys
+pool = concurrent.futures.ThreadPoolExecutor(2)
+pool.submit(lambda: None).result()  # an idle pool's threads, as a warm-up leaves them
+mark = sys.argv[1]
+atexit.register(lambda: open(mark, "w").write("ran"))
+sys.argv = ["fsswarp", *sys.argv[2:]]
+from fsswarp.cli import run
+run()
+print("not reached")
+"""
+
+
+@pytest.mark.parametrize("args, status", [(["check", "{data}"], 0), (["check", "{data}/nowhere"], 2)])
+def test_the_command_ends_at_once_after_its_threads_and_exit_handlers(coral_one, tmp_path, args, status):
+    """``fsswarp.cli.run`` (the console script, ``python -m fsswarp``) ends the process with the
+    command's status once its exit handlers have run, without hanging on an idle thread pool and
+    without returning; with a profiler attached it ends as usual, so the profile is written."""
+    mark = tmp_path / "ran"
+    args = [a.format(data=coral_one.root) for a in args]
+    done = subprocess.run([sys.executable, "-c", END_SCRIPT, str(mark), *args], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == status, done.stderr
+    assert mark.read_text() == "ran" and "not reached" not in done.stdout
+    profile = tmp_path / "profile"
+    done = subprocess.run([sys.executable, "-m", "cProfile", "-o", str(profile), "-m", "fsswarp", *args],
+                          capture_output=True, text=True, timeout=120)
+    assert profile.stat().st_size > 0, done.stderr  # (cProfile itself swallows the command's SystemExit)
