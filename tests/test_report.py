@@ -24,7 +24,7 @@ def run_cli(*args):
 
 @pytest.fixture(scope="module")
 def reconstruction(coral_south, tmp_path_factory):
-    """One low-resolution reconstruction of coral-one, written by the command line: (folder, stdout)."""
+    """One low-resolution reconstruction of coral-one seen from the south, written by the command line: (folder, stdout)."""
     out = tmp_path_factory.mktemp("report") / "rec"
     done = run_cli("reconstruct", str(coral_south.root), "--out", str(out), "--iterations", "0", "--resolution", "32")
     assert done.returncode == 0, done.stderr
