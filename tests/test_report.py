@@ -24,7 +24,8 @@ def run_cli(*args):
 
 @pytest.fixture(scope="module")
 def reconstruction(coral_south, tmp_path_factory):
-    """One low-resolution reconstruction of coral-one seen from the south, written by the command line: (folder, stdout)."""
+    """One low-resolution reconstruction of coral-one seen from the south, written by the command
+    line: (folder, stdout)."""
     out = tmp_path_factory.mktemp("report") / "rec"
     done = run_cli("reconstruct", str(coral_south.root), "--out", str(out), "--iterations", "0", "--resolution", "32")
     assert done.returncode == 0, done.stderr
@@ -228,7 +229,8 @@ def test_a_folder_that_is_no_output_is_refused_and_nothing_is_written(coral_sout
         lines = done.stderr.strip().splitlines()
         assert len(lines) == 1 and needle in lines[0] and folder.name in lines[0], lines
         assert done.stdout == ""
-        assert sorted(p.name for p in tmp_path.rglob("*")) + sorted(p.name for p in coral_south.root.iterdir()) == before
+        after = sorted(p.name for p in tmp_path.rglob("*")) + sorted(p.name for p in coral_south.root.iterdir())
+        assert after == before
 
 
 @pytest.mark.parametrize("change, needle", [
