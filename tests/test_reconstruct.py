@@ -897,31 +897,6 @@ def test_a_reconstruction_carves_each_pose_once(coral_one, monkeypatch):
     assert comparison.used == [first.mesh, "mesh of voxels 1", "mesh of voxels 2"]
 
 
-def test_meshes_made_in_processes_give_the_same_reconstruction(one_iteration, coral_one, monkeypatch):
-    """With two mesh processes (the carvings that the loop and the answer know ahead are meshed
-    there) the reconstruction is the one made without them, bit for bit."""
-    from fsswarp.backends import get_backend
-    from fsswarp.carving import MeshJob
-
-    started, job = [], MeshJob.__init__
-
-    def spy(self, *args, **kwargs):
-        job(self, *args, **kwargs)
-        started.append(self.future is not None)
-
-    monkeypatch.setattr(MeshJob, "__init__", spy)
-    monkeypatch.setenv("FSSWARP_MESH_WORKERS", "2")
-    result = reconstruct(coral_one, settings=FAST, backend=get_backend("opencl"))
-    assert len(started) >= 3 and all(started)  # the answer's tilt check's three at least
-    expected = one_iteration[0]
-    assert np.array_equal(result.model.vertices, expected.model.vertices)
-    assert np.array_equal(result.model.faces, expected.model.faces)
-    summary, summary_expected = result.summary(), expected.summary()
-    for made in (summary, summary_expected):
-        made.pop("seconds")
-    assert json.dumps(summary) == json.dumps(summary_expected)
-
-
 def test_a_resting_pose_step_has_the_best_pose_carved_ahead(coral_one, monkeypatch):
     """Where mesh processes run and the pose step finds nothing better, the loop starts the best
     pose's carving (its mesh in a process), which the answer's first model is made from; with
@@ -977,34 +952,49 @@ def _refusing_pose_steps(monkeypatch):
 
 def test_the_answer_worked_out_ahead_and_its_models_refined_in_threads_give_the_answer_found_in_turn(
         coral_one, monkeypatch):
-    """Two ReconstructSettings, both off and both on (two loops, not four):
+    """Two ReconstructSettings and the mesh processes, all off and all on (two loops, not eight):
     - ``answer_ahead``: once a pose step finds nothing better, the answer's pose is worked out in
       a thread of its own while the loop's shape steps go on, not at the loop's end;
     - ``answer_threads``: the answer's three models (kept, held, carving) are refined side by
       side, two of them in threads with comparisons of their own. Threads are taken on GPUs alone
-      (``_threads_pay``), here said to pay on any backend.
-    Either way the same reconstruction (result, history, model, and the answer's lines in the
-    same place; the truth's lines come when ready and are left out)."""
+      (``_threads_pay``), here said to pay on any backend;
+    - two mesh processes (FSSWARP_MESH_WORKERS): the carvings that the loop and the answer know
+      ahead are meshed there.
+    Either way the same reconstruction, bit for bit (result, history, model, and the answer's
+    lines in the same place; the truth's lines come when ready and are left out)."""
     import threading
 
     from fsswarp.backends import get_backend
+    from fsswarp.carving import MeshJob
 
+    started, job = [], MeshJob.__init__
+
+    def spy(self, *args, **kwargs):
+        job(self, *args, **kwargs)
+        started.append(self.future is not None)
+
+    monkeypatch.setattr(MeshJob, "__init__", spy)
     _refusing_pose_steps(monkeypatch)
     monkeypatch.setattr(reconstruct_module, "_threads_pay", lambda backend: True)
     pose_threads = _thread_names(monkeypatch, reconstruct_module, "_answer_pose")
     model_threads = _thread_names(monkeypatch, reconstruct_module, "refine_shape")
-    runs, poses, models = {}, {}, {}
+    runs, poses, models, meshed = {}, {}, {}, {}
     for on in (False, True):
         lines, seen = [], (len(pose_threads), len(model_threads))
+        started.clear()
+        monkeypatch.setenv("FSSWARP_MESH_WORKERS", "2" if on else "0")
         result = reconstruct(coral_one, settings=dataclasses.replace(FAST, iterations=2, answer_ahead=on,
                                                                      answer_threads=on),
                              backend=get_backend("opencl"), progress=lines.append)
+        meshed[on] = list(started)
         summary = result.summary()
         del summary["seconds"]
         runs[on] = (json.dumps(summary, sort_keys=True), result.model.vertices, result.model.faces,
                     [line for line in lines if "against the truth" not in line])
         poses[on], models[on] = pose_threads[seen[0]:], model_threads[seen[1]:]
     assert poses == {False: ["MainThread"], True: ["fsswarp-answer"]}
+    assert len(meshed[True]) >= 3 and all(meshed[True])  # the answer's tilt check's three at least
+    assert meshed[False] and not any(meshed[False])
     assert any(line.startswith("the answer: refined there") for line in runs[True][3])
     assert sum(name.startswith("fsswarp-answer-model") for name in models[True]) == 2
     assert not any(name.startswith("fsswarp-answer-model") for name in models[False])
