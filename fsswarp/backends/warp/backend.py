@@ -124,16 +124,17 @@ class _Staging:
     def upload(self, data, dtype) -> wp.array | None:
         """``data`` (a NumPy array) as a new array of ``dtype`` on the device, its copy queued;
         None where it is not staged (another type, or too large): the caller copies it itself."""
-        scalar = self.SCALARS.get(dtype) or (np.float32 if getattr(dtype, "_wp_scalar_type_", None) is wp.float32
-                                              else None)
+        scalar = self.SCALARS.get(dtype)
+        inner = ()
+        if scalar is None and getattr(dtype, "_wp_scalar_type_", None) is wp.float32:
+            scalar, inner = np.float32, tuple(dtype._shape_)
         if scalar is None or not isinstance(data, np.ndarray):
             return None
-        host = np.ascontiguousarray(data, scalar)
-        inner = () if dtype in self.SCALARS else tuple(dtype._shape_)
-        shape = host.shape[:host.ndim - len(inner)]
-        if not shape or host.shape[len(shape):] != inner or not self.smallest <= host.nbytes <= self.size // 4:
+        shape = data.shape[:data.ndim - len(inner)]
+        size = data.size * np.dtype(scalar).itemsize  # judged before converting: most uploads are small
+        if not shape or data.shape[len(shape):] != inner or not self.smallest <= size <= self.size // 4:
             return None
-        size = host.nbytes
+        host = np.ascontiguousarray(data, scalar)
         with self.lock:
             if self.buffer is None:
                 self.buffer = wp.empty(self.size, dtype=wp.uint8, device="cpu", pinned=True)
