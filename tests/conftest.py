@@ -90,9 +90,7 @@ def coral_one(tmp_path_factory):
     OpenCL backend when present): the loaded Dataset (its ``root`` is the folder)."""
     from fsswarp.simulation import simulate
 
-    rows = [r for r in _rows() if r["backend"] == "opencl" and r["kind"] == "cpu" and r["available"]]
-    backend = get_backend("opencl", rows[0]["index"]) if rows else get_backend()
-    return simulate("coral-one", tmp_path_factory.mktemp("carve") / "coral-one", seed=1, backend=backend)
+    return simulate("coral-one", tmp_path_factory.mktemp("carve") / "coral-one", seed=1, backend=_simulating_backend())
 
 
 @pytest.fixture(scope="session")
@@ -102,7 +100,11 @@ def coral_south(tmp_path_factory):
     from fsswarp.scenes import builtin_scene
     from fsswarp.simulation import simulate
 
-    rows = [r for r in _rows() if r["backend"] == "opencl" and r["kind"] == "cpu" and r["available"]]
-    backend = get_backend("opencl", rows[0]["index"]) if rows else get_backend()
     return simulate(builtin_scene("coral-one", positions="S"), tmp_path_factory.mktemp("carve") / "coral-south",
-                    seed=1, backend=backend)
+                    seed=1, backend=_simulating_backend())
+
+
+def _simulating_backend():
+    """The session datasets' backend: OpenCL on a CPU device where present, else fsswarp's choice."""
+    rows = [r for r in _rows() if r["backend"] == "opencl" and r["kind"] == "cpu" and r["available"]]
+    return get_backend("opencl", rows[0]["index"]) if rows else get_backend()
