@@ -784,11 +784,11 @@ def demo(state: State, scene_name: str, out: Path, seed: int, iterations: int) -
             state.echo(f"  {len(dataset.images)} noisy views in {time.perf_counter() - start:.1f} s")
             settings = ReconstructSettings(iterations=iterations)
 
-            def enhancement(result) -> None:  # before the report's views, so its figures are drawn first
-                run_enhancement(state, dataset, result.model, "the reconstructed model", result.depth, result.tilt,
-                                tmp / "enhance", drawer, source="estimated",
-                                initial=(result.carved, "the carved model"), shown=out / "enhance",
-                                dataset_label=out / "dataset", name=Path(scene_name).stem, later=later)
+            def enhancement(result) -> dict:  # before the report's views, so its figures are drawn first
+                return run_enhancement(state, dataset, result.model, "the reconstructed model", result.depth,
+                                       result.tilt, tmp / "enhance", drawer, source="estimated",
+                                       initial=(result.carved, "the carved model"), shown=out / "enhance",
+                                       dataset_label=out / "dataset", name=Path(scene_name).stem, later=later)
 
             run_reconstruction(state, dataset, tmp / "reconstruction", settings, drawer, shown=out / "reconstruction",
                                name=Path(scene_name).stem, later=later, before_report=enhancement)
@@ -810,7 +810,8 @@ def run_reconstruction(state: State, dataset, out: Path, settings, drawer, *, de
     whose closing finishes OUT (its figures, the report, the rename; default: before returning).
     ``before_report``: called with the result once the summary is said and the figures are
     queued, before the report's views (the demo's enhancement: its figures, the slowest, are then
-    drawn before the report's)."""
+    drawn before the report's); what it returns, the views enhanced with the final model at the
+    estimate ({view: EnhancedView}), the report's rows show (``write_report``'s ``enhanced``)."""
     from .atomic import output_folder
     from .compare import PoseWarning, view_contours
     from .figures import carve_figure, contours_figure, history_figure, pose_figure
@@ -850,11 +851,12 @@ def run_reconstruction(state: State, dataset, out: Path, settings, drawer, *, de
             draw(pose_figure, result.pose_steps[0], tmp / "figures" / "pose.png",
                  truth=None if truth is None else (truth.depth, truth.tilt),
                  title="first pose step: the (D, tilt) grid search around the measured values")
+        enhanced = None
         if before_report is not None:
             _say_reconstructed(state, dataset, result, shown or out)
-            before_report(result)
+            enhanced = before_report(result)
         write_report(tmp, dataset=dataset, backend=backend, command=command_line(), name=name, drawer=drawer,
-                     later=finish)
+                     later=finish, enhanced=enhanced)
     if before_report is None:
         _say_reconstructed(state, dataset, result, shown or out)
     return result
@@ -949,7 +951,7 @@ def enhance(state: State, dataset_dir: Path, model: Path, out: Path, depth, tilt
 
 def run_enhancement(state: State, dataset, mesh, model_name: str, depth: float, tilt: float, out: Path, drawer, *,
                     views=None, source: str, initial=None, ghost_sigma=(0.0, 0.0), shown: Path | None = None,
-                    dataset_label: Path | None = None, name: str | None = None, later: ExitStack | None = None) -> None:
+                    dataset_label: Path | None = None, name: str | None = None, later: ExitStack | None = None) -> dict:
     """Enhance ``dataset``'s views with ``mesh`` at (depth m, tilt rad) and write OUT/<view>_enhanced.tiff,
     <view>_ghost.tiff, enhance.json, enhance.png and the comparison figures (COMPARISON_FIGURES; a
     group with no view gets none; ``fsswarp.outputs``), the figures drawn by ``drawer`` (a
@@ -958,7 +960,8 @@ def run_enhancement(state: State, dataset, mesh, model_name: str, depth: float, 
     fsswarp.enhancement.enhance_view. ``shown``, ``dataset_label``:
     the names of OUT and of the dataset's folder in messages and enhance.json, when they are
     temporary folders; ``name``: the scene's in titles (default the dataset folder's); ``later``:
-    an ExitStack whose closing finishes OUT (its figures, the rename; default: before returning)."""
+    an ExitStack whose closing finishes OUT (its figures, the rename; default: before returning).
+    Returns the enhanced views, {view: fsswarp.enhancement.EnhancedView}."""
     import time
 
     import numpy as np
@@ -1028,6 +1031,7 @@ def run_enhancement(state: State, dataset, mesh, model_name: str, depth: float, 
                          "the data's mean over its returns")
     state.echo(f"wrote {shown or out}: {len(results)} views, enhance.json, enhance.png"
                + "".join(f", {file}" for file in figures) + f" ({time.perf_counter() - start:.1f} s)")
+    return results
 
 
 def describe_manifest(manifest) -> str:

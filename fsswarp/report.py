@@ -85,7 +85,7 @@ def check_folder(folder, dataset_dir=None) -> Path:
 # --- one reconstruction ----------------------------------------------------------------------
 
 def write_report(folder, *, dataset=None, dataset_dir=None, backend=None, command: str = "", name: str | None = None,
-                 drawer=None, later: ExitStack | None = None) -> Path:
+                 drawer=None, later: ExitStack | None = None, enhanced: dict | None = None) -> Path:
     """Write FOLDER/report.html for the reconstruction in FOLDER (result.json, model.ply,
     carved.ply) of ``dataset`` (a loaded Dataset), or of the dataset folder ``dataset_dir``,
     else the one result.json names, else FOLDER/../dataset of a demo. ``backend`` renders the
@@ -93,7 +93,10 @@ def write_report(folder, *, dataset=None, dataset_dir=None, backend=None, comman
     titles (default: the demo's scene, else the dataset folder's name); ``drawer``: a
     ``fsswarp.figures.FigureDrawer`` for the figures (None: drawn here). ``later``: an ExitStack
     whose closing writes the page once its figures are drawn (default: before returning), so
-    that the caller goes on while they are. Returns the page's path."""
+    that the caller goes on while they are. ``enhanced``: the caller's enhancement
+    (``fsswarp.enhancement.enhance``) of the views with FOLDER's final model at its estimate,
+    {view: EnhancedView}, which the views' rows then show instead of enhancing them again (the
+    demo's); a view it lacks is shown as not enhanced. Returns the page's path."""
     from .backends import get_backend
     from .dataset import read_mesh
 
@@ -110,7 +113,7 @@ def write_report(folder, *, dataset=None, dataset_dir=None, backend=None, comman
     name = name or _scene_name(folder, dataset)
     stages = {"read the reconstruction and the dataset": time.perf_counter() - started}
     begin = time.perf_counter()
-    rows, skipped = _view_rows(dataset, result, meshes, backend)
+    rows, skipped = _view_rows(dataset, result, meshes, backend, enhanced)
     stages["render the views and remove the ghosts"] = time.perf_counter() - begin
     begin = time.perf_counter()
 
@@ -179,9 +182,11 @@ def _scene_name(folder: Path, dataset) -> str:
     return dataset.root.name if dataset.root is not None else folder.name
 
 
-def _view_rows(dataset, result: dict, meshes: dict, backend) -> tuple[dict, dict]:
+def _view_rows(dataset, result: dict, meshes: dict, backend, enhanced: dict | None = None) -> tuple[dict, dict]:
     """Per view, the figure's columns: {view: {column: (bins, beams) linear image}}, in rig
-    order, and {view: why it is left out} for the views the final model does not reach."""
+    order, and {view: why it is left out} for the views the final model does not reach.
+    ``enhanced``: the views enhanced with the final model at the estimate already
+    (:func:`write_report`), else enhanced here."""
     from .enhancement import enhance, match_level, render_model
     from .rendering import LAYERS, RenderWarning
 
@@ -195,8 +200,9 @@ def _view_rows(dataset, result: dict, meshes: dict, backend) -> tuple[dict, dict
     names = list(dataset.rig.names)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", RenderWarning)
-        enhanced = enhance(dataset, meshes["final"], depth, tilt, views=names, backend=backend,
-                           model_name="the final model")
+        if enhanced is None:
+            enhanced = enhance(dataset, meshes["final"], depth, tilt, views=names, backend=backend,
+                               model_name="the final model")
         carved = render_model(meshes["carved"], dataset, depth0, tilt0, list(enhanced), backend=backend,
                               model_name="the carved model")
     total = LAYERS.index("total")

@@ -569,9 +569,10 @@ def test_the_demo_simulates_reconstructs_and_draws_its_figures_while_it_goes_on(
     """The command writes its three folders (the dataset passes ``check``). Run again over its own
     output, in this process, it replaces it silently; the reconstruction's figures and report
     are finished when the demo ends, not before the enhancement starts (their figures are drawn
-    meanwhile); the enhancement's figures, the slowest, are queued before the report's views; an
-    error after them leaves no output and no temporary folder. (Three demos in one test: each
-    takes ~10 s on CI's machine.)"""
+    meanwhile); the enhancement's figures, the slowest, are queued before the report's views,
+    whose rows show the enhancement's views (the views are enhanced once); an error after them
+    leaves no output and no temporary folder. (Three demos in one test: each takes ~10 s on
+    CI's machine.)"""
     out = tmp_path / "demo"
     done = run_cli("demo", "coral-one", "--out", str(out), "--iterations", "0")
     assert done.returncode == 0, done.stderr
@@ -585,6 +586,7 @@ def test_the_demo_simulates_reconstructs_and_draws_its_figures_while_it_goes_on(
     first_model = (out / "reconstruction" / "model.ply").stat().st_mtime_ns
 
     import fsswarp.cli as cli
+    import fsswarp.enhancement
     from fsswarp.processes import WorkerProcesses
 
     monkeypatch.setenv("FSSWARP_FIGURE_WORKERS", "2")
@@ -602,17 +604,26 @@ def test_the_demo_simulates_reconstructs_and_draws_its_figures_while_it_goes_on(
         reconstruction = list(out.parent.glob(".reconstruction.*.tmp"))
         seen.append([(folder / "result.json").is_file() for folder in reconstruction]
                     + [(folder / "report.html").exists() for folder in reconstruction])
-        enhance(state, dataset, mesh, model_name, depth, tilt, out, *args, **kwargs)
+        enhanced = enhance(state, dataset, mesh, model_name, depth, tilt, out, *args, **kwargs)
         if fail:
             raise InputError("stopped here", field="test")
+        return enhanced
 
     monkeypatch.setattr(cli, "run_enhancement", watched)
+    enhancements, enhance_views = [], fsswarp.enhancement.enhance
+
+    def counted(*args, **kwargs):
+        enhancements.append(args[2:4])  # (depth, tilt)
+        return enhance_views(*args, **kwargs)
+
+    monkeypatch.setattr(fsswarp.enhancement, "enhance", counted)
     fail = False
     capsys.readouterr()
     assert cli.main(["-q", "--backend", "opencl", "demo", "coral-one", "--out", str(out), "--iterations", "0"]) == 0
     assert capsys.readouterr().out == ""  # replaced its own earlier output, silently
     assert (out / "reconstruction" / "model.ply").stat().st_mtime_ns != first_model
     assert seen == [[True, False]]  # written, its page not yet
+    assert len(enhancements) == 1  # by the enhancement; the report's rows show its views
     last_enhancement = max(i for i, name in enumerate(queued) if name in ("enhance_figure", "comparison_figure"))
     assert queued.index("carve_figure") < last_enhancement < queued.index("views_figure")
     for name in ("reconstruction/report.html", "reconstruction/figures/history.png", "enhance/enhance.png",

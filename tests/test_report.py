@@ -82,13 +82,17 @@ def variants(reconstruction, coral_south, tmp_path_factory):
     return {"written by reconstruct": folder, "with the fusion keys": target, "without them": bare}
 
 
-def test_a_page_finished_later_is_the_page_written_at_once(reconstruction, coral_south, tmp_path):
+def test_a_page_finished_later_is_the_page_written_at_once(reconstruction, coral_south, tmp_path, monkeypatch):
     """``write_report(later=stack)`` writes nothing until the stack closes, then the page that
     ``write_report`` writes at once (all but "how it was made": times and folder); an error
-    before the stack closes writes no page."""
+    before the stack closes writes no page. Given the views enhanced already (``enhanced``, as
+    the demo gives its enhancement), it shows them and enhances nothing again: the same page."""
+    import math
     from contextlib import ExitStack
 
+    import fsswarp.enhancement
     from fsswarp.backends import get_backend
+    from fsswarp.dataset import read_mesh
     from fsswarp.figures import FigureDrawer
     from fsswarp.report import write_report
 
@@ -97,14 +101,24 @@ def test_a_page_finished_later_is_the_page_written_at_once(reconstruction, coral
     now, later_folder, failing = (copy_with(folder, tmp_path / name, lambda result: None)
                                   for name in ("now", "later", "failing"))
     write_report(now, dataset=coral_south, backend=backend, name="coral-one")
+    result = json.loads((folder / "result.json").read_text())
+    model = read_mesh(folder / "model.ply", field="model.ply")
+    enhanced = fsswarp.enhancement.enhance(coral_south, model, result["depth_m"], math.radians(result["tilt_deg"]),
+                                           backend=backend, model_name="the final model")
+
+    def again(*args, **kwargs):
+        raise AssertionError("enhanced again")
+
+    monkeypatch.setattr(fsswarp.enhancement, "enhance", again)
     drawer = FigureDrawer(2)
     try:
         with ExitStack() as later:
             page = write_report(later_folder, dataset=coral_south, backend=backend, name="coral-one", drawer=drawer,
-                                later=later)
+                                later=later, enhanced=enhanced)
             assert page == later_folder / "report.html" and not page.exists()
         with pytest.raises(RuntimeError, match="stop"), ExitStack() as later:
-            write_report(failing, dataset=coral_south, backend=backend, name="coral-one", drawer=drawer, later=later)
+            write_report(failing, dataset=coral_south, backend=backend, name="coral-one", drawer=drawer, later=later,
+                         enhanced=enhanced)
             raise RuntimeError("stop")
     finally:
         drawer.close()
