@@ -40,7 +40,7 @@ from .dataset import deep_water_pose
 from .errors import InputError, check_depth_tilt, check_integer, is_finite_number, is_integer
 from .rendering import signed_volume
 from .rig import to_view
-from .segment import Segmentation, SegmentSettings, segment
+from .segment import Segmentation, SegmentSettings, segment_views
 from .sonar import SonarSpec, from_polar, to_polar
 from .surface import surface_in_reference
 
@@ -164,17 +164,16 @@ def carve(dataset, depth: float | None = None, tilt: float | None = None, *, res
 
     start = time.perf_counter()
     segmentation: dict[str, Segmentation] = {}
-    feasible = {}
-    for name in names:
-        if masks is not None:
-            feasible[name] = np.asarray(masks[name], bool)
-            continue
+    if masks is not None:
+        feasible = {name: np.asarray(masks[name], bool) for name in names}
+    else:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # reported once below, as a CarveWarning
-            segmentation[name] = dataset.derived(  # a reconstruction carves the same images at many poses
-                ("segment", name, settings.segment),
-                lambda: segment(dataset.images[name], settings.segment, name=f"images/{name}"))
-        feasible[name] = segmentation[name].feasible
+            segmentation = dict(dataset.derived(  # a reconstruction carves the same images at many poses
+                ("segment", tuple(names), settings.segment),
+                lambda: segment_views({name: dataset.images[name] for name in names}, settings.segment,
+                                      label="images/{}")))
+        feasible = {name: segmentation[name].feasible for name in names}
     timings["segment_s"] = time.perf_counter() - start
     empty = [n for n in names if not feasible[n].any()]
     if empty:

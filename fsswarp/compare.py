@@ -38,7 +38,7 @@ from .icp import CONTOUR_TOL, icp_many
 from .metrics import view_errors
 from .motion import patch_motions
 from .rendering import RenderSettings, check_mesh
-from .segment import SegmentSettings, memoized, normalized, segment
+from .segment import SegmentSettings, memoized, normalized, segment_views
 from .surface import mirror_points, surface_in_reference, view_planes
 
 #: γ and surface reflection of every synthetic view of a comparison: the renderer's defaults.
@@ -681,7 +681,8 @@ def _view_highlights(dataset, views, settings: SegmentSettings):
     names = [dataset.rig.views[i].name for i in views]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # views without a highlight get no contour
-        highlight = np.stack([segment(dataset.images[n], settings, name=f"images/{n}").highlight for n in names])
+        segmented = segment_views({n: dataset.images[n] for n in names}, settings, label="images/{}")
+    highlight = np.stack([segmented[n].highlight for n in names])
     threshold = np.stack([detection_threshold(dataset.images[n], settings) for n in names])
     highlight.setflags(write=False)
     threshold.setflags(write=False)

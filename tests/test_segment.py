@@ -18,7 +18,8 @@ import pytest
 from fsswarp.errors import InputError
 from fsswarp.rendering import add_noise
 from fsswarp.compare import detection_threshold
-from fsswarp.segment import SPIKE_RATIO, SegmentSettings, SegmentWarning, clip_spikes, from_highlight, segment
+from fsswarp.segment import (SPIKE_RATIO, SegmentSettings, SegmentWarning, clip_spikes, from_highlight, segment,
+                             segment_views)
 from fsswarp.surface import COMPONENTS
 
 
@@ -98,6 +99,41 @@ def test_noise_alone_has_no_highlight():
     assert seg.empty and not seg.feasible.any() and (seg.contour == -1).all()
     with pytest.warns(SegmentWarning):
         assert segment(np.zeros((512, 96), np.float32)).empty
+
+
+def test_views_segmented_side_by_side_are_each_segmented_alone(coral_one, monkeypatch):
+    """``segment_views`` in threads (nothing kept from before) gives each view's ``segment``, mask
+    for mask; an image without highlight warns in its place in the order, and a bad image is
+    refused by its label."""
+    import concurrent.futures
+
+    import fsswarp.segment as module
+
+    names = list(coral_one.rig.names)
+    images = {names[0]: coral_one.images[names[0]], "blank": np.zeros((512, 96), np.float32)}
+    images |= {name: coral_one.images[name] for name in names[1:]} | {"zeros": np.zeros((64, 8))}
+    pools, made = [], concurrent.futures.ThreadPoolExecutor
+
+    def counted(workers, **kwargs):
+        pools.append(workers)
+        return made(workers, **kwargs)
+
+    monkeypatch.setattr(concurrent.futures, "ThreadPoolExecutor", counted)
+    monkeypatch.setattr("fsswarp.system.usable_cpus", lambda: 4)
+    module._memo.clear()
+    with pytest.warns(SegmentWarning) as caught:
+        together = segment_views(images, label="images/{}")
+    assert pools == [4] and list(together) == list(images)
+    assert [str(w.message).split(":")[0] for w in caught] == ["images/blank", "images/zeros"]
+    module._memo.clear()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SegmentWarning)
+        for name, image in images.items():
+            alone = segment(image, name=name)
+            for field in ("highlight", "feasible", "shadow", "contour"):
+                assert np.array_equal(getattr(together[name], field), getattr(alone, field)), (name, field)
+    with pytest.raises(InputError, match="images/bad"):
+        segment_views({names[0]: images[names[0]], "bad": np.full((4, 4), -1.0)}, label="images/{}")
 
 
 def test_noise_free_image_and_range_gain():
