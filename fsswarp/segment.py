@@ -126,8 +126,8 @@ def segment_views(images: dict, settings: SegmentSettings = SegmentSettings(), *
     return dict(zip(arrays, results))
 
 
-#: Threads of :func:`segment_views`: coral-one's 16 views took 0.31 s one after another and
-#: 0.17 s in two threads on this project's 2-CPU machine (bench/notes.md, forty-second session).
+#: Threads of :func:`segment_views`: coral-one's 16 views took 0.146 s one after another and
+#: 0.084 s in two threads on this project's 2-CPU machine (bench/notes.md, forty-second session).
 SEGMENT_THREADS = 8
 
 
