@@ -27,7 +27,6 @@ from __future__ import annotations
 import io
 import math
 import tomllib
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path, PurePosixPath
 from typing import Any
@@ -41,7 +40,7 @@ from .errors import InputError, check_number, is_number
 from .rig import Rig, View
 from .sonar import SonarSpec
 from .surface import COMPONENTS
-from .system import usable_cpus
+from .system import map_on_threads
 from .targets import BUILTIN_TARGETS
 
 #: The manifest's file name inside a dataset folder.
@@ -884,10 +883,7 @@ def tiff_bytes(images: dict) -> dict:
         tifffile.imwrite(buffer, np.ascontiguousarray(array), compression="zlib")
         return buffer.getvalue()
 
-    if len(images) < 2:
-        return {key: encode(array) for key, array in images.items()}
-    with ThreadPoolExecutor(min(len(images), usable_cpus())) as pool:
-        return dict(zip(images, pool.map(encode, images.values())))
+    return dict(zip(images, map_on_threads(encode, images.values(), name="fsswarp-tiff")))
 
 
 def _mesh_bytes(mesh) -> bytes:

@@ -106,21 +106,15 @@ def segment(image, settings: SegmentSettings = SegmentSettings(), *, name: str =
 def segment_views(images: dict, settings: SegmentSettings = SegmentSettings(), *,
                   label: str = "{}") -> dict[str, Segmentation]:
     """:func:`segment` of every image of ``images`` ({name: (bins, beams) image}), worked out side
-    by side in threads (at most ``SEGMENT_THREADS`` and the CPUs this process may use: the
+    by side in threads (``fsswarp.system.map_on_threads``, at most ``SEGMENT_THREADS``: the
     filters and the labelling release the interpreter's lock): {name: Segmentation}, the same
     ones, with the same errors and warnings in the order of ``images``. ``label``: an image's
     name in them, formatted with its key (e.g. "images/{}")."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    from .system import usable_cpus
+    from .system import map_on_threads
 
     arrays = {key: _checked(image, label.format(key)) for key, image in images.items()}
-    threads = min(len(arrays), usable_cpus(), SEGMENT_THREADS)
-    if threads > 1:
-        with ThreadPoolExecutor(threads, thread_name_prefix="fsswarp-segment") as pool:
-            results = list(pool.map(lambda array: _segmentation(array, settings), arrays.values()))
-    else:
-        results = [_segmentation(array, settings) for array in arrays.values()]
+    results = map_on_threads(lambda array: _segmentation(array, settings), arrays.values(), most=SEGMENT_THREADS,
+                             name="fsswarp-segment")
     for key, result in zip(arrays, results):
         _warn_if_empty(result, label.format(key))
     return dict(zip(arrays, results))

@@ -1,5 +1,6 @@
-"""Facts about the host machine (the CPUs this process may use, the memory installed), and how
-the process's memory allocator keeps what NumPy frees (``keep_freed_memory``).
+"""Facts about the host machine (the CPUs this process may use, the memory installed), work
+spread over those CPUs in threads (``map_on_threads``), and how the process's memory allocator
+keeps what NumPy frees (``keep_freed_memory``).
 
 Part of the model layer: imports nothing from the pipeline or the backends.
 """
@@ -28,6 +29,20 @@ def usable_cpus() -> int:
     """CPUs this process may use: its affinity where the system tells it (a container given
     some of a host's CPUs), else every CPU."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def map_on_threads(function, items, *, most: int | None = None, name: str = "fsswarp-thread") -> list:
+    """``[function(item) for item in items]``, worked out on threads (one per item, at most the CPUs
+    this process may use and ``most``), for work that releases the interpreter's lock (zlib,
+    NumPy, SciPy and scikit-image filters); in this thread where one would do."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    items = list(items)
+    threads = min(len(items), usable_cpus(), len(items) if most is None else most)
+    if threads < 2:
+        return [function(item) for item in items]
+    with ThreadPoolExecutor(threads, thread_name_prefix=name) as pool:
+        return list(pool.map(function, items))
 
 
 def keep_freed_memory() -> bool:

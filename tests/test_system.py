@@ -1,5 +1,6 @@
-"""The allocator setting of fsswarp.system: importing fsswarp lets glibc keep the memory of freed
-NumPy temporaries (``keep_freed_memory``), unless the environment tunes glibc's allocator itself."""
+"""fsswarp.system: importing fsswarp lets glibc keep the memory of freed NumPy temporaries
+(``keep_freed_memory``), unless the environment tunes glibc's allocator itself; work mapped on
+threads (``map_on_threads``)."""
 
 import os
 import platform
@@ -46,3 +47,28 @@ def test_importing_fsswarp_keeps_freed_memory_unless_the_environment_tunes_the_a
     mapped, kept, applied = _run({**env, "GLIBC_TUNABLES": "glibc.malloc.tcache_count=7"})
     assert applied == "False" and mapped >= (16 << 20) and kept < (8 << 20)  # mapped apart, then unmapped
     assert _run({**env, "MALLOC_ARENA_MAX": "4"})[2] == "False"
+
+
+def test_work_mapped_on_threads_comes_back_in_order_on_at_most_the_cpus_and_the_cap(monkeypatch):
+    """One thread per item, at most the usable CPUs and ``most``; the results in the items' order;
+    one item, one CPU or a cap of one: no threads at all."""
+    import threading
+    import time
+
+    import fsswarp.system as system
+
+    def work(k):
+        time.sleep(0.01 * (5 - k))  # the first items end last
+        return k * k, threading.current_thread().name
+
+    monkeypatch.setattr(system, "usable_cpus", lambda: 3)
+    results = system.map_on_threads(work, range(5), name="fsswarp-test")
+    assert [value for value, _ in results] == [0, 1, 4, 9, 16]
+    names = {name for _, name in results}
+    assert len(names) == 3 and all(name.startswith("fsswarp-test") for name in names)
+    assert len({name for _, name in system.map_on_threads(work, range(5), most=2)}) == 2
+    here = threading.current_thread().name
+    assert {name for _, name in system.map_on_threads(work, range(5), most=1)} == {here}
+    assert system.map_on_threads(work, [2]) == [(4, here)]
+    monkeypatch.setattr(system, "usable_cpus", lambda: 1)
+    assert {name for _, name in system.map_on_threads(work, range(5))} == {here}
